@@ -1,0 +1,239 @@
+"""The ``pcfbench`` command line."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+from pathlib import Path
+
+import click
+
+import bench
+from bench import config
+from bench.errors import PcfbenchError
+from bench.plugins import get_plugins, warn_failed
+from bench.protocol import SAMPLE_POLICIES, SETTINGS, get_setting
+
+
+def parse_method_spec(text: str) -> tuple[str, dict[str, str]]:
+    """``name`` or ``name:key=value,key=value`` into the name and raw option strings."""
+    name, _, rest = text.partition(":")
+    options: dict[str, str] = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise PcfbenchError(f"--method {text!r}: option {item!r} must look like key=value")
+        options[key.strip()] = value.strip()
+    return name, options
+
+
+class Group(click.Group):
+    """Turns PcfbenchError into one clear line and a non-zero exit."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except PcfbenchError as exc:
+            click.echo(f"pcfbench: error: {exc}", err=True)
+            sys.exit(2)
+
+
+@click.group(cls=Group)
+@click.version_option(bench.__version__, prog_name="pcfbench")
+def cli() -> None:
+    """Benchmark LiDAR point-cloud forecasting methods under one exact protocol."""
+
+
+def _selected_methods(plugins, requested: tuple[str, ...]) -> list[tuple[str, dict[str, str]]]:
+    if requested:
+        out = [parse_method_spec(m) for m in requested]
+        for name, _ in out:
+            plugins.methods.get(name)  # unknown name or broken plugin: fail now, before any work
+        return out
+    out = []
+    for name in plugins.methods.names():
+        try:
+            cls = plugins.methods.get(name)
+        except PcfbenchError as exc:
+            click.echo(f"pcfbench: warning: skipping {exc}", err=True)
+            continue
+        if getattr(cls, "ready", True):
+            out.append((name, {}))
+    return out
+
+
+def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> list[tuple[str, str]]:
+    names, cli_roots = config.parse_dataset_args(dataset_args)
+    if not names:
+        names = [n for n in plugins.datasets.names() if getattr(plugins.datasets.get(n), "embedded", False)]
+        if not names:
+            raise PcfbenchError("no dataset named and no embedded dataset registered: use --dataset NAME=ROOT")
+    out = []
+    for name in names:
+        cls = plugins.datasets.get(name)
+        root = config.dataset_root(name, cli_roots)
+        if root is None:
+            root = str(cls.default_root(progress=progress))
+        elif not Path(root).exists():
+            raise PcfbenchError(f"dataset {name!r}: root {root} does not exist")
+        out.append((name, root))
+    return out
+
+
+@cli.command()
+@click.option("--dataset", "-d", "datasets", multiple=True, metavar="NAME[=ROOT]", help="Dataset (repeatable).")
+@click.option("--setting", "-s", "settings", multiple=True, help="Setting, e.g. kitti-1s (repeatable).")
+@click.option("--split", "splits", multiple=True, help="Split (repeatable); default: the dataset's evaluation split.")
+@click.option("--method", "-m", "methods", multiple=True, metavar="NAME[:k=v,...]", help="Method (repeatable).")
+@click.option("--metric", "metrics", multiple=True, help="Metric (repeatable); default: every registered metric.")
+@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True)
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (partial: kept out of leaderboards).")
+@click.option("--jobs", "-j", type=click.IntRange(min=1), default=1, show_default=True, help="Worker processes.")
+@click.option("--force", is_flag=True, help="Recompute cells that are already complete.")
+@click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
+@click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
+@click.option("--no-report", is_flag=True, help="Do not regenerate the leaderboard afterwards.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, force, store, reports, no_report, quiet):
+    """Run (or resume) every cell of method x dataset x split x setting."""
+    from bench.method import options_hash, parse_options
+    from bench.report import write_reports
+    from bench.runner import default_metrics, run_cell
+    from bench.store import CellSpec
+
+    plugins = get_plugins()
+    warn_failed(plugins)
+    for s in settings:
+        get_setting(s)
+    method_specs = _selected_methods(plugins, methods)
+    metric_names = tuple(metrics) or default_metrics(plugins)
+    for m in metric_names:
+        plugins.metrics.get(m)
+    reports_path = config.reports_dir(reports)
+    store_path = config.store_dir(store, reports_path)
+    cells = []
+    for name, root in _dataset_roots(plugins, datasets, not quiet):
+        cls = plugins.datasets.get(name)
+        ds_settings = settings or cls.default_settings
+        if not ds_settings:
+            raise PcfbenchError(f"dataset {name!r} declares no default settings: pass --setting")
+        for split, setting, (method, raw) in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
+            opts = parse_options(plugins.methods.get(method).Options, raw, f"method {method}")
+            cells.append(
+                CellSpec(method, dict(raw), options_hash(opts), name, root, split, setting, policy, limit, metric_names)
+            )
+    failures = 0
+    for spec in cells:
+        result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins)
+        if result.processed == 0 and result.done_before == result.samples:
+            click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
+        else:
+            click.echo(
+                f"{spec.label}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
+                f"in {result.seconds:.1f} s -> {result.path}"
+            )
+        failures += result.failed
+    if not no_report:
+        paths = write_reports(store_path, reports_path)
+        click.echo(f"leaderboard: {paths['md']}")
+    if failures:
+        click.echo(f"pcfbench: {failures} sample(s) failed; their tracebacks are in the cells' rows", err=True)
+
+
+@cli.command()
+@click.option("--store", type=click.Path(file_okay=False), default=None)
+@click.option("--reports", type=click.Path(file_okay=False), default=None)
+def report(store, reports):
+    """Regenerate reports/leaderboard.{md,csv,tex,html} from the store."""
+    from bench.report import write_reports
+
+    reports_path = config.reports_dir(reports)
+    paths = write_reports(config.store_dir(store, reports_path), reports_path)
+    for p in paths.values():
+        click.echo(str(p))
+
+
+@cli.command(name="ls")
+@click.argument("what", type=click.Choice(["methods", "datasets", "metrics", "settings"]))
+@click.option("--json", "as_json", is_flag=True)
+def ls_cmd(what, as_json):
+    """List registered methods, datasets, metrics or the protocol's settings."""
+    if what == "settings":
+        rows = [
+            {"name": s.name, "rate_hz": s.rate_hz, "past": s.past, "future": s.future, "stride": s.stride,
+             "horizon_s": s.horizon_s, "description": s.description}
+            for s in SETTINGS.values()
+        ]
+    else:
+        plugins = get_plugins()
+        registry = getattr(plugins, what)
+        rows = [{"name": e.name, "plugin": e.plugin, "description": e.description} for e in registry.entries.values()]
+        rows.sort(key=lambda r: r["name"])
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+        return
+    for r in rows:
+        if what == "settings":
+            click.echo(f"{r['name']:<14} {r['rate_hz']:>4g} Hz  past {r['past']}  future {r['future']}  stride {r['stride']}  {r['description']}")
+        else:
+            click.echo(f"{r['name']:<22} {r['plugin']:<22} {r['description']}")
+
+
+@cli.command()
+@click.option("--json", "as_json", is_flag=True)
+def plugins(as_json):
+    """Installed plugins, what each registered, and any load errors."""
+    state = get_plugins()
+    rows = [
+        {"name": i.name, "source": i.source, "registered": i.registered, "error": i.error}
+        for i in sorted(state.info.values(), key=lambda i: i.name)
+    ]
+    if as_json:
+        click.echo(json.dumps(rows, indent=2))
+        return
+    for r in rows:
+        click.echo(f"{r['name']} ({r['source']})")
+        for kind, names in r["registered"].items():
+            click.echo(f"  {kind}: {', '.join(names)}")
+        if r["error"]:
+            click.echo(f"  ERROR: {r['error']}")
+
+
+@cli.group()
+def datasets():
+    """Inspect dataset folders."""
+
+
+@datasets.command()
+@click.argument("root", type=click.Path(exists=True, file_okay=True))
+@click.option("--layout", default=None, help="Adapter name; default: detect it.")
+def check(root, layout):
+    """Say which layout ROOT is, what it holds and every problem found."""
+    state = get_plugins()
+    if layout is None:
+        found = [n for n in state.datasets.names() if state.datasets.get(n).detect(Path(root))]
+        if not found:
+            raise PcfbenchError(f"{root}: no known layout recognised (known: {', '.join(state.datasets.names())})")
+        layout = found[0]
+    adapter = state.datasets.get(layout)(root)
+    rep = adapter.check()
+    click.echo(f"layout: {rep.layout}  (adapter {layout} v{adapter.version})")
+    click.echo(f"root: {rep.root}")
+    for k, v in rep.found.items():
+        click.echo(f"  {k}: {v}")
+    if rep.problems:
+        click.echo(f"{len(rep.problems)} problem(s):")
+        for p in rep.problems:
+            click.echo(f"  - {p}")
+        sys.exit(1)
+    click.echo("no problems found")
+
+
+def build_cli() -> click.Group:
+    get_plugins().add_commands(cli)
+    return cli
+
+
+def main() -> None:
+    build_cli()(prog_name="pcfbench")

@@ -1,0 +1,84 @@
+"""Where things live: dataset roots, the results store, the reports folder, the cache.
+
+Dataset roots come from ``--dataset NAME=ROOT``, then ``PCFBENCH_DATASET_<NAME>`` (name upper-
+cased, ``-`` as ``_``), then the ``[datasets]`` table of the config file
+(``$PCFBENCH_CONFIG`` or ``~/.config/pcfbench/config.toml``); never the working directory.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+
+from bench.errors import PcfbenchError
+
+
+def config_path() -> Path:
+    env = os.environ.get("PCFBENCH_CONFIG")
+    if env:
+        return Path(env).expanduser()
+    base = Path(os.environ.get("XDG_CONFIG_HOME", Path.home() / ".config"))
+    return base / "pcfbench" / "config.toml"
+
+
+def load_config() -> dict:
+    path = config_path()
+    if not path.is_file():
+        if os.environ.get("PCFBENCH_CONFIG"):
+            raise PcfbenchError(f"config file {path} (from PCFBENCH_CONFIG) does not exist")
+        return {}
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise PcfbenchError(f"config file {path} is not valid TOML: {exc}") from None
+
+
+def env_var_for(dataset: str) -> str:
+    return "PCFBENCH_DATASET_" + dataset.upper().replace("-", "_")
+
+
+def dataset_root(name: str, cli: dict[str, str]) -> str | None:
+    """The root for dataset ``name``, or None when none is configured anywhere."""
+    if name in cli:
+        return cli[name]
+    if os.environ.get(env_var_for(name)):
+        return os.environ[env_var_for(name)]
+    roots = load_config().get("datasets", {})
+    if name in roots:
+        return str(Path(roots[name]).expanduser())
+    return None
+
+
+def parse_dataset_args(values: tuple[str, ...]) -> tuple[list[str], dict[str, str]]:
+    """``NAME`` or ``NAME=ROOT`` items into the ordered names and the roots given."""
+    names, roots = [], {}
+    for v in values:
+        name, sep, root = v.partition("=")
+        if sep and not root:
+            raise PcfbenchError(f"--dataset {v!r}: empty root (use NAME=ROOT)")
+        names.append(name)
+        if sep:
+            roots[name] = str(Path(root).expanduser())
+    return names, roots
+
+
+def cache_dir() -> Path:
+    """Generated data and checkpoints: ``$PCFBENCH_CACHE`` or ``~/.cache/pcfbench``."""
+    env = os.environ.get("PCFBENCH_CACHE")
+    base = Path(env).expanduser() if env else Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "pcfbench"
+    return base
+
+
+def reports_dir(cli: str | None = None) -> Path:
+    """Where tables are written: ``--reports``, ``$PCFBENCH_REPORTS``, else ./reports."""
+    return Path(cli or os.environ.get("PCFBENCH_REPORTS") or "reports")
+
+
+def store_dir(cli: str | None = None, reports: Path | None = None) -> Path:
+    """The results store: ``--store``, ``$PCFBENCH_STORE``, else <reports>/store."""
+    if cli:
+        return Path(cli)
+    if os.environ.get("PCFBENCH_STORE"):
+        return Path(os.environ["PCFBENCH_STORE"])
+    return (reports or reports_dir()) / "store"

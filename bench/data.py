@@ -1,0 +1,100 @@
+"""The data model: plain frozen dataclasses over NumPy arrays.
+
+Frames are in the names: ``*_ref`` arrays are in the sample's reference (t=0) sensor frame,
+``*_sensor`` arrays in a sweep's own sensor frame, ``T_a_b`` maps frame b to frame a.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+@dataclass(frozen=True, eq=False)
+class Sweep:
+    """One LiDAR sweep as an adapter loads it.
+
+    points_sensor: (N, 3) float32, sensor frame, metres.
+    T_world_sensor: (4, 4) float64 pose of the sensor in the dataset's world frame.
+    """
+
+    points_sensor: np.ndarray
+    T_world_sensor: np.ndarray
+    timestamp_ns: int
+    intensity: np.ndarray | None = None
+    source: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class RayQuery:
+    """The rays of one future sweep: every ground-truth return, seen from the sweep's origin.
+
+    origin_ref: (3,) float64, the future sensor position in the reference frame.
+    directions_ref: (M, 3) float32 unit vectors, one per ground-truth point.
+    """
+
+    origin_ref: np.ndarray
+    directions_ref: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.directions_ref.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class Sample:
+    """What a method sees: the past in the reference frame, the future poses and query rays.
+
+    past_points_ref: P arrays (N_k, 3) float32, oldest first, the last one is t=0.
+    past_T_ref_sensor: (P, 4, 4) float64; future_T_ref_sensor: (F, 4, 4) float64.
+    queries: F RayQuery, one per future sweep. Ground-truth points are not here.
+    """
+
+    sample_id: str
+    dataset: str
+    sequence: str
+    ref_index: int
+    past_points_ref: tuple[np.ndarray, ...]
+    past_T_ref_sensor: np.ndarray
+    past_timestamps_ns: np.ndarray
+    future_T_ref_sensor: np.ndarray
+    future_timestamps_ns: np.ndarray
+    queries: tuple[RayQuery, ...]
+    T_world_ref: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @property
+    def num_future(self) -> int:
+        return len(self.queries)
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """Held back from methods: the future points (F arrays (M_k, 3) float32, reference frame)."""
+
+    sample_id: str
+    future_points_ref: tuple[np.ndarray, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class Forecast:
+    """A method's answer for one sample, one entry per future sweep.
+
+    points_ref: F arrays (K, 3) in the reference frame, or None.
+    depths: F arrays (M_k,), one depth in metres along each query ray, or None.
+    At least one of the two is given; both may be.
+    """
+
+    points_ref: tuple[np.ndarray, ...] | None = None
+    depths: tuple[np.ndarray, ...] | None = None
+
+    @staticmethod
+    def from_depths(sample: Sample, depths: list[np.ndarray] | tuple[np.ndarray, ...]) -> "Forecast":
+        """Answer per-ray depths and the points they place along the query rays."""
+        depths = tuple(np.asarray(d, dtype=np.float32) for d in depths)
+        points = tuple(
+            (q.origin_ref + q.directions_ref.astype(np.float64) * d[:, None].astype(np.float64)).astype(np.float32)
+            for q, d in zip(sample.queries, depths)
+        )
+        return Forecast(points_ref=points, depths=depths)

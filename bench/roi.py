@@ -1,0 +1,92 @@
+"""Boxes of the protocol: the ego-vehicle box (PROTOCOL.md section 1) and the ROI (section 3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Box:
+    """An axis-aligned box, bounds inclusive, in metres. ``None`` bounds are unbounded."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool mask of the (N, 3) points inside the box (inclusive)."""
+        lo = np.asarray(self.lo, dtype=np.float64)
+        hi = np.asarray(self.hi, dtype=np.float64)
+        return np.all((points >= lo) & (points <= hi), axis=1)
+
+    def crop(self, points: np.ndarray) -> np.ndarray:
+        return points[self.contains(points)]
+
+
+#: x, y in [-70, 70] m, z in [-4.5, 4.5] m, in the reference (t=0) sensor frame.
+ROI = Box(lo=(-70.0, -70.0, -4.5), hi=(70.0, 70.0, 4.5))
+
+
+@dataclass(frozen=True)
+class EgoBox:
+    """The ego vehicle's footprint in the dataset's own sensor frame; z is unbounded."""
+
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+
+    def inside(self, points_sensor: np.ndarray) -> np.ndarray:
+        x = points_sensor[:, 0]
+        y = points_sensor[:, 1]
+        return (x >= self.x_min) & (x <= self.x_max) & (y >= self.y_min) & (y <= self.y_max)
+
+    def remove(self, points_sensor: np.ndarray) -> np.ndarray:
+        """Drop ego-vehicle returns; apply in the sweep's own sensor frame, before any transform."""
+        return points_sensor[~self.inside(points_sensor)]
+
+
+def ray_box_interval(
+    origin: np.ndarray, directions: np.ndarray, box: Box = ROI
+) -> tuple[np.ndarray, np.ndarray]:
+    """Slab test: where rays ``origin + t * d`` (t >= 0) are inside ``box``.
+
+    Returns ``(t_enter, t_exit)`` per ray, float64; ``t_enter`` is 0 for an origin inside the
+    box. A ray that misses the box has ``t_enter > t_exit``. Directions need not be unit;
+    t is then in units of their length.
+    """
+    o = np.asarray(origin, dtype=np.float64).reshape(1, 3)
+    d = np.asarray(directions, dtype=np.float64)
+    lo = np.asarray(box.lo, dtype=np.float64)
+    hi = np.asarray(box.hi, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - o) * inv
+        t2 = (hi - o) * inv
+    tmin = np.minimum(t1, t2)
+    tmax = np.maximum(t1, t2)
+    # A zero direction component: the ray is parallel to that slab, inside it or never.
+    parallel = d == 0
+    inside_slab = (o >= lo) & (o <= hi)
+    tmin = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), tmin)
+    tmax = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), tmax)
+    t_enter = np.maximum(tmin.max(axis=1), 0.0)
+    t_exit = tmax.min(axis=1)
+    return t_enter, t_exit
+
+
+def clamp_ranges_to_box(
+    origin: np.ndarray, directions: np.ndarray, ranges: np.ndarray, box: Box = ROI
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clamp points ``origin + r * d`` (unit d) to the box along their rays.
+
+    Returns ``(start, end, kept)``: the range where each ray's segment starts (0, or where it
+    enters the box when the origin is outside), the clamped range of the point, and a mask of
+    rays that meet the box at all. The clamped distance from the clamped origin is
+    ``end - start``.
+    """
+    t_enter, t_exit = ray_box_interval(origin, directions, box)
+    kept = t_enter <= t_exit
+    end = np.clip(np.asarray(ranges, dtype=np.float64), t_enter, np.maximum(t_exit, t_enter))
+    return t_enter, end, kept

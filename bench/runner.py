@@ -1,0 +1,311 @@
+"""Runs cells: samples through a method, forecasts through the metrics, rows into the store."""
+
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+import sys
+import time
+import traceback
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+import bench
+from bench.errors import DataError, PcfbenchError
+from bench.method import Method, parse_options
+from bench.metrics.base import Metric, score_sample
+from bench.plugins import Plugins, get_plugins
+from bench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
+from bench.store import Cell, CellSpec, spec_to_meta
+from bench.validate import validate_forecast
+
+#: Flush a chunk after this many samples or seconds, whichever comes first.
+CHUNK_SAMPLES = 64
+CHUNK_SECONDS = 20.0
+
+
+def _progress_disabled() -> bool | None:
+    if os.environ.get("CI") or os.environ.get("PCFBENCH_NO_PROGRESS"):
+        return True
+    return None  # tqdm: disabled when not a terminal
+
+
+def git_commit() -> str | None:
+    here = Path(bench.__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def environment() -> dict[str, Any]:
+    import pandas
+    import pyarrow
+
+    env = {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "numpy": np.__version__,
+        "pandas": pandas.__version__,
+        "pyarrow": pyarrow.__version__,
+        "cpus": os.cpu_count(),
+    }
+    if "torch" in sys.modules:
+        env["torch"] = sys.modules["torch"].__version__
+    return env
+
+
+@dataclass
+class Resolved:
+    """Everything a worker needs to process samples of one cell."""
+
+    builder: SampleBuilder
+    method: Method
+    metrics: list[Metric]
+
+
+def resolve(spec: CellSpec, plugins: Plugins | None = None) -> Resolved:
+    plugins = plugins or get_plugins()
+    adapter_cls = plugins.datasets.get(spec.dataset)
+    method_cls = plugins.methods.get(spec.method)
+    setting = get_setting(spec.setting)
+    adapter = adapter_cls(spec.dataset_root)
+    check_compatible(setting, adapter)
+    options = parse_options(method_cls.Options, spec.options, f"method {spec.method}")
+    metrics = [plugins.metrics.get(m) for m in spec.metrics]
+    return Resolved(SampleBuilder(adapter, setting, spec.policy), method_cls(options), metrics)
+
+
+def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
+    """Rows for one sample: one per future sweep, or one failure row with the traceback.
+
+    Data errors (a bad file) propagate: they stop the run rather than being blamed on the method.
+    """
+    t0 = time.perf_counter()
+    sample, truth = res.builder.build(*key)
+    t1 = time.perf_counter()
+    base = {"sample_id": sample.sample_id, "sequence": sample.sequence, "ref_index": sample.ref_index}
+    try:
+        forecast = validate_forecast(sample, res.method.forecast(sample))
+        t2 = time.perf_counter()
+        rows = score_sample(sample, truth, forecast, res.metrics)
+    except DataError:
+        raise
+    except Exception as exc:  # a method (or metric) failing on one sample is recorded, the run goes on
+        return [
+            {
+                **base,
+                "step": -1,
+                "status": "failed",
+                "error": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc(),
+                "t_load": t1 - t0,
+            }
+        ]
+    t3 = time.perf_counter()
+    for row in rows:
+        row.update(base, status="ok", t_load=t1 - t0, t_method=t2 - t1, t_metrics=t3 - t2)
+    return rows
+
+
+# -- workers for the process pool ------------------------------------------------------------
+_WORKER: Resolved | None = None
+
+
+def _worker_init(spec: CellSpec) -> None:
+    global _WORKER
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover - torch is a dependency, but methods may not need it
+        pass
+    _WORKER = resolve(spec)
+
+
+def _worker_batch(keys: list[tuple[str, int]]) -> list[list[dict[str, Any]]]:
+    assert _WORKER is not None
+    return [process_sample(_WORKER, k) for k in keys]
+
+
+def _batches(keys: list[tuple[str, int]], size: int) -> Iterator[list[tuple[str, int]]]:
+    for i in range(0, len(keys), size):
+        yield keys[i : i + size]
+
+
+@dataclass
+class CellResult:
+    spec: CellSpec
+    path: Path
+    status: str
+    samples: int
+    done_before: int
+    processed: int
+    failed: int
+    seconds: float
+
+
+def run_cell(
+    spec: CellSpec,
+    store_root: Path,
+    *,
+    jobs: int = 1,
+    force: bool = False,
+    progress: bool = True,
+    plugins: Plugins | None = None,
+) -> CellResult:
+    """Run (or resume) one cell. Returns at once if the cell is already complete."""
+    start = time.perf_counter()
+    res = resolve(spec, plugins)
+    keys = res.builder.sample_keys(spec.split)
+    if spec.limit is not None:
+        keys = keys[: spec.limit]
+    if not keys:
+        raise PcfbenchError(
+            f"{spec.dataset}:{spec.split} has no samples for setting {spec.setting} ({spec.policy}); "
+            f"check the dataset root {spec.dataset_root}"
+        )
+    ids = [f"{s}/{i:06d}" for s, i in keys]
+    id_hash = ids_hash(ids)
+    cell = Cell(store_root, spec)
+    with cell:
+        meta = cell.read_meta()
+        if force and meta is not None:
+            cell.clear()
+            meta = None
+        identity = {
+            "method_version": res.method.version,
+            "dataset_version": res.builder.adapter.version,
+            "metric_versions": {m.name: m.version for m in res.metrics},
+            "sample_ids_hash": id_hash,
+        }
+        if meta is not None:
+            old = {k: meta.get(k) for k in identity}
+            if old != identity:
+                changed = ", ".join(k for k in identity if old[k] != identity[k])
+                raise PcfbenchError(
+                    f"cell {cell.dir} was computed with a different {changed}; rerun with --force to recompute it"
+                )
+        done = cell.done_ids()
+        todo = [k for k, sid in zip(keys, ids) if sid not in done]
+        meta = {
+            **(meta or {}),
+            "spec": spec_to_meta(spec),
+            **identity,
+            "status": "running",
+            "partial": spec.partial,
+            "harness_version": bench.__version__,
+            "git_commit": git_commit(),
+            "environment": environment(),
+            "samples": len(ids),
+            "metric_units": {m.name: m.unit for m in res.metrics},
+            "created": (meta or {}).get("created", time.time()),
+        }
+        if not todo and meta.get("status") == "complete":
+            return CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
+        cell.write_meta(meta)
+
+        buffer: list[dict[str, Any]] = []
+        last_flush = time.monotonic()
+        buffered_samples = 0
+
+        def flush() -> None:
+            nonlocal buffer, last_flush, buffered_samples
+            if buffer:
+                cell.append_rows(buffer)
+            buffer, buffered_samples, last_flush = [], 0, time.monotonic()
+
+        bar = tqdm(
+            total=len(ids), initial=len(ids) - len(todo), desc=spec.label, unit="sample",
+            disable=_progress_disabled() if progress else True, leave=True, dynamic_ncols=True,
+        )
+        failed = 0
+        try:
+            for rows in _execute(res, spec, todo, jobs):
+                buffer.extend(rows)
+                buffered_samples += 1
+                failed += rows[0]["status"] == "failed"
+                bar.update(1)
+                if buffered_samples >= CHUNK_SAMPLES or time.monotonic() - last_flush > CHUNK_SECONDS:
+                    flush()
+        finally:
+            # Rows in the buffer belong to finished samples: keep them even when interrupted.
+            flush()
+            bar.close()
+        df = cell.read_rows()
+        sample_status = df.groupby("sample_id")["status"].first() if len(df) else None
+        n_failed = int((sample_status == "failed").sum()) if sample_status is not None else 0
+        elapsed = time.perf_counter() - start
+        meta.update(
+            status="complete",
+            counts={
+                "samples": len(ids),
+                "ok": len(ids) - n_failed,
+                "failed": n_failed,
+                "sweeps": int((df["status"] == "ok").sum()) if len(df) else 0,
+            },
+            timings={
+                "last_run_seconds": elapsed,
+                "total_seconds": meta.get("timings", {}).get("total_seconds", 0.0) + elapsed,
+                **_median_timings(df),
+            },
+            updated=time.time(),
+        )
+        cell.write_meta(meta)
+    return CellResult(spec, cell.dir, "complete", len(ids), len(done), len(todo), failed, elapsed)
+
+
+def _median_timings(df) -> dict[str, float]:
+    out = {}
+    if not len(df):
+        return out
+    per_sample = df.drop_duplicates("sample_id")
+    for col in ("t_load", "t_method", "t_metrics"):
+        if col in per_sample:
+            out[f"median_{col}"] = float(np.nanmedian(per_sample[col].to_numpy(dtype=float)))
+    return out
+
+
+def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: int) -> Iterable[list[dict[str, Any]]]:
+    """Yield each sample's rows; serial, or over a process pool in contiguous batches."""
+    if jobs <= 1 or len(keys) < 2:
+        for key in keys:
+            yield process_sample(res, key)
+        return
+    batch = max(1, min(8, len(keys) // (jobs * 4) or 1))
+    with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init, initargs=(spec,)) as pool:
+        pending = set()
+        it = _batches(keys, batch)
+        for b in it:
+            pending.add(pool.submit(_worker_batch, b))
+            if len(pending) >= jobs * 2:
+                break
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                yield from fut.result()
+                nxt = next(it, None)
+                if nxt is not None:
+                    pending.add(pool.submit(_worker_batch, nxt))
+
+
+def default_metrics(plugins: Plugins) -> tuple[str, ...]:
+    """Every registered metric that loads; a broken metric plugin only loses its own metrics."""
+    names = []
+    for name in plugins.metrics.names():
+        try:
+            plugins.metrics.get(name)
+        except PcfbenchError as exc:
+            print(f"pcfbench: warning: {exc}", file=sys.stderr)
+            continue
+        names.append(name)
+    return tuple(names)

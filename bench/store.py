@@ -1,0 +1,186 @@
+"""The results store: one folder per cell, ``cell.json`` plus per-sweep rows in Parquet chunks.
+
+Every write is a temporary file renamed into place, and the set of finished samples is
+derived from the chunks themselves, so a run killed at any moment (SIGKILL included) resumes
+without losing or duplicating rows: a chunk either exists whole or not at all.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from bench.errors import PcfbenchError
+
+CELL_FILE = "cell.json"
+ROWS_DIR = "rows"
+#: Columns every row has besides the metric values.
+KEY_COLUMNS = ("sample_id", "step", "status")
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    """What identifies a cell: method + options x dataset x split x setting (+ policy, limit)."""
+
+    method: str
+    options: dict[str, Any]
+    options_hash: str
+    dataset: str
+    dataset_root: str | None
+    split: str
+    setting: str
+    policy: str = "full-context"
+    limit: int | None = None
+    metrics: tuple[str, ...] = ()
+
+    @property
+    def partial(self) -> bool:
+        return self.limit is not None
+
+    @property
+    def label(self) -> str:
+        extra = f" limit={self.limit}" if self.limit is not None else ""
+        return f"{self.method} | {self.dataset}:{self.split} | {self.setting}{extra}"
+
+    def relpath(self) -> Path:
+        setting = self.setting if self.policy == "full-context" else f"{self.setting}.{self.policy}"
+        leaf = f"{self.method}.{self.options_hash}"
+        if self.limit is not None:
+            leaf += f".limit{self.limit}"
+        return Path(self.dataset) / setting / self.split / leaf
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n").encode())
+
+
+class Cell:
+    """One cell's folder. Use as a context manager to hold its lock while writing."""
+
+    def __init__(self, root: Path, spec: CellSpec) -> None:
+        self.spec = spec
+        self.dir = Path(root) / spec.relpath()
+        self._lock_fh = None
+
+    # -- locking ------------------------------------------------------------------------
+    def __enter__(self) -> "Cell":
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self._lock_fh = open(self.dir / ".lock", "w")
+        try:
+            fcntl.flock(self._lock_fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._lock_fh.close()
+            raise PcfbenchError(f"cell {self.dir} is being written by another pcfbench process") from None
+        for stale in self.dir.rglob(".*.tmp"):
+            stale.unlink(missing_ok=True)  # left by a killed writer; never read
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._lock_fh is not None:
+            fcntl.flock(self._lock_fh, fcntl.LOCK_UN)
+            self._lock_fh.close()
+            self._lock_fh = None
+
+    # -- metadata -----------------------------------------------------------------------
+    def read_meta(self) -> dict[str, Any] | None:
+        path = self.dir / CELL_FILE
+        if not path.is_file():
+            return None
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise PcfbenchError(f"{path} is not valid JSON ({exc}); delete the cell or rerun with --force") from None
+
+    def write_meta(self, meta: dict[str, Any]) -> None:
+        self.dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_json(self.dir / CELL_FILE, meta)
+
+    def clear(self) -> None:
+        for child in self.dir.iterdir():
+            if child.name == ".lock":
+                continue
+            shutil.rmtree(child) if child.is_dir() else child.unlink()
+
+    # -- rows ---------------------------------------------------------------------------
+    def chunk_paths(self) -> list[Path]:
+        d = self.dir / ROWS_DIR
+        return sorted(d.glob("chunk-*.parquet")) if d.is_dir() else []
+
+    def append_rows(self, rows: list[dict[str, Any]]) -> Path:
+        """Write one chunk atomically; its sample ids are then done for good."""
+        d = self.dir / ROWS_DIR
+        d.mkdir(parents=True, exist_ok=True)
+        existing = self.chunk_paths()
+        index = int(existing[-1].stem.split("-")[1]) + 1 if existing else 0
+        path = d / f"chunk-{index:06d}.parquet"
+        table = pa.Table.from_pandas(pd.DataFrame(rows), preserve_index=False)
+        sink = pa.BufferOutputStream()
+        pq.write_table(table, sink, compression="zstd")
+        atomic_write_bytes(path, sink.getvalue().to_pybytes())
+        return path
+
+    def read_rows(self) -> pd.DataFrame:
+        """All rows, deduplicated on (sample_id, step) in chunk order."""
+        paths = self.chunk_paths()
+        if not paths:
+            return pd.DataFrame(columns=list(KEY_COLUMNS))
+        df = pd.concat([pq.read_table(p).to_pandas() for p in paths], ignore_index=True)
+        return df.drop_duplicates(subset=["sample_id", "step"], keep="first").reset_index(drop=True)
+
+    def done_ids(self) -> set[str]:
+        ids: set[str] = set()
+        for p in self.chunk_paths():
+            ids.update(pq.read_table(p, columns=["sample_id"]).column("sample_id").to_pylist())
+        return ids
+
+
+def iter_cells(root: Path) -> Iterator[tuple[Path, dict[str, Any]]]:
+    """Every cell folder under ``root`` with its metadata."""
+    root = Path(root)
+    if not root.is_dir():
+        return
+    for meta_path in sorted(root.rglob(CELL_FILE)):
+        try:
+            yield meta_path.parent, json.loads(meta_path.read_text())
+        except json.JSONDecodeError:
+            continue
+
+
+def spec_from_meta(meta: dict[str, Any]) -> CellSpec:
+    spec = dict(meta["spec"])
+    spec["metrics"] = tuple(spec.get("metrics", ()))
+    return CellSpec(**spec)
+
+
+def spec_to_meta(spec: CellSpec) -> dict[str, Any]:
+    return asdict(spec)
+
+
+@dataclass
+class Timings:
+    """Per-sample seconds, summed; medians are computed from rows at report time."""
+
+    load: float = 0.0
+    method: float = 0.0
+    metrics: float = 0.0
+    wall: float = 0.0
+    started: float = field(default_factory=time.time)

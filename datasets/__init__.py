@@ -1,0 +1,1 @@
+"""Built-in dataset adapters of pcfbench (registered through the ``pcfbench`` entry points)."""

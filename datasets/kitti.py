@@ -1,0 +1,218 @@
+"""KITTI Odometry: ``sequences/NN/velodyne/NNNNNN.bin``, ``calib.txt``, ``times.txt``, poses.
+
+Poses come from ``poses/NN.txt`` (the odometry ground truth, left-camera frame) or from
+SemanticKITTI's ``sequences/NN/poses.txt``; both are converted to LiDAR-frame poses
+``T_world_velo = inv(Tr) @ P @ Tr`` where ``Tr`` (calib.txt) is ``T_cam0_velo``.
+"""
+
+from __future__ import annotations
+
+import os
+
+from pathlib import Path
+
+import numpy as np
+
+from bench.dataset import DatasetAdapter, Sequence
+from bench.errors import DataError
+from bench.roi import EgoBox
+
+SPLITS = {
+    "train": ("00", "01", "02", "03", "04", "05"),
+    "val": ("06", "07"),
+    "test": ("08", "09", "10"),
+}
+
+
+def read_calib(path: Path) -> dict[str, np.ndarray]:
+    """Parse ``key: 12 numbers`` lines into (3, 4) float64 arrays; errors name file and line."""
+    if not path.is_file():
+        raise DataError(f"KITTI calib file {path} is missing (expected 'P0: ...' .. 'Tr: ...' lines)")
+    out: dict[str, np.ndarray] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        try:
+            values = [float(v) for v in rest.split()]
+        except ValueError:
+            values = []
+        if not sep or len(values) != 12:
+            raise DataError(f"KITTI calib file {path} line {lineno}: expected 'KEY: 12 numbers', got {line.strip()[:80]!r}")
+        out[key.strip()] = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    if "Tr" not in out:
+        raise DataError(f"KITTI calib file {path} has no 'Tr:' line (velodyne -> camera 0 transform)")
+    return out
+
+
+def read_poses(path: Path) -> np.ndarray:
+    """(T, 4, 4) float64 from lines of 12 numbers (row-major 3x4)."""
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            values = [float(v) for v in line.split()]
+        except ValueError:
+            values = []
+        if len(values) != 12 or not np.all(np.isfinite(values)):
+            raise DataError(f"KITTI poses file {path} line {lineno}: expected 12 finite numbers, got {line.strip()[:80]!r}")
+        rows.append(values)
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    if rows:
+        T[:, :3, :] = np.asarray(rows).reshape(-1, 3, 4)
+    return T
+
+
+def read_times(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise DataError(f"KITTI times file {path} is missing (expected one timestamp in seconds per sweep)")
+    values = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            values.append(float(line))
+        except ValueError:
+            raise DataError(f"KITTI times file {path} line {lineno}: expected seconds, got {line.strip()[:80]!r}") from None
+    return np.round(np.asarray(values, dtype=np.float64) * 1e9).astype(np.int64)
+
+
+def read_bin(path: Path) -> np.ndarray:
+    """(N, 4) float32 x, y, z, reflectance; errors name the file."""
+    try:
+        size = os.path.getsize(path)
+    except OSError:
+        raise DataError(f"KITTI sweep {path} is missing") from None
+    if size % 16:
+        raise DataError(f"KITTI sweep {path} has {size:,} bytes, not a multiple of 16 (x, y, z, reflectance float32)")
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+
+
+class KittiOdometry(DatasetAdapter):
+    name = "kitti"
+    version = "1"
+    rate_hz = 10.0
+    ego_box = EgoBox(-2.0, 3.5, -1.55, 1.55)
+    default_settings = ("kitti-1s", "kitti-3s")
+    default_split = "test"
+
+    @classmethod
+    def detect(cls, root: Path) -> bool:
+        return any(Path(root).glob("sequences/*/velodyne"))
+
+    def splits(self) -> tuple[str, ...]:
+        return tuple(SPLITS)
+
+    def _seq_dir(self, name: str) -> Path:
+        return self.root / "sequences" / name
+
+    def _poses_path(self, name: str) -> Path | None:
+        for p in (self.root / "poses" / f"{name}.txt", self._seq_dir(name) / "poses.txt"):
+            if p.is_file():
+                return p
+        return None
+
+    def sequence_names(self, split: str) -> list[str]:
+        if split not in SPLITS:
+            raise DataError(f"KITTI has no split {split!r} (known: {', '.join(SPLITS)})")
+        if not (self.root / "sequences").is_dir():
+            raise DataError(f"KITTI root {self.root} has no sequences/ folder (expected sequences/NN/velodyne/*.bin)")
+        return [s for s in SPLITS[split] if self._seq_dir(s).is_dir() and self._poses_path(s) is not None]
+
+    def sequence(self, name: str) -> Sequence:
+        return _open_sequence(str(self.root), name)
+
+    def load_points(self, sequence: str, index: int) -> np.ndarray:
+        path = self._seq_dir(sequence) / "velodyne" / f"{index:06d}.bin"
+        return read_bin(path)[:, :3]
+
+
+
+def _open_sequence(root: str, name: str) -> Sequence:
+    adapter = KittiOdometry(root)
+    seq_dir = adapter._seq_dir(name)
+    velo = seq_dir / "velodyne"
+    if not velo.is_dir():
+        raise DataError(f"KITTI sequence {seq_dir} has no velodyne/ folder")
+    indices = sorted(int(p.stem) for p in velo.glob("*.bin") if p.stem.isdigit())
+    n = indices[-1] + 1 if indices else 0
+    if len(indices) != n:
+        missing = sorted(set(range(n)) - set(indices))[:5]
+        raise DataError(f"KITTI sequence {velo} is missing sweep(s) {', '.join(f'{i:06d}.bin' for i in missing)}")
+    poses_path = adapter._poses_path(name)
+    if poses_path is None:
+        raise DataError(f"KITTI sequence {name}: no poses (looked for poses/{name}.txt and sequences/{name}/poses.txt)")
+    P = read_poses(poses_path)
+    if len(P) < n:
+        raise DataError(f"KITTI poses file {poses_path} has {len(P)} poses for {n} sweeps in {velo}")
+    calib = read_calib(seq_dir / "calib.txt")
+    Tr = np.eye(4)
+    Tr[:3, :] = calib["Tr"]
+    T_world_velo = np.linalg.inv(Tr) @ P[:n] @ Tr
+    times = read_times(seq_dir / "times.txt")
+    if len(times) < n:
+        raise DataError(f"KITTI times file {seq_dir / 'times.txt'} has {len(times)} lines for {n} sweeps")
+    times = times[:n]
+    if n > 1 and np.any(np.diff(times) <= 0):
+        bad = int(np.argmax(np.diff(times) <= 0)) + 1
+        raise DataError(f"KITTI times file {seq_dir / 'times.txt'}: timestamps not increasing at line {bad + 1}")
+    return Sequence(name=name, T_world_sensor=T_world_velo, timestamps_ns=times, loader=adapter.load_points)
+
+
+# --- writer -------------------------------------------------------------------------------
+
+#: A velodyne -> camera 0 transform in the shape of KITTI's (axes permuted, small offsets).
+DEFAULT_TR = np.array(
+    [
+        [0.0, -1.0, 0.0, -0.012],
+        [0.0, 0.0, -1.0, -0.054],
+        [1.0, 0.0, 0.0, -0.292],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+_P0 = np.array([[718.856, 0.0, 607.1928, 0.0], [0.0, 718.856, 185.2157, 0.0], [0.0, 0.0, 1.0, 0.0]])
+
+
+def _fmt12(M: np.ndarray) -> str:
+    return " ".join(f"{v:.12e}" for v in np.asarray(M)[:3, :4].reshape(-1))
+
+
+def write_kitti_sequence(
+    root: str | Path,
+    name: str,
+    points_sensor: list[np.ndarray],
+    T_world_velo: np.ndarray,
+    times_s: np.ndarray,
+    Tr: np.ndarray = DEFAULT_TR,
+    intensity: list[np.ndarray] | None = None,
+    semantic_kitti_poses: bool = False,
+) -> Path:
+    """Write one sequence in the exact KITTI Odometry layout; returns its folder.
+
+    points_sensor: T arrays (N, 3) in the velodyne frame; T_world_velo: (T, 4, 4) LiDAR poses.
+    Poses are stored as the benchmark stores them: camera-0 poses ``Tr @ T_world_velo @ inv(Tr)``.
+    """
+    root = Path(root)
+    seq_dir = root / "sequences" / name
+    velo = seq_dir / "velodyne"
+    velo.mkdir(parents=True, exist_ok=True)
+    for i, pts in enumerate(points_sensor):
+        pts = np.asarray(pts, dtype=np.float32)
+        refl = np.zeros(len(pts), np.float32) if intensity is None else np.asarray(intensity[i], np.float32)
+        tmp = velo / f".{i:06d}.bin.tmp"
+        np.concatenate([pts, refl[:, None]], axis=1).astype(np.float32).tofile(tmp)
+        os.replace(tmp, velo / f"{i:06d}.bin")
+    P1 = _P0.copy()
+    P1[0, 3] = -386.1448
+    lines = [f"P0: {_fmt12(_P0)}", f"P1: {_fmt12(P1)}", f"P2: {_fmt12(_P0)}", f"P3: {_fmt12(_P0)}", f"Tr: {_fmt12(Tr)}"]
+    (seq_dir / "calib.txt").write_text("\n".join(lines) + "\n")
+    (seq_dir / "times.txt").write_text("".join(f"{t:.6e}\n" for t in np.asarray(times_s)))
+    P = Tr @ np.asarray(T_world_velo) @ np.linalg.inv(Tr)
+    pose_text = "".join(_fmt12(p) + "\n" for p in P)
+    if semantic_kitti_poses:
+        (seq_dir / "poses.txt").write_text(pose_text)
+    else:
+        (root / "poses").mkdir(parents=True, exist_ok=True)
+        (root / "poses" / f"{name}.txt").write_text(pose_text)
+    return seq_dir

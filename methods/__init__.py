@@ -1,0 +1,1 @@
+"""Built-in method plugins of pcfbench (registered through the ``pcfbench`` entry points)."""
