@@ -26,8 +26,8 @@ from bench.store import Cell, CellSpec, spec_to_meta
 from bench.validate import validate_forecast
 
 #: Flush a chunk after this many samples or seconds, whichever comes first.
-CHUNK_SAMPLES = 64
-CHUNK_SECONDS = 20.0
+CHUNK_SAMPLES = int(os.environ.get("PCFBENCH_CHUNK_SAMPLES", 64))
+CHUNK_SECONDS = float(os.environ.get("PCFBENCH_CHUNK_SECONDS", 20.0))
 
 
 def _progress_disabled() -> bool | None:
@@ -197,6 +197,8 @@ def run_cell(
                 )
         done = cell.done_ids()
         todo = [k for k, sid in zip(keys, ids) if sid not in done]
+        if not todo and meta is not None and meta.get("status") == "complete":
+            return CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
         meta = {
             **(meta or {}),
             "spec": spec_to_meta(spec),
@@ -210,8 +212,6 @@ def run_cell(
             "metric_units": {m.name: m.unit for m in res.metrics},
             "created": (meta or {}).get("created", time.time()),
         }
-        if not todo and meta.get("status") == "complete":
-            return CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
         cell.write_meta(meta)
 
         buffer: list[dict[str, Any]] = []

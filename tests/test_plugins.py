@@ -1,0 +1,152 @@
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import types
+from pathlib import Path
+
+import pytest
+
+from bench.errors import PluginError, UnknownNameError
+from bench.hookspecs import hookimpl
+from bench.method import Method
+from bench.plugins import Plugins, load_plugins
+
+VENV_BIN = Path(sys.executable).parent
+
+
+def _plugin_module(name, **hooks):
+    mod = types.ModuleType(name)
+    for hook, fn in hooks.items():
+        setattr(mod, hook, hookimpl(fn))
+    return mod
+
+
+def test_builtins_load_through_entry_points():
+    plugins = load_plugins()
+    assert {"builtin-datasets", "builtin-methods", "builtin-metrics"} <= set(plugins.info)
+    assert "copy-last" in plugins.methods and "kitti" in plugins.datasets and "chamfer" in plugins.metrics
+    assert plugins.methods.entries["copy-last"].plugin == "builtin-methods"
+
+
+def test_duplicate_names_rejected_and_attributed():
+    plugins = load_plugins()
+    dup = _plugin_module("dup", register_methods=lambda register: register("copy-last", "methods.copy_last:CopyLast"))
+    plugins.add_plugin(dup, "dup")
+    assert "registered twice" in plugins.info["dup"].error and "builtin-methods" in plugins.info["dup"].error
+
+
+def test_type_checks_on_eager_and_lazy_targets():
+    plugins = Plugins()
+    with pytest.raises(PluginError, match="subclass of bench.method.Method"):
+        plugins.methods.add("bad", object, "p")
+    plugins.methods.add("lazy-bad", "bench.geometry:invert", "p")
+    with pytest.raises(PluginError, match="lazy-bad.*subclass"):
+        plugins.methods.get("lazy-bad")
+    with pytest.raises(PluginError, match="must look like 'module:attribute'"):
+        plugins.methods.add("x", "no_colon", "p")
+
+
+def test_unknown_name_did_you_mean_and_failed_plugins_named():
+    plugins = load_plugins()
+    plugins.add_plugin(_plugin_module("m"), "m")
+    plugins._fail("broken-plugin", "broken:mod", "ImportError: nope")
+    with pytest.raises(UnknownNameError) as err:
+        plugins.methods.get("copy-lst")
+    assert "did you mean 'copy-last'" in str(err.value) and "broken-plugin" in str(err.value)
+
+
+def test_import_failure_breaks_only_what_needs_it():
+    plugins = load_plugins()
+    mod = _plugin_module("half", register_methods=lambda register: register("ghost", "no_such_module_xyz:Ghost"))
+    plugins.add_plugin(mod, "half")
+    assert plugins.methods.get("copy-last")  # unaffected
+    with pytest.raises(PluginError, match="ghost.*plugin 'half'.*No module named 'no_such_module_xyz'"):
+        plugins.methods.get("ghost")
+
+
+def test_misspelled_hook_fails_loudly():
+    plugins = load_plugins()
+    mod = _plugin_module("typo", register_method=lambda register: None)
+    plugins.add_plugin(mod, "typo")
+    assert "register_method" in plugins.info["typo"].error
+
+
+EXTERNAL = {
+    "pyproject.toml": """
+        [build-system]
+        requires = ["setuptools"]
+        build-backend = "setuptools.build_meta"
+        [project]
+        name = "pcfbench-example-plugin"
+        version = "0.0.1"
+        [project.entry-points.pcfbench]
+        example = "pcfbench_example"
+        broken = "pcfbench_broken"
+        [tool.setuptools]
+        py-modules = ["pcfbench_example", "pcfbench_broken"]
+    """,
+    "pcfbench_example.py": """
+        from bench.data import Forecast
+        from bench.hookspecs import hookimpl
+        from bench.method import Method
+
+        class Shifted(Method):
+            name = "shifted-copy"
+            def forecast(self, sample):
+                pts = sample.past_points_ref[-1] + 0.5
+                return Forecast(points_ref=tuple(pts for _ in sample.queries))
+
+        @hookimpl
+        def register_methods(register):
+            register("shifted-copy", Shifted, "copy-last moved by 0.5 m")
+    """,
+    "pcfbench_broken.py": "raise ImportError('this plugin is broken on purpose')\n",
+}
+
+
+@pytest.fixture(scope="module")
+def external_plugin(tmp_path_factory):
+    """Build and install a tiny distribution with a pcfbench entry point into a target folder."""
+    src = tmp_path_factory.mktemp("src")
+    for name, text in EXTERNAL.items():
+        (src / name).write_text(textwrap.dedent(text))
+    target = tmp_path_factory.mktemp("site")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
+         "--target", str(target), str(src)],
+        check=True, capture_output=True,
+    )
+    return target
+
+
+def _cli(args, site, **env):
+    full_env = {**os.environ, "PYTHONPATH": str(site), **env}
+    return subprocess.run([str(VENV_BIN / "pcfbench"), *args], capture_output=True, text=True, env=full_env, timeout=300)
+
+
+def test_external_plugin_via_entry_point(external_plugin, tiny_kitti, tmp_path):
+    out = _cli(["ls", "methods"], external_plugin)
+    assert out.returncode == 0, out.stderr
+    assert "shifted-copy" in out.stdout and "example" in out.stdout
+    listing = json.loads(_cli(["plugins", "--json"], external_plugin).stdout)
+    by_name = {p["name"]: p for p in listing}
+    assert by_name["example"]["registered"] == {"methods": ["shifted-copy"]}
+    assert "broken on purpose" in by_name["broken"]["error"]
+    run = _cli(["run", "--dataset", f"kitti={tiny_kitti}", "--setting", "kitti-1s", "-m", "copy-last",
+                "-m", "shifted-copy", "--reports", str(tmp_path / "rep"), "-q"], external_plugin)
+    assert run.returncode == 0, run.stderr
+    assert "plugin 'broken'" in run.stderr  # warned, not fatal
+    md = (tmp_path / "rep" / "leaderboard.md").read_text()
+    assert "shifted-copy" in md and "copy-last" in md
+
+
+def test_allow_and_block_lists(external_plugin):
+    only_builtins = _cli(["plugins", "--json"], external_plugin, PCFBENCH_PLUGINS="")
+    names = {p["name"] for p in json.loads(only_builtins.stdout)}
+    assert "example" not in names and "builtin-methods" in names
+    allowed = {p["name"] for p in json.loads(_cli(["plugins", "--json"], external_plugin, PCFBENCH_PLUGINS="example").stdout)}
+    assert "example" in allowed and "broken" not in allowed
+    blocked = _cli(["ls", "methods"], external_plugin, PCFBENCH_BLOCK_PLUGINS="example,builtin-methods")
+    assert "shifted-copy" not in blocked.stdout and "copy-last" not in blocked.stdout

@@ -1,0 +1,161 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bench.data import Forecast
+from bench.errors import PcfbenchError
+from bench.method import Method, options_hash
+from bench.plugins import load_plugins
+from bench.report import collect, write_reports
+from bench.runner import run_cell
+from bench.store import Cell, CellSpec
+from bench.testing import check_method
+from methods.copy_last import CopyLast
+from tests_helpers import write_kitti_tree
+
+
+class Flaky(Method):
+    """Breaks the contract in a different way on different samples."""
+
+    name = "flaky"
+
+    def forecast(self, sample):
+        k = sample.ref_index % 5
+        last = sample.past_points_ref[-1]
+        F = sample.num_future
+        if k == 0:
+            return Forecast(points_ref=tuple(last[:, :2] for _ in range(F)))  # wrong shape
+        if k == 1:
+            return Forecast(points_ref=tuple(np.full((3, 3), np.nan) for _ in range(F)))
+        if k == 2:
+            return Forecast(points_ref=tuple(np.full((3, 3), 1e39) for _ in range(F)))  # outside float32
+        if k == 3:
+            raise RuntimeError("boom")
+        return Forecast(points_ref=tuple(last for _ in range(F)))
+
+
+def _plugins():
+    plugins = load_plugins()
+    plugins.methods.add("flaky", Flaky, "test")
+    return plugins
+
+
+def _spec(root, method="copy-last", limit=None, metrics=("chamfer", "chamfer_nf")):
+    return CellSpec(method, {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", limit, metrics)
+
+
+def test_copy_last_contract():
+    forecast = check_method(CopyLast())
+    assert len(forecast.points_ref) == 5
+
+
+def test_bad_forecasts_are_recorded_failures_and_the_run_goes_on(tiny_kitti, store):
+    result = run_cell(_spec(tiny_kitti, "flaky"), store, plugins=_plugins(), progress=False)
+    df = Cell(store, _spec(tiny_kitti, "flaky")).read_rows()
+    failed = df[df.status == "failed"].set_index("ref_index")
+    assert result.failed == len(failed) > 0
+    for ref_index, row in failed.iterrows():
+        expected = ["shape (N, 3)", "NaN or inf", "outside float32 range", "RuntimeError: boom"][ref_index % 5]
+        assert expected in row.error, row.error
+        assert f"sample 08/{ref_index:06d}" in row.error or "boom" in row.error
+        assert "Traceback" in row.traceback
+    ok = df[df.status == "ok"]
+    assert set(ok.ref_index % 5) == {4} and len(ok) == 5 * len(set(ok.sample_id))
+    meta = json.loads((Cell(store, _spec(tiny_kitti, "flaky")).dir / "cell.json").read_text())
+    assert meta["status"] == "complete" and meta["counts"]["failed"] == len(failed)
+
+
+def test_process_pool_matches_serial(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=40)
+    serial = run_cell(_spec(root), tmp_path / "s1", progress=False)
+    pooled = run_cell(_spec(root), tmp_path / "s2", jobs=2, progress=False)
+    assert serial.samples == pooled.samples
+    a = Cell(tmp_path / "s1", _spec(root)).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
+    b = Cell(tmp_path / "s2", _spec(root)).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
+    pd.testing.assert_frame_equal(a[["sample_id", "step", "chamfer", "chamfer_nf"]], b[["sample_id", "step", "chamfer", "chamfer_nf"]])
+
+
+def test_limit_is_partial_and_kept_out_of_leaderboard(tiny_kitti, store, tmp_path):
+    run_cell(_spec(tiny_kitti, limit=2), store, progress=False)
+    assert len(collect(store).table) == 0
+    run_cell(_spec(tiny_kitti), store, progress=False)
+    table = collect(store).table
+    assert len(table) == 1 and table.samples.iloc[0] == 6
+
+
+def test_rerun_with_changed_samples_requires_force(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
+    run_cell(_spec(root), tmp_path / "s", progress=False)
+    write_kitti_tree(tmp_path / "k", num_sweeps=30)
+    with pytest.raises(PcfbenchError, match="sample_ids_hash.*--force"):
+        run_cell(_spec(root), tmp_path / "s", progress=False)
+    assert run_cell(_spec(root), tmp_path / "s", progress=False, force=True).processed == 12
+
+
+def test_report_refuses_mixed_metric_versions(tiny_kitti, store):
+    run_cell(_spec(tiny_kitti), store, progress=False)
+    other = _spec(tiny_kitti, method="flaky")
+    run_cell(other, store, plugins=_plugins(), progress=False)
+    meta_path = Cell(store, other).dir / "cell.json"
+    meta = json.loads(meta_path.read_text())
+    meta["metric_versions"]["chamfer"] = "0"
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(PcfbenchError, match="(?s)refusing to mix metric versions.*chamfer v0"):
+        write_reports(store, store.parent / "rep")
+
+
+def test_report_shape(tiny_kitti, store, tmp_path):
+    run_cell(_spec(tiny_kitti), store, progress=False)
+    paths = write_reports(store, tmp_path / "rep")
+    csv = pd.read_csv(paths["csv"])
+    assert list(csv.columns[:9]) == ["dataset", "split", "setting", "policy", "method", "method_version", "samples", "failed", "sweeps"]
+    assert csv.samples.iloc[0] == 6 and csv.sweeps.iloc[0] == 30
+    rows = Cell(store, _spec(tiny_kitti)).read_rows()
+    assert csv.chamfer.iloc[0] == pytest.approx(rows.chamfer.mean())
+    by_step = pd.read_csv(paths["by_step"])
+    assert sorted(by_step.step) == [0, 1, 2, 3, 4]
+    assert "\\begin{tabular}" in paths["tex"].read_text()
+    assert "<table" in paths["html"].read_text()
+
+
+@pytest.mark.slow
+def test_sigkill_at_any_moment_loses_and_duplicates_nothing(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", sequences=("08", "09"), num_sweeps=90)
+    env = {**os.environ, "PCFBENCH_CHUNK_SAMPLES": "3", "PCFBENCH_NO_PROGRESS": "1"}
+    args = [str(Path(sys.executable).parent / "pcfbench"), "run", "--dataset", f"kitti={root}", "--setting", "kitti-1s",
+            "--method", "copy-last", "--store", str(tmp_path / "store"), "--reports", str(tmp_path / "rep"), "--no-report"]
+    rng = np.random.default_rng(0)
+    kills = 0
+    for attempt in range(6):
+        proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        time.sleep(rng.uniform(1.5, 3.5))
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+            kills += 1
+        proc.wait()
+    assert kills >= 2
+    final = subprocess.run(args, env=env, capture_output=True, text=True)
+    assert final.returncode == 0, final.stderr
+    spec = CellSpec("copy-last", {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", None,
+                    tuple(json.loads(next((tmp_path / "store").rglob("cell.json")).read_text())["spec"]["metrics"]))
+    cell = Cell(tmp_path / "store", spec)
+    raw = pd.concat([pd.read_parquet(p) for p in cell.chunk_paths()])
+    assert not raw.duplicated(["sample_id", "step"]).any()
+    clean = subprocess.run([*args[:-5], "--store", str(tmp_path / "clean"), "--reports", str(tmp_path / "rep2"), "--no-report"],
+                           env=env, capture_output=True, text=True)
+    assert clean.returncode == 0, clean.stderr
+    ref = pd.concat([pd.read_parquet(p) for p in Cell(tmp_path / "clean", spec).chunk_paths()])
+    key = ["sample_id", "step"]
+    a = raw.sort_values(key).reset_index(drop=True)
+    b = ref.sort_values(key).reset_index(drop=True)
+    assert len(a) == len(b) == 2 * (90 - 18) * 5
+    pd.testing.assert_frame_equal(a[key + ["chamfer", "chamfer_nf"]], b[key + ["chamfer", "chamfer_nf"]])
+    assert json.loads((cell.dir / "cell.json").read_text())["status"] == "complete"
