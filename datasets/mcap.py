@@ -11,7 +11,7 @@ world frame to the cloud's frame at the cloud's own timestamp (dynamic links int
 Options (keyword arguments, or root syntax ``rec.mcap?topic=/points&world_frame=map``):
 ``topic`` (default: the only point-cloud topic), ``world_frame`` (default: the root of the
 TF tree), ``sensor_frame`` (default: the cloud's frame_id), ``rate_hz`` (default: measured and
-snapped to 2 or 10 Hz within 5 %; a lower rate that divides the recorded one keeps every
+snapped to 2 or 10 Hz within 2 %; a lower rate that divides the recorded one keeps every
 k-th sweep), ``ego_box`` (``xmin,xmax,ymin,ymax`` metres in the sensor frame) and
 ``tf_tolerance_ms`` (how far outside a dynamic link's samples a cloud may be; default 60).
 """
@@ -350,10 +350,10 @@ class McapRecording(DatasetAdapter):
         native = 1e9 / float(np.median(np.diff(stamps)))
         target = self._wanted_rate
         if target is None:
-            snap = [r for r in SNAP_RATES if abs(native - r) <= 0.05 * r]
+            snap = [r for r in SNAP_RATES if abs(native - r) <= 0.02 * r]
             return (snap[0] if snap else round(native, 2)), 1
         stride = max(1, int(round(native / target)))
-        if abs(native / stride - target) > 0.05 * target:
+        if abs(native / stride - target) > 0.02 * target:
             raise DataError(f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz: keeping every k-th sweep cannot give {target:g} Hz (rates reachable: {', '.join(f'{native / k:.2f}' for k in range(1, 6))} Hz)")
         return target, stride
 
