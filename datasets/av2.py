@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.feather as feather
+import pyarrow.ipc as ipc
 
 from bench.dataset import CheckReport, DatasetAdapter, Sequence
 from bench.errors import DataError
@@ -39,29 +40,35 @@ def _kind_ok(arrow_type: pa.DataType, kind: str) -> bool:
     return True
 
 
-def read_feather(path: Path, columns: dict[str, str], what: str) -> pa.Table:
-    """Read ``columns`` (name -> 'float' | 'int' | 'str') of a feather file; errors name the file."""
+def read_feather(path: Path, columns: dict[str, str], what: str, only: bool = False) -> pa.Table:
+    """Read a feather file, checking ``columns`` (name -> 'float' | 'int' | 'str'); errors name the file.
+
+    ``only``: read just those columns (the schema is checked first from the file footer).
+    """
     if not path.is_file():
         raise DataError(f"Argoverse 2 {what} {path} is missing")
     try:
-        table = feather.read_table(path, memory_map=True)
+        with pa.memory_map(str(path)) as source:
+            schema = ipc.open_file(source).schema
+        for name, kind in columns.items():
+            if name not in schema.names:
+                raise DataError(f"Argoverse 2 {what} {path} has no column {name!r} (expected columns {', '.join(columns)}; found {', '.join(schema.names)})")
+            if not _kind_ok(schema.field(name).type, kind):
+                raise DataError(f"Argoverse 2 {what} {path}: column {name!r} has type {schema.field(name).type}, expected {kind}")
+        return feather.read_table(path, columns=list(columns) if only else None, memory_map=True)
     except (pa.ArrowException, OSError) as exc:
         raise DataError(f"Argoverse 2 {what} {path} is not a readable feather file ({exc}): truncated?") from None
-    schema = table.schema
-    for name, kind in columns.items():
-        if name not in schema.names:
-            raise DataError(f"Argoverse 2 {what} {path} has no column {name!r} (expected columns {', '.join(columns)}; found {', '.join(schema.names)})")
-        if not _kind_ok(schema.field(name).type, kind):
-            raise DataError(f"Argoverse 2 {what} {path}: column {name!r} has type {schema.field(name).type}, expected {kind}")
-    return table
 
 
 def read_lidar(path: Path) -> np.ndarray:
     """(N, 3) float32 ego-frame points of one sweep (float16 in the file, cast first)."""
-    t = read_feather(path, LIDAR_COLUMNS, "LiDAR sweep")
+    t = read_feather(path, LIDAR_COLUMNS, "LiDAR sweep", only=True)
     out = np.empty((t.num_rows, 3), np.float32)
     for j, c in enumerate("xyz"):
-        out[:, j] = t.column(c).to_numpy().astype(np.float32, copy=False)
+        start = 0
+        for chunk in t.column(c).chunks:  # float16 chunks cast on assignment, no concatenation
+            out[start:start + len(chunk), j] = chunk.to_numpy(zero_copy_only=False)
+            start += len(chunk)
     return out
 
 

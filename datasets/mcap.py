@@ -152,11 +152,18 @@ def cloud_points(msg, schema_name: str, where: str) -> np.ndarray:
         padded = np.zeros(row_step * height, np.uint8)
         padded[: len(buf)] = buf
         buf = np.ascontiguousarray(padded.reshape(height, row_step)[:, : width * step]).reshape(-1)
-    rec = np.frombuffer(buf, dtype=dtype, count=width * height)
-    pts = np.empty((len(rec), 3), np.float32)
-    for j, c in enumerate("xyz"):
-        pts[:, j] = rec[c]
-    pts = pts[np.isfinite(pts).all(axis=1)]
+    offsets = [fields[c][0] for c in "xyz"]
+    if all(fields[c][1] == "f4" for c in "xyz") and offsets[1] == offsets[0] + 4 and offsets[2] == offsets[0] + 8 and step % 4 == 0 and offsets[0] % 4 == 0:
+        # the common packed case: a strided float32 view, one copy
+        flat = np.frombuffer(buf, dtype=order + "f4", count=width * height * step // 4).reshape(-1, step // 4)
+        pts = flat[:, offsets[0] // 4: offsets[0] // 4 + 3].astype(np.float32)
+    else:
+        rec = np.frombuffer(buf, dtype=dtype, count=width * height)
+        pts = np.empty((len(rec), 3), np.float32)
+        for j, c in enumerate("xyz"):
+            pts[:, j] = rec[c]
+    if not np.isfinite(pts).all():  # non-dense clouds mark missing returns with NaN
+        pts = pts[np.isfinite(pts).all(axis=1)]
     if pose is not None:
         T = _transform(_get(pose, "position") or {}, _get(pose, "orientation") or {"w": 1.0}, where)
         if not np.allclose(T, np.eye(4)):
@@ -381,13 +388,17 @@ class McapRecording(DatasetAdapter):
         log_times = [c[1] for c in clouds]
         path, topic, schema_name = rec.path, rec.topic, rec.schema_name
 
+        decode = _Decoder()
+        state: dict[str, object] = {}  # one open reader per sequence: the summary is parsed once
+
         def load(_seq: str, index: int) -> np.ndarray:
-            decode = _Decoder()
             t = log_times[index]
-            with open(path, "rb") as f:
-                for schema, channel, message in make_reader(f).iter_messages(topics=[topic], start_time=t, end_time=t + 1):
-                    where = f"MCAP file {path} topic {topic} cloud at {clouds[index][0]} ns"
-                    return cloud_points(decode(schema, channel, message), schema_name, where)
+            if "reader" not in state:
+                state["file"] = open(path, "rb")  # noqa: SIM115 - kept open for the sequence's lifetime
+                state["reader"] = make_reader(state["file"])
+            for schema, channel, message in state["reader"].iter_messages(topics=[topic], start_time=t, end_time=t + 1):
+                where = f"MCAP file {path} topic {topic} cloud at {clouds[index][0]} ns"
+                return cloud_points(decode(schema, channel, message), schema_name, where)
             raise DataError(f"MCAP file {path} topic {topic}: no cloud at log time {t} ns")
 
         T = np.stack(poses) if poses else np.zeros((0, 4, 4))

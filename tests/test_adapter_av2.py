@@ -114,7 +114,6 @@ def test_check_collects_every_problem(tmp_path):
     assert rep.found[f"sequence val/{LOG}"] == "4 sweeps, 10.00 Hz"
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("setting", ["av2-1s", "av2-3s"])
 def test_end_to_end_copy_last(tmp_path, setting):
     from click.testing import CliRunner

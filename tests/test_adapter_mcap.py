@@ -167,7 +167,6 @@ def test_check_reports_topics_frames_and_every_problem(tmp_path):
     assert any("cut.mcap" in p for p in rep.problems) and any("point_step 8" in p for p in rep.problems)
 
 
-@pytest.mark.slow
 def test_end_to_end_copy_last(tmp_path):
     from click.testing import CliRunner
 

@@ -132,7 +132,6 @@ def test_check_collects_every_problem(tmp_path):
     assert rep.found["sequence scene-0003"] == "5 sweeps, 2.00 Hz"
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("setting", ["nuscenes-1s", "nuscenes-3s"])
 def test_end_to_end_copy_last(tmp_path, setting):
     from click.testing import CliRunner
