@@ -19,7 +19,9 @@ k-th sweep), ``ego_box`` (``xmin,xmax,ymin,ymax`` metres in the sensor frame) an
 from __future__ import annotations
 
 import base64
+import inspect
 import json
+import weakref
 from functools import cached_property, lru_cache
 from pathlib import Path
 
@@ -396,13 +398,15 @@ class McapRecording(DatasetAdapter):
             if "reader" not in state:
                 state["file"] = open(path, "rb")  # noqa: SIM115 - kept open for the sequence's lifetime
                 state["reader"] = make_reader(state["file"])
-            for schema, channel, message in state["reader"].iter_messages(topics=[topic], start_time=t, end_time=t + 1):
+            for schema, channel, message in state["reader"].iter_messages(topics=[topic], **_time_window(state["reader"], t)):
                 where = f"MCAP file {path} topic {topic} cloud at {clouds[index][0]} ns"
                 return cloud_points(decode(schema, channel, message), schema_name, where)
             raise DataError(f"MCAP file {path} topic {topic}: no cloud at log time {t} ns")
 
         T = np.stack(poses) if poses else np.zeros((0, 4, 4))
-        return Sequence(name=name, T_world_sensor=T, timestamps_ns=stamps, loader=load)
+        out = Sequence(name=name, T_world_sensor=T, timestamps_ns=stamps, loader=load)
+        weakref.finalize(out, _close_state, state)  # the open reader goes with the sequence
+        return out
 
     def check(self) -> CheckReport:
         report = CheckReport(layout="mcap", root=str(self.root))
@@ -428,6 +432,20 @@ class McapRecording(DatasetAdapter):
         report.found["rate"] = f"{self.rate_hz:g} Hz (every {self.stride} sweep(s)); settings at this rate: " + (
             ", ".join(n for n, s in _settings().items() if abs(s.rate_hz - self.rate_hz) < 1e-6) or "none (pass ?rate_hz=...)")
         return report
+
+
+def _time_window(reader, t: int) -> dict[str, int]:
+    """Messages logged exactly at ``t`` (newer mcap names the bounds starting_at / ending_at)."""
+    if "starting_at" in inspect.signature(reader.iter_messages).parameters:
+        return {"starting_at": t, "ending_at": t}
+    return {"start_time": t, "end_time": t + 1}
+
+
+def _close_state(state: dict) -> None:
+    f = state.pop("file", None)
+    state.pop("reader", None)
+    if f is not None:
+        f.close()
 
 
 def _settings():
