@@ -146,3 +146,21 @@ def test_end_to_end_copy_last(tmp_path, setting):
     past, fut = (2, 2) if setting == "nuscenes-1s" else (6, 6)
     assert f"{16 - (past - 1) - fut} samples ({16 - (past - 1) - fut} now, 0 failed)" in res.output
     assert f"nuscenes / val / {setting}" in (tmp_path / "reports" / "leaderboard.md").read_text()
+
+
+def test_datasets_check_cli_names_layout_splits_and_problems(tmp_path):
+    from click.testing import CliRunner
+
+    from bench.cli import build_cli
+
+    root = write_tiny_nuscenes(tmp_path, names=("scene-0003", "scene-0001"), n=5)
+    res = CliRunner().invoke(build_cli(), ["datasets", "check", str(root)])
+    assert res.exit_code == 0, res.output
+    assert "layout: nuscenes v1.0-trainval" in res.output
+    assert "split train: 1 sequence(s)" in res.output and "split val: 1 sequence(s)" in res.output
+    assert "sequence scene-0001: 5 sweeps, 2.00 Hz" in res.output
+    for t in ("sensor", "log"):
+        (root / "v1.0-trainval" / f"{t}.json").unlink()
+    res = CliRunner().invoke(build_cli(), ["datasets", "check", f"{root}?version=v1.0-trainval", "--layout", "nuscenes"])
+    assert res.exit_code == 1
+    assert "sensor.json" in res.output and "log.json" in res.output
