@@ -376,6 +376,11 @@ class McapRecording(DatasetAdapter):
 
     def sequence(self, name: str) -> Sequence:
         rec = self.recording(name)
+        stamps_all = np.array(sorted(c[0] for c in rec.clouds), np.int64)
+        if len(stamps_all) > 1:
+            native = 1e9 / float(np.median(np.diff(stamps_all)))
+            if abs(native / self.stride - self.rate_hz) > 0.02 * self.rate_hz:
+                raise DataError(f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz, but this dataset runs at {self.rate_hz:g} Hz (every {self.stride} sweep(s), from its first recording): one rate per dataset, or open the file alone")
         clouds = rec.clouds[:: self.stride]
         stamps = np.array([c[0] for c in clouds], np.int64)
         bad = np.flatnonzero(np.diff(stamps) <= 0)

@@ -180,3 +180,56 @@ def test_end_to_end_copy_last(tmp_path):
     assert res.exit_code == 0, res.output
     # 44 sweeps at 20 Hz -> 22 at 10 Hz; kitti-1s anchors 8..11
     assert "4 samples (4 now, 0 failed)" in res.output
+
+
+def test_recordings_of_different_rates_in_one_folder_are_refused(tmp_path):
+    write_ros2_recording(tmp_path / "a.mcap", _seq(n=6)[0])
+    write_ros2_recording(tmp_path / "b.mcap", _seq(n=6, rate_hz=2.0)[0])
+    ds = McapRecording(tmp_path)
+    assert ds.rate_hz == 10.0 and len(ds.sequence("a")) == 6
+    with pytest.raises(DataError, match=r"b.mcap topic /lidar/points is recorded at 2.00 Hz, but this dataset runs at 10 Hz"):
+        ds.sequence("b")
+
+
+try:
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+except ImportError:  # pragma: no cover - hypothesis is a test dependency
+    given = None
+
+if given is not None:
+
+    @settings(max_examples=40, deadline=None)
+    @given(
+        order=st.permutations(["x", "y", "z", "i"]),
+        coord=st.sampled_from(["f4", "f8"]),
+        big=st.booleans(),
+        pad=st.integers(0, 7),
+        row_pad=st.integers(0, 9),
+        height=st.sampled_from([1, 2, 5]),
+        seed=st.integers(0, 2**16),
+    )
+    def test_pointcloud2_layouts_decode_exactly(order, coord, big, pad, row_pad, height, seed):
+        """Any field order, float32/64 coordinates, endianness, point and row padding."""
+        from datasets.mcap import cloud_points
+
+        rng = np.random.default_rng(seed)
+        pts = rng.uniform(-80, 80, size=(10 * height, 3)).astype(np.float32)
+        sizes = {"x": int(coord[1]), "y": int(coord[1]), "z": int(coord[1]), "i": 4}
+        offsets, off = {}, 0
+        for name in order:
+            offsets[name] = off
+            off += sizes[name]
+        step = off + pad
+        bo = ">" if big else "<"
+        rec = np.zeros(len(pts), np.dtype({"names": list(order), "formats": [bo + (coord if n != "i" else "f4") for n in order],
+                                          "offsets": [offsets[n] for n in order], "itemsize": step}))
+        for j, c in enumerate("xyz"):
+            rec[c] = pts[:, j]
+        width = len(pts) // height
+        raw = rec.tobytes()
+        data = b"".join(raw[r * width * step:(r + 1) * width * step] + b"\xff" * row_pad for r in range(height))
+        types = {"f4": 7, "f8": 8}
+        msg = {"height": height, "width": width, "point_step": step, "row_step": width * step + row_pad, "is_bigendian": big, "data": data,
+               "fields": [{"name": n if n != "i" else "intensity", "offset": offsets[n], "datatype": types[coord] if n != "i" else 7, "count": 1} for n in order]}
+        np.testing.assert_array_equal(cloud_points(msg, "sensor_msgs/msg/PointCloud2", "test"), pts)

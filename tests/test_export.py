@@ -79,3 +79,21 @@ def test_convert_kitti_to_layout_keeps_world_points(tiny_kitti, tmp_path, layout
     for i in (0, 11):
         np.testing.assert_allclose(transform_points(seq.T_world_sensor[i], seq.load_points(i)),
                                    transform_points(src.T_world_sensor[i], src.load_points(i)), atol=tol)
+
+
+def test_convert_nuscenes_to_kitti_places_val_scene_in_kitti_val(tmp_path):
+    from datasets.kitti import KittiOdometry
+    from datasets.nuscenes import NuScenes
+    from test_adapter_nuscenes import write_tiny_nuscenes
+
+    src_root = write_tiny_nuscenes(tmp_path / "nusc", names=("scene-0003",), n=6)
+    res = CliRunner().invoke(build_cli(), ["convert", "--from", f"nuscenes={src_root}", "--to", f"kitti={tmp_path / 'kitti'}"])
+    assert res.exit_code == 0, res.output
+    assert "scene-0003 -> 06" in res.output
+    dst = KittiOdometry(tmp_path / "kitti")
+    assert dst.sequence_names("val") == ["06"]
+    src, seq = NuScenes(src_root).sequence("scene-0003"), dst.sequence("06")
+    np.testing.assert_allclose(np.diff(seq.timestamps_ns), np.diff(src.timestamps_ns), atol=1e3)  # KITTI keeps ~us
+    for i in (0, 5):
+        np.testing.assert_allclose(transform_points(seq.T_world_sensor[i], seq.load_points(i)),
+                                   transform_points(src.T_world_sensor[i], src.load_points(i)), atol=2e-3)
