@@ -69,3 +69,50 @@ def test_larger_ray_aligned_clouds_match_reference(seed, n):
     origin = rng.uniform(-2, 2, 3)
     gt, pred = _cloud(rng, n, 90.0, origin), _cloud(rng, n + 7, 90.0, origin)
     _assert_agree(fast(gt, origin, pred=pred), slow(gt, origin, pred=pred))
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), k=st.integers(1, 300), m=st.integers(1, 120), periodic=st.booleans(),
+       layout=st.sampled_from(["uniform", "clustered", "line", "far"]))
+def test_nearest_2d_matches_brute_force(seed, k, m, periodic, layout):
+    """The grid (with its k-d tree fallback) finds the brute-force nearest distance, wrap included."""
+    from bench.metrics.nn import nearest_2d
+
+    rng = np.random.default_rng(seed)
+    lo, hi = (-np.pi, np.pi)
+    if layout == "uniform":
+        data = rng.uniform([lo, -1], [hi, 1], (k, 2))
+    elif layout == "clustered":
+        data = np.clip(rng.normal([rng.uniform(lo, hi), 0], 0.05, (k, 2)), lo, hi)
+    elif layout == "line":  # degenerate: all on one elevation
+        data = np.stack([rng.uniform(lo, hi, k), np.full(k, 0.3)], 1)
+    else:  # data in a corner, queries everywhere: most need many rings or the fallback
+        data = rng.uniform([hi - 0.2, 0.9], [hi, 1.0], (k, 2))
+    queries = rng.uniform([lo, -1.5], [hi, 1.5], (m, 2))
+    idx = nearest_2d(data, queries, period=2 * np.pi if periodic else 0.0)
+    dx = np.abs(queries[:, None, 0] - data[None, :, 0])
+    if periodic:
+        dx = np.minimum(dx, 2 * np.pi - dx)
+    d2 = dx**2 + (queries[:, None, 1] - data[None, :, 1]) ** 2
+    got = d2[np.arange(m), idx]
+    np.testing.assert_allclose(got, d2.min(axis=1), rtol=1e-12, atol=0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 50))
+def test_ray_box_interval_matches_scalar_slab_walk(seed, n):
+    from bench.metrics.reference import segment_in_box
+    from bench.roi import ROI, ray_box_interval
+
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(-100, 100, 3) * rng.integers(0, 2, 3)  # some coordinates exactly 0
+    d = rng.normal(size=(n, 3)) * rng.integers(0, 2, (n, 3))  # some components exactly 0
+    d[~d.any(axis=1), 0] = 1.0
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t0, t1 = ray_box_interval(o, d, ROI)
+    for i in range(n):
+        seg = segment_in_box(o, d[i], ROI)
+        if seg is None:
+            assert not t0[i] <= t1[i]
+        else:
+            np.testing.assert_allclose([t0[i], t1[i]], seg, rtol=1e-12, atol=1e-12)

@@ -4,13 +4,17 @@ pykdtree was the fastest exact index measured on ray-aligned 120k x 120k LiDAR s
 2-core reference machine (see tests/benchmarks/test_bench_metrics.py and the README's
 "Metrics" section): about 2x scipy's cKDTree(workers=-1); open3d's KDTreeFlann only answers
 one query per Python call. Distances are recomputed in float64 from the returned indices, so
-they are exact for the chosen neighbour rather than a sqrt/square round trip.
+they are exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
+angle-space searches use an exact bucket grid (bench/metrics/grid.py), several times faster
+than any of the k-d trees there.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from pykdtree.kdtree import KDTree
+
+from bench.metrics.grid import Grid2D
 
 TWO_PI = 2.0 * np.pi
 
@@ -58,27 +62,41 @@ def angles_az_el(rel: np.ndarray) -> np.ndarray:
     )
 
 
+def _nearest_2d_kdtree(data: np.ndarray, queries: np.ndarray, period: float) -> np.ndarray:
+    """Exact 2D nearest neighbours by k-d tree, dimension 0 periodic when ``period`` > 0.
+
+    Every shifted copy (+-period) of a data point is at least ``period / 2 - |x_q|`` away from a
+    query at ``x_q``, so only queries whose unwrapped neighbour is farther than that look at
+    the shifted copies.
+    """
+    d2, idx = Index(data).query(queries)
+    if period > 0:
+        bound = period / 2 - np.abs(queries[:, 0])
+        seam = np.flatnonzero(d2 >= bound * bound)
+        if seam.size:
+            shifted = np.concatenate([data + [period, 0.0], data - [period, 0.0]])
+            d2s, idxs = Index(shifted).query(queries[seam])
+            better = d2s < d2[seam]
+            idx[seam[better]] = idxs[better] % data.shape[0]
+    return idx
+
+
+def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0) -> np.ndarray:
+    """Index of the nearest data point for each query (exact): the grid, then a k-d tree for the
+    queries far from all data."""
+    idx = Grid2D(data, period).query(queries)[1]
+    far = np.flatnonzero(idx < 0)
+    if far.size:
+        idx[far] = _nearest_2d_kdtree(data, queries[far], period)
+    return idx
+
+
 def nearest_angle_4docc(pred_rel: np.ndarray, gt_rel: np.ndarray) -> np.ndarray:
     """Index of the predicted point nearest to each ground-truth ray in the 4D-Occ angle space."""
-    _, idx = Index(angles_4docc(pred_rel)).query(angles_4docc(gt_rel))
-    return idx
+    return nearest_2d(angles_4docc(pred_rel), angles_4docc(gt_rel))
 
 
 def nearest_angle_wrapped(pred_rel: np.ndarray, gt_rel: np.ndarray) -> np.ndarray:
     """Index of the predicted point nearest to each ground-truth ray in (azimuth, elevation),
-    the azimuth difference taken around the circle (min(|da|, 2 pi - |da|)).
-
-    Exact: every shifted copy (azimuth +-2 pi) of a predicted point is at least
-    ``pi - |az_q|`` away from a query at azimuth ``az_q``, so only queries whose unwrapped
-    nearest neighbour is farther than that look at the shifted copies.
-    """
-    pa, ga = angles_az_el(pred_rel), angles_az_el(gt_rel)
-    d2, idx = Index(pa).query(ga)
-    bound = np.pi - np.abs(ga[:, 0])
-    seam = np.flatnonzero(d2 >= bound * bound)
-    if seam.size:
-        shifted = np.concatenate([pa + [TWO_PI, 0.0], pa - [TWO_PI, 0.0]])
-        d2s, idxs = Index(shifted).query(ga[seam])
-        better = d2s < d2[seam]
-        idx[seam[better]] = idxs[better] % pa.shape[0]
-    return idx
+    the azimuth difference taken around the circle (min(|da|, 2 pi - |da|))."""
+    return nearest_2d(angles_az_el(pred_rel), angles_az_el(gt_rel), period=TWO_PI)
