@@ -125,7 +125,14 @@ class SweepContext:
         redo = np.flatnonzero(~t_in[idx])
         if redo.size:
             d2 = d2.copy()
-            d2[redo] = index.query(queries[q_in][redo], mask=~t_in)[0]
+            q = queries[q_in][redo]
+            targets = index.points[t_in]
+            if redo.size <= 32:  # a few points: brute force, one query at a time
+                tx, ty, tz = (np.ascontiguousarray(targets[:, a]) for a in range(3))
+                for i, (x, y, z) in enumerate(q):
+                    d2[redo[i]] = ((tx - x) ** 2 + (ty - y) ** 2 + (tz - z) ** 2).min()
+            else:
+                d2[redo] = Index(targets).query(q)[0]
         return d2
 
     @cached_property

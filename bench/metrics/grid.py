@@ -15,13 +15,17 @@ periodic (azimuth, period 2 pi): differences are then taken around the circle.
 from __future__ import annotations
 
 import math
+import os
 
 import numba
 import numpy as np
 
-_TARGET_PER_CELL = 2.0
+_TARGET_PER_CELL = 1.0
 #: rings scanned before a query is left to the caller's fallback (returned index -1)
 MAX_RINGS = 4
+#: numba threads for the queries; off by default: on the shared 2-core reference machine the
+#: OpenMP threads made the queries 2-3x slower than one thread (set PCFBENCH_GRID_PARALLEL=1)
+PARALLEL = os.environ.get("PCFBENCH_GRID_PARALLEL") == "1"
 
 
 @numba.njit(cache=True, nogil=True)
@@ -32,12 +36,16 @@ def _build(xs, ys, x0, y0, hx, hy, nx, ny):
         cx = min(max(int(math.floor((xs[i] - x0) / hx)), 0), nx - 1)
         cy = min(max(int(math.floor((ys[i] - y0) / hy)), 0), ny - 1)
         keys[i] = cx * ny + cy
-    order = np.argsort(keys, kind="mergesort")  # stable: equal cells keep index order
     starts = np.zeros(nx * ny + 1, np.int64)
     for i in range(n):
         starts[keys[i] + 1] += 1
     for c in range(nx * ny):
         starts[c + 1] += starts[c]
+    order = np.empty(n, np.int64)  # counting sort, stable: a cell keeps its points in index order
+    fill = starts[:-1].copy()
+    for i in range(n):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
     return order, starts
 
 
@@ -49,16 +57,22 @@ def _scan_cell(c, starts, order, sx, sy, qx, qy, period, best_d, best_i):
             dx = min(dx, period - dx)
         dy = sy[s] - qy
         d = dx * dx + dy * dy
-        j = order[s]
-        if d < best_d or (d == best_d and j < best_i):
+        if d < best_d:
             best_d = d
-            best_i = j
+            best_i = order[s]
+        elif d == best_d and order[s] < best_i:
+            best_i = order[s]
     return best_d, best_i
 
 
 @numba.njit(cache=True, nogil=True)
-def _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i):
+def _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i, x0, y0, hx, hy):
     if iy < 0 or iy >= ny:
+        return best_d, best_i
+    # skip a cell whose rectangle (at this unwrapped position) is farther than the best so far
+    gx = max(x0 + ix * hx - qx, qx - (x0 + (ix + 1) * hx), 0.0)
+    gy = max(y0 + iy * hy - qy, qy - (y0 + (iy + 1) * hy), 0.0)
+    if gx * gx + gy * gy > best_d:
         return best_d, best_i
     if period > 0.0:
         ix = ix % nx
@@ -67,7 +81,7 @@ def _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i)
     return _scan_cell(ix * ny + iy, starts, order, sx, sy, qx, qy, period, best_d, best_i)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=PARALLEL)
 def _query(qxs, qys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, period, max_rings, out_i, out_d):
     m = qxs.shape[0]
     for q in numba.prange(m):
@@ -78,14 +92,19 @@ def _query(qxs, qys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, period, max_
         found = False
         for r in range(max_rings + 1):
             if r == 0:
-                best_d, best_i = _scan(cx, cy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i)
+                best_d, best_i = _scan(cx, cy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
+                                          x0, y0, hx, hy)
             else:  # the ring's perimeter only: top and bottom rows, then the two side columns
                 for ix in range(cx - r, cx + r + 1):
-                    best_d, best_i = _scan(ix, cy - r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i)
-                    best_d, best_i = _scan(ix, cy + r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i)
+                    best_d, best_i = _scan(ix, cy - r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
+                                          x0, y0, hx, hy)
+                    best_d, best_i = _scan(ix, cy + r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
+                                          x0, y0, hx, hy)
                 for iy in range(cy - r + 1, cy + r):
-                    best_d, best_i = _scan(cx - r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i)
-                    best_d, best_i = _scan(cx + r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i)
+                    best_d, best_i = _scan(cx - r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
+                                          x0, y0, hx, hy)
+                    best_d, best_i = _scan(cx + r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
+                                          x0, y0, hx, hy)
             # distance from the query to the nearest cell outside the scanned block
             bound = np.inf
             if cy - r > 0:
@@ -112,7 +131,7 @@ class Grid2D:
     """Nearest neighbours among (K, 2) float64 points; dimension 0 periodic if ``period`` > 0
     (its values must then lie in [-period / 2, period / 2])."""
 
-    def __init__(self, points: np.ndarray, period: float = 0.0) -> None:
+    def __init__(self, points: np.ndarray, period: float = 0.0, per_cell: float = _TARGET_PER_CELL) -> None:
         pts = np.asarray(points, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] == 0:
             raise ValueError(f"need a non-empty (K, 2) array, got {pts.shape}")
@@ -124,12 +143,12 @@ class Grid2D:
             x0, wx = float(pts[:, 0].min()), float(np.ptp(pts[:, 0]))
         y0, wy = float(pts[:, 1].min()), float(np.ptp(pts[:, 1]))
         wx, wy = max(wx, 1e-9), max(wy, 1e-9)
-        cells = max(1.0, k / _TARGET_PER_CELL)
+        xs, ys = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
+        cells = max(1.0, k / per_cell)
         nx = int(min(max(round(math.sqrt(cells * wx / wy)), 1), cells))
         ny = int(min(max(round(cells / nx), 1), cells))
         self.x0, self.y0, self.nx, self.ny = x0, y0, nx, ny
         self.hx, self.hy = wx / nx, wy / ny
-        xs, ys = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
         self.order, self.starts = _build(xs, ys, x0, y0, self.hx, self.hy, nx, ny)
         self.sx, self.sy = xs[self.order], ys[self.order]
 
