@@ -113,6 +113,12 @@ class SweepContext:
     def nn_gt_to_pred(self) -> tuple[np.ndarray, np.ndarray]:
         return self.pred_index.query(self.gt64)
 
+    @staticmethod
+    def _columns(index: Index) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if not hasattr(index, "columns"):
+            index.columns = tuple(np.ascontiguousarray(index.points[:, a]) for a in range(3))
+        return index.columns
+
     def _cropped_nn(self, full: tuple[np.ndarray, np.ndarray], q_in: np.ndarray, t_in: np.ndarray,
                     queries: np.ndarray, index: Index) -> np.ndarray:
         """Squared NN distances from the cropped queries to the cropped targets.
@@ -124,15 +130,14 @@ class SweepContext:
         d2, idx = full[0][q_in], full[1][q_in]
         redo = np.flatnonzero(~t_in[idx])
         if redo.size:
-            d2 = d2.copy()
-            q = queries[q_in][redo]
-            targets = index.points[t_in]
-            if redo.size <= 32:  # a few points: brute force, one query at a time
-                tx, ty, tz = (np.ascontiguousarray(targets[:, a]) for a in range(3))
+            q = queries[np.flatnonzero(q_in)[redo]]
+            if redo.size <= 32:  # a few points: brute force over the in-ROI targets
+                cols = self._columns(index)
                 for i, (x, y, z) in enumerate(q):
-                    d2[redo[i]] = ((tx - x) ** 2 + (ty - y) ** 2 + (tz - z) ** 2).min()
+                    d = (cols[0] - x) ** 2 + (cols[1] - y) ** 2 + (cols[2] - z) ** 2
+                    d2[redo[i]] = d[t_in].min()
             else:
-                d2[redo] = Index(targets).query(q)[0]
+                d2[redo] = Index(index.points[t_in]).query(q)[0]
         return d2
 
     @cached_property

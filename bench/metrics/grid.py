@@ -20,9 +20,9 @@ import os
 import numba
 import numpy as np
 
-_TARGET_PER_CELL = 1.0
+_TARGET_PER_CELL = 2.0
 #: rings scanned before a query is left to the caller's fallback (returned index -1)
-MAX_RINGS = 4
+MAX_RINGS = 2
 #: numba threads for the queries; off by default: on the shared 2-core reference machine the
 #: OpenMP threads made the queries 2-3x slower than one thread (set PCFBENCH_GRID_PARALLEL=1)
 PARALLEL = os.environ.get("PCFBENCH_GRID_PARALLEL") == "1"
