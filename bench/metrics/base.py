@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -188,23 +189,35 @@ class SweepContext:
     def pred_ranges(self) -> np.ndarray:
         return np.sqrt(np.einsum("ij,ij->i", self.pred_rel, self.pred_rel))
 
-    def _ray_depth(self, nearest) -> np.ndarray | None:
+    @cached_property
+    def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped).
+
+        The two exact searches are independent and release the GIL: the 4D-Occ one runs in a
+        second thread while this one does the wrapped one.
+        """
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            first = pool.submit(nearest_angle_4docc, self.pred_rel, self.gt_rel)
+            wrapped = nearest_angle_wrapped(self.pred_rel, self.gt_rel)
+            return first.result(), wrapped
+
+    def _ray_depth(self, which: int) -> np.ndarray | None:
         if self.pred_depths is not None:
             return self.pred_depths.astype(np.float64)
         if self.pred_points.shape[0] == 0:
             return None
-        return self.pred_ranges[nearest(self.pred_rel, self.gt_rel)]
+        return self.pred_ranges[self._angular_nearest[which]]
 
     @cached_property
     def ray_depth_4docc(self) -> np.ndarray | None:
         """Predicted depth per ground-truth ray: the forecast's depths, or the range of the
         predicted point nearest in the 4D-Occ angle space; None for an empty prediction."""
-        return self._ray_depth(nearest_angle_4docc)
+        return self._ray_depth(0)
 
     @cached_property
     def ray_depth(self) -> np.ndarray | None:
         """As ray_depth_4docc, nearest in (azimuth, elevation) with azimuth wrap-around."""
-        return self._ray_depth(nearest_angle_wrapped)
+        return self._ray_depth(1)
 
     def ray_errors(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(|g_c - p_c|, |g_c - p_c| / |g_c - o_c|) on the kept rays, for per-ray predicted depths."""

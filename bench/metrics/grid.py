@@ -15,7 +15,6 @@ periodic (azimuth, period 2 pi): differences are then taken around the circle.
 from __future__ import annotations
 
 import math
-import os
 
 import numba
 import numpy as np
@@ -23,9 +22,9 @@ import numpy as np
 _TARGET_PER_CELL = 2.0
 #: rings scanned before a query is left to the caller's fallback (returned index -1)
 MAX_RINGS = 2
-#: numba threads for the queries; off by default: on the shared 2-core reference machine the
-#: OpenMP threads made the queries 2-3x slower than one thread (set PCFBENCH_GRID_PARALLEL=1)
-PARALLEL = os.environ.get("PCFBENCH_GRID_PARALLEL") == "1"
+# The queries run in one thread (numba's OpenMP threads made them 2-3x slower on the shared
+# 2-core reference machine) and release the GIL, so independent searches can run in Python
+# threads. Consecutive queries (scan order) start from the previous query's answer.
 
 
 @numba.njit(cache=True, nogil=True)
@@ -81,14 +80,21 @@ def _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
     return _scan_cell(ix * ny + iy, starts, order, sx, sy, qx, qy, period, best_d, best_i)
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
-def _query(qxs, qys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, period, max_rings, out_i, out_d):
+@numba.njit(cache=True, nogil=True)
+def _query(qxs, qys, xs, ys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, period, max_rings, out_i, out_d):
     m = qxs.shape[0]
-    for q in numba.prange(m):
+    warm = -1  # the previous query's answer: a real data point, so a valid first candidate
+    for q in range(m):
         qx, qy = qxs[q], qys[q]
         cx = min(max(int(math.floor((qx - x0) / hx)), 0), nx - 1)
         cy = min(max(int(math.floor((qy - y0) / hy)), 0), ny - 1)
         best_d, best_i = np.inf, -1
+        if warm >= 0:
+            dx = abs(xs[warm] - qx)
+            if period > 0.0:
+                dx = min(dx, period - dx)
+            dy = ys[warm] - qy
+            best_d, best_i = dx * dx + dy * dy, warm
         found = False
         for r in range(max_rings + 1):
             if r == 0:
@@ -125,6 +131,7 @@ def _query(qxs, qys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, period, max_
                 break
         out_i[q] = best_i if found else -1
         out_d[q] = best_d
+        warm = best_i
 
 
 class Grid2D:
@@ -150,6 +157,7 @@ class Grid2D:
         self.x0, self.y0, self.nx, self.ny = x0, y0, nx, ny
         self.hx, self.hy = wx / nx, wy / ny
         self.order, self.starts = _build(xs, ys, x0, y0, self.hx, self.hy, nx, ny)
+        self.xs, self.ys = xs, ys
         self.sx, self.sy = xs[self.order], ys[self.order]
 
     def query(self, queries: np.ndarray, max_rings: int = MAX_RINGS) -> tuple[np.ndarray, np.ndarray]:
@@ -160,7 +168,7 @@ class Grid2D:
         out_i = np.empty(q.shape[0], np.int64)
         out_d = np.empty(q.shape[0], np.float64)
         if q.shape[0]:
-            _query(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), self.sx, self.sy, self.order,
+            _query(np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]), self.xs, self.ys, self.sx, self.sy, self.order,
                    self.starts, self.x0, self.y0, self.hx, self.hy, self.nx, self.ny, self.period, max_rings,
                    out_i, out_d)
         return out_d, out_i
