@@ -125,8 +125,8 @@ class SweepContext:
         """Squared NN distances from the cropped queries to the cropped targets.
 
         A cropped query whose nearest neighbour in the whole target set lies inside the ROI
-        has the same nearest distance within the crop; only the others are asked again, with
-        the out-of-ROI targets masked.
+        has the same nearest distance within the crop; only the others are asked again
+        (brute force over the in-ROI targets when they are few, else a tree on the crop).
         """
         d2, idx = full[0][q_in], full[1][q_in]
         redo = np.flatnonzero(~t_in[idx])
