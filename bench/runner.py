@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import platform
 import subprocess
@@ -284,7 +285,10 @@ def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: i
             yield process_sample(res, key)
         return
     batch = max(1, min(8, len(keys) // (jobs * 4) or 1))
-    with ProcessPoolExecutor(max_workers=jobs, initializer=_worker_init, initargs=(spec,)) as pool:
+    # forkserver, not fork: metric and method libraries run threads (numba, OpenMP k-d trees,
+    # torch), and a child forked while one of them holds a lock deadlocks.
+    ctx = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init, initargs=(spec,)) as pool:
         pending = set()
         it = _batches(keys, batch)
         for b in it:
