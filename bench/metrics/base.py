@@ -179,7 +179,8 @@ class SweepContext:
     def ray_kept(self) -> np.ndarray:
         """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
         t_enter, _, meets = self.ray_clamp
-        return meets & (self.gt_clamped - t_enter > MIN_RANGE_M)
+        with np.errstate(invalid="ignore"):  # rays missing the box may have t_enter = inf
+            return meets & (self.gt_clamped - t_enter > MIN_RANGE_M)
 
     @cached_property
     def pred_rel(self) -> np.ndarray:
