@@ -92,6 +92,10 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     agents = make_agents(style, graph, rng_agents, lo, hi, duration + t_start)
     for a in agents:
         a.t0 += t_start
+    # No collisions with the ego vehicle: agents that would come within 3.5 m of it are left out.
+    fine_t = np.arange(0.0, duration + 1e-9, 0.05)
+    fine_T = ego_poses(domain, ground, route, s_t, fine_t, t_start)[:, :2, 3]
+    agents = [a for a in agents if np.min(np.linalg.norm(a.positions(fine_t) - fine_T, axis=1)) > 3.5]
     directions = domain.sensor.directions()
     seq = SimulatedSequence(domain.name, name, split, [], [], [], T, times)
     hits = drops = 0

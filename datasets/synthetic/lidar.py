@@ -50,45 +50,58 @@ class StaticScene:
 
 @dataclass(frozen=True)
 class EgoShape:
-    """The ego vehicle's body in the sensor frame (x forward, origin at the sensor)."""
+    """The ego vehicle in the sensor frame (x forward, origin at the sensor): a lower body
+    (bonnet and boot height) and a narrower cabin under the roof-mounted sensor."""
 
     x_min: float = -2.75
     x_max: float = 1.85
     half_width: float = 0.95
-    roof_below_sensor: float = 0.22
+    body_below_sensor: float = 0.9  # top of bonnet / boot
+    cabin_x: tuple[float, float] = (-1.5, 0.5)
+    cabin_half_width: float = 0.7
+    roof_below_sensor: float = 0.45
 
-    def mesh(self, mount_height: float):
-        length = self.x_max - self.x_min
-        height = mount_height - self.roof_below_sensor - 0.3
-        from datasets.synthetic.world import box
-
-        return box((self.x_max + self.x_min) / 2, 0.0, -mount_height + 0.3, length, 2 * self.half_width, height, 0.0)
+    def boxes(self, mount_height: float) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Axis-aligned (lo, hi) corners of the body and the cabin in the sensor frame."""
+        bottom = -mount_height + 0.3
+        body = (np.array([self.x_min, -self.half_width, bottom]), np.array([self.x_max, self.half_width, -self.body_below_sensor]))
+        cabin = (np.array([self.cabin_x[0], -self.cabin_half_width, bottom]),
+                 np.array([self.cabin_x[1], self.cabin_half_width, -self.roof_below_sensor]))
+        return [body, cabin]
 
 
 EGO_SHAPE = EgoShape()
 
 
-@functools.lru_cache(maxsize=8)
-def ego_hits(sensor: LidarConfig, shape: EgoShape = EGO_SHAPE) -> tuple[np.ndarray, np.ndarray]:
-    """Per ray of ``sensor``: distance to the ego body (inf: misses) and the body's normal there.
-
-    The body is an axis-aligned box in the sensor frame, so a slab test is exact.
-    """
-    d = sensor.directions().astype(np.float64)
-    top = -shape.roof_below_sensor
-    lo = np.array([shape.x_min, -shape.half_width, -sensor.mount_height_m + 0.3])
-    hi = np.array([shape.x_max, shape.half_width, top])
+def _slab(d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry distance (inf: miss) and outward normal of rays from the origin into box [lo, hi]."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t1 = lo / d
         t2 = hi / d
     t_near = np.minimum(t1, t2)
-    t_far = np.maximum(t1, t2)
     enter = np.max(t_near, axis=1)
     axis = np.argmax(t_near, axis=1)
-    hit = (enter <= np.min(t_far, axis=1)) & (enter > 0)
-    t = np.where(hit, enter, np.inf)
+    hit = (enter <= np.min(np.maximum(t1, t2), axis=1)) & (enter > 0)
     normals = np.zeros_like(d)
-    normals[np.arange(len(d)), axis] = -np.sign(d[np.arange(len(d)), axis])
+    rows = np.arange(len(d))
+    normals[rows, axis] = -np.sign(d[rows, axis])
+    return np.where(hit, enter, np.inf), normals
+
+
+@functools.lru_cache(maxsize=8)
+def ego_hits(sensor: LidarConfig, shape: EgoShape = EGO_SHAPE) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray of ``sensor``: distance to the ego vehicle (inf: misses) and its normal there.
+
+    The vehicle is two axis-aligned boxes in the sensor frame, so slab tests are exact, and
+    the result is the same for every sweep.
+    """
+    d = sensor.directions().astype(np.float64)
+    t, normals = np.full(len(d), np.inf), np.zeros_like(d)
+    for lo, hi in shape.boxes(sensor.mount_height_m):
+        tb, nb = _slab(d, lo, hi)
+        nearer = tb < t
+        t = np.where(nearer, tb, t)
+        normals[nearer] = nb[nearer]
     return t.astype(np.float32), normals.astype(np.float32)
 
 

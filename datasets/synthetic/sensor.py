@@ -76,10 +76,10 @@ class LidarConfig:
 HDL64 = LidarConfig(
     name="hdl64",
     elevations_deg=tuple(float(v) for v in hdl64_elevations_deg()),
-    # 0.3 deg: the real HDL-64E at 10 Hz fires ~0.09 deg apart. A third of its columns keeps a
-    # sweep near 40k points, so the metrics (k-d trees over every sweep) stay fast enough for
+    # 0.35 deg: the real HDL-64E at 10 Hz fires ~0.09 deg apart. A quarter of its columns keeps a
+    # sweep near 60k points, so the metrics (k-d trees over every sweep) stay fast enough for
     # the 10-minute default run; the beam table (what forecasting is sensitive to) is full.
-    azimuth_steps=1200,
+    azimuth_steps=1024,
     mount_height_m=1.73,
     max_range_m=120.0,
     range_noise_m=0.02,

@@ -514,6 +514,12 @@ class Agent:
         """Horizontal radius of the shape around the agent's origin."""
         return float(np.max(np.hypot(self.shape[0][:, 0], self.shape[0][:, 1])))
 
+    def positions(self, times: np.ndarray) -> np.ndarray:
+        """(len(times), 2) positions at sequence times ``times``."""
+        k = np.clip((np.asarray(times) + self.t0) / 0.01, 0.0, len(self.s_t) - 1.0)
+        s = np.interp(k, np.arange(len(self.s_t)), self.s_t)
+        return self.route.at(s)[0]
+
     def pose(self, t: float) -> tuple[float, float, float]:
         k = min(max((t + self.t0) / 0.01, 0.0), len(self.s_t) - 1.0)
         i = int(k)
