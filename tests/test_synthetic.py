@@ -167,3 +167,19 @@ def test_moving_agents_move_between_sweeps():
     moving = [((lab & 0xFFFF) >= 5) & ((lab & 0xFFFF) <= 7) for lab in seq.labels]
     assert sum(m.sum() for m in moving) > 0, "no agent was seen"
     assert seq.stats["agents"] > 5
+
+
+@pytest.mark.slow
+def test_copy_last_error_is_larger_on_moving_agents(tmp_path):
+    """Moving agents make copy-last's error larger than on static points (robust statistics)
+    and larger than on parked vehicles of the same shapes."""
+    from datasets.synthetic.adapter import SyntheticTown
+    from datasets.synthetic.analysis import copy_last_error_by_class
+
+    dom = tiny(sweeps=26, azimuths=512)
+    generate_domain(dom, tmp_path, progress=False, splits=("test",))
+    res = copy_last_error_by_class(SyntheticTown(tmp_path), "kitti-1s")
+    assert res["samples"] == 8 and res["moving_points"] > 500
+    assert res["moving_robust"]["median_m"] > 1.5 * res["static_robust"]["median_m"]
+    assert res["moving_robust"]["frac_over_0.5m"] > res["static_robust"]["frac_over_0.5m"]
+    assert res["vehicle_vs_parked_ratio"] > 1.5
