@@ -23,7 +23,7 @@ from datasets.synthetic.generate import (
 def tiny(name: str = "synthetic-town", sweeps: int = 8, azimuths: int = 240):
     """A small copy of a domain: one train and one test sequence, a coarse azimuth grid."""
     d = get_domain(name)
-    sensor = dataclasses.replace(d.sensor, azimuth_steps=azimuths)
+    sensor = dataclasses.replace(d.sensor, azimuth_steps=azimuths, max_range_m=60.0)  # a smaller world to build
     return dataclasses.replace(d, sensor=sensor, splits={"train": (("00", 4),), "test": (("05", sweeps),)})
 
 
@@ -183,3 +183,26 @@ def test_copy_last_error_is_larger_on_moving_agents(tmp_path):
     assert res["moving_robust"]["median_m"] > 1.5 * res["static_robust"]["median_m"]
     assert res["moving_robust"]["frac_over_0.5m"] > res["static_robust"]["frac_over_0.5m"]
     assert res["vehicle_vs_parked_ratio"] > 1.5
+
+
+@pytest.mark.slow
+def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_path, monkeypatch):
+    import datasets.synthetic.adapter as adapter_mod
+    import datasets.synthetic.generate as gen
+    from bench.cli import build_cli
+
+    dom = tiny(sweeps=56, azimuths=240)
+    monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
+    monkeypatch.setattr(gen, "get_domain", lambda name: dom)
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    cli = build_cli()
+    args = ["run", "--method", "copy-last", "--limit", "2", "--reports", str(tmp_path / "reports"), "-q"]
+    first = CliRunner().invoke(cli, args)
+    assert first.exit_code == 0, first.output
+    assert "generating synthetic-town" in first.output
+    assert "synthetic-town:test | kitti-1s limit=2: 2 samples (2 now, 0 failed)" in first.output
+    assert "synthetic-town:test | kitti-3s limit=2: 2 samples (2 now, 0 failed)" in first.output
+    root = tmp_path / "cache" / "synthetic" / "synthetic-town-v1"
+    assert split_complete(root, "test") and not split_complete(root, "train")
+    second = CliRunner().invoke(cli, args)
+    assert second.exit_code == 0 and "generating" not in second.output and "nothing to do" in second.output
