@@ -10,7 +10,8 @@ def add_commands(cli: click.Group) -> None:
     @click.argument("domain", default="synthetic-town")
     @click.option("--out", "-o", type=click.Path(file_okay=False), default=None,
                   help="Output folder; default: the cache the dataset reads (KITTI layout only).")
-    @click.option("--layout", default="kitti", show_default=True, help="kitti (nuscenes, av2, mcap: when their writers are installed).")
+    @click.option("--layout", default="kitti", show_default=True,
+                  help="kitti, or any layout of 'pcfbench convert' (nuscenes, av2, av2-sensor, mcap, ...).")
     @click.option("--split", "splits", multiple=True, help="Only these splits (repeatable); default: all.")
     @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
     def generate(domain, out, layout, splits, quiet):

@@ -131,18 +131,47 @@ def write_kitti(root: Path, seq: SimulatedSequence) -> None:
         np.asarray(lab, np.uint32).tofile(labels / f"{i:06d}.label")
 
 
-#: layout name -> writer. Other layouts plug in here with the same signature (root, sequence).
-LAYOUT_WRITERS: dict[str, Callable[[Path, SimulatedSequence], None]] = {"kitti": write_kitti}
-#: layouts whose adapters exist but whose writer is not part of this install yet.
-PLANNED_LAYOUTS = ("nuscenes", "av2", "mcap")
+#: Epoch of the first sweep of sequence k in layouts that store absolute times (not KITTI).
+EPOCH_NS = 1_600_000_000 * 10**9
 
 
-def get_writer(layout: str) -> Callable[[Path, SimulatedSequence], None]:
-    if layout in LAYOUT_WRITERS:
-        return LAYOUT_WRITERS[layout]
-    if layout in PLANNED_LAYOUTS:
-        raise PcfbenchError(f"layout {layout!r} has no writer in this install yet (available: {', '.join(LAYOUT_WRITERS)})")
-    raise UnknownNameError(f"unknown layout {layout!r} (known: {', '.join(LAYOUT_WRITERS)})")
+def _other_layouts() -> dict[str, str]:
+    """Layouts of the adapters' shared writer (``datasets.commands.write_layout``) -> axes."""
+    try:
+        from datasets.commands import LAYOUTS
+    except ImportError:
+        return {}
+    return {name: axes for name, (axes, _) in LAYOUTS.items() if name != "kitti"}
+
+
+def available_layouts() -> tuple[str, ...]:
+    return ("kitti", *_other_layouts())
+
+
+def write_other_layout(layout: str, out: Path, seqs: list[SimulatedSequence], domain: Domain) -> dict[str, str]:
+    """Write simulated sequences through the adapters' writer; returns source -> written names.
+
+    Sensor frames are re-expressed in the layout's axis convention; times become absolute.
+    """
+    from datasets.commands import write_layout
+    from datasets.layout import STANDARD_AXES, SequenceData, change_axes
+
+    data = []
+    for seq in seqs:
+        k = domain.sequence_index(seq.name)
+        ts = EPOCH_NS + k * 10**12 + np.round(seq.times_s * 1e9).astype(np.int64)
+        sd = SequenceData.from_arrays(seq.name, seq.split, seq.points, seq.T_world_sensor, ts)
+        data.append(change_axes(sd, STANDARD_AXES, _other_layouts()[layout]))
+    return dict(write_layout(layout, Path(out), data))
+
+
+def get_writer(layout: str) -> str:
+    """Validate ``layout``: ``kitti`` always, the others when the adapters' writers are installed."""
+    if layout in available_layouts():
+        return layout
+    if layout in ("nuscenes", "av2", "mcap"):
+        raise PcfbenchError(f"layout {layout!r} has no writer in this install (available: {', '.join(available_layouts())})")
+    raise UnknownNameError(f"unknown layout {layout!r} (known: {', '.join(available_layouts())})")
 
 
 def _progress_bar(total: int, desc: str, enabled: bool):
@@ -156,7 +185,7 @@ def generate_domain(domain: Domain | str, out: str | Path, layout: str = "kitti"
                     splits: tuple[str, ...] | None = None) -> dict:
     """Write every sequence of ``domain`` (or only ``splits``) under ``out``; returns the manifest."""
     domain = get_domain(domain) if isinstance(domain, str) else domain
-    writer = get_writer(layout)
+    get_writer(layout)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     todo = [(sp, n, k) for sp, n, k in domain.sequences() if splits is None or sp in splits]
@@ -173,11 +202,17 @@ def generate_domain(domain: Domain | str, out: str | Path, layout: str = "kitti"
         "sequences": {},
     }
     started = time.perf_counter()
+    held = []  # other layouts write all sequences at once
     with _progress_bar(sum(k for _, _, k in todo), f"generating {domain.name}", progress) as bar:
         for split, name, _ in todo:
             seq = simulate_sequence(domain, name, progress=bar.update)
-            writer(out, seq)
+            if layout == "kitti":
+                write_kitti(out, seq)
+            else:
+                held.append(seq)
             manifest["sequences"][name] = {"split": split, **seq.stats}
+    if held:
+        manifest["written_as"] = write_other_layout(layout, out, held, domain)
     manifest["seconds"] = round(time.perf_counter() - started, 2)
     (out / MANIFEST).write_text(json.dumps({k: v for k, v in manifest.items() if k != "seconds"}, indent=1, sort_keys=True) + "\n")
     return manifest
