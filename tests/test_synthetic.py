@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from bench.errors import PcfbenchError, UnknownNameError
 from bench.protocol import SETTINGS, SampleBuilder
 from bench.testing import check_adapter
-from datasets.synthetic.domains import get_domain
+from datasets.synthetic.domains import GENERATOR_VERSION, get_domain
 from datasets.synthetic.generate import (
     COMPLETE, ensure_domain, generate_domain, get_writer, simulate_sequence, split_complete,
 )
@@ -202,7 +202,7 @@ def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_pa
     assert "generating synthetic-town" in first.output
     assert "synthetic-town:test | kitti-1s limit=2: 2 samples (2 now, 0 failed)" in first.output
     assert "synthetic-town:test | kitti-3s limit=2: 2 samples (2 now, 0 failed)" in first.output
-    root = tmp_path / "cache" / "synthetic" / "synthetic-town-v1"
+    root = tmp_path / "cache" / "synthetic" / f"synthetic-town-v{GENERATOR_VERSION}"
     assert split_complete(root, "test") and not split_complete(root, "train")
     second = CliRunner().invoke(cli, args)
     assert second.exit_code == 0 and "generating" not in second.output and "nothing to do" in second.output

@@ -16,7 +16,7 @@ from datasets.synthetic.sensor import HDL32, HDL64, LidarConfig
 from datasets.synthetic.world import SUBURB, TOWN, TownStyle
 
 #: Bumped whenever the generated data would change; part of the cache folder name.
-GENERATOR_VERSION = "1"
+GENERATOR_VERSION = "2"
 
 
 @dataclass(frozen=True)

@@ -35,3 +35,16 @@ def test_bench_generate_sequence(benchmark, name, tmp_path):
     if stats is not None and stats.stats.mean:
         benchmark.extra_info["sweeps_per_s"] = SWEEPS / stats.stats.mean
         benchmark.extra_info["points_per_sweep"] = float(np.mean([len(p) for p in seq.points]))
+
+
+def test_bench_baseline_toy_world(benchmark):
+    """Side-by-side baseline: bench.testing's analytic toy street (a few planes and posts, no
+    agents, no files) ray-cast with the town's ray count (64 beams x 512 columns)."""
+    from bench.testing import toy_world_sweeps
+
+    points, poses, _ = benchmark.pedantic(
+        lambda: toy_world_sweeps(SWEEPS, beams=64, azimuths=512), rounds=1 if not FULL else 2, iterations=1)
+    assert len(points) == SWEEPS and len(points[0]) > 1000
+    stats = getattr(benchmark, "stats", None)
+    if stats is not None and stats.stats.mean:
+        benchmark.extra_info["sweeps_per_s"] = SWEEPS / stats.stats.mean
