@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import os
 from pathlib import Path
 
 import numpy as np
@@ -243,3 +242,28 @@ def test_generate_other_layouts_read_back_by_their_adapters(tmp_path, layout, do
         # AV2 stores float16 coordinates (half a millimetre per metre of range); others float32
         tol = 0.04 if layout == "av2" else 1e-3
         assert d.max() < tol and np.median(d) < tol / 4
+
+
+def test_domains_differ_like_real_datasets():
+    """Town vs suburb: sensor, rate, building heights and set-backs, traffic density."""
+    from datasets.synthetic.world import (
+        STRUCTURE, SUBURB, TOWN, Ground, build_static, make_agents, make_road_graph,
+    )
+
+    town, suburb = get_domain("synthetic-town"), get_domain("synthetic-suburb")
+    assert (town.sensor.beams, suburb.sensor.beams) == (64, 32)
+    assert town.sensor.mount_height_m < suburb.sensor.mount_height_m
+    assert (town.rate_hz, suburb.rate_hz) == (10.0, 2.0)
+    stats = {}
+    for style in (TOWN, SUBURB):
+        rng = np.random.default_rng(5)
+        graph = make_road_graph(style, rng)
+        ground = Ground(style, graph, rng)
+        lo, hi = np.array([-80.0, -80.0]), np.array([80.0, 80.0])
+        soup = build_static(style, graph, ground, rng, lo, hi)
+        V, T = soup.merged(STRUCTURE)
+        tops = V.reshape(-1, 8, 3)[:, :, 2].max(1) - V.reshape(-1, 8, 3)[:, :, 2].min(1)  # boxes: 8 vertices
+        agents = make_agents(style, graph, rng, lo, hi, 10.0)
+        stats[style.name] = (np.percentile(tops, 90), len(agents))
+    assert stats["town"][0] > 2 * stats["suburb"][0]  # tall town blocks vs low houses
+    assert stats["town"][1] > 2 * stats["suburb"][1]  # busier traffic

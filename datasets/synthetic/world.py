@@ -410,7 +410,6 @@ def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.ran
             # Buildings (or fences and walls in the gaps) along the frontage.
             s = rng.uniform(6.0, 12.0)
             while s < total - 10.0:
-                i = int(s / 0.5)
                 front = rng.uniform(*style.building_frontage_m)
                 depth = rng.uniform(*style.building_depth_m)
                 setback = rng.uniform(*style.building_setback_m)
