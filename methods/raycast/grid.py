@@ -77,9 +77,15 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level):
         x = o[0] + d[0] * t
         y = o[1] + d[1] * t
         z = o[2] + d[2] * t
-        a = min(max(int(np.floor((x - lo[0]) / vs)), 0), nx0 - 1)
-        b = min(max(int(np.floor((y - lo[1]) / vs)), 0), ny0 - 1)
-        c = min(max(int(np.floor((z - lo[2]) / vs)), 0), nz0 - 1)
+        fa = (x - lo[0]) / vs
+        fb = (y - lo[1]) / vs
+        fc = (z - lo[2]) / vs
+        tol = 1e-4
+        if fa < -tol or fb < -tol or fc < -tol or fa > nx0 + tol or fb > ny0 + tol or fc > nz0 + tol:
+            break  # the ray has left the grid
+        a = min(max(int(np.floor(fa)), 0), nx0 - 1)  # rounding at the faces
+        b = min(max(int(np.floor(fb)), 0), ny0 - 1)
+        c = min(max(int(np.floor(fc)), 0), nz0 - 1)
         need = 0
         if cone > 0.0:
             w = t * cone

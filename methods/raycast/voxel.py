@@ -12,7 +12,8 @@ at range ``t`` it stops at occupied space at the resolution ``t * cone_factor * 
 
 Rays that hit nothing: a ray that leaves the grid (the ROI) without meeting occupied space,
 or starts outside it and misses it, takes the z-buffer depth of ``raycast-zbuffer`` (the
-nearest range among past points in its angular bin, else the angular nearest neighbour),
+nearest range among past points in its angular bin, else the nearest filled bin or the
+angular nearest neighbour),
 which also covers surfaces beyond the ROI.
 """
 

@@ -10,8 +10,9 @@ Sparsity: a point is splatted as a small disc, the size of its footprint in its 
 (``splat * own_range * el_res``, the spacing of the beams where it was measured), seen from
 the future origin, at most ``max_splat`` bins each way. Near surfaces the future sensor
 approaches thus stay closed instead of letting background through the gaps between past
-beams. A query ray whose bin is still empty takes the range of the angular nearest past
-point (exact, with azimuth wrap-around).
+beams. A query ray whose bin is still empty takes the depth of the angularly nearest
+non-empty bin (bin centres, within ``fill_ring`` bins), and beyond that the range of the
+angular nearest past point (exact, with azimuth wrap-around).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ class ZBufferOptions:
     el_res_deg: float = 0.4  # elevation bin height (beam spacing)
     splat: float = 1.0  # splat diameter in units of the point's own beam spacing (0: one bin per point)
     max_splat: int = 4  # largest splat half-width, in bins
+    fill_ring: int = 8  # empty bins take the angularly nearest non-empty bin within this many bins
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
@@ -86,16 +88,45 @@ def _splat(az, el, rng, own, el0, az_res, el_res, n_az, n_el, splat, max_splat):
 
 
 @nb.njit(parallel=True, cache=True)
-def _lookup(img, qaz, qel, el0, az_res, el_res, n_az, n_el):
+def _lookup(img, qaz, qel, el0, az_res, el_res, n_az, n_el, max_ring):
+    """Depth per query: its bin, else the nearest (in angle) non-empty bin centre within
+    ``max_ring`` bins (exact ring search in angle distance), else NaN."""
     m = qaz.shape[0]
     out = np.full(m, np.nan)
     for j in nb.prange(m):
-        ci = int(np.floor((qaz[j] + np.pi) / az_res)) % n_az
-        ri = int(np.floor((qel[j] - el0) / el_res))
+        fa = (qaz[j] + np.pi) / az_res
+        fe = (qel[j] - el0) / el_res
+        ci = int(np.floor(fa)) % n_az
+        ri = int(np.floor(fe))
         if 0 <= ri < n_el:
             v = img[ri * n_az + ci]
             if v < np.inf:
                 out[j] = v
+                continue
+        # hole: rings of bins around the query's bin, nearest bin centre in angle
+        sx = az_res * max(np.cos(qel[j]), 0.05)
+        best = np.inf
+        bv = np.nan
+        for r in range(1, max_ring + 1):
+            for dy in range(-r, r + 1):
+                row = ri + dy
+                if row < 0 or row >= n_el:
+                    continue
+                step = 1 if (dy == -r or dy == r) else 2 * r
+                for dx in range(-r, r + 1, step):
+                    v = img[row * n_az + (ci + dx) % n_az]
+                    if v < np.inf:
+                        ex = (int(np.floor(fa)) + dx + 0.5 - fa) * sx
+                        ey = (row + 0.5 - fe) * el_res
+                        dd = ex * ex + ey * ey
+                        if dd < best:
+                            best = dd
+                            bv = v
+            # bins beyond ring r are at least r - 0.5 bins away along some axis
+            lim = (r - 0.5) * min(sx, el_res)
+            if best < np.inf and best <= lim * lim:
+                break
+        out[j] = bv
     return out
 
 
@@ -145,7 +176,7 @@ def render_zbuffer(points, own_range, view, opts) -> np.ndarray:
         return np.zeros(len(qaz))
     az, el, rng = spherical(points, view.origin, R)
     im = build_image(az, el, rng, own_range, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
-    depth = _lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el)
+    depth = _lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, int(opts.fill_ring))
     empty = np.isnan(depth)
     if empty.any():
         depth[empty] = angular_nn_ranges(az, el, rng, qaz[empty], qel[empty])
