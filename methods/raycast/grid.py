@@ -73,6 +73,7 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level):
     ny0 = dims[0, 1]
     nz0 = dims[0, 2]
     eps = 1e-5
+    top = K
     while t < t1:
         x = o[0] + d[0] * t
         y = o[1] + d[1] * t
@@ -91,7 +92,12 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level):
             w = t * cone
             while need < max_level and vs * (1 << need) < w:
                 need += 1
-        lvl = K
+        # start one level above the last skip: its parent is likely empty too
+        lvl = min(top, K)
+        while lvl < K and occ[offs[lvl + 1] + (((a >> (lvl + 1)) * dims[lvl + 1, 1] + (b >> (lvl + 1))) * dims[lvl + 1, 2] + (c >> (lvl + 1)))] == 0:
+            lvl += 1
+        if lvl < need:
+            lvl = need
         skipped = False
         while lvl >= need:
             ia = a >> lvl
@@ -99,6 +105,7 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level):
             ic = c >> lvl
             if occ[offs[lvl] + (ia * dims[lvl, 1] + ib) * dims[lvl, 2] + ic] == 0:
                 t = _cell_exit(o, inv, lo, vs * (1 << lvl), ia, ib, ic, t) + eps
+                top = lvl + 1
                 skipped = True
                 break
             lvl -= 1
