@@ -11,8 +11,9 @@ Sparsity: a point is splatted as a small disc, the size of its footprint in its 
 the future origin, at most ``max_splat`` bins each way. Near surfaces the future sensor
 approaches thus stay closed instead of letting background through the gaps between past
 beams. A query ray whose bin is still empty takes the depth of the angularly nearest
-non-empty bin (bin centres, within ``fill_ring`` bins), and beyond that the range of the
-angular nearest past point (exact, with azimuth wrap-around).
+non-empty bin (bin centres, within ``fill_ring`` bins), then the same search on 4x, 16x, ...
+coarser min-pooled images, and only when the whole image is empty around it the range of
+the angular nearest past point (exact, with azimuth wrap-around).
 """
 
 from __future__ import annotations
@@ -168,6 +169,17 @@ def build_image(az, el, rng, own, qel, az_res_deg, el_res_deg, splat, max_splat)
     return RangeImage(img, el0, az_res, el_res, n_az, n_el)
 
 
+def coarsen(im: RangeImage, f: int) -> RangeImage:
+    """Min-pool the range image by ``f`` in both directions (nearest range wins)."""
+    n_el = -(-im.n_el // f) * f
+    n_az = -(-im.n_az // f) * f
+    img = np.full((n_el, n_az), np.inf, np.float32)
+    img[: im.n_el, : im.n_az] = im.img.reshape(im.n_el, im.n_az)
+    img = img.reshape(n_el // f, f, n_az // f, f).min(axis=(1, 3))
+    # a partly padded last azimuth column makes the wrap-around slightly uneven; this is a fallback
+    return RangeImage(img.ravel(), im.el0, im.az_res * f, im.el_res * f, n_az // f, n_el // f)
+
+
 def render_zbuffer(points, own_range, view, opts) -> np.ndarray:
     """Depth per query ray of ``view``: the z-buffer bin, else the angular nearest point."""
     R = np.ascontiguousarray(view.T_ref_sensor[:3, :3])
@@ -178,6 +190,12 @@ def render_zbuffer(points, own_range, view, opts) -> np.ndarray:
     im = build_image(az, el, rng, own_range, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
     depth = _lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, int(opts.fill_ring))
     empty = np.isnan(depth)
+    while empty.any() and im.n_az > 4 and im.n_el > 1:
+        # wider holes: the same ring search on a 4x coarser (min-pooled) image
+        im = coarsen(im, 4)
+        sub = np.flatnonzero(empty)
+        depth[sub] = _lookup(im.img, qaz[sub], qel[sub], im.el0, im.az_res, im.el_res, im.n_az, im.n_el, int(opts.fill_ring))
+        empty = np.isnan(depth)
     if empty.any():
         depth[empty] = angular_nn_ranges(az, el, rng, qaz[empty], qel[empty])
     return depth
