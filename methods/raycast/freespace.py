@@ -8,11 +8,14 @@ stays occupied when its log-odds ``hits * l_hit - free * l_miss`` is positive (O
 default increments), so the ghosts that moving objects leave in the aggregate, which later
 or earlier rays pass through, are carved away and only stably occupied space stops a ray.
 Past points in carved voxels are also removed from the z-buffer fallback of the voxel caster.
+With ``renderer=zbuffer`` the surviving points are rendered by ``raycast-zbuffer`` instead of
+casting the carved grid.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -21,6 +24,7 @@ from bench.method import Method
 from methods.raycast.common import aggregate, assemble, views
 from methods.raycast.grid import VoxelGrid
 from methods.raycast.voxel import render_voxel
+from methods.raycast.zbuffer import render_zbuffer
 
 
 @dataclass(frozen=True)
@@ -34,6 +38,10 @@ class FreespaceOptions:
     l_miss: float = 0.4  # log-odds removed per past ray passing through a voxel
     carve_margin_m: float = 0.5  # rays carve up to this far before their return ...
     carve_margin_frac: float = 0.15  # ... or this fraction of their range, whichever is more
+    renderer: Literal["voxel", "zbuffer"] = "voxel"  # cast the carved grid, or z-buffer the surviving points
+    splat: float = 1.0  # z-buffer renderer: as raycast-zbuffer
+    max_splat: int = 4  # z-buffer renderer: as raycast-zbuffer
+    fill_ring: int = 8  # z-buffer renderer: as raycast-zbuffer
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
@@ -60,5 +68,8 @@ class RaycastFreespace(Method):
         keep = carve(grid, agg.origins, agg.points, agg.own_range, self.options)
         pts, own = agg.points[keep], agg.own_range[keep]
         vws = views(sample, self.options.constant_velocity)
-        depths = [render_voxel(grid, pts, own, v, self.options) for v in vws]
+        if self.options.renderer == "zbuffer":
+            depths = [render_zbuffer(pts, own, v, self.options) for v in vws]
+        else:
+            depths = [render_voxel(grid, pts, own, v, self.options) for v in vws]
         return assemble(sample, vws, depths, self.options.constant_velocity)
