@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from bench.data import Forecast, Sample
@@ -26,14 +27,31 @@ class FourDOccOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
+@nb.njit(parallel=True, cache=True)
+def _angles_ranges(points, origin):
+    """The reference angle space and the range of every point seen from ``origin``."""
+    n = points.shape[0]
+    u = np.empty(n)
+    v = np.empty(n)
+    r = np.empty(n)
+    for i in nb.prange(n):
+        x = points[i, 0] - origin[0]
+        y = points[i, 1] - origin[1]
+        z = points[i, 2] - origin[2]
+        u[i] = np.arctan2(x, y)
+        v[i] = np.arctan2(z, y)
+        r[i] = np.sqrt(x * x + y * y + z * z)
+    return u, v, r
+
+
 def render_4docc(points: np.ndarray, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Depth per ray: the range of the angle-space nearest past point (0 with no points)."""
     if len(points) == 0:
         return np.zeros(len(directions))
-    rel = points - origin
-    index = NN2D(angles_4docc(rel))
-    nearest = index.query(angles_4docc(directions))
-    return np.linalg.norm(rel[nearest], axis=1)
+    u, v, r = _angles_ranges(np.ascontiguousarray(points, dtype=np.float64), np.asarray(origin, dtype=np.float64))
+    index = NN2D((u, v))
+    nearest = index.query(angles_4docc(np.asarray(directions, dtype=np.float64)))
+    return r[nearest]
 
 
 class RaycastFourDOcc(Method):

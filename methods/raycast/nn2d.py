@@ -139,11 +139,15 @@ def _edges(v: np.ndarray, g: int) -> np.ndarray:
 class NN2D:
     """Index (N, 2) points once, then find the nearest one to each of many (M, 2) queries."""
 
-    def __init__(self, points: np.ndarray, points_per_cell: float = 2.0) -> None:
-        points = np.asarray(points, dtype=np.float64)
-        self.n = int(points.shape[0])
-        self.px = np.ascontiguousarray(points[:, 0])
-        self.py = np.ascontiguousarray(points[:, 1])
+    def __init__(self, points: np.ndarray | tuple[np.ndarray, np.ndarray], points_per_cell: float = 2.0) -> None:
+        if isinstance(points, tuple):  # (x, y) columns
+            px, py = points
+        else:
+            points = np.asarray(points, dtype=np.float64)
+            px, py = points[:, 0], points[:, 1]
+        self.n = int(px.shape[0])
+        self.px = np.ascontiguousarray(px, dtype=np.float64)
+        self.py = np.ascontiguousarray(py, dtype=np.float64)
         if self.n == 0:
             return
         g = max(1, int(np.sqrt(self.n / points_per_cell)))
