@@ -8,7 +8,9 @@ future sweeps of about 127,000 query rays (a 64-beam, 2000-step toy LiDAR); othe
 
 ``render`` times the per-view work only (everything that depends on the future pose; the
 scene built once per sample is outside it) and reports ``rays_per_s`` in extra_info;
-``sample`` times ``forecast`` end to end.
+``ray_queries`` times only the per-ray part (nearest-neighbour queries, image look-ups, grid
+casts) with each view's index, image or grid built beforehand; ``sample`` times
+``forecast`` end to end.
 """
 
 from __future__ import annotations
@@ -77,3 +79,46 @@ def test_sample(benchmark, sample, cls):
     method.forecast(sample)
     forecast = benchmark(method.forecast, sample)
     assert [len(p) for p in forecast.points_ref] == [len(q) for q in sample.queries]
+
+
+def _ray_queries(cls, sample):
+    """Only the per-ray part of every view, its per-view scene (index, image, grid) built beforehand."""
+    from methods.raycast.common import angles_4docc
+    from methods.raycast.fourdocc import _angles_ranges
+    from methods.raycast.nn2d import NN2D
+    from methods.raycast.zbuffer import _lookup, build_image, spherical
+
+    opts = cls.Options()
+    agg = aggregate(sample)
+    vws = views(sample, False)
+    if cls is RaycastFourDOcc:
+        jobs = []
+        for v in vws:
+            u, w, _ = _angles_ranges(agg.points, v.origin)
+            jobs.append((NN2D((u, w)), angles_4docc(v.directions)))
+        return lambda: [index.query(q) for index, q in jobs]
+    if cls is RaycastZBuffer:
+        jobs = []
+        for v in vws:
+            R = np.ascontiguousarray(v.T_ref_sensor[:3, :3])
+            qaz, qel, _ = spherical(v.directions, np.zeros(3), R)
+            az, el, rng = spherical(agg.points, v.origin, R)
+            im = build_image(az, el, rng, agg.own_range, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
+            jobs.append((im, qaz, qel))
+        return lambda: [_lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, opts.fill_ring) for im, qaz, qel in jobs]
+    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
+    if cls is RaycastFreespace:
+        carve(grid, agg.origins, agg.points, agg.own_range, opts)
+    cone = opts.cone_factor * np.deg2rad(opts.el_res_deg)
+    return lambda: [grid.cast(v.origin, v.directions, cone=cone, max_level=opts.max_level) for v in vws]
+
+
+@pytest.mark.parametrize("cls", METHODS, ids=lambda c: c.name)
+def test_ray_queries(benchmark, sample, cls):
+    query = _ray_queries(cls, sample)
+    query()
+    out = benchmark(query)
+    rays = sum(len(q) for q in sample.queries)
+    assert sum(len(o) for o in out) == rays
+    if benchmark.stats is not None:
+        benchmark.extra_info["rays_per_s"] = rays / benchmark.stats.stats.median
