@@ -32,6 +32,7 @@ class FreespaceOptions:
     voxel: float = 0.2  # voxel edge, metres
     cone_factor: float = 2.0  # as raycast-voxel
     max_level: int = 3  # as raycast-voxel
+    cone_center: Literal["future", "past"] = "future"  # as raycast-voxel
     az_res_deg: float = 0.2  # as raycast-voxel
     el_res_deg: float = 0.4  # as raycast-voxel
     l_hit: float = 0.85  # log-odds added per return in a voxel

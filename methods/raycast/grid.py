@@ -5,11 +5,11 @@ Level 0 holds ``voxel`` sized cells over a box (the ROI by default); level ``l``
 coarsest empty level (exact: a cell is only skipped when nothing inside it is occupied), so
 a ray costs about as many steps as the levels it crosses, not the voxels.
 
-Cone traversal (the sparsity policy of ``raycast-voxel``): at range ``t`` a ray stops at the
-first occupied cell of the smallest level whose cell size is at least ``t * cone`` (``cone``
-in radians, for example twice the beam spacing), capped at ``max_level``. Far from the sensor
-the ray is therefore as thick as the gaps between the past beams and cannot slip between
-them. A hit on a coarse cell is refined with a fine (level 0) traversal inside that cell;
+Cone traversal (the sparsity policy of ``raycast-voxel``): at a point at distance ``r`` from
+the cone centre a ray stops at the first occupied cell of the smallest level whose cell size
+is at least ``r * cone`` (``cone`` in radians, for example twice the beam spacing), capped at
+``max_level``. With the centre at the past sensor, the ray is as thick as the gaps between
+the past beams there and cannot slip between them. A hit on a coarse cell is refined with a fine (level 0) traversal inside that cell;
 when the fine ray still slips through, the middle of the ray's segment in the coarse cell is
 the hit. A level-0 hit answers the projection of the mean of the voxel's points on the ray
 (clamped to the ray's segment in the voxel), which removes the voxel quantisation for
@@ -65,7 +65,7 @@ def _cell_exit(o, inv, lo, size, a, b, c, t):
 
 
 @nb.njit(cache=True)
-def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level):
+def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center):
     """First occupied cell along the ray in [t, t1). Returns (t_entry, t_exit, level, key)
     with t_entry < 0 when nothing is hit; ``key`` is the level-0 key (only for level-0 hits)."""
     K = offs.shape[0] - 1
@@ -89,7 +89,8 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level):
         c = min(max(int(np.floor(fc)), 0), nz0 - 1)
         need = 0
         if cone > 0.0:
-            w = t * cone
+            # as wide as the beam gaps where the past sensor (at ``center``) saw this place
+            w = np.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2) * cone
             while need < max_level and vs * (1 << need) < w:
                 need += 1
         # start one level above the last skip: its parent is likely empty too
@@ -127,7 +128,7 @@ def _search(sorted_keys, key):
 
 
 @nb.njit(parallel=True, cache=True)
-def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukeys, means):
+def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukeys, means, center):
     m = dirs.shape[0]
     out = np.full(m, np.nan)
     for j in nb.prange(m):
@@ -139,11 +140,11 @@ def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukey
         t1 = t1s[j]
         if not t0 < t1:
             continue
-        te, tx, lvl, key = _march(origin, d, inv, t0, t1, occ, offs, dims, lo, vs, cone, max_level)
+        te, tx, lvl, key = _march(origin, d, inv, t0, t1, occ, offs, dims, lo, vs, cone, max_level, center)
         if te < 0:
             continue
         if lvl > 0:  # refine a coarse (cone) hit inside its cell
-            fe, fx, _, fkey = _march(origin, d, inv, te, tx, occ, offs, dims, lo, vs, 0.0, 0)
+            fe, fx, _, fkey = _march(origin, d, inv, te, tx, occ, offs, dims, lo, vs, 0.0, 0, center)
             if fe < 0:
                 out[j] = 0.5 * (te + tx)
                 continue
@@ -173,7 +174,7 @@ def _carve(origins, points, t_end, occ, offs, dims, lo, vs, ukeys, free):
         t = 0.0
         t1 = t_end[i]
         while t < t1:
-            te, tx, _, key = _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, 0.0, 0)
+            te, tx, _, key = _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, 0.0, 0, o)
             if te < 0:
                 break
             s = _search(ukeys, key)
@@ -224,12 +225,17 @@ class VoxelGrid:
         )
         return free
 
-    def cast(self, origin: np.ndarray, directions: np.ndarray, cone: float = 0.0, max_level: int = 0) -> np.ndarray:
-        """Depth of the first hit per ray; NaN for rays that leave the grid without a hit."""
+    def cast(self, origin: np.ndarray, directions: np.ndarray, cone: float = 0.0, max_level: int = 0,
+             cone_center: np.ndarray | None = None) -> np.ndarray:
+        """Depth of the first hit per ray; NaN for rays that leave the grid without a hit.
+
+        A cone's width at a point is ``cone`` times its distance from ``cone_center`` (the
+        ray's origin by default; the past sensor to size it to the gaps of the past beams)."""
         origin = np.asarray(origin, dtype=np.float64)
+        center = origin if cone_center is None else np.asarray(cone_center, dtype=np.float64)
         directions = np.ascontiguousarray(directions, dtype=np.float64)
         t0, t1 = ray_box_interval(origin, directions, self.box)
         return _cast(
             origin, directions, t0, t1, self.occ, self.offs, self.dims, self.lo, self.voxel, float(cone),
-            int(min(max_level, len(self.offs) - 1)), self.ukeys, self.means,
+            int(min(max_level, len(self.offs) - 1)), self.ukeys, self.means, center,
         )
