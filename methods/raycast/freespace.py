@@ -30,7 +30,7 @@ from methods.raycast.zbuffer import render_zbuffer
 @dataclass(frozen=True)
 class FreespaceOptions:
     voxel: float = 0.2  # voxel edge, metres
-    cone_factor: float = 2.0  # as raycast-voxel
+    cone_factor: float = 1.0  # as raycast-voxel
     max_level: int = 3  # as raycast-voxel
     cone_center: Literal["future", "past"] = "future"  # as raycast-voxel
     az_res_deg: float = 0.2  # as raycast-voxel
