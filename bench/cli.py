@@ -75,7 +75,7 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
         root = config.dataset_root(name, cli_roots)
         if root is None:
             root = str(cls.default_root(progress=progress))
-        elif not Path(root).exists():
+        elif not Path(config.split_root_options(root)[0]).exists():
             raise PcfbenchError(f"dataset {name!r}: root {root} does not exist")
         out.append((name, root))
     return out
@@ -206,17 +206,23 @@ def datasets():
 
 
 @datasets.command()
-@click.argument("root", type=click.Path(exists=True, file_okay=True))
+@click.argument("root")
 @click.option("--layout", default=None, help="Adapter name; default: detect it.")
 def check(root, layout):
-    """Say which layout ROOT is, what it holds and every problem found."""
+    """Say which layout ROOT is, what it holds and every problem found.
+
+    ROOT may carry adapter options: PATH?key=value&key=value.
+    """
     state = get_plugins()
+    root, options = config.split_root_options(root)
+    if not Path(root).exists():
+        raise PcfbenchError(f"{root} does not exist")
     if layout is None:
         found = [n for n in state.datasets.names() if state.datasets.get(n).detect(Path(root))]
         if not found:
             raise PcfbenchError(f"{root}: no known layout recognised (known: {', '.join(state.datasets.names())})")
         layout = found[0]
-    adapter = state.datasets.get(layout)(root)
+    adapter = state.datasets.get(layout)(root, **options)
     rep = adapter.check()
     click.echo(f"layout: {rep.layout}  (adapter {layout} v{adapter.version})")
     click.echo(f"root: {rep.root}")

@@ -63,6 +63,23 @@ def parse_dataset_args(values: tuple[str, ...]) -> tuple[list[str], dict[str, st
     return names, roots
 
 
+def split_root_options(root: str | None) -> tuple[str | None, dict[str, str]]:
+    """``PATH?key=value&key=value`` into the path and the adapter's keyword options (strings).
+
+    Lets ``--dataset mcap=rec.mcap?topic=/points&rate_hz=10`` reach ``Adapter(path, **options)``.
+    """
+    if root is None or "?" not in root:
+        return root, {}
+    path, _, query = root.partition("?")
+    options = {}
+    for item in filter(None, query.split("&")):
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise PcfbenchError(f"dataset root {root!r}: option {item!r} must look like key=value")
+        options[key] = value
+    return path, options
+
+
 def cache_dir() -> Path:
     """Generated data and checkpoints: ``$PCFBENCH_CACHE`` or ``~/.cache/pcfbench``."""
     env = os.environ.get("PCFBENCH_CACHE")

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 import bench
+from bench import config
 from bench.errors import DataError, PcfbenchError
 from bench.method import Method, parse_options
 from bench.metrics.base import Metric, score_sample
@@ -78,7 +79,8 @@ def resolve(spec: CellSpec, plugins: Plugins | None = None) -> Resolved:
     adapter_cls = plugins.datasets.get(spec.dataset)
     method_cls = plugins.methods.get(spec.method)
     setting = get_setting(spec.setting)
-    adapter = adapter_cls(spec.dataset_root)
+    root, root_options = config.split_root_options(spec.dataset_root)
+    adapter = adapter_cls(root, **root_options)
     check_compatible(setting, adapter)
     options = parse_options(method_cls.Options, spec.options, f"method {spec.method}")
     metrics = [plugins.metrics.get(m) for m in spec.metrics]
