@@ -16,9 +16,11 @@ class Box:
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool mask of the (N, 3) points inside the box (inclusive)."""
-        lo = np.asarray(self.lo, dtype=np.float64)
-        hi = np.asarray(self.hi, dtype=np.float64)
-        return np.all((points >= lo) & (points <= hi), axis=1)
+        inside = np.ones(points.shape[0], dtype=bool)
+        for a in range(3):  # column by column: much faster than an (N, 3) mask reduced over axis 1
+            col = points[:, a]
+            inside &= (col >= self.lo[a]) & (col <= self.hi[a])
+        return inside
 
     def crop(self, points: np.ndarray) -> np.ndarray:
         return points[self.contains(points)]
@@ -56,23 +58,24 @@ def ray_box_interval(
     box. A ray that misses the box has ``t_enter > t_exit``. Directions need not be unit;
     t is then in units of their length.
     """
-    o = np.asarray(origin, dtype=np.float64).reshape(1, 3)
-    d = np.asarray(directions, dtype=np.float64)
-    lo = np.asarray(box.lo, dtype=np.float64)
-    hi = np.asarray(box.hi, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (lo - o) * inv
-        t2 = (hi - o) * inv
-    tmin = np.minimum(t1, t2)
-    tmax = np.maximum(t1, t2)
-    # A zero direction component: the ray is parallel to that slab, inside it or never.
-    parallel = d == 0
-    inside_slab = (o >= lo) & (o <= hi)
-    tmin = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), tmin)
-    tmax = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), tmax)
-    t_enter = np.maximum(tmin.max(axis=1), 0.0)
-    t_exit = tmax.min(axis=1)
+    o = np.asarray(origin, dtype=np.float64).reshape(3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    t_enter = np.zeros(d.shape[0])
+    t_exit = np.full(d.shape[0], np.inf)
+    for a in range(3):  # one slab at a time, on columns
+        lo, hi, da = float(box.lo[a]), float(box.hi[a]), d[:, a]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - o[a]) / da
+            t2 = (hi - o[a]) / da
+        tmin, tmax = np.minimum(t1, t2), np.maximum(t1, t2)
+        # A zero direction component: the ray is parallel to that slab, inside it or never.
+        parallel = da == 0
+        if parallel.any():
+            inside_slab = lo <= o[a] <= hi
+            tmin = np.where(parallel, -np.inf if inside_slab else np.inf, tmin)
+            tmax = np.where(parallel, np.inf if inside_slab else -np.inf, tmax)
+        np.maximum(t_enter, tmin, out=t_enter)
+        np.minimum(t_exit, tmax, out=t_exit)
     return t_enter, t_exit
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -9,7 +10,9 @@ from typing import Callable
 import numpy as np
 
 from bench.data import Forecast, GroundTruth, RayQuery, Sample
-from bench.roi import ROI, Box
+from bench.metrics.nn import Index, nearest_angle_4docc, nearest_angle_wrapped
+from bench.protocol import MIN_RANGE_M
+from bench.roi import ROI, Box, ray_box_interval
 
 
 @dataclass(frozen=True)
@@ -38,8 +41,11 @@ class Metric:
 class SweepContext:
     """One future sweep to score: prediction, ground truth and the query rays, reference frame.
 
-    Derived quantities (crops, nearest-neighbour distances, clamped ranges) are cached, so a
-    suite of metrics pays for each only once.
+    Derived quantities (crops, nearest-neighbour passes, clamped ranges, per-ray predicted
+    depths) are cached properties, so a suite of metrics pays for each only once: one exact
+    nearest-neighbour pass each way serves CD and, re-querying only the few points whose
+    neighbour lies outside the ROI, NFCD; one angular nearest-neighbour pass per angle space
+    serves L1 and AbsRel.
     """
 
     def __init__(
@@ -57,6 +63,7 @@ class SweepContext:
         self._pred_points = pred_points  # (K, 3) or None
         self.roi = roi
 
+    # -- points ----------------------------------------------------------------------------
     @cached_property
     def pred_points(self) -> np.ndarray:
         """Predicted points; from depths along the query rays when only depths were given."""
@@ -66,17 +73,170 @@ class SweepContext:
         return (self.origin + self.query.directions_ref.astype(np.float64) * d).astype(np.float32)
 
     @cached_property
-    def gt_ranges(self) -> np.ndarray:
-        """(M,) float64 distance of each ground-truth point from the sweep origin."""
-        return np.linalg.norm(self.gt_points.astype(np.float64) - self.origin, axis=1)
+    def pred64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.pred_points, dtype=np.float64)
+
+    @cached_property
+    def gt64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.gt_points, dtype=np.float64)
+
+    @cached_property
+    def gt_in_roi(self) -> np.ndarray:
+        return self.roi.contains(self.gt64)
+
+    @cached_property
+    def pred_in_roi(self) -> np.ndarray:
+        return self.roi.contains(self.pred64)
 
     @cached_property
     def gt_roi(self) -> np.ndarray:
-        return self.roi.crop(self.gt_points)
+        return self.gt_points[self.gt_in_roi]
 
     @cached_property
     def pred_roi(self) -> np.ndarray:
-        return self.roi.crop(self.pred_points)
+        return self.pred_points[self.pred_in_roi]
+
+    # -- nearest neighbours in 3D (Chamfer) --------------------------------------------------
+    @cached_property
+    def gt_index(self) -> Index:
+        return Index(self.gt64)
+
+    @cached_property
+    def pred_index(self) -> Index:
+        return Index(self.pred64)
+
+    @cached_property
+    def nn_pred_to_gt(self) -> tuple[np.ndarray, np.ndarray]:
+        """(squared distance, index into gt) for every predicted point; needs both non-empty."""
+        return self.gt_index.query(self.pred64)
+
+    @cached_property
+    def nn_gt_to_pred(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.pred_index.query(self.gt64)
+
+    @staticmethod
+    def _columns(index: Index) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if not hasattr(index, "columns"):
+            index.columns = tuple(np.ascontiguousarray(index.points[:, a]) for a in range(3))
+        return index.columns
+
+    def _cropped_nn(self, full: tuple[np.ndarray, np.ndarray], q_in: np.ndarray, t_in: np.ndarray,
+                    queries: np.ndarray, index: Index) -> np.ndarray:
+        """Squared NN distances from the cropped queries to the cropped targets.
+
+        A cropped query whose nearest neighbour in the whole target set lies inside the ROI
+        has the same nearest distance within the crop; only the others are asked again
+        (brute force over the in-ROI targets when they are few, else a tree on the crop).
+        """
+        d2, idx = full[0][q_in], full[1][q_in]
+        redo = np.flatnonzero(~t_in[idx])
+        if redo.size:
+            q = queries[np.flatnonzero(q_in)[redo]]
+            if redo.size <= 32:  # a few points: brute force over the in-ROI targets
+                cols = self._columns(index)
+                for i, (x, y, z) in enumerate(q):
+                    d = (cols[0] - x) ** 2 + (cols[1] - y) ** 2 + (cols[2] - z) ** 2
+                    d2[redo[i]] = d[t_in].min()
+            else:
+                d2[redo] = Index(index.points[t_in]).query(q)[0]
+        return d2
+
+    @cached_property
+    def nn_pred_to_gt_roi(self) -> np.ndarray:
+        """Squared NN distances from each cropped predicted point to the cropped ground truth."""
+        return self._cropped_nn(self.nn_pred_to_gt, self.pred_in_roi, self.gt_in_roi, self.pred64, self.gt_index)
+
+    @cached_property
+    def nn_gt_to_pred_roi(self) -> np.ndarray:
+        return self._cropped_nn(self.nn_gt_to_pred, self.gt_in_roi, self.pred_in_roi, self.gt64, self.pred_index)
+
+    # -- rays (L1, AbsRel) ---------------------------------------------------------------------
+    @cached_property
+    def gt_rel(self) -> np.ndarray:
+        return self.gt64 - self.origin
+
+    @cached_property
+    def gt_ranges(self) -> np.ndarray:
+        """(M,) float64 distance of each ground-truth point from the sweep origin."""
+        return np.sqrt(np.einsum("ij,ij->i", self.gt_rel, self.gt_rel))
+
+    @cached_property
+    def ray_clamp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per ground-truth ray: (t_enter, t_exit, meets_box) of the ROI along the unit ray o -> g."""
+        r = self.gt_ranges
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dirs = np.where(r[:, None] > 0, self.gt_rel / r[:, None], 0.0)
+        t_enter, t_exit = ray_box_interval(self.origin, dirs, self.roi)
+        return t_enter, t_exit, (t_enter <= t_exit) & (r > 0)
+
+    @cached_property
+    def gt_clamped(self) -> np.ndarray:
+        """Clamped ground-truth range along each ray (where the ray leaves the ROI at most)."""
+        t_enter, t_exit, _ = self.ray_clamp
+        return np.clip(self.gt_ranges, t_enter, np.maximum(t_exit, t_enter))
+
+    @cached_property
+    def ray_kept(self) -> np.ndarray:
+        """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
+        t_enter, _, meets = self.ray_clamp
+        return meets & (self.gt_clamped - t_enter > MIN_RANGE_M)
+
+    @cached_property
+    def pred_rel(self) -> np.ndarray:
+        return self.pred64 - self.origin
+
+    @cached_property
+    def pred_ranges(self) -> np.ndarray:
+        return np.sqrt(np.einsum("ij,ij->i", self.pred_rel, self.pred_rel))
+
+    @cached_property
+    def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped).
+
+        The two exact searches are independent and release the GIL: the 4D-Occ one runs in a
+        second thread while this one does the wrapped one.
+        """
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            first = pool.submit(nearest_angle_4docc, self.pred_rel, self.gt_rel)
+            wrapped = nearest_angle_wrapped(self.pred_rel, self.gt_rel)
+            return first.result(), wrapped
+
+    def _ray_depth(self, which: int) -> np.ndarray | None:
+        if self.pred_depths is not None:
+            return self.pred_depths.astype(np.float64)
+        if self.pred_points.shape[0] == 0:
+            return None
+        return self.pred_ranges[self._angular_nearest[which]]
+
+    @cached_property
+    def ray_depth_4docc(self) -> np.ndarray | None:
+        """Predicted depth per ground-truth ray: the forecast's depths, or the range of the
+        predicted point nearest in the 4D-Occ angle space; None for an empty prediction."""
+        return self._ray_depth(0)
+
+    @cached_property
+    def ray_depth(self) -> np.ndarray | None:
+        """As ray_depth_4docc, nearest in (azimuth, elevation) with azimuth wrap-around."""
+        return self._ray_depth(1)
+
+    def ray_errors(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(|g_c - p_c|, |g_c - p_c| / |g_c - o_c|) on the kept rays, for per-ray predicted depths."""
+        t_enter, t_exit, _ = self.ray_clamp
+        k = self.ray_kept
+        p_c = np.clip(depth[k], t_enter[k], t_exit[k])
+        g_c = self.gt_clamped[k]
+        err = np.abs(g_c - p_c)
+        return err, err / (g_c - t_enter[k])
+
+    @cached_property
+    def ray_errors_4docc(self) -> tuple[np.ndarray, np.ndarray] | None:
+        d = self.ray_depth_4docc
+        return None if d is None else self.ray_errors(d)
+
+    @cached_property
+    def ray_errors_wrapped(self) -> tuple[np.ndarray, np.ndarray] | None:
+        d = self.ray_depth
+        return None if d is None else self.ray_errors(d)
 
 
 def score_sample(

@@ -1,0 +1,168 @@
+"""Speed of the metric suite against its two baselines, side by side in ONE benchmark run.
+
+    PCFBENCH_BENCH_FULL=1 .venv/bin/python -m pytest tests/benchmarks/test_bench_metrics.py \
+        --benchmark-enable -s
+
+(a) ``suite``: every registered metric on one ray-aligned KITTI-like pair (64 beams x 1900
+    azimuths of a toy street, ~120k x ~120k points; the prediction is the previous sweep moved
+    into the current frame, like copy-last), a fresh SweepContext each round.
+(b) ``nn_pykdtree``: two exact nearest-neighbour passes (tree build + query, P->G and G->P) with
+    pykdtree, the fastest library measured; ``nn_ckdtree`` and ``nn_open3d`` are the others.
+(c) ``cdist``: chunked torch.cdist brute force (float32, 2048 rows a chunk, one distance matrix
+    per chunk serving both directions). At full size it runs on the first ``CDIST_ROWS`` rows of
+    P against all of G, one round, and is scaled by N_P / CDIST_ROWS: brute force costs exactly
+    the same per row, and the full pair would take minutes. Small inputs run it whole.
+
+``test_ratios`` (last) prints suite / nn_pykdtree and cdist / suite from the medians of this run
+and, at full size, asserts the bars: suite <= 2x (b), cdist >= 100x suite.
+Without PCFBENCH_BENCH_FULL the pair is 16 x 360 rays, so the default test run stays fast.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from bench.data import RayQuery
+from bench.geometry import invert, transform_points
+from bench.metrics.base import SweepContext
+from bench.testing import toy_world_sweeps
+
+FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
+BEAMS, AZIMUTHS = (64, 1900) if FULL else (16, 360)
+CDIST_ROWS = 8192 if FULL else None
+CHUNK = 2048
+TIMES: dict[str, float] = {}
+
+
+def _suite():
+    from bench.plugins import get_plugins
+
+    reg = get_plugins().metrics
+    return [reg.get(n) for n in reg.names()]
+
+
+@pytest.fixture(scope="module")
+def pair():
+    pts, poses, _ = toy_world_sweeps(6, beams=BEAMS, azimuths=AZIMUTHS)
+    gt = pts[5]
+    pred = transform_points(invert(poses[5]) @ poses[4], pts[4]).astype(np.float32)
+    rel = gt.astype(np.float64)
+    dirs = (rel / np.linalg.norm(rel, axis=1, keepdims=True)).astype(np.float32)
+    return gt, pred, RayQuery(np.zeros(3), dirs)
+
+
+def _record(name, benchmark):
+    stats = getattr(benchmark, "stats", None)
+    if stats is not None and getattr(stats, "stats", None) is not None:
+        TIMES[name] = stats.stats.median
+
+
+def test_suite(benchmark, pair):
+    gt, pred, query = pair
+    metrics = _suite()
+
+    def run():
+        ctx = SweepContext(gt, query, pred, None)
+        return {m.name: m(ctx) for m in metrics}
+
+    out = benchmark(run)
+    _record("suite", benchmark)
+    assert out["chamfer"] > 0 and 0 < out["chamfer_nf"] <= out["chamfer"] * 10
+    assert 0 < out["l1_mean"] < 10 and np.isnan(out["l1_ray"])
+    benchmark.extra_info.update(n_gt=len(gt), n_pred=len(pred))
+
+
+def test_nn_pykdtree(benchmark, pair):
+    from pykdtree.kdtree import KDTree
+
+    g, p = pair[0].astype(np.float64), pair[1].astype(np.float64)
+
+    def run():
+        return KDTree(g).query(p, k=1)[0], KDTree(p).query(g, k=1)[0]
+
+    a, b = benchmark(run)
+    _record("nn_pykdtree", benchmark)
+    assert len(a) == len(p) and len(b) == len(g)
+
+
+def test_nn_ckdtree(benchmark, pair):
+    from scipy.spatial import cKDTree
+
+    g, p = pair[0].astype(np.float64), pair[1].astype(np.float64)
+
+    def run():
+        return cKDTree(g).query(p, k=1, workers=-1)[0], cKDTree(p).query(g, k=1, workers=-1)[0]
+
+    a, b = benchmark(run)
+    _record("nn_ckdtree", benchmark)
+    assert len(a) == len(p) and len(b) == len(g)
+
+
+def test_nn_open3d(benchmark, pair):
+    import open3d as o3d
+
+    g, p = pair[0].astype(np.float64), pair[1].astype(np.float64)
+
+    def one(target, queries):
+        nns = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(target))
+        nns.knn_index()
+        return nns.knn_search(o3d.core.Tensor(queries), 1)[1].numpy()
+
+    a, b = benchmark(lambda: (one(g, p), one(p, g)))
+    _record("nn_open3d", benchmark)
+    assert len(a) == len(p) and len(b) == len(g)
+
+
+def test_cdist(benchmark, pair):
+    gt, pred, _ = pair
+    G, P = torch.from_numpy(gt), torch.from_numpy(pred)
+    rows = len(P) if CDIST_ROWS is None else min(CDIST_ROWS, len(P))
+
+    def run():
+        p_min = torch.empty(rows)
+        g_min = torch.full((len(G),), float("inf"))
+        for i in range(0, rows, CHUNK):
+            d = torch.cdist(P[i : min(i + CHUNK, rows)], G)
+            p_min[i : i + CHUNK] = d.min(dim=1).values
+            torch.minimum(g_min, d.min(dim=0).values, out=g_min)
+        return p_min, g_min
+
+    if FULL:
+        p_min, g_min = benchmark.pedantic(run, rounds=1, iterations=1)
+    else:
+        p_min, g_min = benchmark(run)
+    stats = getattr(benchmark, "stats", None)
+    if stats is not None and getattr(stats, "stats", None) is not None:
+        TIMES["cdist"] = stats.stats.median * len(P) / rows
+    benchmark.extra_info.update(rows=rows, scale=len(P) / rows)
+    # the brute force agrees with the exact index (float32 distances)
+    from pykdtree.kdtree import KDTree
+
+    ref = KDTree(gt.astype(np.float64)).query(pred[:rows].astype(np.float64), k=1)[0]
+    # float32 matrix-product distances lose ~1e-3 m^2 to cancellation at 100 m: a loose check
+    np.testing.assert_allclose(p_min.double().numpy(), ref, atol=0.05)
+    if rows == len(P):
+        ref_g = KDTree(pred.astype(np.float64)).query(gt.astype(np.float64), k=1)[0]
+        np.testing.assert_allclose(g_min.double().numpy(), ref_g, atol=0.05)
+
+
+def test_ratios():
+    needed = {"suite", "nn_pykdtree", "cdist"}
+    if not needed <= TIMES.keys():
+        pytest.skip("run with --benchmark-enable to measure the ratios")
+    suite_vs_nn = TIMES["suite"] / TIMES["nn_pykdtree"]
+    cdist_vs_suite = TIMES["cdist"] / TIMES["suite"]
+    lines = [f"{k}: {v * 1e3:.1f} ms (median)" for k, v in TIMES.items()]
+    lines += [f"suite / two pykdtree NN passes = {suite_vs_nn:.2f}x",
+              f"cdist brute force / suite = {cdist_vs_suite:.0f}x"]
+    for k in ("nn_ckdtree", "nn_open3d"):
+        if k in TIMES:
+            lines.append(f"{k} / nn_pykdtree = {TIMES[k] / TIMES['nn_pykdtree']:.2f}x")
+    print("\n" + "\n".join(lines))
+    if FULL:
+        assert suite_vs_nn <= 2.0, lines
+        assert cdist_vs_suite >= 100.0, lines
