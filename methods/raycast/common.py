@@ -1,0 +1,161 @@
+"""Shared pieces of the ray-casting baselines: past-sweep aggregation, future viewpoints
+(given or extrapolated at constant velocity), angle spaces and the forecast assembly.
+
+Constant velocity. With ``constant_velocity=True`` a baseline ignores the given future
+poses (and the query origins, which are their positions): each future sensor pose is
+extrapolated from the last two past poses, ``T(t) = T_0 exp(s log(T_-1^-1 T_0))`` with
+``s = (t - t_0) / (t_0 - t_-1)`` from the timestamps (SE(3) exponential map, so a turning
+vehicle follows an arc). The query directions are cast from the extrapolated origin, and the
+forecast carries points only (depths along the given query rays would need the true origin),
+so the metrics read it as a point cloud, as the reference code's
+``--assume-constant-velocity`` results are read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.data import Forecast, Sample
+from bench.geometry import invert
+
+_EPS = 1e-9
+
+
+def _hat(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    K = _hat(w)
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
+
+
+def _so3_log(R: np.ndarray) -> np.ndarray:
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(c))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-9:
+        return 0.5 * v
+    if np.pi - th < 1e-6:  # near pi: axis from the symmetric part
+        A = (R + np.eye(3)) / 2.0
+        axis = np.sqrt(np.maximum(np.diag(A), 0.0))
+        i = int(np.argmax(axis))
+        axis = A[i] / np.sqrt(max(A[i, i], _EPS))
+        return th * axis / np.linalg.norm(axis)
+    return th / (2.0 * np.sin(th)) * v
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    K = _hat(w)
+    if th < 1e-9:
+        return np.eye(3) + 0.5 * K
+    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid transform to its twist (6,) = (rho, omega)."""
+    w = _so3_log(T[:3, :3])
+    rho = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    return np.concatenate([rho, w])
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """Twist (6,) = (rho, omega) to a (4, 4) rigid transform."""
+    rho, w = xi[:3], xi[3:]
+    T = np.eye(4)
+    T[:3, :3] = _so3_exp(w)
+    T[:3, 3] = _left_jacobian(w) @ rho
+    return T
+
+
+def constant_velocity_poses(
+    past_T: np.ndarray, past_t_ns: np.ndarray, future_t_ns: np.ndarray
+) -> np.ndarray:
+    """Future poses (F, 4, 4) extrapolated from the last two past poses at constant SE(3) velocity.
+
+    With a single past pose (or equal timestamps) the vehicle is taken as standing still.
+    """
+    past_T = np.asarray(past_T, dtype=np.float64)
+    T0 = past_T[-1]
+    out = np.repeat(T0[None], len(future_t_ns), axis=0)
+    if len(past_T) < 2:
+        return out
+    dt = float(past_t_ns[-1] - past_t_ns[-2])
+    if dt <= 0:
+        return out
+    xi = se3_log(invert(past_T[-2]) @ T0)
+    for k, t in enumerate(future_t_ns):
+        s = float(t - past_t_ns[-1]) / dt
+        out[k] = T0 @ se3_exp(s * xi)
+    return out
+
+
+@dataclass(frozen=True)
+class Aggregate:
+    """All past points in the reference frame, with each point's own sensor origin and range."""
+
+    points: np.ndarray  # (N, 3) float64
+    origins: np.ndarray  # (N, 3) float64, the sensor position of the sweep each point came from
+    own_range: np.ndarray  # (N,) float64, the range from that sensor
+    sweep: np.ndarray  # (N,) int16, the index of the past sweep (0 is the oldest)
+
+
+def aggregate(sample: Sample) -> Aggregate:
+    pts = [np.asarray(p, dtype=np.float64) for p in sample.past_points_ref]
+    counts = [len(p) for p in pts]
+    if sum(counts) == 0:
+        z = np.zeros((0, 3))
+        return Aggregate(z, z, np.zeros(0), np.zeros(0, np.int16))
+    points = np.concatenate(pts)
+    sweep = np.repeat(np.arange(len(pts), dtype=np.int16), counts)
+    origins = np.asarray(sample.past_T_ref_sensor, dtype=np.float64)[sweep, :3, 3]
+    own_range = np.linalg.norm(points - origins, axis=1)
+    return Aggregate(points, origins, own_range, sweep)
+
+
+@dataclass(frozen=True)
+class View:
+    """One future sweep to render: the pose it is rendered from and the rays to answer."""
+
+    T_ref_sensor: np.ndarray  # (4, 4)
+    origin: np.ndarray  # (3,) float64
+    directions: np.ndarray  # (M, 3) float64 unit, reference frame
+
+
+def views(sample: Sample, constant_velocity: bool) -> list[View]:
+    if constant_velocity:
+        poses = constant_velocity_poses(sample.past_T_ref_sensor, sample.past_timestamps_ns, sample.future_timestamps_ns)
+    else:
+        poses = np.asarray(sample.future_T_ref_sensor, dtype=np.float64)
+    out = []
+    for T, q in zip(poses, sample.queries):
+        origin = T[:3, 3].copy() if constant_velocity else np.asarray(q.origin_ref, dtype=np.float64)
+        out.append(View(T, origin, np.asarray(q.directions_ref, dtype=np.float64)))
+    return out
+
+
+def assemble(sample: Sample, vws: list[View], depths: list[np.ndarray], constant_velocity: bool) -> Forecast:
+    """Per-ray depths to a forecast: depths and points on the query rays, or points only
+    (cast from the extrapolated origins) under constant velocity."""
+    depths = [np.maximum(np.nan_to_num(np.asarray(d, np.float64), nan=0.0, posinf=0.0), 0.0) for d in depths]
+    if not constant_velocity:
+        return Forecast.from_depths(sample, depths)
+    pts = tuple((v.origin + v.directions * d[:, None]).astype(np.float32) for v, d in zip(vws, depths))
+    return Forecast(points_ref=pts)
+
+
+def angles_4docc(rel: np.ndarray) -> np.ndarray:
+    """The reference code's angle space: (atan2(x, y), atan2(z, y)) of offsets from the origin."""
+    return np.stack([np.arctan2(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 2], rel[:, 1])], axis=1)
+
+
+def angles_spherical(rel_sensor: np.ndarray) -> np.ndarray:
+    """(azimuth atan2(y, x), elevation atan2(z, hypot(x, y))) of sensor-frame offsets."""
+    x, y, z = rel_sensor[:, 0], rel_sensor[:, 1], rel_sensor[:, 2]
+    return np.stack([np.arctan2(y, x), np.arctan2(z, np.hypot(x, y))], axis=1)

@@ -1,0 +1,76 @@
+"""raycast-freespace: raycast-voxel on a grid whose free space was carved by the past rays.
+
+Every past return is a ray from its own sensor origin to the point. The occupied voxels it
+crosses before ``range - margin`` (``margin = max(carve_margin_m, carve_margin_frac *
+range)``, so that rays grazing the ground near their own return do not erode it) count as
+seen free once; the voxels its points fall in count as seen occupied once per point. A voxel
+stays occupied when its log-odds ``hits * l_hit - free * l_miss`` is positive (OctoMap's
+default increments), so the ghosts that moving objects leave in the aggregate, which later
+or earlier rays pass through, are carved away and only stably occupied space stops a ray.
+Past points in carved voxels are also removed from the z-buffer fallback of the voxel caster.
+With ``renderer=zbuffer`` the surviving points are rendered by ``raycast-zbuffer`` instead of
+casting the carved grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from bench.data import Forecast, Sample
+from bench.method import Method
+from methods.raycast.common import aggregate, assemble, views
+from methods.raycast.grid import VoxelGrid
+from methods.raycast.voxel import render_voxel
+from methods.raycast.zbuffer import render_zbuffer
+
+
+@dataclass(frozen=True)
+class FreespaceOptions:
+    voxel: float = 0.2  # voxel edge, metres
+    cone_factor: float = 1.0  # as raycast-voxel
+    max_level: int = 3  # as raycast-voxel
+    cone_center: Literal["future", "past"] = "future"  # as raycast-voxel
+    az_res_deg: float = 0.2  # as raycast-voxel
+    el_res_deg: float = 0.4  # as raycast-voxel
+    l_hit: float = 0.85  # log-odds added per return in a voxel
+    l_miss: float = 0.4  # log-odds removed per past ray passing through a voxel
+    carve_margin_m: float = 0.5  # rays carve up to this far before their return ...
+    carve_margin_frac: float = 0.15  # ... or this fraction of their range, whichever is more
+    renderer: Literal["voxel", "zbuffer"] = "voxel"  # cast the carved grid, or z-buffer the surviving points
+    splat: float = 1.0  # z-buffer renderer: as raycast-zbuffer
+    max_splat: int = 4  # z-buffer renderer: as raycast-zbuffer
+    fill_ring: int = 8  # z-buffer renderer: as raycast-zbuffer
+    constant_velocity: bool = False  # extrapolate future poses from the last two past poses
+
+
+def carve(grid: VoxelGrid, origins, points, own_range, opts) -> np.ndarray:
+    """Carve ``grid`` in place; returns the mask of points whose voxel survived (or lie outside)."""
+    t_end = own_range - np.maximum(opts.carve_margin_m, opts.carve_margin_frac * own_range)
+    free = grid.free_counts(origins, points, t_end)
+    keep = grid.hits * opts.l_hit - free * opts.l_miss > 0
+    slot = grid.point_slot
+    point_keep = np.ones(len(points), bool)
+    point_keep[slot >= 0] = keep[slot[slot >= 0]]
+    grid.keep_only(keep)
+    return point_keep
+
+
+class RaycastFreespace(Method):
+    name = "raycast-freespace"
+    version = "1"
+    Options = FreespaceOptions
+
+    def forecast(self, sample: Sample) -> Forecast:
+        agg = aggregate(sample)
+        grid = VoxelGrid(agg.points, voxel=self.options.voxel, levels=max(self.options.max_level, 3))
+        keep = carve(grid, agg.origins, agg.points, agg.own_range, self.options)
+        pts, own = agg.points[keep], agg.own_range[keep]
+        vws = views(sample, self.options.constant_velocity)
+        if self.options.renderer == "zbuffer":
+            depths = [render_zbuffer(pts, own, v, self.options) for v in vws]
+        else:
+            depths = [render_voxel(grid, pts, own, v, self.options) for v in vws]
+        return assemble(sample, vws, depths, self.options.constant_velocity)

@@ -1,0 +1,124 @@
+"""Speed of the ray-casting baselines on a KITTI-sized sample.
+
+With ``PCFBENCH_BENCH_FULL=1`` the sample has 5 past sweeps of about 127,000 points and 5
+future sweeps of about 127,000 query rays (a 64-beam, 2000-step toy LiDAR); otherwise a
+16-beam toy sample keeps the default (disabled, run-once) pass quick. Run with
+
+    PCFBENCH_BENCH_FULL=1 .venv/bin/python -m pytest tests/benchmarks/test_bench_raycast.py --benchmark-enable
+
+``render`` times the per-view work only (everything that depends on the future pose; the
+scene built once per sample is outside it) and reports ``rays_per_s`` in extra_info;
+``ray_queries`` times only the per-ray part (nearest-neighbour queries, image look-ups, grid
+casts) with each view's index, image or grid built beforehand; ``sample`` times
+``forecast`` end to end.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from bench.protocol import SETTINGS, SampleBuilder
+from bench.testing import InMemoryDataset
+from methods.raycast.common import aggregate, views
+from methods.raycast.fourdocc import RaycastFourDOcc, render_4docc
+from methods.raycast.freespace import RaycastFreespace, carve
+from methods.raycast.grid import VoxelGrid
+from methods.raycast.voxel import RaycastVoxel, render_voxel
+from methods.raycast.zbuffer import RaycastZBuffer, render_zbuffer
+
+FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
+METHODS = [RaycastFourDOcc, RaycastZBuffer, RaycastVoxel, RaycastFreespace]
+
+
+@pytest.fixture(scope="module")
+def sample():
+    kw = dict(beams=64, azimuths=2000) if FULL else dict(beams=16, azimuths=360)
+    ds = InMemoryDataset(num_sweeps=20, **kw)
+    s, _ = SampleBuilder(ds, SETTINGS["kitti-1s"]).build("00", 8)
+    if FULL:
+        assert min(len(p) for p in s.past_points_ref) > 100_000
+        assert min(len(q) for q in s.queries) > 100_000
+    return s
+
+
+def _renderer(cls, sample):
+    """A function rendering every view of ``sample`` from a scene built beforehand."""
+    opts = cls.Options()
+    agg = aggregate(sample)
+    vws = views(sample, False)
+    if cls is RaycastFourDOcc:
+        return lambda: [render_4docc(agg.points, v.origin, v.directions) for v in vws]
+    if cls is RaycastZBuffer:
+        return lambda: [render_zbuffer(agg.points, agg.own_range, v, opts) for v in vws]
+    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
+    pts, own = agg.points, agg.own_range
+    if cls is RaycastFreespace:
+        keep = carve(grid, agg.origins, agg.points, agg.own_range, opts)
+        pts, own = pts[keep], own[keep]
+    return lambda: [render_voxel(grid, pts, own, v, opts) for v in vws]
+
+
+@pytest.mark.parametrize("cls", METHODS, ids=lambda c: c.name)
+def test_render(benchmark, sample, cls):
+    render = _renderer(cls, sample)
+    render()  # compile outside the timing
+    depths = benchmark(render)
+    rays = sum(len(q) for q in sample.queries)
+    assert sum(len(d) for d in depths) == rays and all(np.isfinite(d).all() for d in depths)
+    if benchmark.stats is not None:
+        benchmark.extra_info["rays"] = rays
+        benchmark.extra_info["rays_per_s"] = rays / benchmark.stats.stats.median
+
+
+@pytest.mark.parametrize("cls", METHODS, ids=lambda c: c.name)
+def test_sample(benchmark, sample, cls):
+    method = cls()
+    method.forecast(sample)
+    forecast = benchmark(method.forecast, sample)
+    assert [len(p) for p in forecast.points_ref] == [len(q) for q in sample.queries]
+
+
+def _ray_queries(cls, sample):
+    """Only the per-ray part of every view, its per-view scene (index, image, grid) built beforehand."""
+    from methods.raycast.common import angles_4docc
+    from methods.raycast.fourdocc import _angles_ranges
+    from methods.raycast.nn2d import NN2D
+    from methods.raycast.zbuffer import _lookup, build_image, spherical
+
+    opts = cls.Options()
+    agg = aggregate(sample)
+    vws = views(sample, False)
+    if cls is RaycastFourDOcc:
+        jobs = []
+        for v in vws:
+            u, w, _ = _angles_ranges(agg.points, v.origin)
+            jobs.append((NN2D((u, w)), angles_4docc(v.directions)))
+        return lambda: [index.query(q) for index, q in jobs]
+    if cls is RaycastZBuffer:
+        jobs = []
+        for v in vws:
+            R = np.ascontiguousarray(v.T_ref_sensor[:3, :3])
+            qaz, qel, _ = spherical(v.directions, np.zeros(3), R)
+            az, el, rng = spherical(agg.points, v.origin, R)
+            im = build_image(az, el, rng, agg.own_range, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
+            jobs.append((im, qaz, qel))
+        return lambda: [_lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, opts.fill_ring) for im, qaz, qel in jobs]
+    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
+    if cls is RaycastFreespace:
+        carve(grid, agg.origins, agg.points, agg.own_range, opts)
+    cone = opts.cone_factor * np.deg2rad(opts.el_res_deg)
+    return lambda: [grid.cast(v.origin, v.directions, cone=cone, max_level=opts.max_level) for v in vws]
+
+
+@pytest.mark.parametrize("cls", METHODS, ids=lambda c: c.name)
+def test_ray_queries(benchmark, sample, cls):
+    query = _ray_queries(cls, sample)
+    query()
+    out = benchmark(query)
+    rays = sum(len(q) for q in sample.queries)
+    assert sum(len(o) for o in out) == rays
+    if benchmark.stats is not None:
+        benchmark.extra_info["rays_per_s"] = rays / benchmark.stats.stats.median

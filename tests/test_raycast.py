@@ -1,0 +1,322 @@
+"""Ray-casting baselines: contract, hand-built scenes with known answers, brute-force checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.data import RayQuery, Sample
+from bench.geometry import se3, yaw_transform
+from bench.roi import Box
+from bench.testing import check_method
+from methods.raycast.common import angles_4docc, constant_velocity_poses, se3_exp, se3_log
+from methods.raycast.fourdocc import RaycastFourDOcc
+from methods.raycast.freespace import RaycastFreespace
+from methods.raycast.grid import VoxelGrid
+from methods.raycast.nn2d import NN2D
+from methods.raycast.voxel import RaycastVoxel
+from methods.raycast.zbuffer import RaycastZBuffer
+
+ALL = [RaycastFourDOcc, RaycastZBuffer, RaycastVoxel, RaycastFreespace]
+OCCLUSION_AWARE = [RaycastZBuffer, RaycastVoxel, RaycastFreespace]
+
+
+def fan(az_deg: tuple[float, float, float], el_deg: tuple[float, float, float]) -> np.ndarray:
+    """Unit directions on an azimuth x elevation grid, (start, stop, step) in degrees (stop included)."""
+    az = np.deg2rad(np.arange(az_deg[0], az_deg[1] + 1e-9, az_deg[2]))
+    el = np.deg2rad(np.arange(el_deg[0], el_deg[1] + 1e-9, el_deg[2]))
+    A, E = np.meshgrid(az, el, indexing="ij")
+    return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(-1, 3)
+
+
+def cast_boxes(origin: np.ndarray, dirs: np.ndarray, boxes: list[tuple[tuple, tuple]]) -> np.ndarray:
+    """Range of the first axis-aligned box each ray hits (inf when none)."""
+    o = np.asarray(origin, dtype=np.float64)
+    best = np.full(len(dirs), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / dirs
+        for lo, hi in boxes:
+            t1 = (np.asarray(lo) - o) * inv
+            t2 = (np.asarray(hi) - o) * inv
+            tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+            tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+            hit = (tmax >= np.maximum(tmin, 0)) & (tmin > 0)
+            best = np.where(hit & (tmin < best), tmin, best)
+    return best
+
+
+def scan(origin, dirs, boxes) -> np.ndarray:
+    """The (N, 3) returns of rays ``dirs`` from ``origin`` against ``boxes`` (misses dropped)."""
+    t = cast_boxes(origin, dirs, boxes)
+    keep = np.isfinite(t)
+    return (np.asarray(origin) + dirs[keep] * t[keep, None]).astype(np.float32)
+
+
+def make_sample(past_points, past_origins, future_origins, future_dirs, dt_ns: int = 100_000_000) -> Sample:
+    """A sample with identity rotations: past sweeps at ``past_origins``, queries from ``future_origins``."""
+    P, F = len(past_points), len(future_origins)
+    past_T = np.stack([se3(np.eye(3), o) for o in past_origins])
+    fut_T = np.stack([se3(np.eye(3), o) for o in future_origins])
+    queries = tuple(
+        RayQuery(origin_ref=np.asarray(o, dtype=np.float64), directions_ref=np.asarray(d, dtype=np.float32))
+        for o, d in zip(future_origins, future_dirs)
+    )
+    return Sample(
+        sample_id="scene/000000", dataset="scene", sequence="scene", ref_index=P - 1,
+        past_points_ref=tuple(np.asarray(p, dtype=np.float32) for p in past_points),
+        past_T_ref_sensor=past_T,
+        past_timestamps_ns=np.arange(-(P - 1), 1, dtype=np.int64) * dt_ns,
+        future_T_ref_sensor=fut_T,
+        future_timestamps_ns=np.arange(1, F + 1, dtype=np.int64) * dt_ns,
+        queries=queries,
+    )
+
+
+WALL = ((20.0, -30.0, -3.0), (20.5, 30.0, 5.0))
+PAST_FAN = fan((-50, 50, 0.2), (-10, 10, 0.4))
+
+
+def truth(sample: Sample, boxes) -> list[np.ndarray]:
+    return [cast_boxes(q.origin_ref, q.directions_ref.astype(np.float64), boxes) for q in sample.queries]
+
+
+# ---------------------------------------------------------------- contract and registration
+
+
+@pytest.mark.parametrize("cls", ALL)
+@pytest.mark.parametrize("cv", [False, True])
+def test_contract_on_toy_world(cls, cv):
+    forecast = check_method(cls(cls.Options(constant_velocity=cv)))
+    assert len(forecast.points_ref) == 5
+    if cv:
+        assert forecast.depths is None  # points cast from extrapolated origins only
+    else:
+        assert forecast.depths is not None and all(len(d) > 1000 for d in forecast.depths)
+
+
+@pytest.mark.parametrize("cls", ALL)
+def test_missing_past_and_future_sweeps_are_fine(cls):
+    # kitti-3s on the 30-sweep toy world at index 8: most past and the last future sweeps are missing
+    forecast = check_method(cls(), setting="kitti-3s")
+    assert [len(p) for p in forecast.points_ref][-2:] == [0, 0]
+    assert len(forecast.points_ref[0]) > 1000
+
+
+def test_registered():
+    from bench.plugins import get_plugins
+
+    methods = get_plugins(reload=True).methods
+    for cls in ALL:
+        assert cls.name in methods.names()
+        assert methods.get(cls.name) is cls
+
+
+# ---------------------------------------------------------------- hand-built scenes
+
+
+def wall_sample(future_origins=((1.0, 0.0, 0.0), (2.0, 0.3, 0.2)), boxes=(WALL,)):
+    past_origins = [(-4.0 + k, 0.0, 0.0) for k in range(5)]
+    past = [scan(o, PAST_FAN, list(boxes)) for o in past_origins]
+    q = fan((-30, 30, 1.1), (-8, 8, 0.9))
+    return make_sample(past, past_origins, future_origins, [q] * len(future_origins))
+
+
+@pytest.mark.parametrize("cls", ALL)
+def test_wall_at_known_distance(cls):
+    sample = wall_sample()
+    forecast = cls().forecast(sample)
+    for d, t in zip(forecast.depths, truth(sample, [WALL])):
+        err = np.abs(d - t)
+        # the occlusion-aware casters are within a voxel; 4D-Occ picks a neighbouring point's range
+        assert np.median(err) < (0.05 if cls in OCCLUSION_AWARE else 0.3)
+        assert np.quantile(err, 0.95) < (0.15 if cls in OCCLUSION_AWARE else 0.6)
+
+
+def test_occluder_in_front_of_wall_is_the_first_hit():
+    occluder = ((8.0, -1.0, -1.0), (9.0, 1.0, 1.0))
+    boxes = [WALL, occluder]
+    # past sensors beside each other: between them they see the wall behind the occluder too
+    past_origins = [(0.0, y, 0.0) for y in (-6.0, -3.0, 0.0, 3.0, 6.0)]
+    past = [scan(o, PAST_FAN, boxes) for o in past_origins]
+    q = fan((-5, 5, 0.5), (-5, 5, 0.5))
+    sample = make_sample(past, past_origins, [(1.5, 0.0, 0.0)], [q])
+    t = truth(sample, boxes)[0]
+    on_box = t < 10
+    assert on_box.sum() > 200
+    for cls in (RaycastZBuffer, RaycastVoxel, RaycastFreespace):
+        d = cls().forecast(sample).depths[0]
+        err = np.abs(d - t)[on_box]
+        assert np.quantile(err, 0.95) < 0.3, cls.name
+    # the reference has no first-hit logic: wall points win where they are nearer in angle
+    d = RaycastFourDOcc().forecast(sample).depths[0]
+    assert np.mean(np.abs(d - t)[on_box] > 5.0) > 0.05
+
+
+def test_ray_grazing_a_voxel_face():
+    box = Box((0.0, 0.0, 0.0), (3.2, 3.2, 3.2))
+    grid = VoxelGrid(np.array([[1.1, 0.1, 0.1]]), voxel=0.2, box=box, levels=2)
+    o = np.array([0.05, 0.0, 0.1])
+    dirs = np.array([[1.0, 0.0, 0.0]] * 4)
+    starts = np.array([[0.05, 0.2 - 1e-6, 0.1], [0.05, 0.2 + 1e-6, 0.1], [0.05, 1e-6, 0.1], [0.05, 0.1, 0.2 - 1e-6]])
+    depths = np.array([grid.cast(s, d[None])[0] for s, d in zip(starts, dirs)])
+    # inside the face by 1 um: hit, at the voxel's point (x = 1.1); outside by 1 um: no hit
+    assert depths[0] == pytest.approx(1.05, abs=1e-9)
+    assert np.isnan(depths[1])
+    assert depths[2] == pytest.approx(1.05, abs=1e-9)
+    assert depths[3] == pytest.approx(1.05, abs=1e-9)
+    # diagonal rays (x - y = c) past the voxel's corner at (1.0, 0.2): clipping the corner by
+    # 0.1 mm hits (the traversal steps 10 um past each cell face), passing it by 1 um misses
+    d = np.array([[1.0, 1.0, 0.0]]) / np.sqrt(2.0)
+    assert np.isfinite(grid.cast(np.array([0.8 + 1e-4, 0.0, 0.1]), d)[0])
+    assert np.isnan(grid.cast(np.array([0.8 - 1e-6, 0.0, 0.1]), d)[0])
+    # and from a start inside the grid along -x, the same voxel is met from the other side
+    assert grid.cast(o + np.array([2.0, 0.1, 0.0]), -dirs[:1])[0] == pytest.approx(2.0 + 0.05 - 1.1, abs=1e-9)
+
+
+def test_ray_leaving_the_grid_takes_the_fallback():
+    far_wall = ((100.0, -60.0, -8.0), (100.5, 60.0, 8.0))  # beyond the 70 m ROI
+    past_origins = [(0.0, 0.0, 0.0)] * 3
+    past = [scan(o, fan((-20, 20, 0.2), (-3, 3, 0.4)), [far_wall]) for o in past_origins]
+    q = fan((-10, 10, 0.7), (-2, 2, 0.7))
+    sample = make_sample(past, past_origins, [(2.0, 0.0, 0.0)], [q])
+    t = truth(sample, [far_wall])[0]
+    grid = VoxelGrid(np.concatenate(past).astype(np.float64))
+    assert np.isnan(grid.cast(np.array([2.0, 0.0, 0.0]), q)).all()  # nothing in the grid
+    for cls in (RaycastVoxel, RaycastFreespace):
+        d = cls().forecast(sample).depths[0]
+        assert np.quantile(np.abs(d - t), 0.95) < 0.5, cls.name
+
+
+def test_ray_entering_the_grid_from_outside():
+    grid = VoxelGrid(np.array([[10.1, 0.1, 0.1]]))
+    d = grid.cast(np.array([-80.0, 0.1, 0.1]), np.array([[1.0, 0.0, 0.0]]))[0]
+    assert d == pytest.approx(90.1, abs=1e-6)
+
+
+def test_sparse_far_wall_that_a_naive_caster_misses():
+    far = ((60.0, -40.0, -4.0), (60.3, 40.0, 8.0))
+    past_origins = [(0.0, 0.0, 0.0)] * 5  # a parked car: the same beams five times
+    past = [scan(o, fan((-15, 15, 0.2), (-2.8, 6, 0.4)), [far]) for o in past_origins]
+    origin = (5.0, 0.0, 0.37)
+    q = fan((-10, 10, 0.5), (-2.0, 4.5, 0.13))
+    sample = make_sample(past, past_origins, [origin], [q])
+    t = truth(sample, [far])[0]
+    grid = VoxelGrid(np.concatenate(past).astype(np.float64))
+    naive = grid.cast(np.array(origin), q.astype(np.float64))  # thin rays
+    assert np.isnan(naive).mean() > 0.3  # they slip between the rows of past points
+    d = RaycastVoxel().forecast(sample).depths[0]
+    assert np.median(np.abs(d - t)) < 0.4
+    assert np.quantile(np.abs(d - t), 0.99) < 1.0
+
+
+def moving_box_sample():
+    past_origins = [(0.0, 0.0, 0.0)] * 5
+    past = []
+    for k in range(5):
+        yc = -6.0 + 3.0 * k
+        car = ((10.0, yc - 1.0, -1.0), (14.0, yc + 1.0, 0.5))
+        past.append(scan(past_origins[k], fan((-60, 60, 0.25), (-6, 6, 0.4)), [WALL, car]))
+    q = fan((-32, -4, 0.8), (-3, 2, 0.8))  # where the car was, now only the wall
+    return make_sample(past, past_origins, [(0.0, 0.0, 0.0)], [q])
+
+
+def test_moving_box_is_carved_away_by_freespace():
+    sample = moving_box_sample()
+    t = truth(sample, [WALL])[0]
+    ghost = np.abs(RaycastVoxel().forecast(sample).depths[0] - t) > 3.0
+    assert ghost.mean() > 0.3  # without carving, the car's past positions stop the rays
+    for renderer in ("voxel", "zbuffer"):
+        d = RaycastFreespace(RaycastFreespace.Options(renderer=renderer)).forecast(sample).depths[0]
+        assert np.mean(np.abs(d - t) < 0.3) > 0.95, renderer
+
+
+def test_freespace_keeps_a_static_wall_and_floor():
+    floor = ((-30.0, -30.0, -1.9), (30.0, 30.0, -1.7))
+    past_origins = [(-4.0 + k, 0.0, 0.0) for k in range(5)]
+    past = [scan(o, fan((-50, 50, 0.2), (-24, 4, 0.4)), [WALL, floor]) for o in past_origins]
+    q = fan((-30, 30, 1.1), (-20, 3, 0.9))
+    sample = make_sample(past, past_origins, [(1.0, 0.0, 0.0)], [q])
+    t = truth(sample, [WALL, floor])[0]
+    for cls in (RaycastVoxel, RaycastFreespace):
+        d = cls().forecast(sample).depths[0]
+        assert np.quantile(np.abs(d - t), 0.9) < 0.3, cls.name
+
+
+# ---------------------------------------------------------------- 4D-Occ against brute force
+
+
+def test_4docc_matches_brute_force_on_random_data():
+    rng = np.random.default_rng(3)
+    past = [rng.uniform(-30, 30, size=(400, 3)).astype(np.float32) for _ in range(4)]
+    past_origins = [(0.0, 0.0, 0.0)] * 4
+    origins = [rng.uniform(-3, 3, 3) for _ in range(3)]
+    dirs = []
+    for _ in origins:
+        d = rng.normal(size=(500, 3))
+        dirs.append((d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32))
+    sample = make_sample(past, past_origins, origins, dirs)
+    forecast = RaycastFourDOcc().forecast(sample)
+    pts = np.concatenate(past).astype(np.float64)
+    for o, d, got, gp in zip(origins, dirs, forecast.depths, forecast.points_ref):
+        rel = pts - o
+        a = np.stack([np.arctan2(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 2], rel[:, 1])], 1)
+        dd = d.astype(np.float64)
+        b = np.stack([np.arctan2(dd[:, 0], dd[:, 1]), np.arctan2(dd[:, 2], dd[:, 1])], 1)
+        nearest = ((b[:, None, :] - a[None]) ** 2).sum(-1).argmin(1)
+        expect = np.linalg.norm(rel[nearest], axis=1)
+        np.testing.assert_allclose(got, expect, rtol=1e-6)
+        np.testing.assert_allclose(gp, o + dd * expect[:, None], atol=1e-4)
+
+
+def test_nn2d_exact_on_clustered_data_with_duplicates():
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.normal(0, 0.01, (3000, 2)), rng.uniform(-3, 3, (2000, 2)), np.zeros((50, 2)),
+                          np.stack([np.full(500, 1.0), rng.uniform(-1, 1, 500)], 1)])
+    q = np.concatenate([rng.uniform(-4, 4, (1500, 2)), rng.normal(0, 0.02, (500, 2)), [[10.0, 10.0], [-9.0, 0.0]]])
+    got = NN2D(pts).query(q)
+    dist = ((q[:, None, :] - pts[None]) ** 2).sum(-1)
+    np.testing.assert_allclose(dist[np.arange(len(q)), got], dist.min(1), rtol=0, atol=0)
+    assert (NN2D(np.zeros((0, 2))).query(q) == -1).all()
+
+
+def test_4docc_angle_space_is_the_reference_quirk():
+    # (atan2(x, y), atan2(z, y)): straight ahead along +y is (0, 0); along +x it is (pi/2, 0)
+    a = angles_4docc(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 1.0]]))
+    np.testing.assert_allclose(a, [[0, 0], [np.pi / 2, 0], [0, np.pi / 4]], atol=1e-12)
+
+
+# ---------------------------------------------------------------- constant velocity
+
+
+def test_se3_log_exp_round_trip():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        xi = np.concatenate([rng.normal(0, 3, 3), rng.normal(0, 0.8, 3)])
+        np.testing.assert_allclose(se3_log(se3_exp(xi)), xi, atol=1e-9)
+    np.testing.assert_allclose(se3_exp(np.zeros(6)), np.eye(4))
+
+
+def test_constant_velocity_follows_an_arc_with_uneven_timestamps():
+    xi = np.array([8.0, 0.2, 0.0, 0.0, 0.01, 0.3])  # per second: forward, turning
+    t_past = np.array([-0.81, -0.6, -0.39, -0.2, 0.0])
+    t_fut = np.array([0.2, 0.41, 0.6, 1.0, 3.0])
+    past = np.stack([se3_exp(t * xi) for t in t_past])
+    got = constant_velocity_poses(past, (t_past * 1e9).astype(np.int64), (t_fut * 1e9).astype(np.int64))
+    for g, t in zip(got, t_fut):
+        np.testing.assert_allclose(g, se3_exp(t * xi), atol=1e-9)
+    # a single past pose: standing still
+    still = constant_velocity_poses(past[-1:], np.array([0]), np.array([10**8]))
+    np.testing.assert_allclose(still[0], past[-1])
+
+
+def test_constant_velocity_option_ignores_the_given_future_poses():
+    sample = wall_sample(future_origins=((1.0, 0.0, 0.0),))
+    # the past sensors moved +1 m per 0.1 s along x: extrapolation puts the t=+0.1 s origin at x = 1
+    moved = Sample(**{**sample.__dict__, "future_T_ref_sensor": np.stack([yaw_transform(0.3, (5.0, 4.0, 0.0))]),
+                      "queries": (RayQuery(np.array([5.0, 4.0, 0.0]), sample.queries[0].directions_ref),)})
+    for cls in ALL:
+        a = cls(cls.Options(constant_velocity=True)).forecast(sample).points_ref[0]
+        b = cls(cls.Options(constant_velocity=True)).forecast(moved).points_ref[0]
+        np.testing.assert_array_equal(a, b)
+        exact = cls().forecast(sample).points_ref[0]
+        np.testing.assert_allclose(a, exact, atol=1e-3)
