@@ -89,7 +89,8 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
 @click.option("--metric", "metrics", multiple=True, help="Metric (repeatable); default: every registered metric.")
 @click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True)
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (partial: kept out of leaderboards).")
-@click.option("--jobs", "-j", type=click.IntRange(min=1), default=1, show_default=True, help="Worker processes.")
+@click.option("--jobs", "-j", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Worker processes; 0: one per CPU for cells with enough samples, else serial.")
 @click.option("--force", is_flag=True, help="Recompute cells that are already complete.")
 @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")

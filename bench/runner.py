@@ -30,6 +30,8 @@ from bench.validate import validate_forecast
 #: Flush a chunk after this many samples or seconds, whichever comes first.
 CHUNK_SAMPLES = int(os.environ.get("PCFBENCH_CHUNK_SAMPLES", 64))
 CHUNK_SECONDS = float(os.environ.get("PCFBENCH_CHUNK_SECONDS", 20.0))
+#: With ``jobs=0`` (auto), cells with fewer samples to do than this run serially.
+AUTO_POOL_MIN_SAMPLES = 24
 
 
 def _progress_disabled() -> bool | None:
@@ -166,7 +168,11 @@ def run_cell(
     progress: bool = True,
     plugins: Plugins | None = None,
 ) -> CellResult:
-    """Run (or resume) one cell. Returns at once if the cell is already complete."""
+    """Run (or resume) one cell. Returns at once if the cell is already complete.
+
+    ``jobs=0`` picks a pool of one worker per CPU when there are enough samples to pay for
+    starting it, else runs serially.
+    """
     start = time.perf_counter()
     res = resolve(spec, plugins)
     keys = res.builder.sample_keys(spec.split)
@@ -231,6 +237,8 @@ def run_cell(
             total=len(ids), initial=len(ids) - len(todo), desc=spec.label, unit="sample",
             disable=_progress_disabled() if progress else True, leave=True, dynamic_ncols=True,
         )
+        if jobs == 0:
+            jobs = (os.cpu_count() or 1) if len(todo) >= AUTO_POOL_MIN_SAMPLES else 1
         failed = 0
         try:
             for rows in _execute(res, spec, todo, jobs):

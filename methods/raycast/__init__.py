@@ -4,3 +4,9 @@ One module per baseline (``fourdocc``, ``zbuffer``, ``voxel``, ``freespace``); s
 in ``common`` (aggregation, poses, angle spaces), ``nn2d`` (exact angle-space nearest
 neighbours) and ``grid`` (voxel occupancy and ray traversal).
 """
+
+import numba
+
+# numba tries TBB first; the TBB found here is too old and every process warns about it.
+# OpenMP ships with numba's wheels and serves the prange kernels just as well.
+numba.config.THREADING_LAYER = "omp"
