@@ -69,16 +69,7 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
         names = [n for n in plugins.datasets.names() if getattr(plugins.datasets.get(n), "embedded", False)]
         if not names:
             raise PcfbenchError("no dataset named and no embedded dataset registered: use --dataset NAME=ROOT")
-    out = []
-    for name in names:
-        cls = plugins.datasets.get(name)
-        root = config.dataset_root(name, cli_roots)
-        if root is None:
-            root = str(cls.default_root(progress=progress))
-        elif not Path(config.split_root_options(root)[0]).exists():
-            raise PcfbenchError(f"dataset {name!r}: root {root} does not exist")
-        out.append((name, root))
-    return out
+    return [(name, config.resolve_root(name, plugins.datasets.get(name), cli_roots, progress)) for name in names]
 
 
 @cli.command()

@@ -59,8 +59,20 @@ def parse_dataset_args(values: tuple[str, ...]) -> tuple[list[str], dict[str, st
             raise PcfbenchError(f"--dataset {v!r}: empty root (use NAME=ROOT)")
         names.append(name)
         if sep:
-            roots[name] = str(Path(root).expanduser())
+            path, _, query = root.partition("?")
+            roots[name] = str(Path(path).expanduser()) + (f"?{query}" if query else "")
     return names, roots
+
+
+def resolve_root(name: str, adapter_cls: type, cli_roots: dict[str, str], progress: bool = True) -> str:
+    """The root of dataset ``name``: configured (CLI, environment, config file), else the
+    adapter's default root (an embedded dataset generates its data there on first use)."""
+    root = dataset_root(name, cli_roots)
+    if root is None:
+        return str(adapter_cls.default_root(progress=progress))
+    if not Path(split_root_options(root)[0]).exists():
+        raise PcfbenchError(f"dataset {name!r}: root {root} does not exist")
+    return root
 
 
 def split_root_options(root: str | None) -> tuple[str | None, dict[str, str]]:

@@ -22,17 +22,15 @@ LAYOUTS = {
 
 
 def open_adapter(spec: str):
-    """``NAME=ROOT`` (ROOT may carry ``?key=value`` options) into an adapter instance."""
+    """``NAME[=ROOT]`` (ROOT may carry ``?key=value`` options) into an adapter instance; without
+    a ROOT the configured one (environment, config file) or the embedded default is used."""
     from bench import config
     from bench.plugins import get_plugins
 
-    name, sep, root = spec.partition("=")
-    if not sep or not root:
-        raise PcfbenchError(f"{spec!r}: expected NAME=ROOT")
-    path, options = config.split_root_options(str(Path(root).expanduser()) if "?" not in root else root)
-    if not Path(path).exists():
-        raise PcfbenchError(f"dataset {name!r}: root {path} does not exist")
-    return get_plugins().datasets.get(name)(path, **options)
+    (name,), roots = config.parse_dataset_args((spec,))
+    cls = get_plugins().datasets.get(name)
+    path, options = config.split_root_options(config.resolve_root(name, cls, roots))
+    return cls(path, **options)
 
 
 def source_sequences(adapter, splits: tuple[str, ...]) -> list[SequenceData]:
@@ -107,7 +105,7 @@ def convert(source: str, target: str, splits: tuple[str, ...] = ()) -> list[tupl
 
 def add_commands(cli) -> None:
     @cli.command(name="convert")
-    @click.option("--from", "source", required=True, metavar="NAME=ROOT", help="Dataset to read (ROOT may end in ?key=value options).")
+    @click.option("--from", "source", required=True, metavar="NAME[=ROOT]", help="Dataset to read (ROOT may end in ?key=value options).")
     @click.option("--to", "target", required=True, metavar="LAYOUT=OUT", help=f"Layout to write: {', '.join(LAYOUTS)}.")
     @click.option("--split", "splits", multiple=True, help="Only these splits of the source (repeatable).")
     def convert_cmd(source, target, splits):
@@ -116,7 +114,7 @@ def add_commands(cli) -> None:
             click.echo(f"{a} -> {b}")
 
     @cli.command(name="export")
-    @click.option("--dataset", "-d", "dataset", required=True, metavar="NAME=ROOT")
+    @click.option("--dataset", "-d", "dataset", required=True, metavar="NAME[=ROOT]")
     @click.option("--setting", "-s", required=True)
     @click.option("--sample", "sample_id", default=None, help="Sample id SEQUENCE/INDEX (default: the split's first sample).")
     @click.option("--split", default=None, help="Split (default: the dataset's evaluation split).")
