@@ -105,16 +105,21 @@ def _query(qxs, qys, xs, ys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, peri
                 best_d, best_i = _scan(cx, cy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
                                           x0, y0, hx, hy)
             else:  # the ring's perimeter only: top and bottom rows, then the two side columns
-                for ix in range(cx - r, cx + r + 1):
-                    best_d, best_i = _scan(ix, cy - r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
-                    best_d, best_i = _scan(ix, cy + r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
-                for iy in range(cy - r + 1, cy + r):
-                    best_d, best_i = _scan(cx - r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
-                    best_d, best_i = _scan(cx + r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
+                # a whole row (column) is skipped when its band is farther than the best so far
+                for iy in (cy - r, cy + r):
+                    g = max(y0 + iy * hy - qy, qy - (y0 + (iy + 1) * hy), 0.0)
+                    if iy < 0 or iy >= ny or g * g > best_d:
+                        continue
+                    for ix in range(cx - r, cx + r + 1):
+                        best_d, best_i = _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d,
+                                               best_i, x0, y0, hx, hy)
+                for ix in (cx - r, cx + r):
+                    g = max(x0 + ix * hx - qx, qx - (x0 + (ix + 1) * hx), 0.0)
+                    if g * g > best_d:
+                        continue
+                    for iy in range(cy - r + 1, cy + r):
+                        best_d, best_i = _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d,
+                                               best_i, x0, y0, hx, hy)
             # distance from the query to the nearest cell outside the scanned block
             bound = np.inf
             if cy - r > 0:
