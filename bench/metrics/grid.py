@@ -72,16 +72,23 @@ def _scan_cell(c, starts, order, sx, sy, qx, qy, period, best_d, best_i):
 def _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i, x0, y0, hx, hy):
     if iy < 0 or iy >= ny:
         return best_d, best_i
+    jx = ix  # the cell's column in the grid (ix is its unwrapped position)
+    if period > 0.0:
+        while jx < 0:  # (a ring never goes more than a few periods around: no integer division)
+            jx += nx
+        while jx >= nx:
+            jx -= nx
+    elif ix < 0 or ix >= nx:
+        return best_d, best_i
+    c = jx * ny + iy
+    if starts[c] == starts[c + 1]:  # empty: most cells of a clustered cloud
+        return best_d, best_i
     # skip a cell whose rectangle (at this unwrapped position) is farther than the best so far
     gx = max(x0 + ix * hx - qx, qx - (x0 + (ix + 1) * hx), 0.0)
     gy = max(y0 + iy * hy - qy, qy - (y0 + (iy + 1) * hy), 0.0)
     if gx * gx + gy * gy > best_d:
         return best_d, best_i
-    if period > 0.0:
-        ix = ix % nx
-    elif ix < 0 or ix >= nx:
-        return best_d, best_i
-    return _scan_cell(ix * ny + iy, starts, order, sx, sy, qx, qy, period, best_d, best_i)
+    return _scan_cell(c, starts, order, sx, sy, qx, qy, period, best_d, best_i)
 
 
 @numba.njit(cache=True, nogil=True)
