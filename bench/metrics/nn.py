@@ -26,7 +26,7 @@ class Index:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         if self.points.shape[0] == 0:
             raise ValueError("cannot index an empty point set")
-        self.tree = KDTree(self.points, leafsize=8)
+        self.tree = KDTree(self.points, leafsize=16)
 
     def query(self, queries: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(squared distance float64, index int64) of each query's nearest indexed point.
