@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 
 from bench.data import Forecast, GroundTruth, RayQuery, Sample
-from bench.metrics.nn import Index, nearest_angle_4docc, nearest_angle_wrapped
+from bench.metrics.nn import Index, masked_min_sq_dist, nearest_angle_4docc, nearest_angle_wrapped
 from bench.protocol import MIN_RANGE_M
 from bench.roi import ROI, Box, ray_box_interval
 
@@ -114,12 +114,6 @@ class SweepContext:
     def nn_gt_to_pred(self) -> tuple[np.ndarray, np.ndarray]:
         return self.pred_index.query(self.gt64)
 
-    @staticmethod
-    def _columns(index: Index) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if not hasattr(index, "columns"):
-            index.columns = tuple(np.ascontiguousarray(index.points[:, a]) for a in range(3))
-        return index.columns
-
     def _cropped_nn(self, full: tuple[np.ndarray, np.ndarray], q_in: np.ndarray, t_in: np.ndarray,
                     queries: np.ndarray, index: Index) -> np.ndarray:
         """Squared NN distances from the cropped queries to the cropped targets.
@@ -133,10 +127,7 @@ class SweepContext:
         if redo.size:
             q = queries[np.flatnonzero(q_in)[redo]]
             if redo.size <= 32:  # a few points: brute force over the in-ROI targets
-                cols = self._columns(index)
-                for i, (x, y, z) in enumerate(q):
-                    d = (cols[0] - x) ** 2 + (cols[1] - y) ** 2 + (cols[2] - z) ** 2
-                    d2[redo[i]] = d[t_in].min()
+                d2[redo] = masked_min_sq_dist(q, index.points, t_in)
             else:
                 d2[redo] = Index(index.points[t_in]).query(q)[0]
         return d2

@@ -11,6 +11,7 @@ fallback for queries far from all predicted points.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from pykdtree.kdtree import KDTree
 
@@ -43,6 +44,24 @@ class Index:
         idx = idx.astype(np.int64)
         diff = q - self.points[idx]
         return np.einsum("ij,ij->i", diff, diff), idx
+
+
+@numba.njit(cache=True, nogil=True)
+def masked_min_sq_dist(queries: np.ndarray, points: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Brute force, for a few queries: squared distance to the nearest of the ``keep`` points,
+    each computed as ((x - a)^2 + (y - b)^2) + (z - c)^2 in float64 (numpy's elementwise order)."""
+    out = np.full(queries.shape[0], np.inf)
+    for i in range(queries.shape[0]):
+        x, y, z = queries[i, 0], queries[i, 1], queries[i, 2]
+        best = np.inf
+        for j in range(points.shape[0]):
+            if keep[j]:
+                dx, dy, dz = points[j, 0] - x, points[j, 1] - y, points[j, 2] - z
+                d = (dx * dx + dy * dy) + dz * dz
+                if d < best:
+                    best = d
+        out[i] = best
+    return out
 
 
 def nn_sq_dist(query: np.ndarray, target: np.ndarray) -> np.ndarray:
