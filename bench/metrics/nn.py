@@ -105,7 +105,7 @@ def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0) -> np
     queries far from all data."""
     idx = Grid2D(data, period).query(queries)[1]
     far = np.flatnonzero(idx < 0)
-    for per_cell in (16.0, 256.0):  # coarser grids reach farther for the few left over
+    for per_cell in (64.0, 1024.0):  # coarser grids reach farther for the few left over
         if far.size == 0 or per_cell > 2 * data.shape[0]:
             break
         idx[far] = Grid2D(data, period, per_cell).query(queries[far])[1]
