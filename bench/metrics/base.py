@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -10,7 +9,7 @@ from typing import Callable
 import numpy as np
 
 from bench.data import Forecast, GroundTruth, RayQuery, Sample
-from bench.metrics.nn import Index, masked_min_sq_dist, nearest_angle_4docc, nearest_angle_wrapped
+from bench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
 from bench.protocol import MIN_RANGE_M
 from bench.roi import ROI, Box, ray_box_interval
 
@@ -183,15 +182,9 @@ class SweepContext:
 
     @cached_property
     def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped).
-
-        The two exact searches are independent and release the GIL: the 4D-Occ one runs in a
-        second thread while this one does the wrapped one.
-        """
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            first = pool.submit(nearest_angle_4docc, self.pred_rel, self.gt_rel)
-            wrapped = nearest_angle_wrapped(self.pred_rel, self.gt_rel)
-            return first.result(), wrapped
+        """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped),
+        the two exact searches shared out over two threads (bench.metrics.nn.nearest_angles)."""
+        return nearest_angles(self.pred_rel, self.gt_rel)
 
     def _ray_depth(self, which: int) -> np.ndarray | None:
         if self.pred_depths is not None:

@@ -10,8 +10,11 @@ SweepContext._angular_nearest).
 Exactness: cells are scanned in Chebyshev rings around the query's cell (at most MAX_RINGS,
 then the query is handed back unanswered, index -1); cells whose rectangle is farther than
 the best distance so far are skipped, and after each ring the search stops once the best
-distance is no larger than the distance from the query to any cell not yet scanned (computed
-from the block's geometry, so a query outside the grid is handled too). Each query starts
+distance is smaller than the distance from the query to any cell not yet scanned (computed
+from the block's geometry, so a query outside the grid is handled too). Strictly smaller: every
+point at the minimal distance has then been scanned, so the tie rule below holds and a query's
+answer does not depend on its starting candidate or on which queries are asked together.
+Each query starts
 from the previous query's answer (a real data point; consecutive LiDAR rays are neighbours).
 Ties go to the lowest data index, like a brute-force argmin. Dimension 0 may be periodic
 (azimuth, period 2 pi): differences are then taken around the circle.
@@ -142,7 +145,7 @@ def _query(qxs, qys, xs, ys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, peri
                     bound = min(bound, max(qx - (x0 + (cx - r) * hx), 0.0))
                 if cx + r < nx - 1:
                     bound = min(bound, max(x0 + (cx + r + 1) * hx - qx, 0.0))
-            if best_i >= 0 and best_d <= bound * bound:
+            if best_i >= 0 and best_d < bound * bound:
                 found = True
                 break
         out_i[q] = best_i if found else -1
