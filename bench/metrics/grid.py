@@ -2,10 +2,10 @@
 
 On ray-aligned LiDAR sweeps a k-d tree query in a 2D angle space costs about as much as one
 in 3D (~0.1 s per 120k queries with pykdtree on the shared 2-core machine). A bucket grid
-with about two points per cell, scanned in one thread with the GIL released, was measured
-side by side at 0.8-0.95x the time of pykdtree's exact 2D search (both angle spaces
-together), and leaves the second core to the other angle space's search (see
-SweepContext._angular_nearest).
+with about two points per cell, scanned with the GIL released, was measured side by side at
+0.57-0.59x the time of pykdtree's exact 2D search (both angle spaces, one thread, the same
+answers; 9 interleaved runs on the 120k pair, loaded machine). Queries are answered one by
+one, so any slice of them can go to another thread (bench.metrics.nn.nearest_angles).
 
 Exactness: cells are scanned in Chebyshev rings around the query's cell (at most MAX_RINGS,
 then the query is handed back unanswered, index -1); cells whose rectangle is farther than
@@ -30,8 +30,8 @@ import numpy as np
 _TARGET_PER_CELL = 2.0
 #: rings scanned before a query is left to the caller's fallback (returned index -1)
 MAX_RINGS = 2
-# One thread per search: numba's OpenMP threads made the queries 2-3x slower on the shared
-# 2-core reference machine.
+# No numba parallelism inside a query pass: numba's OpenMP threads made the queries 2-3x slower
+# on the shared 2-core reference machine; nearest_angles shares pieces out over Python threads.
 
 
 @numba.njit(cache=True, nogil=True)

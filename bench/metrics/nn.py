@@ -2,9 +2,10 @@
 
 pykdtree was the fastest exact index measured on ray-aligned 120k x 120k LiDAR sweeps on the
 2-core reference machine (see tests/benchmarks/test_bench_metrics.py and the README's
-"Metrics" section): scipy's cKDTree(workers=-1) took 1.6-2x its time, open3d's core
-NearestNeighborSearch 1.0-1.9x (open3d's KDTreeFlann answers one query per Python call). Distances are recomputed in float64 from the returned indices, so
-they are exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
+"Metrics" section): scipy's cKDTree(workers=-1) took 1.4-2.3x its time, open3d's core
+NearestNeighborSearch 1.0-2.0x (open3d's KDTreeFlann answers one query per Python call).
+Distances are recomputed in float64 from the returned indices (one numba pass), so they are
+exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
 angle-space searches use an exact bucket grid (bench/metrics/grid.py) with a k-d tree
 fallback for queries far from all predicted points.
 """
