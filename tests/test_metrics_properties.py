@@ -116,3 +116,35 @@ def test_ray_box_interval_matches_scalar_slab_walk(seed, n):
             assert not t0[i] <= t1[i]
         else:
             np.testing.assert_allclose([t0[i], t1[i]], seg, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 300), chunk=st.integers(1, 50))
+def test_nearest_angles_in_pieces_match_whole_searches(seed, n, chunk):
+    """Sharing the grid passes out in pieces changes no answer (index, ties included)."""
+    from bench.metrics import nn
+
+    rng = np.random.default_rng(seed)
+    origin = rng.uniform(-2, 2, 3)
+    gt, pred = _cloud(rng, n, 60.0, origin), _cloud(rng, n + 3, 60.0, origin)
+    gt_rel, pred_rel = gt.astype(np.float64) - origin, pred.astype(np.float64) - origin
+    old = nn.CHUNK
+    nn.CHUNK = chunk
+    try:
+        a, b = nn.nearest_angles(pred_rel, gt_rel)
+    finally:
+        nn.CHUNK = old
+    np.testing.assert_array_equal(a, nn.nearest_angle_4docc(pred_rel, gt_rel))
+    np.testing.assert_array_equal(b, nn.nearest_angle_wrapped(pred_rel, gt_rel))
+
+
+def test_nearest_2d_ties_go_to_the_lowest_index():
+    """Exact ties on a lattice (coordinates exact in binary): the brute-force argmin's index."""
+    from bench.metrics.nn import nearest_2d
+
+    rng = np.random.default_rng(3)
+    data = rng.integers(-8, 8, (400, 2)) * 0.25
+    queries = rng.integers(-20, 20, (500, 2)) * 0.125
+    idx = nearest_2d(data, queries)
+    d2 = ((queries[:, None, :] - data[None, :, :]) ** 2).sum(axis=2)
+    np.testing.assert_array_equal(idx, d2.argmin(axis=1))

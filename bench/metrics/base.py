@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -10,7 +9,7 @@ from typing import Callable
 import numpy as np
 
 from bench.data import Forecast, GroundTruth, RayQuery, Sample
-from bench.metrics.nn import Index, nearest_angle_4docc, nearest_angle_wrapped
+from bench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
 from bench.protocol import MIN_RANGE_M
 from bench.roi import ROI, Box, ray_box_interval
 
@@ -114,12 +113,6 @@ class SweepContext:
     def nn_gt_to_pred(self) -> tuple[np.ndarray, np.ndarray]:
         return self.pred_index.query(self.gt64)
 
-    @staticmethod
-    def _columns(index: Index) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if not hasattr(index, "columns"):
-            index.columns = tuple(np.ascontiguousarray(index.points[:, a]) for a in range(3))
-        return index.columns
-
     def _cropped_nn(self, full: tuple[np.ndarray, np.ndarray], q_in: np.ndarray, t_in: np.ndarray,
                     queries: np.ndarray, index: Index) -> np.ndarray:
         """Squared NN distances from the cropped queries to the cropped targets.
@@ -133,10 +126,7 @@ class SweepContext:
         if redo.size:
             q = queries[np.flatnonzero(q_in)[redo]]
             if redo.size <= 32:  # a few points: brute force over the in-ROI targets
-                cols = self._columns(index)
-                for i, (x, y, z) in enumerate(q):
-                    d = (cols[0] - x) ** 2 + (cols[1] - y) ** 2 + (cols[2] - z) ** 2
-                    d2[redo[i]] = d[t_in].min()
+                d2[redo] = masked_min_sq_dist(q, index.points, t_in)
             else:
                 d2[redo] = Index(index.points[t_in]).query(q)[0]
         return d2
@@ -192,15 +182,9 @@ class SweepContext:
 
     @cached_property
     def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped).
-
-        The two exact searches are independent and release the GIL: the 4D-Occ one runs in a
-        second thread while this one does the wrapped one.
-        """
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            first = pool.submit(nearest_angle_4docc, self.pred_rel, self.gt_rel)
-            wrapped = nearest_angle_wrapped(self.pred_rel, self.gt_rel)
-            return first.result(), wrapped
+        """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped),
+        the two exact searches shared out over two threads (bench.metrics.nn.nearest_angles)."""
+        return nearest_angles(self.pred_rel, self.gt_rel)
 
     def _ray_depth(self, which: int) -> np.ndarray | None:
         if self.pred_depths is not None:

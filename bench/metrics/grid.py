@@ -2,16 +2,19 @@
 
 On ray-aligned LiDAR sweeps a k-d tree query in a 2D angle space costs about as much as one
 in 3D (~0.1 s per 120k queries with pykdtree on the shared 2-core machine). A bucket grid
-with about two points per cell, scanned in one thread with the GIL released, was measured
-side by side at 0.8-0.95x the time of pykdtree's exact 2D search (both angle spaces
-together), and leaves the second core to the other angle space's search (see
-SweepContext._angular_nearest).
+with about two points per cell, scanned with the GIL released, was measured side by side at
+0.57-0.59x the time of pykdtree's exact 2D search (both angle spaces, one thread, the same
+answers; 9 interleaved runs on the 120k pair, loaded machine). Queries are answered one by
+one, so any slice of them can go to another thread (bench.metrics.nn.nearest_angles).
 
 Exactness: cells are scanned in Chebyshev rings around the query's cell (at most MAX_RINGS,
 then the query is handed back unanswered, index -1); cells whose rectangle is farther than
 the best distance so far are skipped, and after each ring the search stops once the best
-distance is no larger than the distance from the query to any cell not yet scanned (computed
-from the block's geometry, so a query outside the grid is handled too). Each query starts
+distance is smaller than the distance from the query to any cell not yet scanned (computed
+from the block's geometry, so a query outside the grid is handled too). Strictly smaller: every
+point at the minimal distance has then been scanned, so the tie rule below holds and a query's
+answer does not depend on its starting candidate or on which queries are asked together.
+Each query starts
 from the previous query's answer (a real data point; consecutive LiDAR rays are neighbours).
 Ties go to the lowest data index, like a brute-force argmin. Dimension 0 may be periodic
 (azimuth, period 2 pi): differences are then taken around the circle.
@@ -27,8 +30,8 @@ import numpy as np
 _TARGET_PER_CELL = 2.0
 #: rings scanned before a query is left to the caller's fallback (returned index -1)
 MAX_RINGS = 2
-# One thread per search: numba's OpenMP threads made the queries 2-3x slower on the shared
-# 2-core reference machine.
+# No numba parallelism inside a query pass: numba's OpenMP threads made the queries 2-3x slower
+# on the shared 2-core reference machine; nearest_angles shares pieces out over Python threads.
 
 
 @numba.njit(cache=True, nogil=True)
@@ -72,16 +75,23 @@ def _scan_cell(c, starts, order, sx, sy, qx, qy, period, best_d, best_i):
 def _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i, x0, y0, hx, hy):
     if iy < 0 or iy >= ny:
         return best_d, best_i
+    jx = ix  # the cell's column in the grid (ix is its unwrapped position)
+    if period > 0.0:
+        while jx < 0:  # (a ring never goes more than a few periods around: no integer division)
+            jx += nx
+        while jx >= nx:
+            jx -= nx
+    elif ix < 0 or ix >= nx:
+        return best_d, best_i
+    c = jx * ny + iy
+    if starts[c] == starts[c + 1]:  # empty: most cells of a clustered cloud
+        return best_d, best_i
     # skip a cell whose rectangle (at this unwrapped position) is farther than the best so far
     gx = max(x0 + ix * hx - qx, qx - (x0 + (ix + 1) * hx), 0.0)
     gy = max(y0 + iy * hy - qy, qy - (y0 + (iy + 1) * hy), 0.0)
     if gx * gx + gy * gy > best_d:
         return best_d, best_i
-    if period > 0.0:
-        ix = ix % nx
-    elif ix < 0 or ix >= nx:
-        return best_d, best_i
-    return _scan_cell(ix * ny + iy, starts, order, sx, sy, qx, qy, period, best_d, best_i)
+    return _scan_cell(c, starts, order, sx, sy, qx, qy, period, best_d, best_i)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -105,16 +115,21 @@ def _query(qxs, qys, xs, ys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, peri
                 best_d, best_i = _scan(cx, cy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
                                           x0, y0, hx, hy)
             else:  # the ring's perimeter only: top and bottom rows, then the two side columns
-                for ix in range(cx - r, cx + r + 1):
-                    best_d, best_i = _scan(ix, cy - r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
-                    best_d, best_i = _scan(ix, cy + r, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
-                for iy in range(cy - r + 1, cy + r):
-                    best_d, best_i = _scan(cx - r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
-                    best_d, best_i = _scan(cx + r, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d, best_i,
-                                          x0, y0, hx, hy)
+                # a whole row (column) is skipped when its band is farther than the best so far
+                for iy in (cy - r, cy + r):
+                    g = max(y0 + iy * hy - qy, qy - (y0 + (iy + 1) * hy), 0.0)
+                    if iy < 0 or iy >= ny or g * g > best_d:
+                        continue
+                    for ix in range(cx - r, cx + r + 1):
+                        best_d, best_i = _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d,
+                                               best_i, x0, y0, hx, hy)
+                for ix in (cx - r, cx + r):
+                    g = max(x0 + ix * hx - qx, qx - (x0 + (ix + 1) * hx), 0.0)
+                    if g * g > best_d:
+                        continue
+                    for iy in range(cy - r + 1, cy + r):
+                        best_d, best_i = _scan(ix, iy, nx, ny, starts, order, sx, sy, qx, qy, period, best_d,
+                                               best_i, x0, y0, hx, hy)
             # distance from the query to the nearest cell outside the scanned block
             bound = np.inf
             if cy - r > 0:
@@ -130,7 +145,7 @@ def _query(qxs, qys, xs, ys, sx, sy, order, starts, x0, y0, hx, hy, nx, ny, peri
                     bound = min(bound, max(qx - (x0 + (cx - r) * hx), 0.0))
                 if cx + r < nx - 1:
                     bound = min(bound, max(x0 + (cx + r + 1) * hx - qx, 0.0))
-            if best_i >= 0 and best_d <= bound * bound:
+            if best_i >= 0 and best_d < bound * bound:
                 found = True
                 break
         out_i[q] = best_i if found else -1
