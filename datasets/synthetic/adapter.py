@@ -1,0 +1,90 @@
+"""Dataset adapters of the synthetic domains: the generated KITTI layout, with its own splits.
+
+Each domain is a dataset of its own (``synthetic-town``, ``synthetic-suburb``). With no root
+configured, ``default_root`` generates the domain into the cache on first use and reuses it
+afterwards. Only ``synthetic-town`` is ``embedded`` (the default of ``pcfbench run``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bench.errors import DataError
+from bench.roi import EgoBox
+from datasets.kitti import KittiOdometry
+from datasets.synthetic.domains import GENERATOR_VERSION, get_domain
+from datasets.synthetic.generate import MANIFEST, ensure_domain, is_managed, split_complete
+from datasets.synthetic.lidar import EGO_SHAPE
+
+
+def _ego_box(margin: float = 0.15) -> EgoBox:
+    """The generator's ego body (sensor frame) plus a margin for range noise."""
+    return EgoBox(EGO_SHAPE.x_min - margin, EGO_SHAPE.x_max + margin,
+                  -EGO_SHAPE.half_width - margin, EGO_SHAPE.half_width + margin)
+
+
+class SyntheticKitti(KittiOdometry):
+    """A generated synthetic domain read through the KITTI layout."""
+
+    domain: str
+    version = GENERATOR_VERSION
+    ego_box = _ego_box()
+    default_split = "test"
+
+    @classmethod
+    def default_root(cls, progress: bool = True) -> Path:
+        """The cache copy, with the evaluation split generated now; other splits on first use."""
+        return ensure_domain(cls.domain, splits=(cls.default_split,), progress=progress)
+
+    @classmethod
+    def detect(cls, root: Path) -> bool:
+        try:
+            return json.loads((Path(root) / MANIFEST).read_text()).get("domain") == cls.name
+        except (OSError, ValueError):
+            return False
+
+    def __init__(self, root, **options):
+        super().__init__(root, **options)
+        self._splits = {split: tuple(n for n, _ in seqs) for split, seqs in get_domain(self.domain).splits.items()}
+        if self.root is not None and (self.root / MANIFEST).is_file():
+            try:
+                manifest = json.loads((self.root / MANIFEST).read_text())
+            except ValueError as exc:
+                raise DataError(f"synthetic manifest {self.root / MANIFEST} is not valid JSON: {exc}") from None
+            if manifest.get("domain") != self.name:
+                raise DataError(f"{self.root} holds synthetic domain {manifest.get('domain')!r}, not {self.name!r}")
+
+    def splits(self) -> tuple[str, ...]:
+        return tuple(self._splits)
+
+    def sequence_names(self, split: str) -> list[str]:
+        if split not in self._splits:
+            raise DataError(f"{self.name} has no split {split!r} (known: {', '.join(self._splits)})")
+        if is_managed(self.root) and not split_complete(self.root, split):
+            ensure_domain(self.domain, splits=(split,), root=self.root)
+        if not (self.root / "sequences").is_dir():
+            raise DataError(f"{self.name} root {self.root} has no sequences/ folder (expected the KITTI layout)")
+        return [s for s in self._splits[split] if self._seq_dir(s).is_dir() and self._poses_path(s) is not None]
+
+    def check(self):
+        report = super().check()
+        if self.root is not None and is_managed(self.root):
+            report.found["cache"] = "managed by pcfbench (splits generated on first use)"
+        return report
+
+
+class SyntheticTown(SyntheticKitti):
+    name = "synthetic-town"
+    domain = "synthetic-town"
+    rate_hz = 10.0
+    default_settings = ("kitti-1s", "kitti-3s")
+    embedded = True
+
+
+class SyntheticSuburb(SyntheticKitti):
+    name = "synthetic-suburb"
+    domain = "synthetic-suburb"
+    rate_hz = 2.0
+    default_settings = ("nuscenes-1s", "nuscenes-3s")
+    embedded = False  # generated on first use too, but not part of the no-argument default run

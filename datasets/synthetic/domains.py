@@ -1,0 +1,84 @@
+"""Named synthetic domains: which sensor, town style, rate, seed and splits each one has.
+
+Domains differ the way real datasets differ: ``synthetic-town`` is KITTI-like (64 beams,
+1.73 m, 10 Hz, dense town with busy traffic), ``synthetic-suburb`` is nuScenes-like (32 beams,
+1.84 m, 2 Hz keyframes, wide curvy roads, low houses set back behind fences and trees, light
+traffic). Each sequence is its own town (seeded by domain seed and sequence index), so the
+test towns are never seen in training.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from bench.errors import UnknownNameError
+from datasets.synthetic.sensor import HDL32, HDL64, LidarConfig
+from datasets.synthetic.world import SUBURB, TOWN, TownStyle
+
+#: Bumped whenever the generated data would change; part of the cache folder name.
+GENERATOR_VERSION = "1"
+
+
+@dataclass(frozen=True)
+class Domain:
+    name: str
+    sensor: LidarConfig
+    style: TownStyle
+    rate_hz: float
+    seed: int
+    #: split -> ((sequence name, number of sweeps), ...)
+    splits: dict
+    settings: tuple[str, ...]
+    description: str
+
+    def sequences(self) -> list[tuple[str, str, int]]:
+        """(split, sequence name, sweeps) of every sequence, in generation order."""
+        return [(split, name, n) for split, seqs in self.splits.items() for name, n in seqs]
+
+    def sequence_index(self, name: str) -> int:
+        return [s for _, s, _ in self.sequences()].index(name)
+
+
+DOMAINS: dict[str, Domain] = {
+    d.name: d
+    for d in (
+        Domain(
+            name="synthetic-town",
+            sensor=HDL64,
+            style=TOWN,
+            rate_hz=10.0,
+            seed=20240611,
+            splits={
+                "train": (("00", 90), ("01", 90), ("02", 90), ("03", 90)),
+                "val": (("04", 70),),
+                "test": (("05", 60), ("06", 60)),
+            },
+            settings=("kitti-1s", "kitti-3s"),
+            description="KITTI-like: 64-beam HDL-64E-like LiDAR at 1.73 m, 10 Hz, dense town, busy traffic",
+        ),
+        Domain(
+            name="synthetic-suburb",
+            sensor=HDL32,
+            style=SUBURB,
+            rate_hz=2.0,
+            seed=7771,
+            splits={
+                "train": (("00", 40), ("01", 40), ("02", 40), ("03", 40)),
+                "val": (("04", 30),),
+                "test": (("05", 30), ("06", 30)),
+            },
+            settings=("nuscenes-1s", "nuscenes-3s"),
+            description="nuScenes-like: 32-beam HDL-32E-like LiDAR at 1.84 m, 2 Hz keyframes, suburb, light traffic",
+        ),
+    )
+}
+
+
+def get_domain(name: str) -> Domain:
+    if name not in DOMAINS:
+        import difflib
+
+        close = difflib.get_close_matches(name, DOMAINS, n=2)
+        hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else ""
+        raise UnknownNameError(f"unknown synthetic domain {name!r}{hint} (known: {', '.join(DOMAINS)})")
+    return DOMAINS[name]

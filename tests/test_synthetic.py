@@ -1,0 +1,169 @@
+"""The synthetic world: generation, determinism, the cache, the adapters and the CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from bench.errors import PcfbenchError, UnknownNameError
+from bench.protocol import SETTINGS, SampleBuilder
+from bench.testing import check_adapter
+from datasets.synthetic.domains import get_domain
+from datasets.synthetic.generate import (
+    COMPLETE, ensure_domain, generate_domain, get_writer, simulate_sequence, split_complete,
+)
+
+
+def tiny(name: str = "synthetic-town", sweeps: int = 8, azimuths: int = 240):
+    """A small copy of a domain: one train and one test sequence, a coarse azimuth grid."""
+    d = get_domain(name)
+    sensor = dataclasses.replace(d.sensor, azimuth_steps=azimuths)
+    return dataclasses.replace(d, sensor=sensor, splits={"train": (("00", 4),), "test": (("05", sweeps),)})
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    """sha256 of every data file (completion markers hold timings, so they are left out)."""
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and not p.name.startswith(COMPLETE)}
+
+
+def test_generation_is_deterministic_byte_for_byte(tmp_path):
+    dom = tiny(sweeps=3)
+    generate_domain(dom, tmp_path / "a", progress=False, splits=("test",))
+    generate_domain(dom, tmp_path / "b", progress=False, splits=("test",))
+    a, b = tree_digest(tmp_path / "a"), tree_digest(tmp_path / "b")
+    assert len(a) == 3 * 2 + 4  # .bin + .label per sweep, calib, times, poses, manifest
+    assert a == b
+    other = dataclasses.replace(dom, seed=dom.seed + 1)
+    generate_domain(other, tmp_path / "c", progress=False, splits=("test",))
+    c = tree_digest(tmp_path / "c")
+    assert c["sequences/05/velodyne/000000.bin"] != a["sequences/05/velodyne/000000.bin"]
+
+
+def test_adapter_reads_generated_kitti_layout_and_builds_samples(tmp_path):
+    from datasets.synthetic.adapter import SyntheticTown
+
+    dom = tiny(sweeps=20)
+    generate_domain(dom, tmp_path, progress=False, splits=("test",))
+    adapter = SyntheticTown(tmp_path)
+    assert SyntheticTown.detect(tmp_path)
+    assert adapter.sequence_names("test") == ["05"]
+    assert adapter.sequence_names("train") == []  # not generated here
+    check_adapter(adapter, "test", max_sweeps=3)
+    seq = adapter.sequence("05")
+    assert len(seq) == 20
+    assert np.allclose(np.diff(seq.timestamps_ns), 100_000_000)
+    speed = np.linalg.norm(np.diff(seq.T_world_sensor[:, :3, 3], axis=0), axis=1) * 10.0
+    assert 0.0 <= speed.max() < 20.0  # an urban driving speed, m/s
+    builder = SampleBuilder(adapter, SETTINGS["kitti-1s"])
+    keys = builder.sample_keys("test")
+    assert len(keys) == 20 - 18
+    sample, truth = builder.build(*keys[0])
+    assert len(sample.past_points_ref) == 5 and len(truth.future_points_ref) == 5
+    assert all(len(p) > 100 for p in truth.future_points_ref)
+    # the ego body is hit by the simulator and removed by the declared ego box
+    raw = seq.load_points(0)
+    assert adapter.ego_box.inside(raw).sum() > 0
+    assert adapter.ego_box.inside(sample.past_points_ref[-1]).sum() == 0
+
+
+def test_suburb_adapter_rate_and_settings(tmp_path):
+    from datasets.synthetic.adapter import SyntheticSuburb
+
+    dom = tiny("synthetic-suburb", sweeps=6)
+    generate_domain(dom, tmp_path, progress=False, splits=("test",))
+    adapter = SyntheticSuburb(tmp_path)
+    seq = adapter.sequence("05")
+    assert np.allclose(np.diff(seq.timestamps_ns), 500_000_000)
+    assert SampleBuilder(adapter, SETTINGS["nuscenes-1s"]).sample_keys("test") == [("05", 1), ("05", 2), ("05", 3)]
+    with pytest.raises(PcfbenchError, match="not 'synthetic-town'"):
+        from datasets.synthetic.adapter import SyntheticTown
+
+        SyntheticTown(tmp_path)
+
+
+def test_cache_generates_once_detects_interrupted_split_and_regenerates(tmp_path, capsys):
+    dom = tiny(sweeps=3)
+    root = tmp_path / "cache" / "town"
+    out = ensure_domain(dom, splits=("test",), progress=False, root=root)
+    assert out == root and split_complete(root, "test") and not split_complete(root, "train")
+    before = tree_digest(root)
+    ensure_domain(dom, splits=("test",), progress=False, root=root)  # reused: nothing rewritten
+    assert tree_digest(root) == before
+    # An interrupted generation: marker missing, a sweep truncated.
+    (root / f"{COMPLETE}-test").unlink()
+    sweep = root / "sequences" / "05" / "velodyne" / "000001.bin"
+    sweep.write_bytes(sweep.read_bytes()[:100])
+    ensure_domain(dom, splits=("test",), progress=False, root=root)
+    assert "incomplete" in capsys.readouterr().err
+    assert tree_digest(root) == before
+    ensure_domain(dom, splits=("train",), progress=False, root=root)
+    assert split_complete(root, "train") and (root / "sequences" / "00" / "velodyne" / "000003.bin").is_file()
+
+
+def test_managed_cache_generates_a_split_when_the_adapter_asks(tmp_path, monkeypatch):
+    import datasets.synthetic.adapter as adapter_mod
+
+    dom = tiny(sweeps=3)
+    monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
+    import datasets.synthetic.generate as gen
+
+    monkeypatch.setattr(gen, "get_domain", lambda name: dom)
+    root = ensure_domain(dom, splits=("test",), progress=False, root=tmp_path / "c")
+    adapter = adapter_mod.SyntheticTown(root)
+    assert not split_complete(root, "train")
+    assert adapter.sequence_names("train") == ["00"]
+    assert split_complete(root, "train")
+
+
+def test_unwritable_cache_and_foreign_folder_are_clear_errors(tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("PCFBENCH_CACHE", str(blocker))
+    with pytest.raises(PcfbenchError, match="cannot write the synthetic data cache .*PCFBENCH_CACHE"):
+        ensure_domain(tiny(), splits=("test",), progress=False)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "mine.txt").write_text("x")
+    with pytest.raises(PcfbenchError, match="not a pcfbench synthetic cache"):
+        ensure_domain(tiny(), splits=("test",), progress=False, root=foreign)
+    assert (foreign / "mine.txt").read_text() == "x"
+
+
+def test_unknown_names_are_clear_errors():
+    with pytest.raises(UnknownNameError, match="did you mean 'synthetic-town'"):
+        get_domain("synthetic-twn")
+    with pytest.raises(UnknownNameError, match="unknown layout 'kity'"):
+        get_writer("kity")
+    with pytest.raises(UnknownNameError, match="no split"):
+        ensure_domain(tiny(), splits=("dev",), progress=False)
+
+
+def test_generate_command_and_plugin_registration(tmp_path):
+    from bench.cli import build_cli
+    from bench.plugins import get_plugins
+
+    plugins = get_plugins()
+    town = plugins.datasets.get("synthetic-town")
+    suburb = plugins.datasets.get("synthetic-suburb")
+    assert town.embedded and not suburb.embedded
+    assert town.default_settings == ("kitti-1s", "kitti-3s") and suburb.default_settings == ("nuscenes-1s", "nuscenes-3s")
+    cli = build_cli()
+    res = CliRunner().invoke(cli, ["generate", "synthetic-nowhere", "--out", str(tmp_path / "x"), "-q"])
+    assert res.exit_code == 2 and "unknown synthetic domain" in res.output
+    res = CliRunner().invoke(cli, ["generate", "synthetic-town", "--layout", "bogus", "--out", str(tmp_path / "x"), "-q"])
+    assert res.exit_code == 2 and "unknown layout" in res.output
+
+
+def test_moving_agents_move_between_sweeps():
+    dom = tiny(sweeps=6, azimuths=360)
+    seq = simulate_sequence(dom, "05")
+    moving = [((lab & 0xFFFF) >= 5) & ((lab & 0xFFFF) <= 7) for lab in seq.labels]
+    assert sum(m.sum() for m in moving) > 0, "no agent was seen"
+    assert seq.stats["agents"] > 5
