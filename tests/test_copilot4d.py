@@ -125,7 +125,8 @@ def test_vq_straight_through_gradient():
 
 
 def test_dead_code_kmeans_reinit_revives_codes():
-    cfg = MICRO.with_overrides(codebook_size=16, code_dim=4, dead_after=5, reinit_every=10, memory_factor=10)
+    cfg = MICRO.with_overrides(codebook_size=16, code_dim=4, dead_after=5, reinit_every=10, memory_factor=10,
+                               kmeans_init=False)
     torch.manual_seed(0)
     vq = VectorQuantizer(cfg)
     centres = torch.randn(16, 4) * 5
@@ -151,6 +152,19 @@ def test_dead_code_kmeans_reinit_revives_codes():
     _, codes, _ = vq(centres.view(1, 4, 4, 4))
     assert len(set(codes.flatten().tolist())) >= 14  # K-means on the memory bank revived them
     assert not vq.dead_codes().any()
+
+
+def test_kmeans_initialisation_once_bank_fills():
+    cfg = MICRO.with_overrides(codebook_size=16, code_dim=4, memory_factor=4)  # bank of 64 vectors
+    torch.manual_seed(0)
+    vq = VectorQuantizer(cfg).train()
+    data = torch.randn(1, 4, 4, 4) * 0.01 + 3.0  # far from the random initial codes
+    ran = []
+    for _ in range(5):
+        vq(data)
+        ran.append(vq.maybe_reinit())
+    assert ran == [False, False, False, True, False]  # 16 vectors per iteration: full after 4
+    assert (vq.codebook - 3.0).abs().max() < 0.1
 
 
 def test_kmeans_recovers_clusters():

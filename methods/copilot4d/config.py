@@ -37,6 +37,7 @@ class TokenizerConfig:
     dead_fraction: float = 0.03  # re-initialise when more than this fraction is dead
     reinit_every: int = 200  # at least this many iterations between re-initialisations
     kmeans_iters: int = 10
+    kmeans_init: bool = True  # K-means initialisation once the memory bank first fills
     # --- decoder ---
     nfg_up: int = 2  # NFG BEV upsampling of the decoder output (paper: 2^2 cells per BEV cell)
     nfg_dim: int = 16  # feature size of each NFG voxel
@@ -97,18 +98,19 @@ PAPER = TokenizerConfig(
     warmup=4000, decay_steps=400_000, grad_clip=0.1, batch_size=16, max_steps=400_000,
 )
 
-# CPU scale: the ROI's extent (+-70.4 m) at 0.55 x 0.55 x 0.5625 m voxels (256 x 256 x 16),
-# 32 x 32 tokens (4.4 m each), 512 codes; NFG 128 x 128 x 16 x 8.
+# CPU scale: a smaller extent (+-38.4 m, where most returns of a 64-beam sweep fall) at
+# 0.3 x 0.3 x 0.5625 m voxels (256 x 256 x 16), 32 x 32 tokens (2.4 m each), 512 codes;
+# NFG 128 x 128 x 16 x 8 (0.6 m cells). Rays beyond the grid end at its boundary.
 TINY = TokenizerConfig(
     name="tiny",
-    x_range=(-70.4, 70.4), y_range=(-70.4, 70.4), z_range=(-4.5, 4.5),
+    x_range=(-38.4, 38.4), y_range=(-38.4, 38.4), z_range=(-4.5, 4.5),
     grid_xy=256, grid_z=16,
     pointnet_dim=32, bev_dim=32, patch_size=4,
     dims=(48, 96), heads=(3, 6), depths=(2, 2), window=8, mlp_ratio=2.0,
     codebook_size=512, code_dim=64,
     nfg_up=2, nfg_dim=8, nfg_z=16, mlp_hidden=32,
-    rays_per_step=2048, samples_per_ray=48, candidate_step=0.5,
-    warmup=100, decay_steps=2000, grad_clip=0.1, batch_size=1, max_steps=2000,
+    rays_per_step=2048, samples_per_ray=64, candidate_step=0.25,
+    warmup=100, decay_steps=1800, grad_clip=0.1, batch_size=1, max_steps=1800,
     checkpoint_every=100, log_every=10,
 )
 

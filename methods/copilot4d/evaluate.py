@@ -13,7 +13,7 @@ from bench.metrics.chamfer import chamfer_value
 from bench.roi import ROI, clamp_ranges_to_box
 from methods.copilot4d.data import SweepSource, in_box, make_batch
 from methods.copilot4d.model import Tokenizer
-from methods.copilot4d.render import logistic_noise_mask, render_depth, sample_along_rays
+from methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
 from methods.copilot4d.train import autocast
 
 
@@ -30,10 +30,14 @@ def tokenize_sweep(model: Tokenizer, points: np.ndarray) -> torch.Tensor:
 
 @torch.no_grad()
 def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, skipping: bool = True,
-                 samples: int | None = None, chunk: int = 16384, generator: torch.Generator | None = None) -> np.ndarray:
+                 samples: int | None = None, chunk: int = 16384, generator: torch.Generator | None = None,
+                 far_bound: bool = True) -> np.ndarray:
     """Expected depth (equation 4) along unit rays from the sensor for one (T, T) token map.
     With ``skipping``, ray points are sampled only inside coarse voxels predicted non-empty
-    (Logistic noise, threshold, max-pool; figure 8); otherwise uniformly over the grid box."""
+    (Logistic noise, threshold, max-pool; figure 8); otherwise uniformly over the grid box.
+    With ``far_bound``, the transmittance left after the last sample puts its share of the
+    depth at the grid's boundary (equation 4 plus a background term; training uses
+    equation 4 alone, on returns inside the grid)."""
     cfg = model.cfg
     dev = next(model.parameters()).device
     with autocast(dev):
@@ -47,7 +51,9 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
         o = torch.zeros_like(d)
         b = torch.zeros(len(d), dtype=torch.long, device=dev)
         h = sample_along_rays(cfg, o, d, b, mask, n, jitter=False)
-        depth, _ = render_depth(model.decoder, nfg, cfg, o, d, b, h)
+        depth, w = render_depth(model.decoder, nfg, cfg, o, d, b, h)
+        if far_bound:  # transmittance left at the end of the grid: the ray leaves it there
+            depth = depth + (1.0 - w.sum(dim=1)).clamp(min=0.0) * box_interval(cfg, o, d)[1]
         out[s: s + chunk] = depth.double().cpu().numpy()
     return out
 

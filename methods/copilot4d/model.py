@@ -144,14 +144,25 @@ class VectorQuantizer(nn.Module):
 
     @torch.no_grad()
     def maybe_reinit(self) -> bool:
-        """Run the K-means re-initialisation if its conditions hold; True when it ran."""
+        """Run the K-means re-initialisation if its conditions hold; True when it ran.
+
+        With ``kmeans_init`` the codebook is also initialised by K-means as soon as the memory
+        bank is first full (a data-dependent start; the paper does not say how codes start).
+        """
         cfg = self.cfg
+        if cfg.kmeans_init and self.reinits.item() == 0 and self.bank_filled.item() == self.bank.shape[0]:
+            return self._reinit()
         if self.iteration - self.last_reinit < cfg.reinit_every:
             return False
         if self.dead_codes().float().mean().item() <= cfg.dead_fraction:
             return False
         if self.bank_filled.item() < self.codebook.shape[0]:
             return False
+        return self._reinit()
+
+    @torch.no_grad()
+    def _reinit(self) -> bool:
+        cfg = self.cfg
         data = self.bank[: int(self.bank_filled.item())]
         self.codebook.data.copy_(kmeans(data, self.codebook.shape[0], cfg.kmeans_iters).to(self.codebook.dtype))
         self.last_used.fill_(int(self.iteration.item()))
