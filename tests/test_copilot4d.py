@@ -251,3 +251,47 @@ def test_resume_continues_exactly(tmp_path, toy_sweeps):
     assert [r["loss"] for r in resumed["history"]] == pytest.approx([r["loss"] for r in straight["history"]], rel=1e-5)
     for (ka, a), (kb, b) in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().items()):
         assert ka == kb and torch.allclose(a.float(), b.float(), atol=1e-6), ka
+
+
+def test_skipping_mask_threshold_and_noise():
+    from methods.copilot4d.render import logistic_noise_mask
+
+    cfg = MICRO
+    logits = torch.full((1, 64, 64, cfg.grid_z), -8.0)
+    logits[0, 5, 6, 3] = math.log(0.04 / 0.96) + 0.01  # p just above 0.04
+    m = logistic_noise_mask(cfg, logits, noise=False, threshold=0.5)
+    assert not m.any()
+    m = logistic_noise_mask(cfg, logits, noise=False, threshold=0.04)
+    assert m.shape == (1, 16, 16, cfg.grid_z) and m.sum() == 1 and m[0, 1, 1, 3]
+    # with Logistic noise a voxel is on with probability sigmoid(logit): about 4 % here
+    g = torch.Generator().manual_seed(0)
+    hits = sum(bool(logistic_noise_mask(cfg, logits, noise=True, generator=g)[0, 1, 1, 3]) for _ in range(400))
+    assert 5 <= hits <= 35
+
+
+def test_calibrate_and_evaluate_reconstruction(toy_sweeps):
+    from methods.copilot4d.evaluate import SKIP_CANDIDATES, calibrate_skipping, evaluate_reconstruction, sweep_errors
+
+    class Source:
+        split = "train"
+
+        class adapter:  # noqa: N801
+            name = "toy"
+
+        def __len__(self):
+            return 2
+
+        def points(self, k):
+            return toy_sweeps[k]
+
+    torch.manual_seed(0)
+    model = Tokenizer(MICRO)
+    c = calibrate_skipping(model, Source(), sweeps=1, rays=200)
+    assert (c["threshold"], c["noise"]) in SKIP_CANDIDATES and c["calibration_l1_median"] <= c["paper_setting_l1_median"]
+    r = evaluate_reconstruction(model, Source(), max_sweeps=1, skip=c)
+    assert set(r) >= {"skipping", "calibrated", "uniform", "codebook_usage"} and 0 < r["codebook_usage"] <= 1
+    # sweep_errors on a perfect reconstruction is zero everywhere
+    pts = toy_sweeps[0].astype(np.float64)
+    r0 = np.linalg.norm(pts, axis=1)
+    e = sweep_errors(pts, pts / r0[:, None], r0)
+    assert e["l1_median"] == pytest.approx(0.0, abs=1e-9) and e["chamfer"] == pytest.approx(0.0, abs=1e-9)

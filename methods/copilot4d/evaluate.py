@@ -31,7 +31,7 @@ def tokenize_sweep(model: Tokenizer, points: np.ndarray) -> torch.Tensor:
 @torch.no_grad()
 def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, skipping: bool = True,
                  samples: int | None = None, chunk: int = 16384, generator: torch.Generator | None = None,
-                 far_bound: bool = True) -> np.ndarray:
+                 far_bound: bool = True, threshold: float = 0.5, noise: bool = True) -> np.ndarray:
     """Expected depth (equation 4) along unit rays from the sensor for one (T, T) token map.
     With ``skipping``, ray points are sampled only inside coarse voxels predicted non-empty
     (Logistic noise, threshold, max-pool; figure 8); otherwise uniformly over the grid box.
@@ -43,7 +43,7 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     with autocast(dev):
         nfg, coarse = model.decode_codes(codes[None].to(dev))
     nfg = nfg.float()
-    mask = logistic_noise_mask(cfg, coarse.float(), noise=True, generator=generator) if skipping else None
+    mask = logistic_noise_mask(cfg, coarse.float(), noise=noise, generator=generator, threshold=threshold) if skipping else None
     n = samples or cfg.samples_per_ray
     out = np.empty(len(dirs), dtype=np.float64)
     for s in range(0, len(dirs), chunk):
@@ -76,14 +76,42 @@ def sweep_errors(gt_points: np.ndarray, dirs: np.ndarray, pred_depth: np.ndarray
     }
 
 
+SKIP_CANDIDATES = [(t, n) for t in (0.5, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01) for n in (True, False)]
+
+
+def calibrate_skipping(model: Tokenizer, source: SweepSource, *, sweeps: int = 4, rays: int = 4000, seed: int = 0) -> dict:
+    """Pick the spatial-skipping threshold and noise (the paper gives no threshold) that give
+    the lowest depth L1 median on a few sweeps of ``source`` (the training split)."""
+    model.eval()
+    rng = np.random.default_rng(seed)
+    gen = torch.Generator().manual_seed(seed)
+    picks = rng.choice(len(source), min(sweeps, len(source)), replace=False)
+    scores = {c: [] for c in SKIP_CANDIDATES}
+    for k in picks:
+        pts = source.points(int(k))
+        pts = pts[np.linalg.norm(pts, axis=1) > 0.5]
+        pts = pts[rng.choice(len(pts), min(rays, len(pts)), replace=False)]
+        r = np.linalg.norm(pts, axis=1)
+        dirs = (pts / r[:, None]).astype(np.float32)
+        codes = tokenize_sweep(model, source.points(int(k)))
+        for (t, n) in SKIP_CANDIDATES:
+            d = render_codes(model, codes, dirs, skipping=True, threshold=t, noise=n, generator=gen)
+            scores[(t, n)].append(float(np.median(np.abs(d - r))))
+    best = min(SKIP_CANDIDATES, key=lambda c: np.mean(scores[c]))
+    return {"threshold": best[0], "noise": best[1], "calibration_l1_median": float(np.mean(scores[best])),
+            "paper_setting_l1_median": float(np.mean(scores[(0.5, True)])), "split": source.split, "sweeps": len(picks)}
+
+
 def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps: int = 40, seed: int = 0,
-                            log=print) -> dict:
+                            skip: dict | None = None, log=print) -> dict:
     """Reconstruct up to ``max_sweeps`` evenly spaced sweeps of ``source`` through their tokens,
-    with and without spatial skipping; per-sweep metrics averaged flat (PROTOCOL.md 4)."""
+    with spatial skipping as in the paper (Logistic noise, threshold 0.5), with the calibrated
+    skipping setting ``skip`` (if given) and without skipping; per-sweep metrics averaged flat
+    (PROTOCOL.md 4)."""
     model.eval()
     picks = np.unique(np.linspace(0, len(source) - 1, min(max_sweeps, len(source))).round().astype(int))
     gen = torch.Generator().manual_seed(seed)
-    rows = {"skipping": [], "uniform": []}
+    rows = {"skipping": [], "calibrated": [], "uniform": []} if skip else {"skipping": [], "uniform": []}
     used = np.zeros(model.cfg.codebook_size, dtype=np.int64)
     t0 = time.monotonic()
     for k in picks:
@@ -94,7 +122,8 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
         codes = tokenize_sweep(model, pts)
         used += np.bincount(codes.flatten().cpu().numpy(), minlength=used.size)
         for mode in rows:
-            depth = render_codes(model, codes, dirs.astype(np.float32), skipping=mode == "skipping", generator=gen)
+            kw = {"threshold": skip["threshold"], "noise": skip["noise"]} if mode == "calibrated" else {}
+            depth = render_codes(model, codes, dirs.astype(np.float32), skipping=mode != "uniform", generator=gen, **kw)
             rows[mode].append(sweep_errors(pts.astype(np.float64), dirs, depth))
     p = used / max(used.sum(), 1)
     nz = p[p > 0]
@@ -105,6 +134,7 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
         "codebook_usage": float((used > 0).mean()),
         "codebook_perplexity": float(np.exp(-(nz * np.log(nz)).sum())),
         "eval_s": time.monotonic() - t0,
+        "skip_calibration": skip,
     }
     for mode, rs in rows.items():
         result[mode] = {k: float(np.nanmean([r[k] for r in rs])) for k in rs[0]}
@@ -125,8 +155,13 @@ def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
         "| Rendering | Chamfer (within ROI) m^2 | L1 Median m | L1 Mean m | Chamfer m^2 |",
         "|---|---|---|---|---|",
     ]
-    names = {"skipping": "With spatial skipping (predicted coarse mask)", "uniform": "Uniform ray samples (no skipping)"}
-    for mode in ("skipping", "uniform"):
+    names = {"skipping": "Spatial skipping as in the paper (Logistic noise, threshold 0.5)",
+             "uniform": "Uniform ray samples (no skipping)"}
+    if result.get("skip_calibration"):
+        c = result["skip_calibration"]
+        names["calibrated"] = (f"Spatial skipping, threshold {c['threshold']} {'with' if c['noise'] else 'without'} "
+                               f"noise (calibrated on {c['sweeps']} {c['split']} sweeps)")
+    for mode in [m for m in ("skipping", "calibrated", "uniform") if m in result]:
         r = result[mode]
         lines.append(f"| {names[mode]} | {r['chamfer_nf']:.3f} | {r['l1_median']:.3f} | {r['l1_mean']:.3f} | {r['chamfer']:.3f} |")
     lines += [

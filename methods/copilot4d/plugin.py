@@ -34,15 +34,34 @@ def _checkpoint(config: str, dataset_name: str, checkpoint: str | None) -> Path:
     return path
 
 
-def _report(model, adapter, split: str, max_sweeps: int, reports: str | None, meta: dict) -> Path:
+def _skip_setting(model, adapter, ckpt: Path, step: int) -> dict:
+    """The spatial-skipping threshold calibrated on training sweeps (cached next to the checkpoint)."""
+    import json
+
+    from methods.copilot4d.data import SweepSource
+    from methods.copilot4d.evaluate import calibrate_skipping
+
+    path = ckpt.with_name(ckpt.stem + "-skipping.json")
+    if path.is_file():
+        cached = json.loads(path.read_text())
+        if cached.get("step") == step:
+            return cached
+    setting = calibrate_skipping(model, SweepSource(adapter, "train"))
+    setting["step"] = step
+    path.write_text(json.dumps(setting, indent=1))
+    click.echo(f"spatial skipping calibrated on train sweeps: threshold {setting['threshold']}, noise {setting['noise']}")
+    return setting
+
+
+def _report(model, adapter, split: str, max_sweeps: int, reports: str | None, meta: dict, skip: dict | None = None) -> Path:
     from bench.config import reports_dir
     from methods.copilot4d.data import SweepSource
     from methods.copilot4d.evaluate import evaluate_reconstruction, write_report
 
-    result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=max_sweeps)
+    result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=max_sweeps, skip=skip)
     md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
                          f"tokenizer-{model.cfg.name}-{adapter.name}-{split}")
-    s = result["skipping"]
+    s = result.get("calibrated", result["skipping"])
     click.echo(f"reconstruction ({split}, {result['sweeps']} sweeps): L1 median {s['l1_median']:.3f} m, "
                f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
                f"codebook usage {result['codebook_usage']:.1%}")
@@ -100,7 +119,8 @@ def register_commands(cli):  # noqa: ANN001
                     "training_time_s": round(out["elapsed_s"], 1),
                     "training_cpu_s": round(out["cpu_s"], 1), "device": str(device),
                     "torch_threads": torch.get_num_threads(), "checkpoint": str(ckpt)}
-            _report(out["model"], adapter, eval_split, eval_sweeps, reports, meta)
+            skip = _skip_setting(out["model"], adapter, ckpt, out["step"])
+            _report(out["model"], adapter, eval_split, eval_sweeps, reports, meta, skip)
 
     @cli.command("tokenize")
     @click.option("--config", "config_name", default="tiny", show_default=True)
@@ -136,4 +156,4 @@ def register_commands(cli):  # noqa: ANN001
         meta = {"config": model.cfg.name, "codebook_size": model.cfg.codebook_size,
                 "tokens": f"{model.cfg.bev_tokens}x{model.cfg.bev_tokens}", "parameters": count_parameters(model),
                 "steps": ck["step"], "training_time_s": round(ck.get("elapsed_s", 0.0), 1), "checkpoint": str(path)}
-        _report(model, adapter, split, sweeps, reports, meta)
+        _report(model, adapter, split, sweeps, reports, meta, _skip_setting(model, adapter, path, ck["step"]))

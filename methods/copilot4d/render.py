@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -110,9 +112,11 @@ def render_loss(depth: torch.Tensor, w: torch.Tensor, h: torch.Tensor, gt: torch
 
 
 def logistic_noise_mask(cfg: TokenizerConfig, logits: torch.Tensor, noise: bool = True,
-                        generator: torch.Generator | None = None) -> torch.Tensor:
-    """Inference-time spatial skipping: logits (+ Logistic noise) thresholded at p = 0.5, then
-    max-pooled by ``skip_pool`` in BEV."""
+                        generator: torch.Generator | None = None, threshold: float = 0.5) -> torch.Tensor:
+    """Inference-time spatial skipping: logits (+ Logistic noise) thresholded at probability
+    ``threshold`` (the paper does not give it; 0.5 by default), then max-pooled by
+    ``skip_pool`` in BEV."""
+    logits = logits - math.log(threshold / (1.0 - threshold))
     if noise:
         u = torch.rand(logits.shape, generator=generator, device="cpu").to(logits.device).clamp(1e-6, 1 - 1e-6)
         logits = logits + torch.log(u) - torch.log1p(-u)
