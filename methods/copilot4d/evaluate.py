@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from bench.metrics.chamfer import chamfer_value
-from bench.roi import ROI, clamp_ranges_to_box
+from bench.roi import ROI, Box, clamp_ranges_to_box
 from methods.copilot4d.data import SweepSource, in_box, make_batch
 from methods.copilot4d.model import Tokenizer
 from methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
@@ -58,9 +58,10 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     return out
 
 
-def sweep_errors(gt_points: np.ndarray, dirs: np.ndarray, pred_depth: np.ndarray) -> dict[str, float]:
+def sweep_errors(gt_points: np.ndarray, dirs: np.ndarray, pred_depth: np.ndarray, grid: Box | None = None) -> dict[str, float]:
     """Table-7 numbers of one sweep (sensor frame is the reference frame): NFCD within the ROI,
-    L1 median and mean of depth along the ground-truth rays clamped to the ROI, and CD."""
+    L1 median and mean of depth along the ground-truth rays clamped to the ROI, and CD. With
+    ``grid`` (the tokenizer's box), also the L1 median over the rays whose return lies inside it."""
     origin = np.zeros(3)
     gt_range = np.linalg.norm(gt_points, axis=1)
     pred_points = dirs * pred_depth[:, None]
@@ -68,7 +69,13 @@ def sweep_errors(gt_points: np.ndarray, dirs: np.ndarray, pred_depth: np.ndarray
     _, p_end, _ = clamp_ranges_to_box(origin, dirs, pred_depth, ROI)
     keep = kept & ((g_end - start) > 0.01)
     err = np.abs(g_end - p_end)[keep]
-    return {
+    out = {}
+    if grid is not None:
+        inside = grid.contains(gt_points) & keep
+        e = np.abs(g_end - p_end)[inside]
+        out["l1_median_in_grid"] = float(np.median(e)) if e.size else float("nan")
+        out["rays_in_grid"] = float(inside.sum() / max(keep.sum(), 1))
+    return out | {
         "chamfer_nf": chamfer_value(ROI.crop(pred_points), ROI.crop(gt_points)),
         "l1_median": float(np.median(err)) if err.size else float("nan"),
         "l1_mean": float(err.mean()) if err.size else float("nan"),
@@ -112,6 +119,8 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
     picks = np.unique(np.linspace(0, len(source) - 1, min(max_sweeps, len(source))).round().astype(int))
     gen = torch.Generator().manual_seed(seed)
     rows = {"skipping": [], "calibrated": [], "uniform": []} if skip else {"skipping": [], "uniform": []}
+    cfg = model.cfg
+    grid = Box((cfg.x_range[0], cfg.y_range[0], cfg.z_range[0]), (cfg.x_range[1], cfg.y_range[1], cfg.z_range[1]))
     used = np.zeros(model.cfg.codebook_size, dtype=np.int64)
     t0 = time.monotonic()
     for k in picks:
@@ -124,7 +133,7 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
         for mode in rows:
             kw = {"threshold": skip["threshold"], "noise": skip["noise"]} if mode == "calibrated" else {}
             depth = render_codes(model, codes, dirs.astype(np.float32), skipping=mode != "uniform", generator=gen, **kw)
-            rows[mode].append(sweep_errors(pts.astype(np.float64), dirs, depth))
+            rows[mode].append(sweep_errors(pts.astype(np.float64), dirs, depth, grid))
     p = used / max(used.sum(), 1)
     nz = p[p > 0]
     result = {
@@ -152,8 +161,8 @@ def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
         f"{result['sweeps']} sweeps reconstructed from their tokens; metrics within the ROI as in PROTOCOL.md 4 "
         "(sensor frame = reference frame), flat mean over sweeps.",
         "",
-        "| Rendering | Chamfer (within ROI) m^2 | L1 Median m | L1 Mean m | Chamfer m^2 |",
-        "|---|---|---|---|---|",
+        "| Rendering | Chamfer (within ROI) m^2 | L1 Median m | L1 Mean m | Chamfer m^2 | L1 Median, returns inside the grid m |",
+        "|---|---|---|---|---|---|",
     ]
     names = {"skipping": "Spatial skipping as in the paper (Logistic noise, threshold 0.5)",
              "uniform": "Uniform ray samples (no skipping)"}
@@ -163,11 +172,14 @@ def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
                                f"noise (calibrated on {c['sweeps']} {c['split']} sweeps)")
     for mode in [m for m in ("skipping", "calibrated", "uniform") if m in result]:
         r = result[mode]
-        lines.append(f"| {names[mode]} | {r['chamfer_nf']:.3f} | {r['l1_median']:.3f} | {r['l1_mean']:.3f} | {r['chamfer']:.3f} |")
+        lines.append(f"| {names[mode]} | {r['chamfer_nf']:.3f} | {r['l1_median']:.3f} | {r['l1_mean']:.3f} | {r['chamfer']:.3f} "
+                     f"| {r.get('l1_median_in_grid', float('nan')):.3f} |")
     lines += [
         "",
         f"- codebook usage on these sweeps: {result['codebook_usage']:.1%} of {meta.get('codebook_size')} codes "
         f"(perplexity {result['codebook_perplexity']:.1f})",
+        f"- returns inside the tokenizer grid: {result['uniform'].get('rays_in_grid', float('nan')):.1%} of the ROI-kept rays "
+        "(the others end at the grid boundary and count as errors in the first four columns)",
     ]
     for k, v in meta.items():
         lines.append(f"- {k}: {v}")
