@@ -13,12 +13,13 @@ from click.testing import CliRunner
 def test_train_resume_report_tokenize(tmp_path, monkeypatch):
     from conftest import write_tiny_kitti
 
-    from bench.cli import cli
+    from bench.cli import build_cli
 
     root = write_tiny_kitti(tmp_path / "kitti", sequences=("00", "06"), num_sweeps=4)
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
     reports = tmp_path / "reports"
     runner = CliRunner()
+    cli = build_cli()
     args = ["train", "tokenizer", "--config", "tiny", "--dataset", f"kitti={root}", "--reports", str(reports)]
     r = runner.invoke(cli, args + ["--steps", "2", "--eval-split", ""])
     assert r.exit_code == 0, r.output

@@ -111,7 +111,8 @@ def register_commands(cli):  # noqa: ANN001
                     seed=seed, progress=_progress(), threads=threads, log=click.echo)
         stem = f"tokenizer-{cfg.name}-{adapter.name}"
         if out["history"]:
-            csv_path, png = write_curve(out["history"], reports_dir(reports) / "copilot4d", f"{stem}-curve")
+            csv_path, png = write_curve(out["history"], reports_dir(reports) / "copilot4d", f"{stem}-curve",
+                                         cfg.codebook_size)
             click.echo(f"wrote {csv_path} and {png}")
         if eval_split:
             meta = {"config": cfg.name, "codebook_size": cfg.codebook_size, "tokens": f"{cfg.bev_tokens}x{cfg.bev_tokens}",
@@ -155,5 +156,6 @@ def register_commands(cli):  # noqa: ANN001
         model, ck = load_tokenizer(path)
         meta = {"config": model.cfg.name, "codebook_size": model.cfg.codebook_size,
                 "tokens": f"{model.cfg.bev_tokens}x{model.cfg.bev_tokens}", "parameters": count_parameters(model),
-                "steps": ck["step"], "training_time_s": round(ck.get("elapsed_s", 0.0), 1), "checkpoint": str(path)}
+                "steps": ck["step"], "training_time_s": round(ck.get("elapsed_s", 0.0), 1),
+                "training_cpu_s": round(ck.get("cpu_s", 0.0), 1), "checkpoint": str(path)}
         _report(model, adapter, split, sweeps, reports, meta, _skip_setting(model, adapter, path, ck["step"]))

@@ -192,7 +192,7 @@ def train(cfg: TokenizerConfig, source: SweepSource, ckpt: Path, *, steps: int |
     return {"model": model, "step": step, "history": history, "elapsed_s": elapsed, "cpu_s": cpu}
 
 
-def write_curve(history: list[dict], out_dir: Path, stem: str) -> tuple[Path, Path]:
+def write_curve(history: list[dict], out_dir: Path, stem: str, codebook_size: int | None = None) -> tuple[Path, Path]:
     """The training curve as CSV and PNG."""
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = out_dir / f"{stem}.csv"
@@ -219,7 +219,9 @@ def write_curve(history: list[dict], out_dir: Path, stem: str) -> tuple[Path, Pa
     axes[1].set_yscale("log")
     axes[1].legend()
     axes[1].set_xlabel("step")
-    axes[2].plot(s, [r["alive_codes"] for r in history], label="codes used in last 256 it.")
+    axes[2].plot(s, [r["alive_codes"] for r in history], label="codes used in the last 256 it.")
+    if codebook_size:
+        axes[2].plot(s, [r["batch_codes"] / codebook_size for r in history], label="codes used per step")
     axes[2].set_ylim(0, 1.05)
     axes[2].legend()
     axes[2].set_xlabel("step")
