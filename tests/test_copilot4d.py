@@ -16,7 +16,8 @@ from methods.copilot4d.train import compute_losses, count_parameters, lr_at, mak
 
 # a very small configuration of the same architecture, for fast tests
 MICRO = TINY.with_overrides(
-    name="micro", x_range=(-25.6, 25.6), y_range=(-25.6, 25.6), grid_xy=64, pointnet_dim=16, bev_dim=16,
+    name="micro", x_range=(-25.6, 25.6), y_range=(-25.6, 25.6), grid_xy=64, grid_z=16, nfg_z=16, nfg_up=2,
+    pointnet_dim=16, bev_dim=16,
     dims=(16, 32), heads=(2, 4), depths=(2, 2), window=4, codebook_size=64, code_dim=16, nfg_dim=8,
     rays_per_step=512, samples_per_ray=32, skip_pool=4, warmup=10, decay_steps=200, max_steps=200,
     checkpoint_every=2, log_every=1,
@@ -81,8 +82,8 @@ class _StubDecoder:
 
 def test_render_depth_matches_hand_computed_ray():
     cfg = TINY
-    Zn, Xn = cfg.nfg_z, cfg.nfg_z * 0 + 128
-    cell = (cfg.x_range[1] - cfg.x_range[0]) / Xn  # 1.1 m
+    Zn, Xn = cfg.nfg_z, cfg.grid_xy // cfg.patch_size * cfg.nfg_up
+    cell = (cfg.x_range[1] - cfg.x_range[0]) / Xn  # NFG cell along x
     nfg = torch.zeros(1, cfg.nfg_dim, Zn, Xn, Xn)
     # occupancy along x: 0 before cell 80, 0.5 on cells 80..89, 1.0 from cell 90 on
     nfg[0, 0, :, 80:90, :] = 0.5
