@@ -1,0 +1,125 @@
+"""Tokenizer configurations: ``paper`` (the exact sizes of A.2.1 / A.3) and ``tiny`` (CPU scale).
+
+Both build the same architecture; ``tiny`` only shrinks the grid, widths, depths, codebook
+and the number of rays per step so that it trains on a 2-core CPU in minutes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+
+@dataclass(frozen=True)
+class TokenizerConfig:
+    name: str
+    # --- grid (sensor frame of the sweep, metres) ---
+    x_range: tuple[float, float]
+    y_range: tuple[float, float]
+    z_range: tuple[float, float]
+    grid_xy: int  # voxels along x and along y
+    grid_z: int  # voxels along z
+    # --- encoder ---
+    pointnet_dim: int  # voxel-wise PointNet feature size
+    bev_dim: int  # feature size after z-pooling to BEV
+    patch_size: int  # first Swin stage patch size (the second stage doubles it)
+    dims: tuple[int, int]  # Swin feature sizes of the two stages
+    heads: tuple[int, int]
+    depths: tuple[int, int]  # Swin blocks per stage (encoder; the decoder mirrors them)
+    window: int
+    mlp_ratio: float
+    # --- vector quantizer ---
+    codebook_size: int
+    code_dim: int
+    beta_codebook: float = 0.25  # lambda_1 on |sg[E(o)] - z_hat|^2
+    beta_commit: float = 1.0  # lambda_2 on |sg[z_hat] - E(o)|^2
+    memory_factor: int = 10  # memory bank = factor x codebook size
+    dead_after: int = 256  # iterations unused before a code counts as dead
+    dead_fraction: float = 0.03  # re-initialise when more than this fraction is dead
+    reinit_every: int = 200  # at least this many iterations between re-initialisations
+    kmeans_iters: int = 10
+    kmeans_init: bool = True  # K-means initialisation once the memory bank first fills
+    # --- decoder ---
+    nfg_up: int = 2  # NFG BEV upsampling of the decoder output (paper: 2^2 cells per BEV cell)
+    nfg_dim: int = 16  # feature size of each NFG voxel
+    nfg_z: int = 64  # NFG voxels along z
+    mlp_hidden: int = 32
+    coarse_bias: float = -5.0
+    # --- rendering ---
+    rays_per_step: int = 4096  # rays sampled per sweep per training step
+    samples_per_ray: int = 64  # N_r
+    candidate_step: float = 0.2  # spacing (m) of the candidate points used for spatial skipping
+    skip_pool: int = 8  # max-pool factor in BEV for spatial skipping
+    epsilon: float = 0.4  # margin of the weight-concentration term (m)
+    # --- optimisation (A.3) ---
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.95)
+    weight_decay: float = 1e-4
+    warmup: int = 4000
+    decay_steps: int = 400_000
+    min_lr_ratio: float = 0.1
+    grad_clip: float = 0.1
+    batch_size: int = 16
+    max_steps: int = 400_000
+    checkpoint_every: int = 1000
+    log_every: int = 50
+
+    @property
+    def voxel_size(self) -> tuple[float, float, float]:
+        return (
+            (self.x_range[1] - self.x_range[0]) / self.grid_xy,
+            (self.y_range[1] - self.y_range[0]) / self.grid_xy,
+            (self.z_range[1] - self.z_range[0]) / self.grid_z,
+        )
+
+    @property
+    def bev_tokens(self) -> int:
+        """Tokens along each BEV axis: the grid down-sampled 2 x patch_size times."""
+        return self.grid_xy // (2 * self.patch_size)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def with_overrides(self, **kw) -> "TokenizerConfig":
+        return replace(self, **kw)
+
+
+# A.2.1: [-80, 80]^2 x [-4.5, 4.5] m, 15.625 x 15.625 x 14.0625 cm voxels (1024 x 1024 x 64),
+# PointNet 64, Swin 2 x (128, 8 heads) at patch 4 then 6 x (256, 16 heads) at patch 8,
+# 128 x 128 tokens, code dimension 1024, 1024 codes; NFG 512 x 512 x 64 x 16; A.3 optimiser.
+PAPER = TokenizerConfig(
+    name="paper",
+    x_range=(-80.0, 80.0), y_range=(-80.0, 80.0), z_range=(-4.5, 4.5),
+    grid_xy=1024, grid_z=64,
+    pointnet_dim=64, bev_dim=64, patch_size=4,
+    dims=(128, 256), heads=(8, 16), depths=(2, 6), window=8, mlp_ratio=4.0,
+    codebook_size=1024, code_dim=1024,
+    nfg_up=2, nfg_dim=16, nfg_z=64, mlp_hidden=32,
+    rays_per_step=4096, samples_per_ray=64, candidate_step=0.1,
+    warmup=4000, decay_steps=400_000, grad_clip=0.1, batch_size=16, max_steps=400_000,
+)
+
+# CPU scale: a smaller extent (+-38.4 m, where most returns of a 64-beam sweep fall) at
+# 0.3 x 0.3 x 0.5625 m voxels (256 x 256 x 16), 32 x 32 tokens (2.4 m each), 512 codes;
+# NFG 128 x 128 x 16 x 8 (0.6 m cells). Rays beyond the grid end at its boundary.
+TINY = TokenizerConfig(
+    name="tiny",
+    x_range=(-38.4, 38.4), y_range=(-38.4, 38.4), z_range=(-4.5, 4.5),
+    grid_xy=256, grid_z=16,
+    pointnet_dim=32, bev_dim=32, patch_size=4,
+    dims=(48, 96), heads=(3, 6), depths=(2, 2), window=8, mlp_ratio=2.0,
+    codebook_size=512, code_dim=64,
+    nfg_up=2, nfg_dim=8, nfg_z=16, mlp_hidden=32,
+    rays_per_step=2048, samples_per_ray=64, candidate_step=0.25,
+    warmup=100, decay_steps=1800, grad_clip=0.1, batch_size=1, max_steps=1800,
+    checkpoint_every=100, log_every=10,
+)
+
+CONFIGS = {"paper": PAPER, "tiny": TINY}
+
+
+def get_config(name: str) -> TokenizerConfig:
+    from bench.errors import PcfbenchError
+
+    if name not in CONFIGS:
+        raise PcfbenchError(f"unknown tokenizer config {name!r}; known: {', '.join(CONFIGS)}")
+    return CONFIGS[name]

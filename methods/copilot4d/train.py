@@ -1,0 +1,232 @@
+"""Tokenizer training (A.3 optimiser), with checkpoints and resume."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from methods.copilot4d.config import TokenizerConfig
+from methods.copilot4d.data import Batch, SweepSource, make_batch
+from methods.copilot4d.model import Tokenizer, occupancy_grid
+from methods.copilot4d.render import pool_mask, render_depth, render_loss, sample_along_rays
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def autocast(device: torch.device):
+    """bf16 autocast on CUDA, nothing on CPU."""
+    if device.type == "cuda":
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
+    """A.3: weight decay on weight matrices only; biases, embeddings (codebook, z embedding,
+    relative position biases) and LayerNorm parameters are excluded."""
+    decay, no_decay = [], []
+    for mod_name, mod in model.named_modules():
+        for name, p in mod.named_parameters(recurse=False):
+            if not p.requires_grad:
+                continue
+            if isinstance(mod, nn.Linear) and name == "weight":
+                decay.append(p)
+            else:
+                no_decay.append(p)
+    return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+
+
+def make_optimizer(model: nn.Module, cfg: TokenizerConfig) -> torch.optim.Optimizer:
+    return torch.optim.AdamW(param_groups(model, cfg.weight_decay), lr=cfg.lr, betas=cfg.betas)
+
+
+def lr_at(cfg: TokenizerConfig, step: int) -> float:
+    """Linear warm-up to ``lr``, then cosine decay over ``decay_steps`` to ``min_lr_ratio * lr``."""
+    if step < cfg.warmup:
+        return cfg.lr * (step + 1) / cfg.warmup
+    t = min(1.0, (step - cfg.warmup) / max(1, cfg.decay_steps - cfg.warmup))
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def compute_losses(model: Tokenizer, batch: Batch, cfg: TokenizerConfig) -> dict[str, torch.Tensor]:
+    """Forward pass of one training step: L_vq + equation 5 (L1 depth, weight concentration,
+    coarse BCE). Training samples ray points inside the ground-truth non-empty voxels max-pooled
+    by ``skip_pool`` (figure 8)."""
+    B = batch.size
+    z = model.encoder(batch.points, batch.point_batch, B)
+    zq, codes, l_vq = model.vq(z)
+    nfg, coarse = model.decoder(zq)
+    with torch.no_grad():
+        occ = occupancy_grid(cfg, batch.points, batch.point_batch, B)
+        mask = pool_mask(cfg, occ)
+    bce = F.binary_cross_entropy_with_logits(coarse.float(), occ)
+    h = sample_along_rays(cfg, batch.origins, batch.dirs, batch.ray_batch, mask, cfg.samples_per_ray, jitter=True)
+    depth, w = render_depth(model.decoder, nfg, cfg, batch.origins, batch.dirs, batch.ray_batch, h)
+    l1, conc = render_loss(depth, w, h, batch.depth, cfg.epsilon)
+    loss = l1 + conc + bce + l_vq.float()
+    return {"loss": loss, "l1": l1, "conc": conc, "bce": bce, "vq": l_vq.float(), "codes": codes}
+
+
+def checkpoint_dir(cfg_name: str, dataset: str) -> Path:
+    from bench.config import cache_dir
+
+    return cache_dir() / "copilot4d" / f"tokenizer-{cfg_name}-{dataset}"
+
+
+def save_checkpoint(path: Path, model, opt, step: int, cfg: TokenizerConfig, history: list[dict], rng, elapsed: float,
+                    cpu: float = 0.0) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save({
+        "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "config": cfg.to_dict(),
+        "history": history, "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+        "elapsed_s": elapsed, "cpu_s": cpu,
+    }, tmp)
+    os.replace(tmp, path)
+
+
+def load_tokenizer(path: Path, device: torch.device | None = None) -> tuple[Tokenizer, dict]:
+    """A trained tokenizer from a checkpoint (config from the checkpoint itself)."""
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    d = dict(ck["config"])
+    for k, v in d.items():
+        if isinstance(v, list):
+            d[k] = tuple(v)
+    cfg = TokenizerConfig(**d)
+    model = Tokenizer(cfg)
+    model.load_state_dict(ck["model"])
+    model.to(device or default_device()).eval()
+    return model, ck
+
+
+def train(cfg: TokenizerConfig, source: SweepSource, ckpt: Path, *, steps: int | None = None,
+          max_minutes: float | None = None, resume: bool = True, device: torch.device | None = None,
+          seed: int = 0, progress: bool = True, threads: int | None = None, log=print) -> dict:
+    """Train (or resume) until ``steps`` (default ``cfg.max_steps``) or ``max_minutes`` of
+    training time in this call. Returns the final checkpoint dictionary's summary."""
+    device = device or default_device()
+    steps = steps or cfg.max_steps
+    if threads and device.type == "cpu":
+        torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    model = Tokenizer(cfg).to(device)
+    opt = make_optimizer(model, cfg)
+    rng = np.random.default_rng(seed)
+    step, history, elapsed, cpu = 0, [], 0.0, 0.0
+    if resume and ckpt.is_file():
+        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        step, history, elapsed = ck["step"], ck["history"], ck.get("elapsed_s", 0.0)
+        cpu = ck.get("cpu_s", 0.0)
+        rng.bit_generator.state = ck["numpy_rng"]
+        torch.set_rng_state(ck["torch_rng"])
+        log(f"resumed from {ckpt} at step {step}")
+    model.train()
+    codebook_params = {id(model.vq.codebook)}
+    t_start = time.monotonic()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, initial=step, desc=f"tokenizer[{cfg.name}]", dynamic_ncols=True)
+    window: list[dict] = []
+    while step < steps:
+        if max_minutes is not None and (time.monotonic() - t_start) > 60 * max_minutes:
+            log(f"time budget of {max_minutes} min reached at step {step}")
+            break
+        t0, c0 = time.monotonic(), time.process_time()
+        for g in opt.param_groups:
+            g["lr"] = lr_at(cfg, step)
+        picks = rng.integers(0, len(source), cfg.batch_size)
+        batch = make_batch(cfg, [source.points(int(k)) for k in picks], cfg.rays_per_step, rng).to(device)
+        with autocast(device):
+            out = compute_losses(model, batch, cfg)
+        opt.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        if model.vq.maybe_reinit():
+            for p in model.vq.parameters():
+                if id(p) in codebook_params:
+                    opt.state.pop(p, None)  # stale Adam moments would drag the new codes
+            log(f"step {step}: K-means re-initialised the codebook ({int(model.vq.reinits)} so far)")
+        step += 1
+        dt = time.monotonic() - t0
+        elapsed += dt
+        cpu += time.process_time() - c0
+        alive = 1.0 - model.vq.dead_codes().float().mean().item()
+        rec = {"step": step, "lr": opt.param_groups[0]["lr"], "loss": out["loss"].item(), "l1": out["l1"].item(),
+               "conc": out["conc"].item(), "bce": out["bce"].item(), "vq": out["vq"].item(),
+               "batch_codes": int(out["codes"].unique().numel()), "alive_codes": alive,
+               "grad_norm": float(gnorm), "step_s": dt, "elapsed_s": elapsed, "cpu_s": cpu}
+        window.append(rec)
+        if step % cfg.log_every == 0 or step == steps:
+            avg = {k: float(np.mean([r[k] for r in window])) for k in rec}
+            avg["step"], avg["elapsed_s"], avg["cpu_s"] = step, elapsed, cpu
+            history.append(avg)
+            window = []
+            if bar is not None:
+                bar.set_postfix(loss=f"{avg['loss']:.3f}", l1=f"{avg['l1']:.2f}", codes=f"{alive:.0%}")
+        if bar is not None:
+            bar.update(1)
+        if step % cfg.checkpoint_every == 0 or step == steps:
+            save_checkpoint(ckpt, model, opt, step, cfg, history, rng, elapsed, cpu)
+    if bar is not None:
+        bar.close()
+    save_checkpoint(ckpt, model, opt, step, cfg, history, rng, elapsed, cpu)
+    return {"model": model, "step": step, "history": history, "elapsed_s": elapsed, "cpu_s": cpu}
+
+
+def write_curve(history: list[dict], out_dir: Path, stem: str, codebook_size: int | None = None) -> tuple[Path, Path]:
+    """The training curve as CSV and PNG."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = out_dir / f"{stem}.csv"
+    keys = list(history[0].keys()) if history else []
+    with open(csv_path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(history)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    s = [r["step"] for r in history]
+    axes[0].plot(s, [r["l1"] for r in history], label="L1 depth (m)")
+    axes[0].plot(s, [r["loss"] for r in history], label="total loss")
+    axes[0].set_yscale("log")
+    axes[0].legend()
+    axes[0].set_xlabel("step")
+    axes[1].plot(s, [r["conc"] for r in history], label="weight mass > eps")
+    axes[1].plot(s, [r["bce"] for r in history], label="coarse BCE")
+    axes[1].plot(s, [r["vq"] for r in history], label="L_vq")
+    axes[1].set_yscale("log")
+    axes[1].legend()
+    axes[1].set_xlabel("step")
+    axes[2].plot(s, [r["alive_codes"] for r in history], label="codes used in the last 256 it.")
+    if codebook_size:
+        axes[2].plot(s, [r["batch_codes"] / codebook_size for r in history], label="codes used per step")
+    axes[2].set_ylim(0, 1.05)
+    axes[2].legend()
+    axes[2].set_xlabel("step")
+    fig.tight_layout()
+    png_path = out_dir / f"{stem}.png"
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+    return csv_path, png_path

@@ -1,0 +1,298 @@
+"""Copilot4D tokenizer: sizes, renderer, vector quantizer, spatial skipping, optimiser, training."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from methods.copilot4d.config import PAPER, TINY
+from methods.copilot4d.data import make_batch
+from methods.copilot4d.model import Tokenizer, VectorQuantizer, kmeans
+from methods.copilot4d.render import render_depth, sample_along_rays
+from methods.copilot4d.train import compute_losses, count_parameters, lr_at, make_optimizer, param_groups, train
+
+# a very small configuration of the same architecture, for fast tests
+MICRO = TINY.with_overrides(
+    name="micro", x_range=(-25.6, 25.6), y_range=(-25.6, 25.6), grid_xy=64, grid_z=16, nfg_z=16, nfg_up=2,
+    pointnet_dim=16, bev_dim=16,
+    dims=(16, 32), heads=(2, 4), depths=(2, 2), window=4, codebook_size=64, code_dim=16, nfg_dim=8,
+    rays_per_step=512, samples_per_ray=32, skip_pool=4, warmup=10, decay_steps=200, max_steps=200,
+    checkpoint_every=2, log_every=1,
+)
+
+
+@pytest.fixture(scope="module")
+def toy_sweeps():
+    from bench.testing import toy_world_sweeps
+
+    pts, _, _ = toy_world_sweeps(3, beams=16, azimuths=360)
+    return pts
+
+
+def test_parameter_counts():
+    with torch.device("meta"):
+        paper = Tokenizer(PAPER)
+    n = count_parameters(paper)
+    assert n == 13_187_233
+    assert 12.5e6 < n < 13.5e6  # A.2.1: "a 13-Million parameter model"
+    assert count_parameters(paper.vq) == 1024 * 1024
+    assert count_parameters(Tokenizer(TINY)) == 562_837
+
+
+def test_paper_grid_sizes():
+    assert PAPER.voxel_size == pytest.approx((0.15625, 0.15625, 0.140625))
+    assert (PAPER.grid_xy, PAPER.grid_z, PAPER.bev_tokens) == (1024, 64, 128)
+    assert TINY.bev_tokens == 32
+
+
+def test_paper_decoder_shapes_on_meta():
+    with torch.device("meta"):
+        model = Tokenizer(PAPER)
+        nfg, coarse = model.decoder(torch.zeros(1, 128, 128, 1024))
+    assert tuple(nfg.shape) == (1, 16, 64, 512, 512)  # 512 x 512 x 64 x 16 NFG
+    assert tuple(coarse.shape) == (1, 1024, 1024, 64)  # coarse voxel logits
+
+
+def test_tiny_shapes_and_losses(toy_sweeps):
+    torch.manual_seed(0)
+    model = Tokenizer(TINY)
+    batch = make_batch(TINY, toy_sweeps[:2], 256, np.random.default_rng(0))
+    z = model.encoder(batch.points, batch.point_batch, 2)
+    assert z.shape == (2, 32, 32, TINY.code_dim)
+    zq, codes, _ = model.vq(z)
+    assert codes.shape == (2, 32, 32) and codes.max() < TINY.codebook_size
+    nfg, coarse = model.decoder(zq)
+    assert nfg.shape == (2, 8, 16, 128, 128)
+    assert coarse.shape == (2, 256, 256, 16)
+    # coarse bias initialised to -5: almost every voxel starts "empty"
+    assert torch.sigmoid(coarse).mean().item() == pytest.approx(1 / (1 + math.e ** 5), rel=0.2)
+    out = compute_losses(model, batch, TINY)
+    assert all(torch.isfinite(out[k]) for k in ("loss", "l1", "conc", "bce", "vq"))
+
+
+class _StubDecoder:
+    """occupancy = the first interpolated feature, so alphas are set by hand."""
+
+    def occupancy(self, feats):
+        return feats[..., 0]
+
+
+def test_render_depth_matches_hand_computed_ray():
+    cfg = TINY
+    Zn, Xn = cfg.nfg_z, cfg.grid_xy // cfg.patch_size * cfg.nfg_up
+    cell = (cfg.x_range[1] - cfg.x_range[0]) / Xn  # NFG cell along x
+    nfg = torch.zeros(1, cfg.nfg_dim, Zn, Xn, Xn)
+    # occupancy along x: 0 before cell 80, 0.5 on cells 80..89, 1.0 from cell 90 on
+    nfg[0, 0, :, 80:90, :] = 0.5
+    nfg[0, 0, :, 90:, :] = 1.0
+    x_of = lambda i: cfg.x_range[0] + (i + 0.5) * cell  # noqa: E731  cell centre
+    h = torch.tensor([[x_of(70), x_of(83), x_of(86), x_of(100), x_of(105)]])
+    origin = torch.zeros(1, 3)
+    direction = torch.tensor([[1.0, 0.0, 0.0]])
+    depth, w = render_depth(_StubDecoder(), nfg, cfg, origin, direction, torch.zeros(1, dtype=torch.long), h)
+    # w = [0, 0.5, 0.5 * 0.5, 0.25 * 1.0, 0]
+    expected_w = torch.tensor([[0.0, 0.5, 0.25, 0.25, 0.0]])
+    assert torch.allclose(w, expected_w, atol=1e-5)
+    hv = h[0].tolist()
+    assert depth.item() == pytest.approx(0.5 * hv[1] + 0.25 * hv[2] + 0.25 * hv[3], abs=1e-4)
+    # interpolation halfway between a 0.5 cell and a 1.0 cell gives alpha 0.75
+    h2 = torch.tensor([[x_of(89) + cell / 2]])
+    _, w2 = render_depth(_StubDecoder(), nfg, cfg, origin, direction, torch.zeros(1, dtype=torch.long), h2)
+    assert w2.item() == pytest.approx(0.75, abs=1e-5)
+
+
+def test_vq_straight_through_gradient():
+    torch.manual_seed(0)
+    vq = VectorQuantizer(MICRO)
+    z = torch.randn(2, 4, 4, MICRO.code_dim, requires_grad=True)
+    z_st, codes, loss = vq(z)
+    # forward value: the nearest code
+    assert torch.allclose(z_st, vq.codebook[codes], atol=1e-6)
+    d = ((z.detach()[..., None, :] - vq.codebook.detach()) ** 2).sum(-1)
+    assert torch.equal(codes, d.argmin(-1))
+    g = torch.randn_like(z)
+    (z_st * g).sum().backward()
+    assert torch.allclose(z.grad, g)  # identity gradient through the quantizer
+    assert vq.codebook.grad is None  # the codebook learns only from L_vq
+    z.grad = None
+    loss.backward()
+    zq = vq.codebook.detach()[codes]
+    # L_vq = 0.25 |sg[z] - zq|^2 + 1.0 |sg[zq] - z|^2 (means): d/dz = 2 (z - zq) / numel
+    assert torch.allclose(z.grad, 2.0 * (z.detach() - zq) / z.numel(), atol=1e-6)
+    assert vq.codebook.grad is not None and vq.codebook.grad.abs().sum() > 0
+
+
+def test_dead_code_kmeans_reinit_revives_codes():
+    cfg = MICRO.with_overrides(codebook_size=16, code_dim=4, dead_after=5, reinit_every=10, memory_factor=10,
+                               kmeans_init=False)
+    torch.manual_seed(0)
+    vq = VectorQuantizer(cfg)
+    centres = torch.randn(16, 4) * 5
+    with torch.no_grad():  # every code far away on one side except code 0
+        vq.codebook.copy_(torch.full((16, 4), 100.0))
+        vq.codebook[0] = 0.0
+    vq.train()
+
+    def batch():
+        return (centres[torch.randint(0, 16, (64,))] + 0.05 * torch.randn(64, 4)).view(1, 8, 8, 4)
+
+    used_before = set()
+    ran = []
+    for _ in range(12):
+        _, codes, _ = vq(batch())
+        if not any(ran):
+            used_before |= set(codes.flatten().tolist())
+        ran.append(vq.maybe_reinit())
+    assert used_before == {0}
+    assert ran.index(True) == 9  # not before 10 iterations have passed
+    assert int(vq.reinits) == 1
+    vq.eval()
+    _, codes, _ = vq(centres.view(1, 4, 4, 4))
+    assert len(set(codes.flatten().tolist())) >= 14  # K-means on the memory bank revived them
+    assert not vq.dead_codes().any()
+
+
+def test_kmeans_initialisation_once_bank_fills():
+    cfg = MICRO.with_overrides(codebook_size=16, code_dim=4, memory_factor=4)  # bank of 64 vectors
+    torch.manual_seed(0)
+    vq = VectorQuantizer(cfg).train()
+    data = torch.randn(1, 4, 4, 4) * 0.01 + 3.0  # far from the random initial codes
+    ran = []
+    for _ in range(5):
+        vq(data)
+        ran.append(vq.maybe_reinit())
+    assert ran == [False, False, False, True, False]  # 16 vectors per iteration: full after 4
+    assert (vq.codebook - 3.0).abs().max() < 0.1
+
+
+def test_kmeans_recovers_clusters():
+    g = torch.Generator().manual_seed(1)
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    data = centres.repeat(50, 1) + 0.1 * torch.randn(150, 2, generator=g)
+    found = kmeans(data, 3, 20, generator=g)
+    d = torch.cdist(centres, found).min(dim=1).values
+    assert (d < 0.2).all()
+
+
+def test_spatial_skipping_samples_only_occupied_cells():
+    cfg = MICRO
+    B, Xc, Z = 1, cfg.grid_xy // cfg.skip_pool, cfg.grid_z
+    mask = torch.zeros(B, Xc, Xc, Z, dtype=torch.bool)
+    # one coarse column of cells: x cell 10 (x in [-25.6 + 10 * 3.2, +3.2) = [6.4, 9.6)), y cell 8 (y in [0, 3.2))
+    mask[0, 10, 8, :] = True
+    o = torch.tensor([[0.0, 1.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0]])
+    h = sample_along_rays(cfg, o, d, torch.zeros(1, dtype=torch.long), mask, 16, jitter=True)
+    assert h.shape == (1, 16)
+    assert (h >= 6.4 - cfg.candidate_step).all() and (h <= 9.6 + cfg.candidate_step).all()
+    assert (h.diff(dim=1) >= 0).all()
+    # a ray that meets no occupied cell samples its whole in-box segment uniformly
+    h2 = sample_along_rays(cfg, o, torch.tensor([[-1.0, 0.0, 0.0]]), torch.zeros(1, dtype=torch.long), mask, 16, jitter=False)
+    assert h2[0, 0].item() == pytest.approx(25.6 / 32, rel=1e-4) and h2[0, -1].item() < 25.6
+
+
+def test_optimiser_and_schedule():
+    cfg = PAPER
+    assert lr_at(cfg, 0) == pytest.approx(cfg.lr / cfg.warmup)
+    assert lr_at(cfg, cfg.warmup - 1) == pytest.approx(cfg.lr)
+    assert lr_at(cfg, cfg.decay_steps) == pytest.approx(0.1 * cfg.lr)
+    assert lr_at(cfg, 10 * cfg.decay_steps) == pytest.approx(0.1 * cfg.lr)
+    mid = cfg.warmup + (cfg.decay_steps - cfg.warmup) // 2
+    assert lr_at(cfg, mid) == pytest.approx(0.55 * cfg.lr, rel=1e-3)
+    model = Tokenizer(MICRO)
+    decay, no_decay = param_groups(model, 1e-4)
+    ids = {id(p) for p in no_decay["params"]}
+    assert id(model.vq.codebook) in ids and id(model.encoder.z_embed) in ids
+    assert id(model.encoder.bev_norm.weight) in ids and id(model.decoder.coarse_linear.bias) in ids
+    assert id(model.decoder.coarse_linear.weight) in {id(p) for p in decay["params"]}
+    opt = make_optimizer(model, MICRO)
+    assert opt.defaults["betas"] == (0.9, 0.95)
+
+
+def test_overfit_one_sweep_drives_depth_error_down(toy_sweeps):
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    cfg = MICRO.with_overrides(dead_after=10_000)
+    model = Tokenizer(cfg)
+    opt = make_optimizer(model, cfg)
+    rng = np.random.default_rng(0)
+    l1s = []
+    for step in range(120):
+        for g in opt.param_groups:
+            g["lr"] = lr_at(cfg, step)
+        batch = make_batch(cfg, [toy_sweeps[0]], cfg.rays_per_step, rng)
+        out = compute_losses(model, batch, cfg)
+        opt.zero_grad()
+        out["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        l1s.append(out["l1"].item())
+    first, last = np.mean(l1s[:5]), np.mean(l1s[-10:])
+    assert last < 0.35 * first, (first, last)
+
+
+def test_resume_continues_exactly(tmp_path, toy_sweeps):
+    class Source:
+        split = "train"
+
+        def __len__(self):
+            return len(toy_sweeps)
+
+        def points(self, k):
+            return toy_sweeps[k]
+
+    cfg = MICRO.with_overrides(rays_per_step=128)
+    straight = train(cfg, Source(), tmp_path / "a.pt", steps=4, progress=False, device=torch.device("cpu"), log=lambda *_: None)
+    train(cfg, Source(), tmp_path / "b.pt", steps=2, progress=False, device=torch.device("cpu"), log=lambda *_: None)
+    resumed = train(cfg, Source(), tmp_path / "b.pt", steps=4, progress=False, device=torch.device("cpu"), log=lambda *_: None)
+    assert resumed["step"] == 4 and len(resumed["history"]) == 4
+    assert [r["loss"] for r in resumed["history"]] == pytest.approx([r["loss"] for r in straight["history"]], rel=1e-5)
+    for (ka, a), (kb, b) in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().items()):
+        assert ka == kb and torch.allclose(a.float(), b.float(), atol=1e-6), ka
+
+
+def test_skipping_mask_threshold_and_noise():
+    from methods.copilot4d.render import logistic_noise_mask
+
+    cfg = MICRO
+    logits = torch.full((1, 64, 64, cfg.grid_z), -8.0)
+    logits[0, 5, 6, 3] = math.log(0.04 / 0.96) + 0.01  # p just above 0.04
+    m = logistic_noise_mask(cfg, logits, noise=False, threshold=0.5)
+    assert not m.any()
+    m = logistic_noise_mask(cfg, logits, noise=False, threshold=0.04)
+    assert m.shape == (1, 16, 16, cfg.grid_z) and m.sum() == 1 and m[0, 1, 1, 3]
+    # with Logistic noise a voxel is on with probability sigmoid(logit): about 4 % here
+    g = torch.Generator().manual_seed(0)
+    hits = sum(bool(logistic_noise_mask(cfg, logits, noise=True, generator=g)[0, 1, 1, 3]) for _ in range(400))
+    assert 5 <= hits <= 35
+
+
+def test_calibrate_and_evaluate_reconstruction(toy_sweeps):
+    from methods.copilot4d.evaluate import SKIP_CANDIDATES, calibrate_skipping, evaluate_reconstruction, sweep_errors
+
+    class Source:
+        split = "train"
+
+        class adapter:  # noqa: N801
+            name = "toy"
+
+        def __len__(self):
+            return 2
+
+        def points(self, k):
+            return toy_sweeps[k]
+
+    torch.manual_seed(0)
+    model = Tokenizer(MICRO)
+    c = calibrate_skipping(model, Source(), sweeps=1, rays=200)
+    assert (c["threshold"], c["noise"]) in SKIP_CANDIDATES and c["calibration_l1_median"] <= c["paper_setting_l1_median"]
+    r = evaluate_reconstruction(model, Source(), max_sweeps=1, skip=c)
+    assert set(r) >= {"skipping", "calibrated", "uniform", "codebook_usage"} and 0 < r["codebook_usage"] <= 1
+    # sweep_errors on a perfect reconstruction is zero everywhere
+    pts = toy_sweeps[0].astype(np.float64)
+    r0 = np.linalg.norm(pts, axis=1)
+    e = sweep_errors(pts, pts / r0[:, None], r0)
+    assert e["l1_median"] == pytest.approx(0.0, abs=1e-9) and e["chamfer"] == pytest.approx(0.0, abs=1e-9)
