@@ -3,11 +3,18 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("PCFBENCH_NO_PROGRESS", "1")
+# Hermetic: no test reads the user's config or dataset roots or writes into their cache.
+os.environ["PCFBENCH_NO_PROGRESS"] = "1"
+_HOME = Path(tempfile.mkdtemp(prefix="pcfbench-tests-"))
+os.environ["PCFBENCH_CACHE"] = str(_HOME / "cache")
+os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")
+for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + ["PCFBENCH_CONFIG", "PCFBENCH_STORE", "PCFBENCH_REPORTS", "PCFBENCH_PLUGINS", "PCFBENCH_BLOCK_PLUGINS"]:
+    os.environ.pop(_var, None)
 
 
 def write_tiny_kitti(root: Path, sequences=("08",), num_sweeps: int = 24, beams: int = 16, azimuths: int = 360) -> Path:
