@@ -9,7 +9,8 @@ from bench.data import RayQuery, Sample
 from bench.geometry import se3, yaw_transform
 from bench.roi import Box
 from bench.testing import check_method
-from methods.raycast.common import angles_4docc, constant_velocity_poses, se3_exp, se3_log
+from bench.metrics.nn import angles_4docc
+from methods.raycast.common import constant_velocity_poses, se3_exp, se3_log
 from methods.raycast.fourdocc import RaycastFourDOcc
 from methods.raycast.freespace import RaycastFreespace
 from methods.raycast.grid import VoxelGrid

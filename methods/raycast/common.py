@@ -148,14 +148,3 @@ def assemble(sample: Sample, vws: list[View], depths: list[np.ndarray], constant
         return Forecast.from_depths(sample, depths)
     pts = tuple((v.origin + v.directions * d[:, None]).astype(np.float32) for v, d in zip(vws, depths))
     return Forecast(points_ref=pts)
-
-
-def angles_4docc(rel: np.ndarray) -> np.ndarray:
-    """The reference code's angle space: (atan2(x, y), atan2(z, y)) of offsets from the origin."""
-    return np.stack([np.arctan2(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 2], rel[:, 1])], axis=1)
-
-
-def angles_spherical(rel_sensor: np.ndarray) -> np.ndarray:
-    """(azimuth atan2(y, x), elevation atan2(z, hypot(x, y))) of sensor-frame offsets."""
-    x, y, z = rel_sensor[:, 0], rel_sensor[:, 1], rel_sensor[:, 2]
-    return np.stack([np.arctan2(y, x), np.arctan2(z, np.hypot(x, y))], axis=1)

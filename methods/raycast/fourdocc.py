@@ -18,7 +18,8 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, angles_4docc, assemble, views
+from bench.metrics.nn import angles_4docc
+from methods.raycast.common import aggregate, assemble, views
 from methods.raycast.nn2d import NN2D
 
 
