@@ -9,6 +9,7 @@ from typing import Callable, ClassVar
 
 import numpy as np
 
+from bench.data import Sweep
 from bench.roi import EgoBox
 
 
@@ -30,6 +31,15 @@ class Sequence:
     def load_points(self, index: int) -> np.ndarray:
         """(N, 3) float32 points of sweep ``index`` in its own sensor frame."""
         return self.loader(self.name, index)
+
+    def sweep(self, index: int) -> Sweep:
+        """Sweep ``index`` with its pose and timestamp (not validated: see bench.validate)."""
+        return Sweep(
+            points_sensor=self.load_points(index),
+            T_world_sensor=self.T_world_sensor[index],
+            timestamp_ns=int(self.timestamps_ns[index]),
+            source=f"sequence {self.name} sweep {index}",
+        )
 
 
 @dataclass

@@ -10,8 +10,9 @@ import numpy as np
 
 from bench.data import GroundTruth, RayQuery, Sample
 from bench.dataset import DatasetAdapter, Sequence
-from bench.errors import DataError, PcfbenchError, UnknownNameError
+from bench.errors import PcfbenchError, UnknownNameError
 from bench.geometry import invert, rotate_vectors, transform_points
+from bench.validate import validate_sweep
 
 #: Ground-truth points closer than this to their sensor are ignored by the metrics.
 MIN_RANGE_M = 0.01
@@ -131,13 +132,9 @@ class SampleBuilder:
         if cached is not None:
             self._cache.move_to_end(key)
             return cached
-        pts = np.asarray(seq.load_points(index))
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise DataError(f"{self.adapter.name} sequence {seq.name} sweep {index}: points have shape {pts.shape}, expected (N, 3)")
-        if not np.isfinite(pts).all():
-            bad = int((~np.isfinite(pts).all(axis=1)).sum())
-            raise DataError(f"{self.adapter.name} sequence {seq.name} sweep {index}: {bad} point(s) with NaN or inf coordinates")
-        pts = self.adapter.ego_box.remove(pts.astype(np.float32, copy=False))
+        where = f"{self.adapter.name} sequence {seq.name} sweep {index}"
+        pts = validate_sweep(seq.sweep(index), where).points_sensor
+        pts = self.adapter.ego_box.remove(pts)
         self._cache[key] = pts
         if len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)

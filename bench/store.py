@@ -11,8 +11,7 @@ import fcntl
 import json
 import os
 import shutil
-import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -173,14 +172,3 @@ def spec_from_meta(meta: dict[str, Any]) -> CellSpec:
 
 def spec_to_meta(spec: CellSpec) -> dict[str, Any]:
     return asdict(spec)
-
-
-@dataclass
-class Timings:
-    """Per-sample seconds, summed; medians are computed from rows at report time."""
-
-    load: float = 0.0
-    method: float = 0.0
-    metrics: float = 0.0
-    wall: float = 0.0
-    started: float = field(default_factory=time.time)

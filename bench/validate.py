@@ -64,9 +64,10 @@ def validate_forecast(sample: Sample, forecast: Forecast) -> Forecast:
     return Forecast(points_ref=points, depths=depths)
 
 
-def validate_sweep(sweep: Sweep) -> Sweep:
-    """Raise DataError naming the sweep's source when points or pose break the contract."""
-    where = sweep.source or "sweep"
+def validate_sweep(sweep: Sweep, where: str | None = None) -> Sweep:
+    """The sweep with float32 points, or DataError naming ``where`` (default: its source)
+    when the points or the pose break the contract."""
+    where = where or sweep.source or "sweep"
     pts = _check_points(sweep.points_sensor, where, err=DataError)
     if not is_se3(sweep.T_world_sensor, atol=1e-4):
         raise DataError(f"{where}: pose is not a finite rigid 4x4 transform")

@@ -83,7 +83,7 @@ def test_sample(benchmark, sample, cls):
 
 def _ray_queries(cls, sample):
     """Only the per-ray part of every view, its per-view scene (index, image, grid) built beforehand."""
-    from methods.raycast.common import angles_4docc
+    from bench.metrics.nn import angles_4docc
     from methods.raycast.fourdocc import _angles_ranges
     from methods.raycast.nn2d import NN2D
     from methods.raycast.zbuffer import _lookup, build_image, spherical
