@@ -13,8 +13,12 @@ so the metrics read it as a point cloud, as the reference code's
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TypeVar
 
+import numba
 import numpy as np
 
 from bench.data import Forecast, Sample
@@ -104,6 +108,13 @@ class Aggregate:
     origins: np.ndarray  # (N, 3) float64, the sensor position of the sweep each point came from
     own_range: np.ndarray  # (N,) float64, the range from that sensor
     sweep: np.ndarray  # (N,) int16, the index of the past sweep (0 is the oldest)
+    cols: np.ndarray  # (3, N) float64, ``points`` column by column (the projection kernels vectorise on it)
+
+
+def soa(points: np.ndarray) -> np.ndarray:
+    """(N, 3) to (3, N) contiguous float64: x, y and z each contiguous, so that numba vectorises
+    the per-point projections (about 5x faster than reading the (N, 3) rows)."""
+    return np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
 
 
 def aggregate(sample: Sample) -> Aggregate:
@@ -111,12 +122,12 @@ def aggregate(sample: Sample) -> Aggregate:
     counts = [len(p) for p in pts]
     if sum(counts) == 0:
         z = np.zeros((0, 3))
-        return Aggregate(z, z, np.zeros(0), np.zeros(0, np.int16))
+        return Aggregate(z, z, np.zeros(0), np.zeros(0, np.int16), np.zeros((3, 0)))
     points = np.concatenate(pts)
     sweep = np.repeat(np.arange(len(pts), dtype=np.int16), counts)
     origins = np.asarray(sample.past_T_ref_sensor, dtype=np.float64)[sweep, :3, 3]
     own_range = np.linalg.norm(points - origins, axis=1)
-    return Aggregate(points, origins, own_range, sweep)
+    return Aggregate(points, origins, own_range, sweep, soa(points))
 
 
 @dataclass(frozen=True)
@@ -126,6 +137,11 @@ class View:
     T_ref_sensor: np.ndarray  # (4, 4)
     origin: np.ndarray  # (3,) float64
     directions: np.ndarray  # (M, 3) float64 unit, reference frame
+    dcols: np.ndarray  # (3, M) float64, ``directions`` column by column
+
+    def subset(self, which: np.ndarray) -> View:
+        """The same viewpoint with only the rays ``which`` (a mask or indices)."""
+        return View(self.T_ref_sensor, self.origin, self.directions[which], np.ascontiguousarray(self.dcols[:, which]))
 
 
 def views(sample: Sample, constant_velocity: bool) -> list[View]:
@@ -136,8 +152,29 @@ def views(sample: Sample, constant_velocity: bool) -> list[View]:
     out = []
     for T, q in zip(poses, sample.queries):
         origin = T[:3, 3].copy() if constant_velocity else np.asarray(q.origin_ref, dtype=np.float64)
-        out.append(View(T, origin, np.asarray(q.directions_ref, dtype=np.float64)))
+        d = np.asarray(q.directions_ref, dtype=np.float64)
+        out.append(View(T, origin, d, soa(d)))
     return out
+
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
+
+
+def map_views(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
+    """``[fn(x) for x in items]`` with the items shared out over ``numba.get_num_threads()``
+    Python threads as they come free (the render kernels are serial and release the GIL).
+
+    Views, not rays, are the unit of parallel work: numba's OpenMP ``prange`` joins all its
+    threads at the end of every kernel, and on the shared 2-core machine a thread that waits
+    for a core held everyone up: 5 zbuffer views took 192 ms with prange on 2 threads and
+    51 ms serial on 1 (same run, loaded machine). A thread slowed down here just takes fewer views.
+    """
+    workers = min(numba.get_num_threads(), len(items))
+    if workers <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(pool.map(fn, items))
 
 
 def assemble(sample: Sample, vws: list[View], depths: list[np.ndarray], constant_velocity: bool) -> Forecast:

@@ -21,7 +21,7 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, views
+from methods.raycast.common import aggregate, assemble, map_views, views
 from methods.raycast.grid import VoxelGrid
 from methods.raycast.voxel import render_voxel
 from methods.raycast.zbuffer import render_zbuffer
@@ -67,10 +67,10 @@ class RaycastFreespace(Method):
         agg = aggregate(sample)
         grid = VoxelGrid(agg.points, voxel=self.options.voxel, levels=max(self.options.max_level, 3))
         keep = carve(grid, agg.origins, agg.points, agg.own_range, self.options)
-        pts, own = agg.points[keep], agg.own_range[keep]
+        cols, own = np.ascontiguousarray(agg.cols[:, keep]), agg.own_range[keep]
         vws = views(sample, self.options.constant_velocity)
         if self.options.renderer == "zbuffer":
-            depths = [render_zbuffer(pts, own, v, self.options) for v in vws]
+            depths = map_views(lambda v: render_zbuffer(cols, own, v, self.options), vws)
         else:
-            depths = [render_voxel(grid, pts, own, v, self.options) for v in vws]
+            depths = map_views(lambda v: render_voxel(grid, cols, own, v, self.options), vws)
         return assemble(sample, vws, depths, self.options.constant_velocity)

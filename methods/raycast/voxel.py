@@ -29,7 +29,7 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, views
+from methods.raycast.common import aggregate, assemble, map_views, views
 from methods.raycast.grid import VoxelGrid
 from methods.raycast.zbuffer import ZBufferOptions, render_zbuffer
 
@@ -45,15 +45,16 @@ class VoxelOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
-def render_voxel(grid: VoxelGrid, points, own_range, view, opts) -> np.ndarray:
+def render_voxel(grid: VoxelGrid, cols, own_range, view, opts) -> np.ndarray:
+    """Depth per query ray of ``view``; ``cols`` (3, N) and ``own_range`` are the past points
+    of the z-buffer fallback (see ``render_zbuffer``)."""
     cone = opts.cone_factor * np.deg2rad(opts.el_res_deg)
     center = None if opts.cone_center == "future" else np.zeros(3)
     depth = grid.cast(view.origin, view.directions, cone=cone, max_level=opts.max_level, cone_center=center)
     miss = np.isnan(depth)
     if miss.any():
         zb = ZBufferOptions(az_res_deg=opts.az_res_deg, el_res_deg=opts.el_res_deg)
-        sub = type(view)(view.T_ref_sensor, view.origin, view.directions[miss])
-        depth[miss] = render_zbuffer(points, own_range, sub, zb)
+        depth[miss] = render_zbuffer(cols, own_range, view.subset(miss), zb)
     return depth
 
 
@@ -66,5 +67,5 @@ class RaycastVoxel(Method):
         agg = aggregate(sample)
         grid = VoxelGrid(agg.points, voxel=self.options.voxel, levels=max(self.options.max_level, 3))
         vws = views(sample, self.options.constant_velocity)
-        depths = [render_voxel(grid, agg.points, agg.own_range, v, self.options) for v in vws]
+        depths = map_views(lambda v: render_voxel(grid, agg.cols, agg.own_range, v, self.options), vws)
         return assemble(sample, vws, depths, self.options.constant_velocity)

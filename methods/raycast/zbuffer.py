@@ -25,7 +25,8 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, views
+from methods.raycast.common import aggregate, assemble, map_views, views
+from methods.raycast.fastmath import atan2
 from methods.raycast.nn2d import NN2D
 
 
@@ -39,62 +40,124 @@ class ZBufferOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
-@nb.njit(parallel=True, cache=True)
-def spherical(points, origin, R):
-    """Azimuth, elevation and range of (N, 3) points seen from ``origin`` with rotation ``R``
-    (sensor-to-reference), i.e. in the sensor frame."""
-    n = points.shape[0]
+@nb.njit(nogil=True, cache=True)
+def spherical(cols, origin, R):
+    """Azimuth, elevation and range of (3, N) points (``cols``: x, y, z rows) seen from
+    ``origin`` with rotation ``R`` (sensor-to-reference), i.e. in the sensor frame."""
+    n = cols.shape[1]
     az = np.empty(n)
     el = np.empty(n)
     rng = np.empty(n)
-    for i in nb.prange(n):
-        rx = points[i, 0] - origin[0]
-        ry = points[i, 1] - origin[1]
-        rz = points[i, 2] - origin[2]
-        x = R[0, 0] * rx + R[1, 0] * ry + R[2, 0] * rz
-        y = R[0, 1] * rx + R[1, 1] * ry + R[2, 1] * rz
-        z = R[0, 2] * rx + R[1, 2] * ry + R[2, 2] * rz
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    X = cols[0]
+    Y = cols[1]
+    Z = cols[2]
+    for i in range(n):
+        rx = X[i] - o0
+        ry = Y[i] - o1
+        rz = Z[i] - o2
+        x = r00 * rx + r10 * ry + r20 * rz
+        y = r01 * rx + r11 * ry + r21 * rz
+        z = r02 * rx + r12 * ry + r22 * rz
         h = np.sqrt(x * x + y * y)
-        az[i] = np.arctan2(y, x)
-        el[i] = np.arctan2(z, h)
+        az[i] = atan2(y, x)
+        el[i] = atan2(z, h)
         rng[i] = np.sqrt(h * h + z * z)
     return az, el, rng
 
 
-@nb.njit(cache=True)
-def _splat(az, el, rng, own, el0, az_res, el_res, n_az, n_el, splat, max_splat):
+_BLOCK = 2048  # points per work item of the z-buffer pass
+
+
+@nb.njit(nogil=True, cache=True)
+def _project_splat(cols, own, origin, R, el0, az_res, el_res, n_az, n_el, splat, max_splat):
+    """The z-buffer of (3, N) points seen from ``origin`` (rotation ``R``) in one pass over
+    blocks of points: a vectorised projection of the block (bin, range, splat half-widths),
+    then the splat of the block into the image (nearest range per bin)."""
+    n = cols.shape[1]
     img = np.full(n_el * n_az, np.inf, np.float32)
-    for i in range(az.shape[0]):
-        r = rng[i]
-        if r <= 1e-3:
-            continue
-        ci = int(np.floor((az[i] + np.pi) / az_res))
-        ri = int(np.floor((el[i] - el0) / el_res))
-        a = 0.5 * splat * own[i] * el_res / r  # angular radius of the point's footprint
-        hx = min(int(a / (az_res * max(np.cos(el[i]), 0.05))), max_splat)
-        hy = min(int(a / el_res), max_splat)
-        if ri + hy < 0 or ri - hy >= n_el:
-            continue
-        rf = np.float32(r)
-        for dy in range(-hy, hy + 1):
-            row = ri + dy
-            if row < 0 or row >= n_el:
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    X = cols[0]
+    Y = cols[1]
+    Z = cols[2]
+    nblocks = (n + _BLOCK - 1) // _BLOCK
+    for blk in range(nblocks):
+        lo = blk * _BLOCK
+        m = min(n, lo + _BLOCK) - lo
+        fa = np.empty(m)
+        fe = np.empty(m)
+        wa = np.empty(m)
+        we = np.empty(m)
+        rr = np.empty(m)
+        bx = X[lo : lo + m]
+        by = Y[lo : lo + m]
+        bz = Z[lo : lo + m]
+        bo = own[lo : lo + m]
+        for k in range(m):  # float only, so that it vectorises
+            rx = bx[k] - o0
+            ry = by[k] - o1
+            rz = bz[k] - o2
+            x = r00 * rx + r10 * ry + r20 * rz
+            y = r01 * rx + r11 * ry + r21 * rz
+            z = r02 * rx + r12 * ry + r22 * rz
+            h = np.sqrt(x * x + y * y)
+            r = np.sqrt(h * h + z * z)
+            a = 0.5 * splat * bo[k] * el_res / r  # angular radius of the point's footprint
+            fa[k] = (atan2(y, x) + np.pi) / az_res
+            fe[k] = (atan2(z, h) - el0) / el_res
+            wa[k] = a / (az_res * max(h / r, 0.05))  # cos(el) = h / r: no call to the C library
+            we[k] = a / el_res
+            rr[k] = r
+        for k in range(m):
+            if not rr[k] > 1e-3:
                 continue
-            base = row * n_az
-            for dx in range(-hx, hx + 1):
-                c = (ci + dx) % n_az
-                if rf < img[base + c]:
-                    img[base + c] = rf
+            b_ri = int(np.floor(fe[k]))
+            b_hy = min(int(we[k]), max_splat)
+            if b_ri + b_hy < 0 or b_ri - b_hy >= n_el:
+                continue
+            b_ci = int(np.floor(fa[k]))
+            b_hx = min(int(wa[k]), max_splat)
+            v = np.float32(rr[k])
+            if b_hy == 0 and b_hx <= 1 and 0 <= b_ri < n_el and 0 <= b_ci < n_az:
+                # the common footprint, one row of 1 or 3 bins, without branches that the
+                # processor mispredicts (a bin left out takes min(., inf), which leaves it)
+                base = b_ri * n_az
+                side = v if b_hx == 1 else np.float32(np.inf)
+                cm = b_ci - 1 if b_ci > 0 else n_az - 1
+                cp = b_ci + 1 if b_ci + 1 < n_az else 0
+                img[base + cm] = min(img[base + cm], side)
+                img[base + b_ci] = min(img[base + b_ci], v)
+                img[base + cp] = min(img[base + cp], side)
+                continue
+            for dy in range(-b_hy, b_hy + 1):
+                row = b_ri + dy
+                if row < 0 or row >= n_el:
+                    continue
+                base = row * n_az
+                for dx in range(-b_hx, b_hx + 1):
+                    c = b_ci + dx  # wrap around in azimuth, without an integer division
+                    while c < 0:
+                        c += n_az
+                    while c >= n_az:
+                        c -= n_az
+                    if v < img[base + c]:
+                        img[base + c] = v
     return img
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(nogil=True, cache=True)
 def _lookup(img, qaz, qel, el0, az_res, el_res, n_az, n_el, max_ring):
     """Depth per query: its bin, else the nearest (in angle) non-empty bin centre within
     ``max_ring`` bins (exact ring search in angle distance), else NaN."""
     m = qaz.shape[0]
     out = np.full(m, np.nan)
-    for j in nb.prange(m):
+    for j in range(m):
         fa = (qaz[j] + np.pi) / az_res
         fe = (qel[j] - el0) / el_res
         ci = int(np.floor(fa)) % n_az
@@ -156,7 +219,8 @@ class RangeImage:
     n_el: int
 
 
-def build_image(az, el, rng, own, qel, az_res_deg, el_res_deg, splat, max_splat) -> RangeImage:
+def image_geometry(qel, az_res_deg, el_res_deg) -> tuple[float, float, float, int, int]:
+    """(el0, az_res, el_res, n_az, n_el) of a range image covering the query elevations ``qel``."""
     az_res = np.deg2rad(az_res_deg)
     el_res = np.deg2rad(el_res_deg)
     n_az = max(1, int(np.ceil(2 * np.pi / az_res)))
@@ -165,7 +229,16 @@ def build_image(az, el, rng, own, qel, az_res_deg, el_res_deg, splat, max_splat)
     hi = float(qel.max()) if len(qel) else 0.5
     el0 = lo - 2 * el_res
     n_el = max(1, int(np.ceil((hi - lo) / el_res)) + 4)
-    img = _splat(az, el, rng, own, el0, az_res, el_res, n_az, n_el, float(splat), int(max_splat))
+    return el0, az_res, el_res, n_az, n_el
+
+
+def build_image(cols, own, origin, R, qel, az_res_deg, el_res_deg, splat, max_splat) -> RangeImage:
+    """The z-buffer of (3, N) points ``cols`` seen from ``origin`` with rotation ``R``, over the rows of ``qel``."""
+    el0, az_res, el_res, n_az, n_el = image_geometry(qel, az_res_deg, el_res_deg)
+    img = _project_splat(
+        cols, np.ascontiguousarray(own, dtype=np.float64), np.asarray(origin, dtype=np.float64),
+        np.ascontiguousarray(R, dtype=np.float64), el0, az_res, el_res, n_az, n_el, float(splat), int(max_splat),
+    )
     return RangeImage(img, el0, az_res, el_res, n_az, n_el)
 
 
@@ -180,14 +253,14 @@ def coarsen(im: RangeImage, f: int) -> RangeImage:
     return RangeImage(img.ravel(), im.el0, im.az_res * f, im.el_res * f, n_az // f, n_el // f)
 
 
-def render_zbuffer(points, own_range, view, opts) -> np.ndarray:
-    """Depth per query ray of ``view``: the z-buffer bin, else the angular nearest point."""
+def render_zbuffer(cols, own_range, view, opts) -> np.ndarray:
+    """Depth per query ray of ``view``: the z-buffer bin, else the angular nearest point.
+    ``cols``: the (3, N) past points (``Aggregate.cols``), ``own_range``: their own ranges."""
     R = np.ascontiguousarray(view.T_ref_sensor[:3, :3])
-    qaz, qel, _ = spherical(view.directions, np.zeros(3), R)
-    if len(points) == 0:
+    qaz, qel, _ = spherical(view.dcols, np.zeros(3), R)
+    if cols.shape[1] == 0:
         return np.zeros(len(qaz))
-    az, el, rng = spherical(points, view.origin, R)
-    im = build_image(az, el, rng, own_range, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
+    im = build_image(cols, own_range, view.origin, R, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
     depth = _lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, int(opts.fill_ring))
     empty = np.isnan(depth)
     while empty.any() and im.n_az > 4 and im.n_el > 1:
@@ -196,7 +269,8 @@ def render_zbuffer(points, own_range, view, opts) -> np.ndarray:
         sub = np.flatnonzero(empty)
         depth[sub] = _lookup(im.img, qaz[sub], qel[sub], im.el0, im.az_res, im.el_res, im.n_az, im.n_el, int(opts.fill_ring))
         empty = np.isnan(depth)
-    if empty.any():
+    if empty.any():  # rare: no point within reach of the coarsest image; project them all again
+        az, el, rng = spherical(cols, view.origin, R)
         depth[empty] = angular_nn_ranges(az, el, rng, qaz[empty], qel[empty])
     return depth
 
@@ -209,5 +283,5 @@ class RaycastZBuffer(Method):
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
         vws = views(sample, self.options.constant_velocity)
-        depths = [render_zbuffer(agg.points, agg.own_range, v, self.options) for v in vws]
+        depths = map_views(lambda v: render_zbuffer(agg.cols, agg.own_range, v, self.options), vws)
         return assemble(sample, vws, depths, self.options.constant_velocity)

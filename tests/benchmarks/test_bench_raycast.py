@@ -22,7 +22,7 @@ import pytest
 
 from bench.protocol import SETTINGS, SampleBuilder
 from bench.testing import InMemoryDataset
-from methods.raycast.common import aggregate, views
+from methods.raycast.common import aggregate, map_views, views
 from methods.raycast.fourdocc import RaycastFourDOcc, render_4docc
 from methods.raycast.freespace import RaycastFreespace, carve
 from methods.raycast.grid import VoxelGrid
@@ -52,13 +52,13 @@ def _renderer(cls, sample):
     if cls is RaycastFourDOcc:
         return lambda: [render_4docc(agg.points, v.origin, v.directions) for v in vws]
     if cls is RaycastZBuffer:
-        return lambda: [render_zbuffer(agg.points, agg.own_range, v, opts) for v in vws]
+        return lambda: map_views(lambda v: render_zbuffer(agg.cols, agg.own_range, v, opts), vws)
     grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
-    pts, own = agg.points, agg.own_range
+    cols, own = agg.cols, agg.own_range
     if cls is RaycastFreespace:
         keep = carve(grid, agg.origins, agg.points, agg.own_range, opts)
-        pts, own = pts[keep], own[keep]
-    return lambda: [render_voxel(grid, pts, own, v, opts) for v in vws]
+        cols, own = np.ascontiguousarray(cols[:, keep]), own[keep]
+    return lambda: map_views(lambda v: render_voxel(grid, cols, own, v, opts), vws)
 
 
 @pytest.mark.parametrize("cls", METHODS, ids=lambda c: c.name)
@@ -101,9 +101,8 @@ def _ray_queries(cls, sample):
         jobs = []
         for v in vws:
             R = np.ascontiguousarray(v.T_ref_sensor[:3, :3])
-            qaz, qel, _ = spherical(v.directions, np.zeros(3), R)
-            az, el, rng = spherical(agg.points, v.origin, R)
-            im = build_image(az, el, rng, agg.own_range, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
+            qaz, qel, _ = spherical(v.dcols, np.zeros(3), R)
+            im = build_image(agg.cols, agg.own_range, v.origin, R, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
             jobs.append((im, qaz, qel))
         return lambda: [_lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, opts.fill_ring) for im, qaz, qel in jobs]
     grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
