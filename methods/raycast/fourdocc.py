@@ -18,8 +18,8 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from bench.metrics.nn import angles_4docc
-from methods.raycast.common import aggregate, assemble, views
+from methods.raycast.common import aggregate, assemble, map_views, views
+from methods.raycast.fastmath import atan2
 from methods.raycast.nn2d import NN2D
 
 
@@ -28,31 +28,45 @@ class FourDOccOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
-@nb.njit(parallel=True, cache=True)
-def _angles_ranges(points, origin):
-    """The reference angle space and the range of every point seen from ``origin``."""
-    n = points.shape[0]
+@nb.njit(nogil=True, parallel=True, cache=True)
+def angles(cols, origin):
+    """The reference angle space ``(atan2(x, y), atan2(z, y))`` of (3, N) points ``cols`` seen
+    from ``origin``: two (N,) arrays (vectorised; ``fastmath.atan2``)."""
+    n = cols.shape[1]
     u = np.empty(n)
     v = np.empty(n)
-    r = np.empty(n)
+    X = cols[0]
+    Y = cols[1]
+    Z = cols[2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
     for i in nb.prange(n):
-        x = points[i, 0] - origin[0]
-        y = points[i, 1] - origin[1]
-        z = points[i, 2] - origin[2]
-        u[i] = np.arctan2(x, y)
-        v[i] = np.arctan2(z, y)
-        r[i] = np.sqrt(x * x + y * y + z * z)
-    return u, v, r
+        y = Y[i] - o1
+        u[i] = atan2(X[i] - o0, y)
+        v[i] = atan2(Z[i] - o2, y)
+    return u, v
 
 
-def render_4docc(points: np.ndarray, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Depth per ray: the range of the angle-space nearest past point (0 with no points)."""
-    if len(points) == 0:
-        return np.zeros(len(directions))
-    u, v, r = _angles_ranges(np.ascontiguousarray(points, dtype=np.float64), np.asarray(origin, dtype=np.float64))
-    index = NN2D((u, v))
-    nearest = index.query(angles_4docc(np.asarray(directions, dtype=np.float64)))
-    return r[nearest]
+@nb.njit(nogil=True, cache=True)
+def _ranges(cols, origin, idx):
+    """``|p - origin|`` of the points ``idx`` (computed as the reference does, in float64)."""
+    out = np.empty(idx.shape[0])
+    for j in range(idx.shape[0]):
+        i = idx[j]
+        x = cols[0, i] - origin[0]
+        y = cols[1, i] - origin[1]
+        z = cols[2, i] - origin[2]
+        out[j] = np.sqrt(x * x + y * y + z * z)
+    return out
+
+
+def render_4docc(cols: np.ndarray, origin: np.ndarray, dcols: np.ndarray) -> np.ndarray:
+    """Depth per ray (directions ``dcols``, (3, M)): the range of the angle-space nearest past
+    point among ``cols`` (3, N) (0 with no points)."""
+    if cols.shape[1] == 0:
+        return np.zeros(dcols.shape[1])
+    origin = np.asarray(origin, dtype=np.float64)
+    nearest = NN2D(angles(cols, origin)).query(angles(dcols, np.zeros(3)))
+    return _ranges(cols, origin, nearest)
 
 
 class RaycastFourDOcc(Method):
@@ -63,5 +77,5 @@ class RaycastFourDOcc(Method):
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
         vws = views(sample, self.options.constant_velocity)
-        depths = [render_4docc(agg.points, v.origin, v.directions) for v in vws]
+        depths = map_views(lambda v: render_4docc(agg.cols, v.origin, v.dcols), vws)
         return assemble(sample, vws, depths, self.options.constant_velocity)

@@ -58,20 +58,24 @@ def _occupied(occ, bit):
 
 
 @nb.njit(inline="always")
+def _exit(o, iv, lo, size, i, t_exit):
+    """The ray's exit parameter through the planes of cell ``i`` along one axis (min with ``t_exit``)."""
+    if iv > 0:
+        return min(t_exit, (lo + (i + 1) * size - o) * iv)
+    if iv < 0:
+        return min(t_exit, (lo + i * size - o) * iv)
+    return t_exit
+
+
+@nb.njit(inline="always")
 def _cell_exit(o, inv, lo, size, a, b, c, t):
-    te = np.inf
-    idx = (a, b, c)
-    for ax in range(3):
-        if inv[ax] > 0:
-            tb = (lo[ax] + (idx[ax] + 1) * size - o[ax]) * inv[ax]
-            te = min(te, tb)
-        elif inv[ax] < 0:
-            tb = (lo[ax] + idx[ax] * size - o[ax]) * inv[ax]
-            te = min(te, tb)
+    te = _exit(o[0], inv[0], lo[0], size, a, np.inf)
+    te = _exit(o[1], inv[1], lo[1], size, b, te)
+    te = _exit(o[2], inv[2], lo[2], size, c, te)
     return max(te, t)
 
 
-@nb.njit(cache=True)
+@nb.njit(nogil=True, cache=True)
 def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center):
     """First occupied cell along the ray in [t, t1). Returns (t_entry, t_exit, level, key)
     with t_entry < 0 when nothing is hit; ``key`` is the level-0 key (only for level-0 hits)."""
@@ -80,15 +84,19 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center):
     ny0 = dims[0, 1]
     nz0 = dims[0, 2]
     eps = 1e-5
+    tol = 1e-4
     top = K
+    o0, o1, o2 = o[0], o[1], o[2]
+    d0, d1, d2 = d[0], d[1], d[2]
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    c0, c1, c2 = center[0], center[1], center[2]
     while t < t1:
-        x = o[0] + d[0] * t
-        y = o[1] + d[1] * t
-        z = o[2] + d[2] * t
-        fa = (x - lo[0]) / vs
-        fb = (y - lo[1]) / vs
-        fc = (z - lo[2]) / vs
-        tol = 1e-4
+        x = o0 + d0 * t
+        y = o1 + d1 * t
+        z = o2 + d2 * t
+        fa = (x - l0) / vs
+        fb = (y - l1) / vs
+        fc = (z - l2) / vs
         if fa < -tol or fb < -tol or fc < -tol or fa > nx0 + tol or fb > ny0 + tol or fc > nz0 + tol:
             break  # the ray has left the grid
         a = min(max(int(np.floor(fa)), 0), nx0 - 1)  # rounding at the faces
@@ -97,7 +105,7 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center):
         need = 0
         if cone > 0.0:
             # as wide as the beam gaps where the past sensor (at ``center``) saw this place
-            w = np.sqrt((x - center[0]) ** 2 + (y - center[1]) ** 2 + (z - center[2]) ** 2) * cone
+            w = np.sqrt((x - c0) ** 2 + (y - c1) ** 2 + (z - c2) ** 2) * cone
             while need < max_level and vs * (1 << need) < w:
                 need += 1
         # start one level above the last skip: its parent is likely empty too
@@ -126,16 +134,30 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center):
     return -1.0, -1.0, 0, -1
 
 
-@nb.njit(cache=True)
-def _search(sorted_keys, key):
-    i = np.searchsorted(sorted_keys, key)
-    if i < sorted_keys.shape[0] and sorted_keys[i] == key:
-        return i
+@nb.njit(inline="always")
+def _slot(col_start, ukeys, key, nz0):
+    """Index of ``key`` in the sorted occupied keys, -1 if absent: a column (x, y) of the grid
+    holds consecutive keys, so a short scan from the column's first key finds it."""
+    col = key // nz0
+    for i in range(col_start[col], col_start[col + 1]):
+        if ukeys[i] == key:
+            return i
     return -1
 
 
+@nb.njit(cache=True)
+def _column_starts(ukeys, ncols, nz0):
+    """First index in ``ukeys`` of each (x, y) column's keys (``ncols + 1`` entries)."""
+    starts = np.zeros(ncols + 1, np.int32)
+    for k in ukeys:
+        starts[k // nz0 + 1] += 1
+    for c in range(ncols):
+        starts[c + 1] += starts[c]
+    return starts
+
+
 @nb.njit(nogil=True, cache=True)
-def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukeys, means, center):
+def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukeys, col_start, means, center):
     m = dirs.shape[0]
     out = np.full(m, np.nan)
     for j in range(m):
@@ -156,7 +178,7 @@ def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukey
                 out[j] = 0.5 * (te + tx)
                 continue
             te, tx, key = fe, fx, fkey
-        s = _search(ukeys, key)
+        s = _slot(col_start, ukeys, key, dims[0, 2])
         if s >= 0:
             p = (means[s, 0] - origin[0]) * d[0] + (means[s, 1] - origin[1]) * d[1] + (means[s, 2] - origin[2]) * d[2]
             out[j] = min(max(p, te), tx)
@@ -166,7 +188,7 @@ def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukey
 
 
 @nb.njit(cache=True)
-def _carve(origins, points, t_end, occ, offs, dims, lo, vs, ukeys, free):
+def _carve(origins, points, t_end, occ, offs, dims, lo, vs, ukeys, col_start, free):
     """Count, for every occupied voxel, the past rays that passed through it before ``t_end``."""
     for i in range(points.shape[0]):
         o = origins[i]
@@ -184,7 +206,7 @@ def _carve(origins, points, t_end, occ, offs, dims, lo, vs, ukeys, free):
             te, tx, _, key = _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, 0.0, 0, o)
             if te < 0:
                 break
-            s = _search(ukeys, key)
+            s = _slot(col_start, ukeys, key, dims[0, 2])
             if s >= 0:
                 free[s] += 1
             t = tx + 1e-5
@@ -217,6 +239,7 @@ class VoxelGrid:
         self.means = sums / np.maximum(self.hits, 1)[:, None]
         self.occ = np.zeros(int(words.sum()), np.uint64)
         _fill(self.occ, self.offs, self.dims, self.ukeys)
+        self.col_start = _column_starts(self.ukeys, int(n0[0] * n0[1]), int(n0[2]))
 
     def keep_only(self, keep: np.ndarray) -> None:
         """Drop the occupied voxels where ``keep`` (one flag per occupied voxel) is False."""
@@ -225,13 +248,14 @@ class VoxelGrid:
         self.hits = self.hits[keep]
         self.occ[:] = 0
         _fill(self.occ, self.offs, self.dims, self.ukeys)
+        self.col_start = _column_starts(self.ukeys, int(self.dims[0, 0] * self.dims[0, 1]), int(self.dims[0, 2]))
 
     def free_counts(self, origins: np.ndarray, points: np.ndarray, t_end: np.ndarray) -> np.ndarray:
         free = np.zeros(len(self.ukeys), np.int64)
         _carve(
             np.ascontiguousarray(origins, dtype=np.float64), np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(t_end, dtype=np.float64), self.occ, self.offs, self.dims, self.lo, self.voxel,
-            self.ukeys, free,
+            self.ukeys, self.col_start, free,
         )
         return free
 
@@ -247,5 +271,5 @@ class VoxelGrid:
         t0, t1 = ray_box_interval(origin, directions, self.box)
         return _cast(
             origin, directions, t0, t1, self.occ, self.offs, self.dims, self.lo, self.voxel, float(cone),
-            int(min(max_level, len(self.offs) - 1)), self.ukeys, self.means, center,
+            int(min(max_level, len(self.offs) - 1)), self.ukeys, self.col_start, self.means, center,
         )

@@ -1,178 +1,228 @@
-"""Exact 2-D nearest neighbours on an adaptive grid (numba), for angle-space look-ups.
+"""Exact 2-D nearest neighbours on a uniform bucket grid (numba), for angle-space look-ups.
 
-The grid's cell edges are quantiles of each coordinate, so strongly non-uniform angle
-distributions (the 4D-Occ angle space bunches points near +-pi/2) still put a few points in
-each cell. A query visits rings of cells around its own and stops once the best squared
-distance is no larger than the distance to the outside of the rings visited, which makes the
-answer exact (ties go to the lower point index).
+Built per view from ~640k points and asked ~127k queries, so both halves are single passes
+without Python in between: the points' cells are counted, prefix-summed and scattered (a
+counting sort, stable, so a cell keeps its points in index order) into one interleaved
+(x, y) array with 32-bit cell starts, which keeps a query's candidates in few cache lines.
+
+A query starts from the previous query's answer (consecutive LiDAR rays are neighbours),
+scans its own cell and then Chebyshev rings of cells, skipping every cell (and whole ring
+rows and columns) whose rectangle is farther than the best distance so far, and stops once
+the best distance is strictly smaller than the distance to any cell not yet scanned; so every
+point at the minimal distance has been seen and ties go to the lowest point index, exactly
+like a brute-force ``argmin``. Queries not settled within ``MAX_RINGS`` rings (far from all
+points) are asked again on a grid 8x coarser in each direction, whose ring search runs until
+it is settled or has covered the whole grid.
 """
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
 
+#: rings of the fine grid scanned before a query goes to the coarse grid
+MAX_RINGS = 2
+#: points per cell of the fine grid (on average over the bounding box)
+PER_CELL = 2.0
+#: the coarse grid's cells are this many fine cells wide in each direction
+COARSE = 8
 
-@nb.njit(cache=True)
-def _lut(e, nbins):
-    """Cell index at the start of each of ``nbins`` uniform bins spanning the edges."""
-    lo = e[0]
-    w = (e[-1] - e[0]) / nbins
-    lut = np.empty(nbins + 1, np.int64)
-    c = 0
-    for b in range(nbins + 1):
-        x = lo + b * w
-        while c + 1 < e.shape[0] - 1 and e[c + 1] <= x:
-            c += 1
-        lut[b] = c
-    return lut
+
+@nb.njit(nogil=True, cache=True)
+def _bbox(px, py):
+    x0 = np.inf
+    x1 = -np.inf
+    y0 = np.inf
+    y1 = -np.inf
+    for i in range(px.shape[0]):
+        x0 = min(x0, px[i])
+        x1 = max(x1, px[i])
+        y0 = min(y0, py[i])
+        y1 = max(y1, py[i])
+    return x0, x1, y0, y1
+
+
+@nb.njit(nogil=True, cache=True)
+def _build(px, py, x0, y0, hx, hy, nx, ny):
+    """Counting sort of the points into cells: (starts (nx*ny+1,) int32, sorted (K, 2) float64
+    interleaved x, y, sorted_index (K,) int32)."""
+    n = px.shape[0]
+    ivx = 1.0 / hx
+    ivy = 1.0 / hy
+    keys = np.empty(n, np.int32)
+    for i in range(n):
+        cx = min(max(int(math.floor((px[i] - x0) * ivx)), 0), nx - 1)
+        cy = min(max(int(math.floor((py[i] - y0) * ivy)), 0), ny - 1)
+        keys[i] = cx * ny + cy
+    ncell = nx * ny
+    starts = np.zeros(ncell + 1, np.int32)
+    for i in range(n):
+        starts[keys[i] + 1] += 1
+    for c in range(ncell):
+        starts[c + 1] += starts[c]
+    fill = starts[:-1].copy()
+    sp = np.empty((n, 2))
+    sidx = np.empty(n, np.int32)
+    for i in range(n):
+        k = keys[i]
+        s = fill[k]
+        fill[k] = s + 1
+        sp[s, 0] = px[i]
+        sp[s, 1] = py[i]
+        sidx[s] = i
+    return starts, sp, sidx
 
 
 @nb.njit(inline="always")
-def _locate(x, e, lut, inv_w):
-    """The cell of ``x`` (edges ``e``, clamped to the grid): a LUT jump then a short walk."""
-    g = e.shape[0] - 1
-    b = int((x - e[0]) * inv_w)
-    if b <= 0:
-        c = 0
-    elif b >= lut.shape[0]:
-        c = g - 1
-    else:
-        c = lut[b]
-    while c + 1 < g and e[c + 1] <= x:
-        c += 1
-    while c > 0 and e[c] > x:
-        c -= 1
-    return c
+def _gap(lo, h, i, q):
+    """Distance from ``q`` to the interval of cell ``i`` along one axis (0 inside)."""
+    return max(lo + i * h - q, q - (lo + (i + 1) * h), 0.0)
 
 
-@nb.njit(parallel=True, cache=True)
-def _cells(px, py, ex, ey, lx, ly, ix, iy):
-    gy = ey.shape[0] - 1
-    n = px.shape[0]
-    cell = np.empty(n, np.int64)
-    for i in nb.prange(n):
-        cell[i] = _locate(px[i], ex, lx, ix) * gy + _locate(py[i], ey, ly, iy)
-    return cell
+@nb.njit(inline="always")
+def _scan(c, starts, sp, sidx, qx, qy, best_d, best_i):
+    for s in range(starts[c], starts[c + 1]):
+        dx = sp[s, 0] - qx
+        dy = sp[s, 1] - qy
+        d = dx * dx + dy * dy
+        if d < best_d or (d == best_d and sidx[s] < best_i):
+            best_d = d
+            best_i = sidx[s]
+    return best_d, best_i
 
 
-@nb.njit(cache=True)
-def _build(cell, ncells):
-    n = cell.shape[0]
-    start = np.zeros(ncells + 1, np.int64)
-    for i in range(n):
-        start[cell[i] + 1] += 1
-    for c in range(ncells):
-        start[c + 1] += start[c]
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        c = cell[i]
-        order[fill[c]] = i
-        fill[c] += 1
-    return start, order
+@nb.njit(inline="always")
+def _visit(ix, iy, nx, ny, starts, sp, sidx, qx, qy, best_d, best_i, x0, y0, hx, hy, tol):
+    if ix < 0 or ix >= nx or iy < 0 or iy >= ny:
+        return best_d, best_i
+    c = ix * ny + iy
+    if starts[c] == starts[c + 1]:
+        return best_d, best_i
+    gx = max(_gap(x0, hx, ix, qx) - tol, 0.0)
+    gy = max(_gap(y0, hy, iy, qy) - tol, 0.0)
+    if gx * gx + gy * gy > best_d:
+        return best_d, best_i
+    return _scan(c, starts, sp, sidx, qx, qy, best_d, best_i)
 
 
-@nb.njit(parallel=True, cache=True)
-def _query(px, py, ex, ey, start, order, qx, qy, qcell, qorder):
-    gx = ex.shape[0] - 1
-    gy = ey.shape[0] - 1
-    m = qx.shape[0]
-    out = np.full(m, -1, np.int64)
-    for jj in nb.prange(m):
-        j = qorder[jj]  # queries in cell order, for memory locality
-        x = qx[j]
-        y = qy[j]
-        cx = qcell[j] // gy
-        cy = qcell[j] - cx * gy
-        best = np.inf
-        besti = -1
+@nb.njit(nogil=True, cache=True)
+def _query(qx_all, qy_all, which, px, py, starts, sp, sidx, x0, y0, hx, hy, nx, ny, tol, max_rings, out):
+    """Nearest point of the queries ``which`` (indices into qx_all/qy_all) into ``out``; -1
+    where not settled within ``max_rings`` rings (``max_rings`` < 0: no limit). Cell gaps and
+    the stopping bound are taken ``tol`` smaller than computed, so that rounding in a point's
+    cell can never skip it (it only costs a rare extra ring)."""
+    ivx = 1.0 / hx
+    ivy = 1.0 / hy
+    warm = -1
+    for k in range(which.shape[0]):
+        q = which[k]
+        qx = qx_all[q]
+        qy = qy_all[q]
+        cx = min(max(int(math.floor((qx - x0) * ivx)), 0), nx - 1)
+        cy = min(max(int(math.floor((qy - y0) * ivy)), 0), ny - 1)
+        best_d = np.inf
+        best_i = -1
+        if warm >= 0:  # the previous answer: a real point, so a valid first candidate
+            dx = px[warm] - qx
+            dy = py[warm] - qy
+            best_d = dx * dx + dy * dy
+            best_i = warm
+        found = False
         r = 0
-        while True:
-            x0 = cx - r
-            x1 = cx + r
-            y0 = cy - r
-            y1 = cy + r
-            for ix in range(max(x0, 0), min(x1, gx - 1) + 1):
-                on_x_edge = ix == x0 or ix == x1
-                iy = max(y0, 0)
-                while iy <= min(y1, gy - 1):
-                    c = ix * gy + iy
-                    for k in range(start[c], start[c + 1]):
-                        dx = px[k] - x
-                        dy = py[k] - y
-                        d = dx * dx + dy * dy
-                        if d < best or (d == best and order[k] < besti):
-                            best = d
-                            besti = order[k]
-                    if on_x_edge or iy == y1:
-                        iy += 1
-                    else:
-                        iy = y1  # interior columns: only the ring's top and bottom cells
-            # distance from the query to the outside of the visited block of cells
+        while max_rings < 0 or r <= max_rings:
+            if r == 0:
+                best_d, best_i = _visit(cx, cy, nx, ny, starts, sp, sidx, qx, qy, best_d, best_i, x0, y0, hx, hy, tol)
+            else:
+                for iy in (cy - r, cy + r):  # top and bottom rows of the ring
+                    g = max(_gap(y0, hy, iy, qy) - tol, 0.0)
+                    if iy < 0 or iy >= ny or g * g > best_d:
+                        continue
+                    for ix in range(max(cx - r, 0), min(cx + r, nx - 1) + 1):
+                        best_d, best_i = _visit(ix, iy, nx, ny, starts, sp, sidx, qx, qy, best_d, best_i,
+                                                x0, y0, hx, hy, tol)
+                for ix in (cx - r, cx + r):  # the side columns
+                    g = max(_gap(x0, hx, ix, qx) - tol, 0.0)
+                    if ix < 0 or ix >= nx or g * g > best_d:
+                        continue
+                    for iy in range(max(cy - r + 1, 0), min(cy + r - 1, ny - 1) + 1):
+                        best_d, best_i = _visit(ix, iy, nx, ny, starts, sp, sidx, qx, qy, best_d, best_i,
+                                                x0, y0, hx, hy, tol)
+            # distance from the query to the nearest cell outside the scanned block
             bound = np.inf
-            if x0 > 0:
-                bound = min(bound, x - ex[x0])
-            if x1 < gx - 1:
-                bound = min(bound, ex[x1 + 1] - x)
-            if y0 > 0:
-                bound = min(bound, y - ey[y0])
-            if y1 < gy - 1:
-                bound = min(bound, ey[y1 + 1] - y)
-            if bound == np.inf:
-                break  # the whole grid was visited
-            if besti >= 0 and bound > 0 and best <= bound * bound:
+            if cy - r > 0:
+                bound = min(bound, max(qy - (y0 + (cy - r) * hy), 0.0))
+            if cy + r < ny - 1:
+                bound = min(bound, max(y0 + (cy + r + 1) * hy - qy, 0.0))
+            if cx - r > 0:
+                bound = min(bound, max(qx - (x0 + (cx - r) * hx), 0.0))
+            if cx + r < nx - 1:
+                bound = min(bound, max(x0 + (cx + r + 1) * hx - qx, 0.0))
+            bound = max(bound - tol, 0.0)
+            if best_i >= 0 and (best_d < bound * bound or bound == np.inf):
+                found = True
+                break
+            if bound == np.inf:  # the whole grid was scanned and it is empty
                 break
             r += 1
-        out[j] = besti
+        out[q] = best_i if found else -1
+        if found:
+            warm = best_i
     return out
 
 
-def _edges(v: np.ndarray, g: int) -> np.ndarray:
-    q = np.quantile(v, np.linspace(0.0, 1.0, g + 1))
-    q = np.unique(q)
-    if q.shape[0] < 2:
-        q = np.array([v.min() - 1.0, v.max() + 1.0])
-    return q.astype(np.float64)
-
-
 class NN2D:
-    """Index (N, 2) points once, then find the nearest one to each of many (M, 2) queries."""
+    """Index (N, 2) points once, then find the nearest one to each of many (M, 2) queries.
 
-    def __init__(self, points: np.ndarray | tuple[np.ndarray, np.ndarray], points_per_cell: float = 2.0) -> None:
-        if isinstance(points, tuple):  # (x, y) columns
+    ``points`` may be an (N, 2) array or an (x, y) tuple of columns."""
+
+    def __init__(self, points: np.ndarray | tuple[np.ndarray, np.ndarray], per_cell: float = PER_CELL) -> None:
+        if isinstance(points, tuple):
             px, py = points
         else:
             points = np.asarray(points, dtype=np.float64)
             px, py = points[:, 0], points[:, 1]
-        self.n = int(px.shape[0])
         self.px = np.ascontiguousarray(px, dtype=np.float64)
         self.py = np.ascontiguousarray(py, dtype=np.float64)
+        self.n = int(self.px.shape[0])
+        self.per_cell = float(per_cell)
+        self._coarse = None
         if self.n == 0:
             return
-        g = max(1, int(np.sqrt(self.n / points_per_cell)))
-        # subsample for the quantiles: edges need not be exact quantiles to keep answers exact
-        sub = slice(None, None, max(1, self.n // 50_000))
-        self.ex = _edges(self.px[sub], g)
-        self.ey = _edges(self.py[sub], g)
-        nbx, nby = 4 * (len(self.ex) - 1), 4 * (len(self.ey) - 1)
-        self.lx, self.ly = _lut(self.ex, nbx), _lut(self.ey, nby)
-        self.ix = nbx / max(self.ex[-1] - self.ex[0], 1e-300)
-        self.iy = nby / max(self.ey[-1] - self.ey[0], 1e-300)
-        self.ncells = (len(self.ex) - 1) * (len(self.ey) - 1)
-        cell = _cells(self.px, self.py, self.ex, self.ey, self.lx, self.ly, self.ix, self.iy)
-        self.start, self.order = _build(cell, self.ncells)
-        # points stored cell by cell, so that a query scans contiguous memory
-        self.sx = self.px[self.order]
-        self.sy = self.py[self.order]
+        self.fine = self._grid(self.per_cell)
 
-    def query(self, queries: np.ndarray) -> np.ndarray:
+    def _grid(self, per_cell: float):
+        x0, x1, y0, y1 = _bbox(self.px, self.py)
+        wx = max(x1 - x0, 1e-9)
+        wy = max(y1 - y0, 1e-9)
+        cells = max(1.0, min(self.n / per_cell, 2.0**30))
+        nx = int(min(max(round(math.sqrt(cells * wx / wy)), 1), cells))
+        ny = int(min(max(round(cells / nx), 1), cells))
+        # cells a hair wider than the box, so that its far edge lies inside the last cell
+        hx = wx / nx * (1 + 1e-9)
+        hy = wy / ny * (1 + 1e-9)
+        starts, sp, sidx = _build(self.px, self.py, x0, y0, hx, hy, nx, ny)
+        tol = 1e-12 * (1.0 + max(abs(x0), abs(x1), abs(y0), abs(y1)))
+        return starts, sp, sidx, x0, y0, hx, hy, nx, ny, tol
+
+    def query(self, queries: np.ndarray | tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Index of the nearest point per query (-1 when there are no points)."""
-        queries = np.asarray(queries, dtype=np.float64)
-        if self.n == 0:
-            return np.full(queries.shape[0], -1, np.int64)
-        qx = np.ascontiguousarray(queries[:, 0])
-        qy = np.ascontiguousarray(queries[:, 1])
-        qcell = _cells(qx, qy, self.ex, self.ey, self.lx, self.ly, self.ix, self.iy)
-        _, qorder = _build(qcell, self.ncells)
-        return _query(self.sx, self.sy, self.ex, self.ey, self.start, self.order, qx, qy, qcell, qorder)
+        if isinstance(queries, tuple):
+            qx, qy = queries
+        else:
+            queries = np.asarray(queries, dtype=np.float64)
+            qx, qy = queries[:, 0], queries[:, 1]
+        qx = np.ascontiguousarray(qx, dtype=np.float64)
+        qy = np.ascontiguousarray(qy, dtype=np.float64)
+        m = qx.shape[0]
+        out = np.full(m, -1, np.int64)
+        if self.n == 0 or m == 0:
+            return out
+        _query(qx, qy, np.arange(m), self.px, self.py, *self.fine, MAX_RINGS, out)
+        left = np.flatnonzero(out < 0)
+        if left.size:
+            if self._coarse is None:
+                self._coarse = self._grid(self.per_cell * COARSE * COARSE)
+            _query(qx, qy, left, self.px, self.py, *self._coarse, -1, out)
+        return out

@@ -40,7 +40,7 @@ class ZBufferOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
-@nb.njit(nogil=True, cache=True)
+@nb.njit(nogil=True, parallel=True, cache=True)
 def spherical(cols, origin, R):
     """Azimuth, elevation and range of (3, N) points (``cols``: x, y, z rows) seen from
     ``origin`` with rotation ``R`` (sensor-to-reference), i.e. in the sensor frame."""
@@ -55,7 +55,7 @@ def spherical(cols, origin, R):
     X = cols[0]
     Y = cols[1]
     Z = cols[2]
-    for i in range(n):
+    for i in nb.prange(n):
         rx = X[i] - o0
         ry = Y[i] - o1
         rz = Z[i] - o2

@@ -50,7 +50,7 @@ def _renderer(cls, sample):
     agg = aggregate(sample)
     vws = views(sample, False)
     if cls is RaycastFourDOcc:
-        return lambda: [render_4docc(agg.points, v.origin, v.directions) for v in vws]
+        return lambda: map_views(lambda v: render_4docc(agg.cols, v.origin, v.dcols), vws)
     if cls is RaycastZBuffer:
         return lambda: map_views(lambda v: render_zbuffer(agg.cols, agg.own_range, v, opts), vws)
     grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
@@ -83,8 +83,7 @@ def test_sample(benchmark, sample, cls):
 
 def _ray_queries(cls, sample):
     """Only the per-ray part of every view, its per-view scene (index, image, grid) built beforehand."""
-    from bench.metrics.nn import angles_4docc
-    from methods.raycast.fourdocc import _angles_ranges
+    from methods.raycast.fourdocc import angles
     from methods.raycast.nn2d import NN2D
     from methods.raycast.zbuffer import _lookup, build_image, spherical
 
@@ -94,8 +93,7 @@ def _ray_queries(cls, sample):
     if cls is RaycastFourDOcc:
         jobs = []
         for v in vws:
-            u, w, _ = _angles_ranges(agg.points, v.origin)
-            jobs.append((NN2D((u, w)), angles_4docc(v.directions)))
+            jobs.append((NN2D(angles(agg.cols, v.origin)), angles(v.dcols, np.zeros(3))))
         return lambda: [index.query(q) for index, q in jobs]
     if cls is RaycastZBuffer:
         jobs = []
