@@ -23,7 +23,7 @@ from bench.data import Forecast, Sample
 from bench.method import Method
 from methods.raycast.common import aggregate, assemble, map_views, views
 from methods.raycast.grid import VoxelGrid
-from methods.raycast.voxel import render_voxel
+from methods.raycast.voxel import PYRAMID, render_voxel
 from methods.raycast.zbuffer import render_zbuffer
 
 
@@ -65,7 +65,7 @@ class RaycastFreespace(Method):
 
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
-        grid = VoxelGrid(agg.points, voxel=self.options.voxel, levels=max(self.options.max_level, 3))
+        grid = VoxelGrid(agg.points, voxel=self.options.voxel, levels=max(self.options.max_level, PYRAMID))
         keep = carve(grid, agg.origins, agg.points, agg.own_range, self.options)
         cols, own = np.ascontiguousarray(agg.cols[:, keep]), agg.own_range[keep]
         vws = views(sample, self.options.constant_velocity)

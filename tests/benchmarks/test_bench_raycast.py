@@ -26,7 +26,7 @@ from methods.raycast.common import aggregate, map_views, views
 from methods.raycast.fourdocc import RaycastFourDOcc, render_4docc
 from methods.raycast.freespace import RaycastFreespace, carve
 from methods.raycast.grid import VoxelGrid
-from methods.raycast.voxel import RaycastVoxel, render_voxel
+from methods.raycast.voxel import PYRAMID, RaycastVoxel, render_voxel
 from methods.raycast.zbuffer import RaycastZBuffer, render_zbuffer
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
@@ -53,7 +53,7 @@ def _renderer(cls, sample):
         return lambda: map_views(lambda v: render_4docc(agg.cols, v.origin, v.dcols), vws)
     if cls is RaycastZBuffer:
         return lambda: map_views(lambda v: render_zbuffer(agg.cols, agg.own_range, v, opts), vws)
-    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
+    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, PYRAMID))
     cols, own = agg.cols, agg.own_range
     if cls is RaycastFreespace:
         keep = carve(grid, agg.origins, agg.points, agg.own_range, opts)
@@ -103,7 +103,7 @@ def _ray_queries(cls, sample):
             im = build_image(agg.cols, agg.own_range, v.origin, R, qel, opts.az_res_deg, opts.el_res_deg, opts.splat, opts.max_splat)
             jobs.append((im, qaz, qel))
         return lambda: [_lookup(im.img, qaz, qel, im.el0, im.az_res, im.el_res, im.n_az, im.n_el, opts.fill_ring) for im, qaz, qel in jobs]
-    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, 3))
+    grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, PYRAMID))
     if cls is RaycastFreespace:
         carve(grid, agg.origins, agg.points, agg.own_range, opts)
     cone = opts.cone_factor * np.deg2rad(opts.el_res_deg)
