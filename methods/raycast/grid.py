@@ -90,14 +90,13 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center):
     d0, d1, d2 = d[0], d[1], d[2]
     l0, l1, l2 = lo[0], lo[1], lo[2]
     c0, c1, c2 = center[0], center[1], center[2]
-    ivs = 1.0 / vs
     while t < t1:
         x = o0 + d0 * t
         y = o1 + d1 * t
         z = o2 + d2 * t
-        fa = (x - l0) * ivs
-        fb = (y - l1) * ivs
-        fc = (z - l2) * ivs
+        fa = (x - l0) / vs  # as _voxel_keys computes it, so that a ray along a face agrees
+        fb = (y - l1) / vs
+        fc = (z - l2) / vs
         if fa < -tol or fb < -tol or fc < -tol or fa > nx0 + tol or fb > ny0 + tol or fc > nz0 + tol:
             break  # the ray has left the grid
         a = min(max(int(np.floor(fa)), 0), nx0 - 1)  # rounding at the faces
