@@ -69,16 +69,17 @@ def spherical(cols, origin, R):
     return az, el, rng
 
 
-_BLOCK = 2048  # points per work item of the z-buffer pass
-
-
-@nb.njit(nogil=True, cache=True)
-def _project_splat(cols, own, origin, R, el0, az_res, el_res, n_az, n_el, splat, max_splat):
-    """The z-buffer of (3, N) points seen from ``origin`` (rotation ``R``) in one pass over
-    blocks of points: a vectorised projection of the block (bin, range, splat half-widths),
-    then the splat of the block into the image (nearest range per bin)."""
+@nb.njit(nogil=True, parallel=True, cache=True)
+def _project(cols, own, origin, R, el0, az_res, el_res, splat, max_splat):
+    """Bin, range and splat half-widths of (3, N) points seen from ``origin`` (rotation ``R``):
+    (column, row, half-width in columns, half-height in rows (-1: at the origin, skipped),
+    range float32). One vectorised pass (see common.map_views on prange)."""
     n = cols.shape[1]
-    img = np.full(n_el * n_az, np.inf, np.float32)
+    ci = np.empty(n, np.int32)
+    ri = np.empty(n, np.int32)
+    hx = np.empty(n, np.int32)
+    hy = np.empty(n, np.int32)
+    rf = np.empty(n, np.float32)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
@@ -86,68 +87,61 @@ def _project_splat(cols, own, origin, R, el0, az_res, el_res, n_az, n_el, splat,
     X = cols[0]
     Y = cols[1]
     Z = cols[2]
-    nblocks = (n + _BLOCK - 1) // _BLOCK
-    for blk in range(nblocks):
-        lo = blk * _BLOCK
-        m = min(n, lo + _BLOCK) - lo
-        fa = np.empty(m)
-        fe = np.empty(m)
-        wa = np.empty(m)
-        we = np.empty(m)
-        rr = np.empty(m)
-        bx = X[lo : lo + m]
-        by = Y[lo : lo + m]
-        bz = Z[lo : lo + m]
-        bo = own[lo : lo + m]
-        for k in range(m):  # float only, so that it vectorises
-            rx = bx[k] - o0
-            ry = by[k] - o1
-            rz = bz[k] - o2
-            x = r00 * rx + r10 * ry + r20 * rz
-            y = r01 * rx + r11 * ry + r21 * rz
-            z = r02 * rx + r12 * ry + r22 * rz
-            h = np.sqrt(x * x + y * y)
-            r = np.sqrt(h * h + z * z)
-            a = 0.5 * splat * bo[k] * el_res / r  # angular radius of the point's footprint
-            fa[k] = (atan2(y, x) + np.pi) / az_res
-            fe[k] = (atan2(z, h) - el0) / el_res
-            wa[k] = a / (az_res * max(h / r, 0.05))  # cos(el) = h / r: no call to the C library
-            we[k] = a / el_res
-            rr[k] = r
-        for k in range(m):
-            if not rr[k] > 1e-3:
+    for i in nb.prange(n):
+        rx = X[i] - o0
+        ry = Y[i] - o1
+        rz = Z[i] - o2
+        x = r00 * rx + r10 * ry + r20 * rz
+        y = r01 * rx + r11 * ry + r21 * rz
+        z = r02 * rx + r12 * ry + r22 * rz
+        h = np.sqrt(x * x + y * y)
+        r = np.sqrt(h * h + z * z)
+        a = 0.5 * splat * own[i] * el_res / r  # angular radius of the point's footprint
+        ci[i] = int(np.floor((atan2(y, x) + np.pi) / az_res))
+        ri[i] = int(np.floor((atan2(z, h) - el0) / el_res))
+        # cos(el) = h / r: no call to the C library's cos, which would stop the vectorisation
+        hx[i] = min(int(a / (az_res * max(h / r, 0.05))), max_splat)
+        hy[i] = min(int(a / el_res), max_splat) if r > 1e-3 else -1
+        rf[i] = np.float32(r)
+    return ci, ri, hx, hy, rf
+
+
+@nb.njit(nogil=True, cache=True)
+def _splat(ci, ri, hx, hy, rf, n_az, n_el):
+    """The z-buffer: each point's range kept in the bins of its footprint where it is nearest."""
+    img = np.full(n_el * n_az, np.inf, np.float32)
+    for k in range(ci.shape[0]):
+        b_hy = hy[k]
+        b_ri = ri[k]
+        if b_hy < 0 or b_ri + b_hy < 0 or b_ri - b_hy >= n_el:
+            continue
+        b_ci = ci[k]
+        b_hx = hx[k]
+        v = rf[k]
+        if b_hy == 0 and b_hx <= 1 and 0 <= b_ri < n_el and 0 <= b_ci < n_az:
+            # the common footprint, one row of 1 or 3 bins, without branches that the
+            # processor mispredicts (a bin left out takes min(., inf), which leaves it)
+            base = b_ri * n_az
+            side = v if b_hx == 1 else np.float32(np.inf)
+            cm = b_ci - 1 if b_ci > 0 else n_az - 1
+            cp = b_ci + 1 if b_ci + 1 < n_az else 0
+            img[base + cm] = min(img[base + cm], side)
+            img[base + b_ci] = min(img[base + b_ci], v)
+            img[base + cp] = min(img[base + cp], side)
+            continue
+        for dy in range(-b_hy, b_hy + 1):
+            row = b_ri + dy
+            if row < 0 or row >= n_el:
                 continue
-            b_ri = int(np.floor(fe[k]))
-            b_hy = min(int(we[k]), max_splat)
-            if b_ri + b_hy < 0 or b_ri - b_hy >= n_el:
-                continue
-            b_ci = int(np.floor(fa[k]))
-            b_hx = min(int(wa[k]), max_splat)
-            v = np.float32(rr[k])
-            if b_hy == 0 and b_hx <= 1 and 0 <= b_ri < n_el and 0 <= b_ci < n_az:
-                # the common footprint, one row of 1 or 3 bins, without branches that the
-                # processor mispredicts (a bin left out takes min(., inf), which leaves it)
-                base = b_ri * n_az
-                side = v if b_hx == 1 else np.float32(np.inf)
-                cm = b_ci - 1 if b_ci > 0 else n_az - 1
-                cp = b_ci + 1 if b_ci + 1 < n_az else 0
-                img[base + cm] = min(img[base + cm], side)
-                img[base + b_ci] = min(img[base + b_ci], v)
-                img[base + cp] = min(img[base + cp], side)
-                continue
-            for dy in range(-b_hy, b_hy + 1):
-                row = b_ri + dy
-                if row < 0 or row >= n_el:
-                    continue
-                base = row * n_az
-                for dx in range(-b_hx, b_hx + 1):
-                    c = b_ci + dx  # wrap around in azimuth, without an integer division
-                    while c < 0:
-                        c += n_az
-                    while c >= n_az:
-                        c -= n_az
-                    if v < img[base + c]:
-                        img[base + c] = v
+            base = row * n_az
+            for dx in range(-b_hx, b_hx + 1):
+                c = b_ci + dx  # wrap around in azimuth, without an integer division
+                while c < 0:
+                    c += n_az
+                while c >= n_az:
+                    c -= n_az
+                if v < img[base + c]:
+                    img[base + c] = v
     return img
 
 
@@ -235,10 +229,11 @@ def image_geometry(qel, az_res_deg, el_res_deg) -> tuple[float, float, float, in
 def build_image(cols, own, origin, R, qel, az_res_deg, el_res_deg, splat, max_splat) -> RangeImage:
     """The z-buffer of (3, N) points ``cols`` seen from ``origin`` with rotation ``R``, over the rows of ``qel``."""
     el0, az_res, el_res, n_az, n_el = image_geometry(qel, az_res_deg, el_res_deg)
-    img = _project_splat(
+    proj = _project(
         cols, np.ascontiguousarray(own, dtype=np.float64), np.asarray(origin, dtype=np.float64),
-        np.ascontiguousarray(R, dtype=np.float64), el0, az_res, el_res, n_az, n_el, float(splat), int(max_splat),
+        np.ascontiguousarray(R, dtype=np.float64), el0, az_res, el_res, float(splat), int(max_splat),
     )
+    img = _splat(*proj, n_az, n_el)
     return RangeImage(img, el0, az_res, el_res, n_az, n_el)
 
 
