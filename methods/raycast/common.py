@@ -169,7 +169,7 @@ def map_views(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
     threads at the end of every kernel, and on the shared 2-core machine a thread that waits
     for a core held everyone up (5 zbuffer views took 192 ms with prange on 2 threads and
     51 ms serial on 1, same run, loaded machine). A thread slowed down here just takes fewer
-    views. The kernels keep ``prange`` loops where numba's parallel lowering is what makes
+    views (or pieces of views: ``pieces``). The kernels keep ``prange`` loops where numba's parallel lowering is what makes
     LLVM vectorise them (the projections: 2.2 ms against 12 ms for a plain loop on 636k
     points, one thread); with one numba thread they run inline.
     """
@@ -183,6 +183,15 @@ def map_views(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
             numba.set_num_threads(before)
     with ThreadPoolExecutor(max_workers=workers, initializer=numba.set_num_threads, initargs=(1,)) as pool:
         return list(pool.map(fn, items))
+
+
+#: rays per piece of work when a view's rays are shared out over threads (see map_views)
+PIECE = 32_768
+
+
+def pieces(n: int, size: int = PIECE) -> list[slice]:
+    """``range(n)`` cut into consecutive slices of at most ``size`` (at least one slice)."""
+    return [slice(a, min(a + size, n)) for a in range(0, max(n, 1), size)]
 
 
 def assemble(sample: Sample, vws: list[View], depths: list[np.ndarray], constant_velocity: bool) -> Forecast:

@@ -18,7 +18,7 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, views
+from methods.raycast.common import aggregate, assemble, map_views, pieces, views
 from methods.raycast.fastmath import atan2
 from methods.raycast.nn2d import NN2D
 
@@ -59,14 +59,25 @@ def _ranges(cols, origin, idx):
     return out
 
 
-def render_4docc(cols: np.ndarray, origin: np.ndarray, dcols: np.ndarray) -> np.ndarray:
-    """Depth per ray (directions ``dcols``, (3, M)): the range of the angle-space nearest past
-    point among ``cols`` (3, N) (0 with no points)."""
+def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
+    """Depth per ray of each view (``common.View``): the range of the angle-space nearest past
+    point among ``cols`` (3, N) (0 with no points). Each view's index is built on one thread,
+    then the queries go to the threads in pieces of ``PIECE`` rays."""
     if cols.shape[1] == 0:
-        return np.zeros(dcols.shape[1])
-    origin = np.asarray(origin, dtype=np.float64)
-    nearest = NN2D(angles(cols, origin)).query(angles(dcols, np.zeros(3)))
-    return _ranges(cols, origin, nearest)
+        return [np.zeros(v.dcols.shape[1]) for v in vws]
+    built = map_views(lambda v: (NN2D(angles(cols, v.origin)), angles(v.dcols, np.zeros(3))), vws)
+    jobs = [(k, sl) for k, v in enumerate(vws) for sl in pieces(v.dcols.shape[1])]
+    parts = iter(map_views(lambda job: built[job[0]][0].query(tuple(q[job[1]] for q in built[job[0]][1])), jobs))
+    out = []
+    for v in vws:
+        nearest = np.concatenate([next(parts) for _ in pieces(v.dcols.shape[1])])
+        out.append(_ranges(cols, np.asarray(v.origin, dtype=np.float64), nearest))
+    return out
+
+
+def render_4docc(cols: np.ndarray, view) -> np.ndarray:
+    """``render_4docc_views`` of one view."""
+    return render_4docc_views(cols, [view])[0]
 
 
 class RaycastFourDOcc(Method):
@@ -77,5 +88,5 @@ class RaycastFourDOcc(Method):
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
         vws = views(sample, self.options.constant_velocity)
-        depths = map_views(lambda v: render_4docc(agg.cols, v.origin, v.dcols), vws)
+        depths = render_4docc_views(agg.cols, vws)
         return assemble(sample, vws, depths, self.options.constant_velocity)

@@ -21,10 +21,10 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, views
+from methods.raycast.common import aggregate, assemble, views
 from methods.raycast.grid import VoxelGrid
-from methods.raycast.voxel import PYRAMID, render_voxel
-from methods.raycast.zbuffer import render_zbuffer
+from methods.raycast.voxel import PYRAMID, render_voxel_views
+from methods.raycast.zbuffer import render_zbuffer_views
 
 
 @dataclass(frozen=True)
@@ -70,7 +70,7 @@ class RaycastFreespace(Method):
         cols, own = np.ascontiguousarray(agg.cols[:, keep]), agg.own_range[keep]
         vws = views(sample, self.options.constant_velocity)
         if self.options.renderer == "zbuffer":
-            depths = map_views(lambda v: render_zbuffer(cols, own, v, self.options), vws)
+            depths = render_zbuffer_views(cols, own, vws, self.options)
         else:
-            depths = map_views(lambda v: render_voxel(grid, cols, own, v, self.options), vws)
+            depths = render_voxel_views(grid, cols, own, vws, self.options)
         return assemble(sample, vws, depths, self.options.constant_velocity)

@@ -44,19 +44,25 @@ def _bbox(px, py):
     return x0, x1, y0, y1
 
 
-@nb.njit(nogil=True, cache=True)
-def _build(px, py, x0, y0, hx, hy, nx, ny):
-    """Counting sort of the points into cells: (starts (nx*ny+1,) int32, sorted (K, 2) float64
-    interleaved x, y, sorted_index (K,) int32)."""
+@nb.njit(nogil=True, parallel=True, cache=True)
+def _cells(px, py, x0, y0, hx, hy, nx, ny):
+    """Cell of each point, clamped to the grid (prange: numba vectorises it)."""
     n = px.shape[0]
     ivx = 1.0 / hx
     ivy = 1.0 / hy
     keys = np.empty(n, np.int32)
-    for i in range(n):
+    for i in nb.prange(n):
         cx = min(max(int(math.floor((px[i] - x0) * ivx)), 0), nx - 1)
         cy = min(max(int(math.floor((py[i] - y0) * ivy)), 0), ny - 1)
         keys[i] = cx * ny + cy
-    ncell = nx * ny
+    return keys
+
+
+@nb.njit(nogil=True, cache=True)
+def _build(px, py, keys, ncell):
+    """Counting sort of the points into their cells ``keys``: (starts (ncell+1,) int32, sorted
+    (K, 2) float64 interleaved x, y, sorted_index (K,) int32)."""
+    n = px.shape[0]
     starts = np.zeros(ncell + 1, np.int32)
     for i in range(n):
         starts[keys[i] + 1] += 1
@@ -202,7 +208,8 @@ class NN2D:
         # cells a hair wider than the box, so that its far edge lies inside the last cell
         hx = wx / nx * (1 + 1e-9)
         hy = wy / ny * (1 + 1e-9)
-        starts, sp, sidx = _build(self.px, self.py, x0, y0, hx, hy, nx, ny)
+        keys = _cells(self.px, self.py, x0, y0, hx, hy, nx, ny)
+        starts, sp, sidx = _build(self.px, self.py, keys, nx * ny)
         tol = 1e-12 * (1.0 + max(abs(x0), abs(x1), abs(y0), abs(y1)))
         return starts, sp, sidx, x0, y0, hx, hy, nx, ny, tol
 

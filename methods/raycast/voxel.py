@@ -29,7 +29,7 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, views
+from methods.raycast.common import aggregate, assemble, map_views, pieces, views
 from methods.raycast.grid import VoxelGrid
 from methods.raycast.zbuffer import ZBufferOptions, render_zbuffer
 
@@ -52,17 +52,33 @@ class VoxelOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
-def render_voxel(grid: VoxelGrid, cols, own_range, view, opts) -> np.ndarray:
-    """Depth per query ray of ``view``; ``cols`` (3, N) and ``own_range`` are the past points
-    of the z-buffer fallback (see ``render_zbuffer``)."""
+def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts) -> list[np.ndarray]:
+    """Depth per query ray of each view of ``vws``; ``cols`` (3, N) and ``own_range`` are the
+    past points of the z-buffer fallback (see ``render_zbuffer``). The casts go to the threads
+    in pieces of ``PIECE`` rays (finer than views, so that the threads finish together), then
+    the fallback of each view with escaped rays."""
     cone = opts.cone_factor * np.deg2rad(opts.el_res_deg)
     center = None if opts.cone_center == "future" else np.zeros(3)
-    depth = grid.cast(view.origin, view.directions, cone=cone, max_level=opts.max_level, cone_center=center)
-    miss = np.isnan(depth)
-    if miss.any():
-        zb = ZBufferOptions(az_res_deg=opts.az_res_deg, el_res_deg=opts.el_res_deg)
-        depth[miss] = render_zbuffer(cols, own_range, view.subset(miss), zb)
-    return depth
+    jobs = [(v, sl) for v in vws for sl in pieces(len(v.directions))]
+    parts = iter(map_views(
+        lambda job: grid.cast(job[0].origin, job[0].directions[job[1]], cone=cone, max_level=opts.max_level,
+                              cone_center=center),
+        jobs,
+    ))
+    depths = [np.concatenate([next(parts) for _ in pieces(len(v.directions))]) for v in vws]
+    zb = ZBufferOptions(az_res_deg=opts.az_res_deg, el_res_deg=opts.el_res_deg)
+
+    def fallback(k: int) -> None:
+        miss = np.isnan(depths[k])
+        depths[k][miss] = render_zbuffer(cols, own_range, vws[k].subset(miss), zb)
+
+    map_views(fallback, [k for k, d in enumerate(depths) if np.isnan(d).any()])
+    return depths
+
+
+def render_voxel(grid: VoxelGrid, cols, own_range, view, opts) -> np.ndarray:
+    """``render_voxel_views`` of one view."""
+    return render_voxel_views(grid, cols, own_range, [view], opts)[0]
 
 
 class RaycastVoxel(Method):
@@ -74,5 +90,5 @@ class RaycastVoxel(Method):
         agg = aggregate(sample)
         grid = VoxelGrid(agg.points, voxel=self.options.voxel, levels=max(self.options.max_level, PYRAMID))
         vws = views(sample, self.options.constant_velocity)
-        depths = map_views(lambda v: render_voxel(grid, agg.cols, agg.own_range, v, self.options), vws)
+        depths = render_voxel_views(grid, agg.cols, agg.own_range, vws, self.options)
         return assemble(sample, vws, depths, self.options.constant_velocity)

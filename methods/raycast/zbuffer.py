@@ -270,6 +270,11 @@ def render_zbuffer(cols, own_range, view, opts) -> np.ndarray:
     return depth
 
 
+def render_zbuffer_views(cols, own_range, vws, opts) -> list[np.ndarray]:
+    """``render_zbuffer`` of each view of ``vws``, the views shared out over the threads."""
+    return map_views(lambda v: render_zbuffer(cols, own_range, v, opts), vws)
+
+
 class RaycastZBuffer(Method):
     name = "raycast-zbuffer"
     version = "1"
@@ -278,5 +283,5 @@ class RaycastZBuffer(Method):
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
         vws = views(sample, self.options.constant_velocity)
-        depths = map_views(lambda v: render_zbuffer(agg.cols, agg.own_range, v, self.options), vws)
+        depths = render_zbuffer_views(agg.cols, agg.own_range, vws, self.options)
         return assemble(sample, vws, depths, self.options.constant_velocity)
