@@ -11,6 +11,7 @@ from bench.roi import Box
 from bench.testing import check_method
 from bench.metrics.nn import angles_4docc
 from methods.raycast.common import constant_velocity_poses, se3_exp, se3_log
+from methods.raycast.fastmath import atan2_array
 from methods.raycast.fourdocc import RaycastFourDOcc
 from methods.raycast.freespace import RaycastFreespace
 from methods.raycast.grid import VoxelGrid
@@ -278,6 +279,30 @@ def test_nn2d_exact_on_clustered_data_with_duplicates():
     dist = ((q[:, None, :] - pts[None]) ** 2).sum(-1)
     np.testing.assert_allclose(dist[np.arange(len(q)), got], dist.min(1), rtol=0, atol=0)
     assert (NN2D(np.zeros((0, 2))).query(q) == -1).all()
+
+
+def test_nn2d_ties_go_to_the_lowest_index_and_far_queries_are_exact():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1, 1, (4000, 2))
+    pts[100:110] = pts[3000]  # duplicates of a later point: the lowest index must win
+    grid_pts = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0)), -1).reshape(-1, 2) + 10.0
+    pts = np.concatenate([pts, grid_pts])  # a lattice far away: queries between lattice points tie
+    q = np.concatenate([pts[3000:3001], [[10.5, 10.5], [12.5, 11.0]], rng.uniform(-30, 30, (300, 2))])
+    got = NN2D(pts).query(q)
+    dist = ((q[:, None, :] - pts[None]) ** 2).sum(-1)
+    np.testing.assert_array_equal(got, dist.argmin(1))  # argmin: the first of equal minima
+    assert got[0] == 100
+
+
+def test_fast_atan2_matches_the_c_library_to_2_ulp():
+    rng = np.random.default_rng(2)
+    y = np.concatenate([rng.normal(size=20000) * rng.choice([1e-6, 1.0, 1e6], 20000), [0.0, -0.0, 0.0, 1.0, -1.0, 1.0]])
+    x = np.concatenate([rng.normal(size=20000), [-1.0, -1.0, 1.0, 0.0, 0.0, 1.0]])
+    got = atan2_array(y, x)
+    ref = np.arctan2(y, x)
+    assert np.all(np.abs(got - ref) <= 2 * np.spacing(np.abs(ref)) + 1e-300)
+    assert np.array_equal(np.signbit(got), np.signbit(ref))  # signed zeros and +-pi
+    assert got[-3] == ref[-3] == np.pi / 2 and got[-1] == ref[-1] == np.pi / 4
 
 
 def test_4docc_angle_space_is_the_reference_quirk():

@@ -7,6 +7,13 @@ Euclidean distance, no wrap-around) gives its range ``|p - o|``, and the forecas
 placed at that range on the query ray. There is no first-hit logic: a far point can win
 over a nearer one at almost the same angle, so occluded background shows through; this is
 the reference's behaviour and is kept on purpose.
+
+Per view, the angles of all past points and rays come from one vectorised pass
+(``fastmath.atan2``, within 2 ulp of the C library, the same function for points and rays)
+and the nearest point of every ray from an exact bucket-grid search (``nn2d``; ties go to
+the lowest point index, like a brute-force argmin). The chosen points were the same as with
+numpy's ``arctan2`` and the former quantile-grid index for all 635,759 rays of the
+KITTI-sized benchmark sample.
 """
 
 from __future__ import annotations

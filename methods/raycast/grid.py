@@ -14,6 +14,15 @@ when the fine ray still slips through, the middle of the ray's segment in the co
 the hit. A level-0 hit answers the projection of the mean of the voxel's points on the ray
 (clamped to the ray's segment in the voxel), which removes the voxel quantisation for
 surfaces facing the sensor.
+
+Speed: the pyramid is one bit per cell (the 0.2 m level of the ROI is 24 M cells, 3 MB
+packed), a hit voxel's points are found through the first key of its (x, y) column instead
+of a binary search over all occupied keys, and ``_cast`` is serial (nogil): the caller
+shares rays out over threads. Measured and left out: marching 4 or 8 rays side by side to
+overlap their dependent chains (no faster), multiplying by the inverse voxel size instead of
+dividing (2 % faster, but it moves points lying exactly on a voxel face), thresholds on the
+squared range instead of a square root for the cone level, and reading every level's bit
+per step instead of the climb-and-descend search (slower: the 0.2 m level then misses cache).
 """
 
 from __future__ import annotations
