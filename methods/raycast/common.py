@@ -14,6 +14,7 @@ so the metrics read it as a point cloud, as the reference code's
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
@@ -173,16 +174,53 @@ def map_views(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
     LLVM vectorise them (the projections: 2.2 ms against 12 ms for a plain loop on 636k
     points, one thread); with one numba thread they run inline.
     """
-    workers = min(numba.get_num_threads(), len(items))
-    if workers <= 1:
+    threads = numba.get_num_threads()
+    if min(threads, len(items)) <= 1:
         before = numba.get_num_threads()
         numba.set_num_threads(1)
         try:
             return [fn(x) for x in items]
         finally:
             numba.set_num_threads(before)
-    with ThreadPoolExecutor(max_workers=workers, initializer=numba.set_num_threads, initargs=(1,)) as pool:
-        return list(pool.map(fn, items))
+    return list(_pool(threads).map(fn, items))
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(size: int) -> ThreadPoolExecutor:
+    """The render threads, kept between calls so that their ``scratch`` buffers are too."""
+    global _POOL, _POOL_SIZE
+    with _POOL_LOCK:
+        if _POOL is None or _POOL_SIZE != size:
+            if _POOL is not None:
+                _POOL.shutdown(wait=False)
+            _POOL = ThreadPoolExecutor(max_workers=size, thread_name_prefix="raycast",
+                                       initializer=numba.set_num_threads, initargs=(1,))
+            _POOL_SIZE = size
+        return _POOL
+
+
+_LOCAL = threading.local()
+
+
+def scratch(name: str, n: int, dtype=np.float64) -> np.ndarray:
+    """A buffer of ``n`` items of this thread's, reused by its next request for ``name`` (so
+    only for temporaries that do not outlive one view's work; contents undefined).
+
+    A view's temporaries are tens of MB (4docc: angles, cell keys and the sorted copy of
+    ~640k points); fresh ones each view came as new pages from the kernel, zero-filled on
+    first touch, and two threads faulting them in waited on each other."""
+    bufs = getattr(_LOCAL, "bufs", None)
+    if bufs is None:
+        bufs = _LOCAL.bufs = {}
+    dtype = np.dtype(dtype)
+    buf = bufs.get(name)
+    if buf is None or buf.dtype != dtype or buf.shape[0] < n:
+        buf = bufs[name] = np.empty(max(n, 1), dtype)
+    return buf[:n]
 
 
 #: rays per piece of work when a view's rays are shared out over threads (see map_views)

@@ -25,7 +25,7 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, pieces, views
+from methods.raycast.common import aggregate, assemble, map_views, scratch, views
 from methods.raycast.fastmath import atan2
 from methods.raycast.nn2d import NN2D
 
@@ -36,21 +36,24 @@ class FourDOccOptions:
 
 
 @nb.njit(nogil=True, parallel=True, cache=True)
-def angles(cols, origin):
+def angles_into(cols, origin, u, v):
     """The reference angle space ``(atan2(x, y), atan2(z, y))`` of (3, N) points ``cols`` seen
-    from ``origin``: two (N,) arrays (vectorised; ``fastmath.atan2``)."""
-    n = cols.shape[1]
-    u = np.empty(n)
-    v = np.empty(n)
+    from ``origin``, into ``u`` and ``v`` (vectorised; ``fastmath.atan2``)."""
     X = cols[0]
     Y = cols[1]
     Z = cols[2]
     o0, o1, o2 = origin[0], origin[1], origin[2]
-    for i in nb.prange(n):
+    for i in nb.prange(cols.shape[1]):
         y = Y[i] - o1
         u[i] = atan2(X[i] - o0, y)
         v[i] = atan2(Z[i] - o2, y)
     return u, v
+
+
+def angles(cols: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``angles_into`` new arrays."""
+    n = cols.shape[1]
+    return angles_into(cols, np.asarray(origin, dtype=np.float64), np.empty(n), np.empty(n))
 
 
 @nb.njit(nogil=True, cache=True)
@@ -68,18 +71,19 @@ def _ranges(cols, origin, idx):
 
 def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
     """Depth per ray of each view (``common.View``): the range of the angle-space nearest past
-    point among ``cols`` (3, N) (0 with no points). Each view's index is built on one thread,
-    then the queries go to the threads in pieces of ``PIECE`` rays."""
+    point among ``cols`` (3, N) (0 with no points). The views go to the threads; each builds
+    its view's index in its own reused buffers (``common.scratch``), asks it and drops it."""
     if cols.shape[1] == 0:
         return [np.zeros(v.dcols.shape[1]) for v in vws]
-    built = map_views(lambda v: (NN2D(angles(cols, v.origin)), angles(v.dcols, np.zeros(3))), vws)
-    jobs = [(k, sl) for k, v in enumerate(vws) for sl in pieces(v.dcols.shape[1])]
-    parts = iter(map_views(lambda job: built[job[0]][0].query(tuple(q[job[1]] for q in built[job[0]][1])), jobs))
-    out = []
-    for v in vws:
-        nearest = np.concatenate([next(parts) for _ in pieces(v.dcols.shape[1])])
-        out.append(_ranges(cols, np.asarray(v.origin, dtype=np.float64), nearest))
-    return out
+    n = cols.shape[1]
+
+    def one(v) -> np.ndarray:
+        origin = np.asarray(v.origin, dtype=np.float64)
+        u, w = angles_into(cols, origin, scratch("4docc.u", n), scratch("4docc.v", n))
+        nearest = NN2D((u, w), reuse=True).query(angles(v.dcols, np.zeros(3)))
+        return _ranges(cols, origin, nearest)
+
+    return map_views(one, vws)
 
 
 def render_4docc(cols: np.ndarray, view) -> np.ndarray:

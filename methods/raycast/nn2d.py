@@ -22,6 +22,8 @@ import math
 import numba as nb
 import numpy as np
 
+from methods.raycast.common import scratch
+
 #: rings of the fine grid scanned before a query goes to the coarse grid
 MAX_RINGS = 2
 #: points per cell of the fine grid (on average over the bounding box)
@@ -45,12 +47,11 @@ def _bbox(px, py):
 
 
 @nb.njit(nogil=True, parallel=True, cache=True)
-def _cells(px, py, x0, y0, hx, hy, nx, ny):
-    """Cell of each point, clamped to the grid (prange: numba vectorises it)."""
+def _cells(px, py, x0, y0, hx, hy, nx, ny, keys):
+    """Cell of each point into ``keys``, clamped to the grid (prange: numba vectorises it)."""
     n = px.shape[0]
     ivx = 1.0 / hx
     ivy = 1.0 / hy
-    keys = np.empty(n, np.int32)
     for i in nb.prange(n):
         cx = min(max(int(math.floor((px[i] - x0) * ivx)), 0), nx - 1)
         cy = min(max(int(math.floor((py[i] - y0) * ivy)), 0), ny - 1)
@@ -59,26 +60,26 @@ def _cells(px, py, x0, y0, hx, hy, nx, ny):
 
 
 @nb.njit(nogil=True, cache=True)
-def _build(px, py, keys, ncell):
-    """Counting sort of the points into their cells ``keys``: (starts (ncell+1,) int32, sorted
-    (K, 2) float64 interleaved x, y, sorted_index (K,) int32)."""
+def _build(px, py, keys, starts, sp, sidx):
+    """Counting sort of the points into their cells ``keys``: fills ``starts`` (ncell+1,)
+    int32, ``sp`` (K, 2) float64 interleaved x, y and ``sidx`` (K,) int32, the sorted index."""
     n = px.shape[0]
-    starts = np.zeros(ncell + 1, np.int32)
+    ncell = starts.shape[0] - 1
+    starts[:] = 0
     for i in range(n):
         starts[keys[i] + 1] += 1
     for c in range(ncell):
         starts[c + 1] += starts[c]
-    fill = starts[:-1].copy()
-    sp = np.empty((n, 2))
-    sidx = np.empty(n, np.int32)
     for i in range(n):
         k = keys[i]
-        s = fill[k]
-        fill[k] = s + 1
+        s = starts[k]
+        starts[k] = s + 1
         sp[s, 0] = px[i]
         sp[s, 1] = py[i]
         sidx[s] = i
-    return starts, sp, sidx
+    for c in range(ncell, 0, -1):  # the fill advanced every start to the next one: undo
+        starts[c] = starts[c - 1]
+    starts[0] = 0
 
 
 @nb.njit(inline="always")
@@ -183,7 +184,10 @@ class NN2D:
 
     ``points`` may be an (N, 2) array or an (x, y) tuple of columns."""
 
-    def __init__(self, points: np.ndarray | tuple[np.ndarray, np.ndarray], per_cell: float = PER_CELL) -> None:
+    def __init__(self, points: np.ndarray | tuple[np.ndarray, np.ndarray], per_cell: float = PER_CELL,
+                 reuse: bool = False) -> None:
+        """``reuse``: build the index in this thread's ``common.scratch`` buffers (no allocation;
+        the index is then only valid until this thread builds another one)."""
         if isinstance(points, tuple):
             px, py = points
         else:
@@ -193,6 +197,7 @@ class NN2D:
         self.py = np.ascontiguousarray(py, dtype=np.float64)
         self.n = int(self.px.shape[0])
         self.per_cell = float(per_cell)
+        self.reuse = bool(reuse)
         self._coarse = None
         if self.n == 0:
             return
@@ -208,8 +213,19 @@ class NN2D:
         # cells a hair wider than the box, so that its far edge lies inside the last cell
         hx = wx / nx * (1 + 1e-9)
         hy = wy / ny * (1 + 1e-9)
-        keys = _cells(self.px, self.py, x0, y0, hx, hy, nx, ny)
-        starts, sp, sidx = _build(self.px, self.py, keys, nx * ny)
+        n = self.n
+        if self.reuse and per_cell == self.per_cell:
+            keys = scratch("nn2d.keys", n, np.int32)
+            starts = scratch("nn2d.starts", nx * ny + 1, np.int32)
+            sp = scratch("nn2d.sp", 2 * n).reshape(n, 2)
+            sidx = scratch("nn2d.sidx", n, np.int32)
+        else:
+            keys = np.empty(n, np.int32)
+            starts = np.empty(nx * ny + 1, np.int32)
+            sp = np.empty((n, 2))
+            sidx = np.empty(n, np.int32)
+        _cells(self.px, self.py, x0, y0, hx, hy, nx, ny, keys)
+        _build(self.px, self.py, keys, starts, sp, sidx)
         tol = 1e-12 * (1.0 + max(abs(x0), abs(x1), abs(y0), abs(y1)))
         return starts, sp, sidx, x0, y0, hx, hy, nx, ny, tol
 

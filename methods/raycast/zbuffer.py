@@ -31,7 +31,7 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, views
+from methods.raycast.common import aggregate, assemble, map_views, scratch, views
 from methods.raycast.fastmath import atan2
 from methods.raycast.nn2d import NN2D
 
@@ -76,16 +76,12 @@ def spherical(cols, origin, R):
 
 
 @nb.njit(nogil=True, parallel=True, cache=True)
-def _project(cols, own, origin, R, el0, az_res, el_res, splat, max_splat):
-    """Bin, range and splat half-widths of (3, N) points seen from ``origin`` (rotation ``R``):
-    (column, row, half-width in columns, half-height in rows (-1: at the origin, skipped),
-    range float32). One vectorised pass (see common.map_views on prange)."""
+def _project(cols, own, origin, R, el0, az_res, el_res, splat, max_splat, ci, ri, hx, hy, rf):
+    """Bin, range and splat half-widths of (3, N) points seen from ``origin`` (rotation ``R``)
+    into ``ci`` (column), ``ri`` (row), ``hx`` (half-width in columns), ``hy`` (half-height in
+    rows, -1: at the origin, skipped), ``rf`` (range, float32). One vectorised pass (see
+    common.map_views on prange)."""
     n = cols.shape[1]
-    ci = np.empty(n, np.int32)
-    ri = np.empty(n, np.int32)
-    hx = np.empty(n, np.int32)
-    hy = np.empty(n, np.int32)
-    rf = np.empty(n, np.float32)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
@@ -235,9 +231,12 @@ def image_geometry(qel, az_res_deg, el_res_deg) -> tuple[float, float, float, in
 def build_image(cols, own, origin, R, qel, az_res_deg, el_res_deg, splat, max_splat) -> RangeImage:
     """The z-buffer of (3, N) points ``cols`` seen from ``origin`` with rotation ``R``, over the rows of ``qel``."""
     el0, az_res, el_res, n_az, n_el = image_geometry(qel, az_res_deg, el_res_deg)
-    proj = _project(
+    n = cols.shape[1]
+    proj = (scratch("zb.ci", n, np.int32), scratch("zb.ri", n, np.int32), scratch("zb.hx", n, np.int32),
+            scratch("zb.hy", n, np.int32), scratch("zb.rf", n, np.float32))
+    _project(
         cols, np.ascontiguousarray(own, dtype=np.float64), np.asarray(origin, dtype=np.float64),
-        np.ascontiguousarray(R, dtype=np.float64), el0, az_res, el_res, float(splat), int(max_splat),
+        np.ascontiguousarray(R, dtype=np.float64), el0, az_res, el_res, float(splat), int(max_splat), *proj,
     )
     img = _splat(*proj, n_az, n_el)
     return RangeImage(img, el0, az_res, el_res, n_az, n_el)
