@@ -194,6 +194,21 @@ def test_spatial_skipping_samples_only_occupied_cells():
     assert h2[0, 0].item() == pytest.approx(25.6 / 32, rel=1e-4) and h2[0, -1].item() < 25.6
 
 
+def test_extra_uniform_samples_cover_the_whole_segment():
+    cfg = MICRO
+    mask = torch.zeros(1, cfg.grid_xy // cfg.skip_pool, cfg.grid_xy // cfg.skip_pool, cfg.grid_z, dtype=torch.bool)
+    mask[0, 10, 8, :] = True  # x in [6.4, 9.6), y in [0, 3.2)
+    o, d, b = torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]), torch.zeros(1, dtype=torch.long)
+    h = sample_along_rays(cfg, o, d, b, mask, 16, jitter=False, extra_uniform=8)
+    assert h.shape == (1, 24) and (h.diff(dim=1) >= 0).all()
+    outside = (h < 6.4 - cfg.candidate_step) | (h > 9.6 + cfg.candidate_step)
+    # the 8 extra samples sit at the centres of 8 equal strata of the in-box segment [0, 25.6]
+    expected = (torch.arange(8) + 0.5) * 25.6 / 8
+    extra = h[0][outside[0]]
+    assert torch.allclose(extra, expected[(expected < 6.4 - cfg.candidate_step) | (expected > 9.6 + cfg.candidate_step)])
+    assert (~outside).sum() >= 16
+
+
 def test_optimiser_and_schedule():
     cfg = PAPER
     assert lr_at(cfg, 0) == pytest.approx(cfg.lr / cfg.warmup)

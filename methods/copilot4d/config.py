@@ -47,6 +47,11 @@ class TokenizerConfig:
     # --- rendering ---
     rays_per_step: int = 4096  # rays sampled per sweep per training step
     samples_per_ray: int = 64  # N_r
+    # Training only: this many extra samples per ray drawn uniformly over the whole in-box
+    # segment, besides the N_r inside the ground-truth mask (the paper samples inside the mask
+    # only, so 0 there). They teach the NFG that space outside the mask is free, which keeps
+    # inference sound where the predicted coarse mask has false positives.
+    train_uniform_samples: int = 0
     candidate_step: float = 0.2  # spacing (m) of the candidate points used for spatial skipping
     skip_pool: int = 8  # max-pool factor in BEV for spatial skipping
     epsilon: float = 0.4  # margin of the weight-concentration term (m)

@@ -31,7 +31,7 @@ def pool_mask(cfg: TokenizerConfig, occ: torch.Tensor) -> torch.Tensor:
 
 def sample_along_rays(
     cfg: TokenizerConfig, origins: torch.Tensor, dirs: torch.Tensor, batch: torch.Tensor,
-    mask: torch.Tensor | None, n_samples: int, jitter: bool,
+    mask: torch.Tensor | None, n_samples: int, jitter: bool, extra_uniform: int = 0,
 ) -> torch.Tensor:
     """(R, n_samples) sorted ray depths h_i.
 
@@ -39,7 +39,17 @@ def sample_along_rays(
     over the parts of the ray inside non-empty coarse voxels, found on candidate points every
     ``candidate_step`` metres; rays that meet no non-empty voxel, or calls without a mask,
     sample the whole in-box segment uniformly. ``jitter`` stratifies the samples randomly.
+    ``extra_uniform`` more samples (stratified over the whole in-box segment) are merged in,
+    giving (R, n_samples + extra_uniform) depths.
     """
+    h = _sample_along_rays(cfg, origins, dirs, batch, mask, n_samples, jitter)
+    if extra_uniform <= 0:
+        return h
+    extra = _sample_along_rays(cfg, origins, dirs, batch, None, extra_uniform, jitter)
+    return torch.sort(torch.cat([h, extra], dim=1), dim=1).values
+
+
+def _sample_along_rays(cfg, origins, dirs, batch, mask, n_samples, jitter):
     t0, t1 = box_interval(cfg, origins, dirs)
     R = origins.shape[0]
     u = (torch.arange(n_samples, device=origins.device, dtype=origins.dtype) + 0.5)[None].expand(R, -1)

@@ -65,7 +65,7 @@ def count_parameters(model: nn.Module) -> int:
 def compute_losses(model: Tokenizer, batch: Batch, cfg: TokenizerConfig) -> dict[str, torch.Tensor]:
     """Forward pass of one training step: L_vq + equation 5 (L1 depth, weight concentration,
     coarse BCE). Training samples ray points inside the ground-truth non-empty voxels max-pooled
-    by ``skip_pool`` (figure 8)."""
+    by ``skip_pool`` (figure 8), plus ``train_uniform_samples`` uniform ones along the ray."""
     B = batch.size
     z = model.encoder(batch.points, batch.point_batch, B)
     zq, codes, l_vq = model.vq(z)
@@ -74,7 +74,8 @@ def compute_losses(model: Tokenizer, batch: Batch, cfg: TokenizerConfig) -> dict
         occ = occupancy_grid(cfg, batch.points, batch.point_batch, B)
         mask = pool_mask(cfg, occ)
     bce = F.binary_cross_entropy_with_logits(coarse.float(), occ)
-    h = sample_along_rays(cfg, batch.origins, batch.dirs, batch.ray_batch, mask, cfg.samples_per_ray, jitter=True)
+    h = sample_along_rays(cfg, batch.origins, batch.dirs, batch.ray_batch, mask, cfg.samples_per_ray, jitter=True,
+                          extra_uniform=cfg.train_uniform_samples)
     depth, w = render_depth(model.decoder, nfg, cfg, batch.origins, batch.dirs, batch.ray_batch, h)
     l1, conc = render_loss(depth, w, h, batch.depth, cfg.epsilon)
     loss = l1 + conc + bce + l_vq.float()
