@@ -115,7 +115,7 @@ TINY = TokenizerConfig(
     codebook_size=512, code_dim=64,
     nfg_up=2, nfg_dim=8, nfg_z=16, mlp_hidden=32,
     rays_per_step=2048, samples_per_ray=64, candidate_step=0.25,
-    warmup=100, decay_steps=1800, grad_clip=0.1, batch_size=1, max_steps=1800,
+    warmup=100, decay_steps=2400, grad_clip=0.1, batch_size=1, max_steps=2400,
     checkpoint_every=100, log_every=10,
 )
 
