@@ -46,6 +46,19 @@ class ZBufferOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
+@nb.njit(inline="always")
+def _in_sensor(cols, i, origin, R):
+    """Point ``i`` of (3, N) ``cols`` in the sensor frame at ``origin`` with rotation ``R``
+    (sensor-to-reference): ``R.T @ (p - origin)``, plus its horizontal range ``h``."""
+    rx = cols[0, i] - origin[0]
+    ry = cols[1, i] - origin[1]
+    rz = cols[2, i] - origin[2]
+    x = R[0, 0] * rx + R[1, 0] * ry + R[2, 0] * rz
+    y = R[0, 1] * rx + R[1, 1] * ry + R[2, 1] * rz
+    z = R[0, 2] * rx + R[1, 2] * ry + R[2, 2] * rz
+    return x, y, z, np.sqrt(x * x + y * y)
+
+
 @nb.njit(nogil=True, parallel=True, cache=True)
 def spherical(cols, origin, R):
     """Azimuth, elevation and range of (3, N) points (``cols``: x, y, z rows) seen from
@@ -54,21 +67,8 @@ def spherical(cols, origin, R):
     az = np.empty(n)
     el = np.empty(n)
     rng = np.empty(n)
-    o0, o1, o2 = origin[0], origin[1], origin[2]
-    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
-    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
-    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
-    X = cols[0]
-    Y = cols[1]
-    Z = cols[2]
     for i in nb.prange(n):
-        rx = X[i] - o0
-        ry = Y[i] - o1
-        rz = Z[i] - o2
-        x = r00 * rx + r10 * ry + r20 * rz
-        y = r01 * rx + r11 * ry + r21 * rz
-        z = r02 * rx + r12 * ry + r22 * rz
-        h = np.sqrt(x * x + y * y)
+        x, y, z, h = _in_sensor(cols, i, origin, R)
         az[i] = atan2(y, x)
         el[i] = atan2(z, h)
         rng[i] = np.sqrt(h * h + z * z)
@@ -82,21 +82,8 @@ def _project(cols, own, origin, R, el0, az_res, el_res, splat, max_splat, ci, ri
     rows, -1: at the origin, skipped), ``rf`` (range, float32). One vectorised pass (see
     common.map_views on prange)."""
     n = cols.shape[1]
-    o0, o1, o2 = origin[0], origin[1], origin[2]
-    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
-    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
-    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
-    X = cols[0]
-    Y = cols[1]
-    Z = cols[2]
     for i in nb.prange(n):
-        rx = X[i] - o0
-        ry = Y[i] - o1
-        rz = Z[i] - o2
-        x = r00 * rx + r10 * ry + r20 * rz
-        y = r01 * rx + r11 * ry + r21 * rz
-        z = r02 * rx + r12 * ry + r22 * rz
-        h = np.sqrt(x * x + y * y)
+        x, y, z, h = _in_sensor(cols, i, origin, R)
         r = np.sqrt(h * h + z * z)
         a = 0.5 * splat * own[i] * el_res / r  # angular radius of the point's footprint
         ci[i] = int(np.floor((atan2(y, x) + np.pi) / az_res))
