@@ -294,6 +294,35 @@ def test_nn2d_ties_go_to_the_lowest_index_and_far_queries_are_exact():
     assert got[0] == 100
 
 
+def test_nn2d_matches_argmin_on_banded_data_with_ties_across_cells():
+    # like the 4D-Occ angle space: most points in thin dense bands, a sparse rest; exact
+    # duplicates at scattered indices and queries equidistant from two points, so ties are
+    # decided between cells (a cell's branch-free scan must still give the lowest index)
+    rng = np.random.default_rng(11)
+    bands = [np.stack([rng.uniform(-3, 3, 3000), rng.normal(c, 0.01, 3000)], 1) for c in (-3.0, -0.1, 0.0)]
+    pts = np.concatenate(bands + [rng.uniform(-3.1, 3.1, (1500, 2))])
+    pts = pts[rng.permutation(len(pts))]
+    src = rng.choice(len(pts), 300, replace=False)
+    dst = rng.choice(len(pts), 300, replace=False)
+    pts[dst] = pts[src]  # duplicates, the copy sometimes before and sometimes after the original
+    # exact ties between cells: pairs 2 * 2**-7 apart (dyadic, so both distances are exactly
+    # equal) in a sparse stretch, the query halfway, the pair's points at random indices
+    x = rng.integers(-180, 180, 200) / 64.0
+    y = 1.5 + rng.integers(0, 2, 200) / 64.0
+    d = 2.0**-7
+    left = np.stack([x - d, y], 1)
+    right = np.stack([x + d, y], 1)
+    slots = rng.choice(len(pts), 400, replace=False)
+    pts[slots[:200]], pts[slots[200:]] = left, right
+    a, b = rng.choice(len(pts), 400), rng.choice(len(pts), 400)
+    q = np.concatenate([np.stack([x, y], 1), pts[rng.choice(len(pts), 400)], (pts[a] + pts[b]) / 2,
+                        np.stack([rng.uniform(-3, 3, 600), rng.normal(0, 0.05, 600)], 1),
+                        rng.uniform(-4, 4, (200, 2))])
+    expect = np.concatenate([((c[:, None, :] - pts[None]) ** 2).sum(-1).argmin(1) for c in np.array_split(q, 8)])
+    for per_cell in (0.5, 4.0, 64.0):
+        np.testing.assert_array_equal(NN2D(pts, per_cell=per_cell).query(q), expect)
+
+
 def test_fast_atan2_matches_the_c_library_to_2_ulp():
     rng = np.random.default_rng(2)
     y = np.concatenate([rng.normal(size=20000) * rng.choice([1e-6, 1.0, 1e6], 20000), [0.0, -0.0, 0.0, 1.0, -1.0, 1.0]])
