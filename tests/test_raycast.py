@@ -417,3 +417,21 @@ def test_slab_field_jumps_change_no_depth(cone):
     assert hit.mean() > 0.4
     assert np.abs(with_jumps[hit] - plain[hit]).max() < 1e-5
     assert np.mean(with_jumps[hit] != plain[hit]) < 0.005
+
+
+@pytest.mark.parametrize("cone", [0.007, 0.03])
+def test_cone_levels_from_range_thresholds_match_the_distance(cone):
+    """With the cone centred on the ray's origin the caster picks the cone's level by comparing
+    the range with precomputed thresholds; a centre one ulp away takes the distance at every
+    step instead. Both must give the same depths, including rays from an origin on voxel faces
+    (whose cells the division decides)."""
+    rng = np.random.default_rng(7)
+    ground = np.column_stack([rng.uniform(-70, 70, 40_000), rng.uniform(-70, 70, 40_000), rng.normal(-1.73, 0.02, 40_000)])
+    posts = rng.uniform([-60, -60, -4], [60, 60, 4], size=(400, 3))
+    grid = VoxelGrid(np.concatenate([ground, posts]))
+    dirs = fan((-180, 179.9, 0.9), (-25, 5, 0.6))
+    for origin in (np.array([3.0, 0.4, 0.1]), np.array([0.2, -0.4, 0.0])):
+        by_range = grid.cast(origin, dirs, cone=cone, max_level=3)
+        by_distance = grid.cast(origin, dirs, cone=cone, max_level=3, cone_center=np.nextafter(origin, np.inf))
+        assert np.isfinite(by_range).mean() > 0.4
+        np.testing.assert_array_equal(by_range, by_distance)

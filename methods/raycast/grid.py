@@ -41,6 +41,22 @@ and level-3 skips with the level-1 field (a little slower: the thin slab rarely 
 coarse cell). What remains per ray: ~3.8 small skips in the ground slab, whose level-1 cells
 near the sensor are speckled by the ground's noise (so the boxes stay small there), the
 descent at the hit, and the fallback's full projection of the past points per view.
+
+Cheaper steps (same cells, so the same depths): the cone's level from comparing ``t`` with the
+ranges where it doubles (the centre is the ray's origin by default; the distance only within
+1e-7 of one), the cell from a product with ``1 / vs`` (the division only within 1e-9 of a face,
+where the two could round apart), the grid's bounds checked once per segment, the slab test
+and the ray's state in scalars inside ``_cast`` (no per-ray arrays, no NumPy pass per piece),
+the climb starting at the last skip's level (one occupancy read a step fewer, same level found)
+and branch-free cell exits. Profile before: 7.9 steps a ray at ~40 ns each (single thread; in
+random ray order only 1.2x slower, so the steps are bound by their instructions, not memory).
+Old and new alternating in one process, 21 rounds, load 2.0-2.9 from other jobs, median of the
+paired ratios: voxel render 1.24x and casts 1.33x, freespace render 1.18x and casts 1.18x (an
+earlier 15 rounds: 1.27/1.27 and 1.25/1.21); single thread, casts only: 1.21-1.24x; identical
+depths for all 635,759 rays of the benchmark sample, both methods. Measured and left out: a
+parent known occupied from the last skip instead of re-reading it (no faster), the voxel's key
+and mean side by side in one row (no faster), branch-free empty-box exits (within noise). The
+hit's voxel look-up costs ~19 ns a ray (7 %), the z-buffer fallback ~10 ms of the ~105 ms render.
 """
 
 from __future__ import annotations
@@ -48,7 +64,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from bench.roi import ROI, Box, ray_box_interval
+from bench.roi import ROI, Box
 
 #: the coarsest level of an empty-cell skip that may be stretched by the slab field
 FIELD_MAX_STEP = 1
@@ -138,17 +154,40 @@ def _slab_field(occ, off1, n1x, n1y, n1z):
 
 
 @nb.njit(inline="always")
-def _cell_exit(o, inv, lo, size, a, b, c, t):
-    te = _exit(o[0], inv[0], lo[0], size, a, np.inf)
-    te = _exit(o[1], inv[1], lo[1], size, b, te)
-    te = _exit(o[2], inv[2], lo[2], size, c, te)
+def _cell_exit(o0, o1, o2, i0, i1, i2, l0, l1, l2, size, a, b, c, t):
+    """The ray's exit from the cell (a, b, c) of edge ``size``, at least ``t``: ``_exit`` on
+    each axis, written with selects instead of branches on the direction's signs."""
+    e0 = (l0 + (a + (1 if i0 > 0 else 0)) * size - o0) * i0
+    e1 = (l1 + (b + (1 if i1 > 0 else 0)) * size - o1) * i1
+    e2 = (l2 + (c + (1 if i2 > 0 else 0)) * size - o2) * i2
+    te = e0 if i0 != 0.0 else np.inf
+    te = min(te, e1) if i1 != 0.0 else te
+    te = min(te, e2) if i2 != 0.0 else te
     return max(te, t)
 
 
+@nb.njit(inline="always")
+def _need(x, y, z, c0, c1, c2, vs, cone, max_level):
+    """The cone's level at (x, y, z): the smallest whose cell is at least as wide as the cone there."""
+    w = np.sqrt((x - c0) ** 2 + (y - c1) ** 2 + (z - c2) ** 2) * cone
+    need = 0
+    while need < max_level and vs * (1 << need) < w:
+        need += 1
+    return need
+
+
 @nb.njit(nogil=True, cache=True)
-def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center, field, ftop):
-    """First occupied cell along the ray in [t, t1). Returns (t_entry, t_exit, level, key)
-    with t_entry < 0 when nothing is hit; ``key`` is the level-0 key (only for level-0 hits).
+def _march(o0, o1, o2, d0, d1, d2, i0, i1, i2, t, t1, occ, offs, dims, lo, vs, cone, max_level, c0, c1, c2, thr0,
+           field, ftop):
+    """First occupied cell along the ray ``o + t d`` (``i``: the inverse direction, 0 where
+    ``d`` is) in [t, t1). Returns (t_entry, t_exit, level, key) with t_entry < 0 when nothing
+    is hit; ``key`` is the level-0 key (only for level-0 hits).
+
+    ``thr0 > 0`` says the cone centre ``c`` is the ray's origin, so that the cone is ``vs``
+    wide at ``t = thr0`` and ``vs * 2**l`` at ``thr0 * 2**l``: the cone's level then comes
+    from comparing ``t`` with those ranges, and only within a relative 1e-7 of one (where
+    rounding could decide) from the distance to the centre as before (``_need``), so both give
+    the same level. ``thr0 = 0``: always ``_need``.
 
     ``field`` (see ``_slab_field``) lets a skip of an empty cell of level >= 1 jump further,
     to the exit of the empty box of level-1 cells around it, when the cone needs at most
@@ -160,30 +199,66 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center, f
     eps = 1e-5
     tol = 1e-4
     top = K
-    o0, o1, o2 = o[0], o[1], o[2]
-    d0, d1, d2 = d[0], d[1], d[2]
     l0, l1, l2 = lo[0], lo[1], lo[2]
-    c0, c1, c2 = center[0], center[1], center[2]
+    ivs = 1.0 / vs
+    # |(x - lo) * ivs - (x - lo) / vs| < 4e-16 * (n + 1) inside the grid: a wide margin on that
+    band = 1e-12 * (max(nx0, max(ny0, nz0)) + 2)
+    half = 0.5 - band
+    # whether the segment [t, t1] stays inside the grid by a margin far above the rounding of
+    # the positions along it: then no step leaves the grid, and the checks are left out
+    inside = True
+    for tt in (t, t1):
+        for q, n in (((o0 + d0 * tt - l0) * ivs, nx0), ((o1 + d1 * tt - l1) * ivs, ny0), ((o2 + d2 * tt - l2) * ivs, nz0)):
+            if not (q > -tol + 1e-6 and q < n + tol - 1e-6):
+                inside = False
+    # the level the cone needs (``nd``) past the last threshold passed for sure, and the band
+    # around the next threshold ``tn`` where the distance decides
+    nd = 0
+    tn = thr0
+    tband = tn * 1e-7 + 1e-9
     while t < t1:
         x = o0 + d0 * t
         y = o1 + d1 * t
         z = o2 + d2 * t
-        fa = (x - l0) / vs  # as _voxel_keys computes it, so that a ray along a face agrees
-        fb = (y - l1) / vs
-        fc = (z - l2) / vs
-        if fa < -tol or fb < -tol or fc < -tol or fa > nx0 + tol or fb > ny0 + tol or fc > nz0 + tol:
-            break  # the ray has left the grid
-        a = min(max(int(np.floor(fa)), 0), nx0 - 1)  # rounding at the faces
-        b = min(max(int(np.floor(fb)), 0), ny0 - 1)
-        c = min(max(int(np.floor(fc)), 0), nz0 - 1)
+        # the cell as ``(x - lo) / vs`` gives it (as _voxel_keys computes it, so that a ray along a
+        # face agrees), from a product with ``1 / vs`` where that cannot differ: the two differ
+        # by a few ulp, so only within ``band`` of a face (or off the ``inside`` segment) the
+        # division decides, and checks the grid's bounds
+        qa = (x - l0) * ivs
+        qb = (y - l1) * ivs
+        qc = (z - l2) * ivs
+        ka = np.floor(qa)
+        kb = np.floor(qb)
+        kc = np.floor(qc)
+        if inside and abs(qa - ka - 0.5) < half and abs(qb - kb - 0.5) < half and abs(qc - kc - 0.5) < half:
+            a = min(max(int(ka), 0), nx0 - 1)
+            b = min(max(int(kb), 0), ny0 - 1)
+            c = min(max(int(kc), 0), nz0 - 1)
+        else:
+            fa = (x - l0) / vs
+            fb = (y - l1) / vs
+            fc = (z - l2) / vs
+            if fa < -tol or fb < -tol or fc < -tol or fa > nx0 + tol or fb > ny0 + tol or fc > nz0 + tol:
+                break  # the ray has left the grid
+            a = min(max(int(np.floor(fa)), 0), nx0 - 1)  # rounding at the faces
+            b = min(max(int(np.floor(fb)), 0), ny0 - 1)
+            c = min(max(int(np.floor(fc)), 0), nz0 - 1)
         need = 0
         if cone > 0.0:
             # as wide as the beam gaps where the past sensor (at ``center``) saw this place
-            w = np.sqrt((x - c0) ** 2 + (y - c1) ** 2 + (z - c2) ** 2) * cone
-            while need < max_level and vs * (1 << need) < w:
-                need += 1
-        # start one level above the last skip: its parent is likely empty too
-        lvl = min(top, K)
+            if thr0 > 0.0:
+                while nd < max_level and t > tn + tband:
+                    nd += 1
+                    tn = thr0 * (1 << nd)
+                    tband = tn * 1e-7 + 1e-9
+                need = nd
+                if nd < max_level and t >= tn - tband:
+                    need = _need(x, y, z, c0, c1, c2, vs, cone, max_level)
+            else:
+                need = _need(x, y, z, c0, c1, c2, vs, cone, max_level)
+        # start at the level of the last skip and climb while the parent is empty (the climb
+        # from one level above, which read that parent and then the cell again, ends alike)
+        lvl = top
         while lvl < K and not _occupied(occ, offs[lvl + 1] + (((a >> (lvl + 1)) * dims[lvl + 1, 1] + (b >> (lvl + 1))) * dims[lvl + 1, 2] + (c >> (lvl + 1)))):
             lvl += 1
         if lvl < need:
@@ -194,34 +269,42 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center, f
             ib = b >> lvl
             ic = c >> lvl
             if not _occupied(occ, offs[lvl] + (ia * dims[lvl, 1] + ib) * dims[lvl, 2] + ic):
-                tn = _cell_exit(o, inv, lo, vs * (1 << lvl), ia, ib, ic, t)
+                tn_ = _cell_exit(o0, o1, o2, i0, i1, i2, l0, l1, l2, vs * (1 << lvl), ia, ib, ic, t)
                 if lvl == K and K >= 2:
                     # the top level: any cone fits (need <= max_level <= K)
                     r = np.int64(ftop[(ia * dims[K, 1] + ib) * dims[K, 2] + ic])
                     if r >= 2:
-                        tb = _box_exit(o0, inv[0], l0, vs * (1 << lvl), ia, r, np.inf)
-                        tb = _box_exit(o1, inv[1], l1, vs * (1 << lvl), ib, r, tb)
-                        tb = _box_exit(o2, inv[2], l2, vs * (1 << lvl), ic, 1, tb)
-                        tn = max(tn, tb)
+                        tb = _box_exit(o0, i0, l0, vs * (1 << lvl), ia, r, np.inf)
+                        tb = _box_exit(o1, i1, l1, vs * (1 << lvl), ib, r, tb)
+                        tb = _box_exit(o2, i2, l2, vs * (1 << lvl), ic, 1, tb)
+                        tn_ = max(tn_, tb)
                 elif lvl >= 1 and lvl <= FIELD_MAX_STEP and need <= 1:
                     fa1 = a >> 1
                     fb1 = b >> 1
                     fc1 = c >> 1
                     r = np.int64(field[(fa1 * dims[1, 1] + fb1) * dims[1, 2] + fc1])
                     if r >= 2:
-                        tb = _box_exit(o0, inv[0], l0, 2.0 * vs, fa1, r, np.inf)
-                        tb = _box_exit(o1, inv[1], l1, 2.0 * vs, fb1, r, tb)
-                        tb = _box_exit(o2, inv[2], l2, 2.0 * vs, fc1, 1, tb)
-                        if tb > tn:
+                        tb = _box_exit(o0, i0, l0, 2.0 * vs, fa1, r, np.inf)
+                        tb = _box_exit(o1, i1, l1, 2.0 * vs, fb1, r, tb)
+                        tb = _box_exit(o2, i2, l2, 2.0 * vs, fc1, 1, tb)
+                        if tb > tn_:
                             ok = True
-                            if cone > 0.0:
+                            if cone > 0.0 and max_level >= 2:
+                                # the cone needs at most level 1 at the box's exit
                                 tt = tb + eps
-                                w = np.sqrt((o0 + d0 * tt - c0) ** 2 + (o1 + d1 * tt - c1) ** 2 + (o2 + d2 * tt - c2) ** 2) * cone
-                                ok = not (vs * 2 < w and max_level >= 2)
+                                t2 = 2.0 * thr0
+                                b2 = t2 * 1e-7 + 1e-9
+                                if thr0 > 0.0 and tt < t2 - b2:
+                                    ok = True
+                                elif thr0 > 0.0 and tt > t2 + b2:
+                                    ok = False
+                                else:
+                                    w = np.sqrt((o0 + d0 * tt - c0) ** 2 + (o1 + d1 * tt - c1) ** 2 + (o2 + d2 * tt - c2) ** 2) * cone
+                                    ok = not (vs * 2 < w)
                             if ok:
-                                tn = tb
-                t = tn + eps
-                top = lvl + 1
+                                tn_ = tb
+                t = tn_ + eps
+                top = lvl
                 skipped = True
                 break
             lvl -= 1
@@ -229,7 +312,7 @@ def _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, cone, max_level, center, f
             ia = a >> need
             ib = b >> need
             ic = c >> need
-            te = _cell_exit(o, inv, lo, vs * (1 << need), ia, ib, ic, t)
+            te = _cell_exit(o0, o1, o2, i0, i1, i2, l0, l1, l2, vs * (1 << need), ia, ib, ic, t)
             return t, min(te, t1), need, (a * ny0 + b) * nz0 + c
     return -1.0, -1.0, 0, -1
 
@@ -256,31 +339,58 @@ def _column_starts(ukeys, ncols, nz0):
     return starts
 
 
+@nb.njit(inline="always")
+def _inverse(d):
+    return 1.0 / d if d != 0.0 else 0.0
+
+
+@nb.njit(inline="always")
+def _slab(o, d, lo, hi, t_enter, t_exit):
+    """One slab of ``bench.roi.ray_box_interval`` for one ray (the same arithmetic)."""
+    if d == 0.0:  # parallel to the slab: inside it or never
+        if lo <= o <= hi:
+            return t_enter, t_exit
+        return max(t_enter, np.inf), min(t_exit, -np.inf)
+    ta = (lo - o) / d
+    tb = (hi - o) / d
+    return max(t_enter, min(ta, tb)), min(t_exit, max(ta, tb))
+
+
 @nb.njit(nogil=True, cache=True)
-def _cast(origin, dirs, t0s, t1s, occ, offs, dims, lo, vs, cone, max_level, ukeys, col_start, means, center, field, ftop):
+def _cast(origin, dirs, box_lo, box_hi, occ, offs, dims, lo, vs, cone, max_level, ukeys, col_start, means, center, field,
+          ftop):
+    """First-hit depth per ray of ``dirs`` from ``origin``, within ``box`` (``ray_box_interval``)."""
     m = dirs.shape[0]
     out = np.full(m, np.nan)
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    c0, c1, c2 = center[0], center[1], center[2]
+    linear = c0 == o0 and c1 == o1 and c2 == o2
+    nz0 = dims[0, 2]
     for j in range(m):
-        d = dirs[j]
-        inv = np.empty(3)
-        for ax in range(3):
-            inv[ax] = 1.0 / d[ax] if d[ax] != 0.0 else 0.0
-        t0 = t0s[j]
-        t1 = t1s[j]
+        d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+        t0, t1 = _slab(o0, d0, box_lo[0], box_hi[0], 0.0, np.inf)
+        t0, t1 = _slab(o1, d1, box_lo[1], box_hi[1], t0, t1)
+        t0, t1 = _slab(o2, d2, box_lo[2], box_hi[2], t0, t1)
         if not t0 < t1:
             continue
-        te, tx, lvl, key = _march(origin, d, inv, t0, t1, occ, offs, dims, lo, vs, cone, max_level, center, field, ftop)
+        i0, i1, i2 = _inverse(d0), _inverse(d1), _inverse(d2)
+        thr0 = 0.0
+        if linear and cone > 0.0:
+            thr0 = vs / (cone * np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+        te, tx, lvl, key = _march(o0, o1, o2, d0, d1, d2, i0, i1, i2, t0, t1, occ, offs, dims, lo, vs, cone, max_level,
+                                  c0, c1, c2, thr0, field, ftop)
         if te < 0:
             continue
         if lvl > 0:  # refine a coarse (cone) hit inside its cell
-            fe, fx, _, fkey = _march(origin, d, inv, te, tx, occ, offs, dims, lo, vs, 0.0, 0, center, field, ftop)
+            fe, fx, _, fkey = _march(o0, o1, o2, d0, d1, d2, i0, i1, i2, te, tx, occ, offs, dims, lo, vs, 0.0, 0,
+                                     c0, c1, c2, 0.0, field, ftop)
             if fe < 0:
                 out[j] = 0.5 * (te + tx)
                 continue
             te, tx, key = fe, fx, fkey
-        s = _slot(col_start, ukeys, key, dims[0, 2])
+        s = _slot(col_start, ukeys, key, nz0)
         if s >= 0:
-            p = (means[s, 0] - origin[0]) * d[0] + (means[s, 1] - origin[1]) * d[1] + (means[s, 2] - origin[2]) * d[2]
+            p = (means[s, 0] - o0) * d0 + (means[s, 1] - o1) * d1 + (means[s, 2] - o2) * d2
             out[j] = min(max(p, te), tx)
         else:
             out[j] = te
@@ -296,14 +406,12 @@ def _carve(origins, points, t_end, occ, offs, dims, lo, vs, ukeys, col_start, fr
         r = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         if r <= 1e-6:
             continue
-        d = d / r
-        inv = np.empty(3)
-        for ax in range(3):
-            inv[ax] = 1.0 / d[ax] if d[ax] != 0.0 else 0.0
+        d0, d1, d2 = d[0] / r, d[1] / r, d[2] / r
         t = 0.0
         t1 = t_end[i]
         while t < t1:
-            te, tx, _, key = _march(o, d, inv, t, t1, occ, offs, dims, lo, vs, 0.0, 0, o, field, ftop)
+            te, tx, _, key = _march(o[0], o[1], o[2], d0, d1, d2, _inverse(d0), _inverse(d1), _inverse(d2), t, t1, occ,
+                                    offs, dims, lo, vs, 0.0, 0, o[0], o[1], o[2], 0.0, field, ftop)
             if te < 0:
                 break
             s = _slot(col_start, ukeys, key, dims[0, 2])
@@ -379,8 +487,7 @@ class VoxelGrid:
         origin = np.asarray(origin, dtype=np.float64)
         center = origin if cone_center is None else np.asarray(cone_center, dtype=np.float64)
         directions = np.ascontiguousarray(directions, dtype=np.float64)
-        t0, t1 = ray_box_interval(origin, directions, self.box)
         return _cast(
-            origin, directions, t0, t1, self.occ, self.offs, self.dims, self.lo, self.voxel, float(cone),
+            origin, directions, np.asarray(self.box.lo, np.float64), np.asarray(self.box.hi, np.float64), self.occ, self.offs, self.dims, self.lo, self.voxel, float(cone),
             int(min(max_level, len(self.offs) - 1)), self.ukeys, self.col_start, self.means, center, self.field, self.ftop,
         )
