@@ -86,11 +86,6 @@ def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
     return map_views(one, vws)
 
 
-def render_4docc(cols: np.ndarray, view) -> np.ndarray:
-    """``render_4docc_views`` of one view."""
-    return render_4docc_views(cols, [view])[0]
-
-
 class RaycastFourDOcc(Method):
     name = "raycast-4docc"
     version = "1"

@@ -76,11 +76,6 @@ def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts) -> list[np.n
     return depths
 
 
-def render_voxel(grid: VoxelGrid, cols, own_range, view, opts) -> np.ndarray:
-    """``render_voxel_views`` of one view."""
-    return render_voxel_views(grid, cols, own_range, [view], opts)[0]
-
-
 class RaycastVoxel(Method):
     name = "raycast-voxel"
     version = "1"
