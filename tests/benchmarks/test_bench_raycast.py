@@ -28,7 +28,7 @@ from methods.raycast.fourdocc import RaycastFourDOcc, angles, render_4docc_views
 from methods.raycast.freespace import RaycastFreespace, carve
 from methods.raycast.grid import VoxelGrid
 from methods.raycast.nn2d import NN2D
-from methods.raycast.voxel import PYRAMID, RaycastVoxel, render_voxel_views
+from methods.raycast.voxel import RaycastVoxel, build_grid, render_voxel_views
 from methods.raycast.zbuffer import RaycastZBuffer, _lookup, build_image, render_zbuffer_views, spherical
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
@@ -55,7 +55,7 @@ def _scene(cls, sample):
     grid = None
     cols, own = agg.cols, agg.own_range
     if cls in (RaycastVoxel, RaycastFreespace):
-        grid = VoxelGrid(agg.points, voxel=opts.voxel, levels=max(opts.max_level, PYRAMID))
+        grid = build_grid(agg.points, opts)
     if cls is RaycastFreespace:
         keep = carve(grid, agg.origins, agg.points, agg.own_range, opts)
         cols, own = np.ascontiguousarray(cols[:, keep]), own[keep]
