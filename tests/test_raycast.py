@@ -10,9 +10,9 @@ from bench.geometry import se3, yaw_transform
 from bench.roi import ROI, Box
 from bench.testing import check_method
 from bench.metrics.nn import angles_4docc
-from methods.raycast.common import aggregate, constant_velocity_poses, se3_exp, se3_log
+from methods.raycast.common import aggregate, constant_velocity_poses, se3_exp, se3_log, views
 from methods.raycast.fastmath import atan2_array
-from methods.raycast.fourdocc import RaycastFourDOcc
+from methods.raycast.fourdocc import RaycastFourDOcc, render_4docc_views
 from methods.raycast.freespace import RaycastFreespace, carve
 from methods.raycast.grid import FOLLOW_RANGE, VoxelGrid, anchored_lo, sym3_smallest
 from methods.raycast.nn2d import NN2D
@@ -268,6 +268,33 @@ def test_4docc_matches_brute_force_on_random_data():
         expect = np.linalg.norm(rel[nearest], axis=1)
         np.testing.assert_allclose(got, expect, rtol=1e-6)
         np.testing.assert_allclose(gp, o + dd * expect[:, None], atol=1e-4)
+
+
+@pytest.mark.parametrize("n_views", [3, 5])
+def test_4docc_views_shared_over_threads_match_one_thread(n_views):
+    """With more views than share out evenly, the leftover view's queries go to all threads in
+    pieces (``render_4docc_views``): the same depths as one thread taking every view whole."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread: nothing is shared")
+    rng = np.random.default_rng(8)
+    cols = np.ascontiguousarray(rng.uniform(-30, 30, size=(3, 5000)))
+    origins = [rng.uniform(-3, 3, 3) for _ in range(n_views)]
+    dirs = [rng.normal(size=(900 + 37 * k, 3)) for k in range(n_views)]
+    sample = make_sample([cols.T.astype(np.float32)], [(0.0, 0.0, 0.0)], origins,
+                         [(d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32) for d in dirs])
+    vws = views(sample, False)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        serial = render_4docc_views(cols, vws)
+        numba.set_num_threads(2)
+        shared = render_4docc_views(cols, vws)
+    finally:
+        numba.set_num_threads(before)
+    for a, b in zip(serial, shared):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_nn2d_exact_on_clustered_data_with_duplicates():

@@ -18,6 +18,7 @@ KITTI-sized benchmark sample.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numba as nb
@@ -25,9 +26,13 @@ import numpy as np
 
 from bench.data import Forecast, Sample
 from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, scratch, views
+from methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views
 from methods.raycast.fastmath import atan2
 from methods.raycast.nn2d import NN2D
+
+
+#: queries per thread of a view shared by all threads (see ``render_4docc_views``) come in this many pieces
+SHARED_PIECES = 2
 
 
 @dataclass(frozen=True)
@@ -72,18 +77,58 @@ def _ranges(cols, origin, idx):
 def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
     """Depth per ray of each view (``common.View``): the range of the angle-space nearest past
     point among ``cols`` (3, N) (0 with no points). The views go to the threads; each builds
-    its view's index in its own reused buffers (``common.scratch``), asks it and drops it."""
+    its view's index in its own reused buffers (``common.scratch``), asks it and drops it.
+
+    Views left over when they do not share out evenly over the threads (the fifth of five on
+    two) are shared instead: one thread builds each such view's index first thing (in buffers
+    of its own), and its queries go in ``SHARED_PIECES`` pieces per thread after the whole views,
+    to whichever thread comes free (5 views on 2 threads: 3 whole views' work on one thread
+    before, 2.5 now)."""
     if cols.shape[1] == 0:
         return [np.zeros(v.dcols.shape[1]) for v in vws]
     n = cols.shape[1]
 
-    def one(v) -> np.ndarray:
+    def index(v, prefix: str) -> tuple[NN2D, np.ndarray]:
         origin = np.asarray(v.origin, dtype=np.float64)
-        u, w = angles_into(cols, origin, scratch("4docc.u", n), scratch("4docc.v", n))
-        nearest = NN2D((u, w), reuse=True).query(angles(v.dcols, np.zeros(3)))
-        return _ranges(cols, origin, nearest)
+        u, w = angles_into(cols, origin, scratch(f"{prefix}.u", n), scratch(f"{prefix}.v", n))
+        return NN2D((u, w), reuse=f"{prefix}.nn2d"), origin
 
-    return map_views(one, vws)
+    def one(v) -> np.ndarray:
+        nn, origin = index(v, "4docc")
+        return _ranges(cols, origin, nn.query(angles(v.dcols, np.zeros(3))))
+
+    threads = nb.get_num_threads()
+    whole = len(vws) - len(vws) % threads if threads > 1 else len(vws)
+    if whole == len(vws):
+        return map_views(one, vws)
+    shared = list(range(whole, len(vws)))
+    built = {k: threading.Event() for k in shared}
+    indexes: dict = {}
+    out: list = [None] * len(vws)
+
+    def build(k: int) -> None:
+        try:
+            indexes[k] = index(vws[k], f"4docc.shared{k}")
+        finally:
+            built[k].set()
+
+    def ask(k: int, sl: slice) -> np.ndarray:
+        built[k].wait()  # started before any piece (first in the queue), so this ends
+        nn, origin = indexes[k]
+        q = angles(np.ascontiguousarray(vws[k].dcols[:, sl]), np.zeros(3))
+        return _ranges(cols, origin, nn.query(q))
+
+    jobs = [(build, (k,)) for k in shared] + [(lambda k: out.__setitem__(k, one(vws[k])), (k,)) for k in range(whole)]
+    asks = [(k, sl) for k in shared
+            for sl in pieces(vws[k].dcols.shape[1], max(1, -(-vws[k].dcols.shape[1] // (SHARED_PIECES * threads))))]
+    jobs += [(lambda k, sl: (k, sl, ask(k, sl)), (k, sl)) for k, sl in asks]
+    results = map_views(lambda job: job[0](*job[1]), jobs)
+    for r in results[len(shared) + whole:]:
+        k, sl, d = r
+        if out[k] is None:
+            out[k] = np.empty(vws[k].dcols.shape[1])
+        out[k][sl] = d
+    return out
 
 
 class RaycastFourDOcc(Method):

@@ -25,7 +25,9 @@ at random places) cost more than the distances: the queries took 17.5 ms against
 previous query's answer (a random read of the unsorted points and a looser first bound: 10%
 slower than without), finer cells (0.125 to 1 point per cell), cells 4x to 32x finer along
 one axis scanned column by column outward, a direct scan of the block of cells within the
-first candidate's distance, and a two-pass min-then-index scan: none faster. With the
+first candidate's distance, a two-pass min-then-index scan, and asking the queries in the
+order of their cells (24.2 ms against 24.2 ms unsorted plus a 1.3 ms counting sort): none
+faster. With the
 branch-free scan 2 to 4 points per cell are equally fast; 4 halves the cell table to build.
 """
 
@@ -200,9 +202,10 @@ class NN2D:
     ``points`` may be an (N, 2) array or an (x, y) tuple of columns."""
 
     def __init__(self, points: np.ndarray | tuple[np.ndarray, np.ndarray], per_cell: float = PER_CELL,
-                 reuse: bool = False) -> None:
+                 reuse: bool | str = False) -> None:
         """``reuse``: build the index in this thread's ``common.scratch`` buffers (no allocation;
-        the index is then only valid until this thread builds another one)."""
+        the index is then only valid until this thread builds another one in the same buffers;
+        a string names its own set of them)."""
         if isinstance(points, tuple):
             px, py = points
         else:
@@ -213,6 +216,7 @@ class NN2D:
         self.n = int(self.px.shape[0])
         self.per_cell = float(per_cell)
         self.reuse = bool(reuse)
+        self.prefix = reuse if isinstance(reuse, str) else "nn2d"
         self._coarse = None
         if self.n == 0:
             return
@@ -230,10 +234,10 @@ class NN2D:
         hy = wy / ny * (1 + 1e-9)
         n = self.n
         if self.reuse and per_cell == self.per_cell:
-            keys = scratch("nn2d.keys", n, np.int32)
-            starts = scratch("nn2d.starts", nx * ny + 1, np.int32)
-            sp = scratch("nn2d.sp", 2 * n).reshape(n, 2)
-            sidx = scratch("nn2d.sidx", n, np.int32)
+            keys = scratch(f"{self.prefix}.keys", n, np.int32)
+            starts = scratch(f"{self.prefix}.starts", nx * ny + 1, np.int32)
+            sp = scratch(f"{self.prefix}.sp", 2 * n).reshape(n, 2)
+            sidx = scratch(f"{self.prefix}.sidx", n, np.int32)
         else:
             keys = np.empty(n, np.int32)
             starts = np.empty(nx * ny + 1, np.int32)
