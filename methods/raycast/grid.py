@@ -23,8 +23,9 @@ and at most ``FOLLOW_RANGE`` past it (``_surface_depth``): a grazing ray that en
 ground's voxel through its top face meets the ground further on, also across the unobserved
 voxels between far beams. Voxels without a surface, and longer follows, answer the projection
 of the mean of the voxel's points on the ray, clamped to the ray's segment in the voxel
-(``surface=False`` everywhere: the former rule). On the toy world's KITTI-sized sample this
-took the median depth error of the hit rays from 0.100 m to 0.025 m.
+(``surface=False`` everywhere: the former rule). On a KITTI-sized toy-world sample (kitti-1s,
+all rays, with the grid phase below) this took the median depth error from 0.101 m to 0.023 m
+and the mean from 0.279 m to 0.146 m.
 
 Grid phase (``anchor_z``): the grid may start below the box so that a face of every level
 passes through a given height. ``raycast-voxel`` puts one half a voxel above the ground under
@@ -131,7 +132,7 @@ PLANE_MIN_SPREAD = 0.02
 PLANE_MAX_FLATNESS = 0.25
 #: ... and at most this (m, standard deviation along the normal)
 PLANE_MAX_THICKNESS = 0.05
-#: a voxel without a surface of its own takes that of its cell at the next coarser level, up to this one
+#: a surface's normal comes from the coarsest flat cell around its voxel up to this level (1.6 m)
 PLANE_LEVELS = 3
 #: a hit voxel's surface is followed at most this far (m) past the ray's entry (see ``_surface_depth``)
 FOLLOW_RANGE = 3.0
@@ -671,8 +672,8 @@ class VoxelGrid:
         self.ftop = _slab_field(self.occ, int(self.offs[K]), *[int(v) for v in self.dims[K]])
 
     def _make_planes(self) -> None:
-        """The surface of each occupied voxel (``_planes``; where it has none, its level-1 cell's,
-        then its level-``PLANE_LEVELS`` cell's)."""
+        """The surface of each occupied voxel (``_planes``, over the voxel and its cells up to
+        level ``PLANE_LEVELS``), rebuilt with the occupancy."""
         ny0, nz0 = int(self.dims[0, 1]), int(self.dims[0, 2])
         k = self.ukeys
         a, b, c = k // (ny0 * nz0), (k // nz0) % ny0, k % nz0
