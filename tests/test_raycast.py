@@ -548,37 +548,42 @@ def test_grazing_rays_end_on_the_ground_surface(anchor, slope):
 
 
 def test_surface_depth_cases():
-    """One voxel's surface, hand-computed: a crossing inside the voxel, before its entry, beyond
-    its exit (within and beyond ``FOLLOW_RANGE``) and a voxel without a surface."""
+    """One flat patch's surface, hand-computed: a crossing inside the hit voxel, one behind its
+    entry, one beyond its exit (within and beyond ``FOLLOW_RANGE``), and a voxel without a
+    surface."""
     box = Box((0.0, 0.0, 0.0), (3.2, 3.2, 3.2))
     rng = np.random.default_rng(4)
-    # a flat patch at z = 1.05 filling the voxels of layer z in [1.0, 1.2) over x, y in [0, 3.2)
-    patch = np.column_stack([rng.uniform(0.0, 3.2, (4000, 2)), np.full(4000, 1.05)])
+    # a flat patch at z = 1.05 filling the voxels of layer z in [1.0, 1.2) over x in [1.0, 3.2)
+    patch = np.column_stack([rng.uniform(1.0, 3.2, 4000), rng.uniform(0.0, 3.2, 4000), np.full(4000, 1.05)])
     grid = VoxelGrid(patch, voxel=0.2, box=box, levels=2)
-    # straight down from above: crosses the plane inside the voxel
-    d = grid.cast(np.array([1.1, 1.1, 3.0]), np.array([[0.0, 0.0, -1.0]]), surface=True)[0]
-    assert d == pytest.approx(3.0 - 1.05, abs=1e-9)
-    # a grazing ray entering the top face at x = 0.9: it meets the plane 0.15 / tan(a) further on
+
+    def cast(origin, direction, surface=True):
+        return grid.cast(np.asarray(origin, float), np.asarray([direction], float), surface=surface)[0]
+
+    # straight down from above: the crossing, inside the voxel
+    assert cast([1.1, 1.1, 3.0], [0.0, 0.0, -1.0]) == pytest.approx(3.0 - 1.05, abs=1e-9)
+    # into the patch's side face at x = 1.0, above the surface and rising: the crossing lies
+    # behind, the depth is the entry (plus the traversal's 10 um step past the face)
+    a = np.deg2rad(2.0)
+    d = cast([0.001, 1.1, 1.1], [np.cos(a), 0.0, np.sin(a)])
+    assert d == pytest.approx(0.999 / np.cos(a), abs=2e-5)
+    # a grazing ray down through the top face at x = 1.3: it meets the surface 0.15 / sin(a)
+    # further on, beyond the voxel's exit (the voxel is 0.2 m wide)
     a = np.deg2rad(5.0)
-    o = np.array([0.9 - 1.8 / np.tan(a), 1.1, 1.2 + 1.8])
-    o[0] = 0.9 - (o[2] - 1.2) / np.tan(a)
-    ray = np.array([[np.cos(a), 0.0, -np.sin(a)]])
-    o_in = o + ray[0] * ((0.0 - o[0]) / ray[0, 0] + 1e-3)  # start just inside the box
-    d = grid.cast(o_in, ray, surface=True)[0]
-    entry = (1.2 - o_in[2]) / ray[0, 2]
-    cross = (1.05 - o_in[2]) / ray[0, 2]
-    assert cross - entry > 1.0  # far beyond the voxel's exit (0.2 m wide)
-    assert d == pytest.approx(cross, abs=1e-9)
-    # a ray that would follow the surface more than FOLLOW_RANGE: the mean's projection instead
+    ray = np.array([np.cos(a), 0.0, -np.sin(a)])
+    start = np.array([1.3, 1.1, 1.2]) - ray * (1.299 / np.cos(a))
+    entry = 1.299 / np.cos(a)
+    assert cast(start, ray) == pytest.approx(entry + 0.15 / np.sin(a), abs=1e-9)
+    assert 0.15 / np.sin(a) > 1.0
+    # at 1 degree the surface is 8.6 m on: farther than FOLLOW_RANGE, the mean's projection instead
     a = np.deg2rad(1.0)
-    ray = np.array([[np.cos(a), 0.0, -np.sin(a)]])
-    start = np.array([0.001, 1.1, 1.2 + 0.5 * np.sin(a)])
-    entry = (1.2 - start[2]) / ray[0, 2]
-    cross = (1.05 - start[2]) / ray[0, 2]
-    assert cross - entry > FOLLOW_RANGE
-    d = grid.cast(start, ray, surface=True)[0]
-    assert d == grid.cast(start, ray, surface=False)[0]
-    assert entry - 1e-4 <= d <= entry + 0.2 / np.cos(a) + 1e-9
+    ray = np.array([np.cos(a), 0.0, -np.sin(a)])
+    start = np.array([1.3, 1.1, 1.2]) - ray * (1.299 / np.cos(a))
+    entry = 1.299 / np.cos(a)
+    assert 0.15 / np.sin(a) > FOLLOW_RANGE
+    d = cast(start, ray)
+    assert d == cast(start, ray, surface=False)
+    assert entry <= d <= entry + 0.2 / np.cos(a) + 1e-9
     # a lone point: no surface, the mean's projection
     lone = VoxelGrid(np.array([[1.1, 1.13, 1.1]]), voxel=0.2, box=box, levels=2)
     d = lone.cast(np.array([0.05, 1.1, 1.1]), np.array([[1.0, 0.0, 0.0]]), surface=True)[0]
