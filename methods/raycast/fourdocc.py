@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
+from functools import partial
 
 import numba as nb
 import numpy as np
@@ -104,7 +105,7 @@ def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
     shared = list(range(whole, len(vws)))
     built = {k: threading.Event() for k in shared}
     indexes: dict = {}
-    out: list = [None] * len(vws)
+    out = [np.empty(v.dcols.shape[1]) for v in vws]
 
     def build(k: int) -> None:
         try:
@@ -112,22 +113,19 @@ def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
         finally:
             built[k].set()
 
-    def ask(k: int, sl: slice) -> np.ndarray:
+    def whole_view(k: int) -> None:
+        out[k][:] = one(vws[k])
+
+    def ask(k: int, sl: slice) -> None:
         built[k].wait()  # started before any piece (first in the queue), so this ends
         nn, origin = indexes[k]
-        q = angles(np.ascontiguousarray(vws[k].dcols[:, sl]), np.zeros(3))
-        return _ranges(cols, origin, nn.query(q))
+        out[k][sl] = _ranges(cols, origin, nn.query(angles(np.ascontiguousarray(vws[k].dcols[:, sl]), np.zeros(3))))
 
-    jobs = [(build, (k,)) for k in shared] + [(lambda k: out.__setitem__(k, one(vws[k])), (k,)) for k in range(whole)]
-    asks = [(k, sl) for k in shared
-            for sl in pieces(vws[k].dcols.shape[1], max(1, -(-vws[k].dcols.shape[1] // (SHARED_PIECES * threads))))]
-    jobs += [(lambda k, sl: (k, sl, ask(k, sl)), (k, sl)) for k, sl in asks]
-    results = map_views(lambda job: job[0](*job[1]), jobs)
-    for r in results[len(shared) + whole:]:
-        k, sl, d = r
-        if out[k] is None:
-            out[k] = np.empty(vws[k].dcols.shape[1])
-        out[k][sl] = d
+    jobs = [partial(build, k) for k in shared] + [partial(whole_view, k) for k in range(whole)]
+    for k in shared:
+        m = vws[k].dcols.shape[1]
+        jobs += [partial(ask, k, sl) for sl in pieces(m, max(1, -(-m // (SHARED_PIECES * threads))))]
+    map_views(lambda job: job(), jobs)
     return out
 
 
