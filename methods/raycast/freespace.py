@@ -26,20 +26,14 @@ from bench.data import Forecast, Sample
 from bench.method import Method
 from methods.raycast.common import aggregate, assemble, views
 from methods.raycast.grid import VoxelGrid
-from methods.raycast.voxel import build_grid, render_voxel_views
+from methods.raycast.voxel import VoxelOptions, build_grid, render_voxel_views
 from methods.raycast.zbuffer import render_zbuffer_views
 
 
 @dataclass(frozen=True)
-class FreespaceOptions:
-    voxel: float = 0.2  # voxel edge, metres
-    cone_factor: float = 1.0  # as raycast-voxel
-    max_level: int = 3  # as raycast-voxel
-    cone_center: Literal["future", "past"] = "future"  # as raycast-voxel
-    az_res_deg: float = 0.2  # as raycast-voxel
-    el_res_deg: float = 0.4  # as raycast-voxel
-    surface: Literal["plane", "mean"] = "plane"  # as raycast-voxel
-    align_ground: bool = True  # as raycast-voxel
+class FreespaceOptions(VoxelOptions):
+    """raycast-voxel's options (the caster of the carved grid), and the carving's."""
+
     l_hit: float = 0.85  # log-odds added per return in a voxel
     l_miss: float = 0.4  # log-odds removed per past ray passing through a voxel
     carve_margin_m: float = 0.5  # rays carve up to this far before their return ...
@@ -48,7 +42,6 @@ class FreespaceOptions:
     splat: float = 1.0  # z-buffer renderer: as raycast-zbuffer
     max_splat: int = 4  # z-buffer renderer: as raycast-zbuffer
     fill_ring: int = 8  # z-buffer renderer: as raycast-zbuffer
-    constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
 def carve(grid: VoxelGrid, origins, points, own_range, opts) -> np.ndarray:

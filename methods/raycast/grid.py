@@ -210,21 +210,17 @@ def sym3_smallest(a00, a01, a02, a11, a12, a22):
 
 
 @nb.njit(cache=True)
-def _plane(m, normals, points, row):
-    """The surface of the points with moments ``m``, into ``normals[row]`` and ``points[row]``
-    (their mean): the normal is the direction of least variance; False (rows left alone) when
-    the points are too few, too concentrated or not flat (see ``PLANE_*``)."""
+def _plane(m):
+    """Whether the points with moments ``m`` are flat (see ``PLANE_*``: enough of them, spread
+    out, thin), and the unit normal of their least-variance direction."""
     n = m[0]
     if n < PLANE_MIN_POINTS:
-        return False
+        return False, 0.0, 0.0, 0.0
     mx, my, mz = m[1] / n, m[2] / n, m[3] / n
     l_min, l_mid, nx, ny, nz = sym3_smallest(m[4] / n - mx * mx, m[5] / n - mx * my, m[6] / n - mx * mz,
                                              m[7] / n - my * my, m[8] / n - my * mz, m[9] / n - mz * mz)
-    if not (l_mid > PLANE_MIN_SPREAD**2 and l_min < PLANE_MAX_FLATNESS * l_mid and l_min < PLANE_MAX_THICKNESS**2):
-        return False
-    normals[row, 0], normals[row, 1], normals[row, 2] = nx, ny, nz
-    points[row, 0], points[row, 1], points[row, 2] = mx, my, mz
-    return True
+    flat = l_mid > PLANE_MIN_SPREAD**2 and l_min < PLANE_MAX_FLATNESS * l_mid and l_min < PLANE_MAX_THICKNESS**2
+    return flat, nx, ny, nz
 
 
 @nb.njit(cache=True)
@@ -238,8 +234,6 @@ def _planes(mom, parents):
     k = mom.shape[0]
     out = np.zeros((k, 4))
     found = np.zeros(k, np.bool_)
-    normal = np.zeros((1, 3))
-    point = np.zeros((1, 3))
     for lvl in range(parents.shape[0], -1, -1):
         if lvl == 0:
             cmom = mom
@@ -255,9 +249,7 @@ def _planes(mom, parents):
         ok = np.zeros(cmom.shape[0], np.bool_)
         normals = np.zeros((cmom.shape[0], 3))
         for j in range(cmom.shape[0]):
-            if _plane(cmom[j], normal, point, 0):
-                ok[j] = True
-                normals[j] = normal[0]
+            ok[j], normals[j, 0], normals[j, 1], normals[j, 2] = _plane(cmom[j])
         for i in range(k):
             if not found[i] and ok[cell[i]]:
                 found[i] = True
@@ -653,9 +645,8 @@ class VoxelGrid:
         self.ukeys, inverse, self.hits = np.unique(self.keys[inside], return_inverse=True, return_counts=True)
         self.point_slot = np.full(len(points), -1, np.int64)
         self.point_slot[inside] = inverse
-        sums = np.stack([np.bincount(inverse, weights=points[inside, ax], minlength=len(self.ukeys)) for ax in range(3)], axis=1)
-        self.means = sums / np.maximum(self.hits, 1)[:, None]
         self.moments = _moments(points, self.point_slot, len(self.ukeys))
+        self.means = self.moments[:, 1:4] / np.maximum(self.hits, 1)[:, None]
         self._make_planes()
         self.occ = np.zeros(int(words.sum()), np.uint64)
         _fill(self.occ, self.offs, self.dims, self.ukeys)

@@ -26,7 +26,6 @@ from bench.testing import InMemoryDataset
 from methods.raycast.common import aggregate, map_views, views
 from methods.raycast.fourdocc import RaycastFourDOcc, angles, render_4docc_views
 from methods.raycast.freespace import RaycastFreespace, carve
-from methods.raycast.grid import VoxelGrid
 from methods.raycast.nn2d import NN2D
 from methods.raycast.voxel import RaycastVoxel, build_grid, render_voxel_views
 from methods.raycast.zbuffer import RaycastZBuffer, _lookup, build_image, render_zbuffer_views, spherical
