@@ -9,11 +9,11 @@ from pathlib import Path
 
 import click
 
-import bench
-from bench import config
-from bench.errors import PcfbenchError
-from bench.plugins import get_plugins, warn_failed
-from bench.protocol import SAMPLE_POLICIES, SETTINGS, get_setting
+import pcfbench
+from pcfbench import config
+from pcfbench.errors import PcfbenchError
+from pcfbench.plugins import get_plugins, warn_failed
+from pcfbench.protocol import SAMPLE_POLICIES, SETTINGS, get_setting
 
 
 def parse_method_spec(text: str) -> tuple[str, dict[str, str]]:
@@ -40,7 +40,7 @@ class Group(click.Group):
 
 
 @click.group(cls=Group)
-@click.version_option(bench.__version__, prog_name="pcfbench")
+@click.version_option(pcfbench.__version__, prog_name="pcfbench")
 def cli() -> None:
     """Benchmark LiDAR point-cloud forecasting methods under one exact protocol."""
 
@@ -89,10 +89,10 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, force, store, reports, no_report, quiet):
     """Run (or resume) every cell of method x dataset x split x setting."""
-    from bench.method import options_hash, parse_options
-    from bench.report import write_reports
-    from bench.runner import default_metrics, run_cell
-    from bench.store import CellSpec
+    from pcfbench.method import options_hash, parse_options
+    from pcfbench.report import write_reports
+    from pcfbench.runner import default_metrics, run_cell
+    from pcfbench.store import CellSpec
 
     plugins = get_plugins()
     warn_failed(plugins)
@@ -138,7 +138,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, force
 @click.option("--reports", type=click.Path(file_okay=False), default=None)
 def report(store, reports):
     """Regenerate reports/leaderboard.{md,csv,tex,html} from the store."""
-    from bench.report import write_reports
+    from pcfbench.report import write_reports
 
     reports_path = config.reports_dir(reports)
     paths = write_reports(config.store_dir(store, reports_path), reports_path)

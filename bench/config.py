@@ -11,7 +11,7 @@ import os
 import tomllib
 from pathlib import Path
 
-from bench.errors import PcfbenchError
+from pcfbench.errors import PcfbenchError
 
 
 def config_path() -> Path:

@@ -9,8 +9,8 @@ from typing import Callable, ClassVar
 
 import numpy as np
 
-from bench.data import Sweep
-from bench.roi import EgoBox
+from pcfbench.data import Sweep
+from pcfbench.roi import EgoBox
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,7 +33,7 @@ class Sequence:
         return self.loader(self.name, index)
 
     def sweep(self, index: int) -> Sweep:
-        """Sweep ``index`` with its pose and timestamp (not validated: see bench.validate)."""
+        """Sweep ``index`` with its pose and timestamp (not validated: see pcfbench.validate)."""
         return Sweep(
             points_sensor=self.load_points(index),
             T_world_sensor=self.T_world_sensor[index],
@@ -79,8 +79,8 @@ class DatasetAdapter(ABC):
     @classmethod
     def default_root(cls, progress: bool = True) -> Path:
         """The root to use when none is configured (an embedded dataset prepares it here)."""
-        from bench.config import env_var_for
-        from bench.errors import PcfbenchError
+        from pcfbench.config import env_var_for
+        from pcfbench.errors import PcfbenchError
 
         raise PcfbenchError(
             f"dataset {cls.name!r} needs a root: pass --dataset {cls.name}=/path/to/data, set "

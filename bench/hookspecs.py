@@ -25,7 +25,7 @@ def register_methods(register):  # noqa: ANN001
 
 @hookspec
 def register_metrics(register):  # noqa: ANN001
-    """Register metrics: ``register("name", "module:METRIC")`` (a bench.metrics.Metric)."""
+    """Register metrics: ``register("name", "module:METRIC")`` (a pcfbench.metrics.Metric)."""
 
 
 @hookspec

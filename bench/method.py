@@ -10,8 +10,8 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
 
-from bench.data import Forecast, Sample
-from bench.errors import PcfbenchError
+from pcfbench.data import Forecast, Sample
+from pcfbench.errors import PcfbenchError
 
 
 @dataclasses.dataclass(frozen=True)

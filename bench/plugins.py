@@ -18,8 +18,8 @@ from typing import Any, Callable
 
 import pluggy
 
-from bench import hookspecs
-from bench.errors import PluginError, UnknownNameError
+from pcfbench import hookspecs
+from pcfbench.errors import PluginError, UnknownNameError
 
 BUILTIN_PREFIX = "builtin-"
 
@@ -138,10 +138,10 @@ def _is_subclass_check(base_path: str) -> Callable[[Any], str | None]:
 
 
 def _metric_check(obj: Any) -> str | None:
-    from bench.metrics.base import Metric
+    from pcfbench.metrics.base import Metric
 
     if not isinstance(obj, Metric):
-        return f"must be a bench.metrics.Metric instance, got {obj!r}"
+        return f"must be a pcfbench.metrics.Metric instance, got {obj!r}"
     return None
 
 
@@ -159,8 +159,8 @@ class Plugins:
     def __init__(self) -> None:
         self.pm = pluggy.PluginManager("pcfbench")
         self.pm.add_hookspecs(hookspecs)
-        self.datasets = Registry("dataset", _is_subclass_check("bench.dataset:DatasetAdapter"))
-        self.methods = Registry("method", _is_subclass_check("bench.method:Method"))
+        self.datasets = Registry("dataset", _is_subclass_check("pcfbench.dataset:DatasetAdapter"))
+        self.methods = Registry("method", _is_subclass_check("pcfbench.method:Method"))
         self.metrics = Registry("metric", _metric_check)
         self.info: dict[str, PluginInfo] = {}
 

@@ -8,11 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.data import GroundTruth, RayQuery, Sample
-from bench.dataset import DatasetAdapter, Sequence
-from bench.errors import PcfbenchError, UnknownNameError
-from bench.geometry import invert, rotate_vectors, transform_points
-from bench.validate import validate_sweep
+from pcfbench.data import GroundTruth, RayQuery, Sample
+from pcfbench.dataset import DatasetAdapter, Sequence
+from pcfbench.errors import PcfbenchError, UnknownNameError
+from pcfbench.geometry import invert, rotate_vectors, transform_points
+from pcfbench.validate import validate_sweep
 
 #: Ground-truth points closer than this to their sensor are ignored by the metrics.
 MIN_RANGE_M = 0.01

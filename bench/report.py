@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from bench.errors import PcfbenchError
-from bench.store import Cell, iter_cells, spec_from_meta
+from pcfbench.errors import PcfbenchError
+from pcfbench.store import Cell, iter_cells, spec_from_meta
 
 #: Columns in the order of the published tables; other metrics follow alphabetically.
 PREFERRED_ORDER = (

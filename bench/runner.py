@@ -17,15 +17,15 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 from tqdm import tqdm
 
-import bench
-from bench import config
-from bench.errors import DataError, PcfbenchError
-from bench.method import Method, parse_options
-from bench.metrics.base import Metric, score_sample
-from bench.plugins import Plugins, get_plugins
-from bench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
-from bench.store import Cell, CellSpec, spec_to_meta
-from bench.validate import validate_forecast
+import pcfbench
+from pcfbench import config
+from pcfbench.errors import DataError, PcfbenchError
+from pcfbench.method import Method, parse_options
+from pcfbench.metrics.base import Metric, score_sample
+from pcfbench.plugins import Plugins, get_plugins
+from pcfbench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
+from pcfbench.store import Cell, CellSpec, spec_to_meta
+from pcfbench.validate import validate_forecast
 
 #: Flush a chunk after this many samples or seconds, whichever comes first.
 CHUNK_SAMPLES = int(os.environ.get("PCFBENCH_CHUNK_SAMPLES", 64))
@@ -41,7 +41,7 @@ def _progress_disabled() -> bool | None:
 
 
 def git_commit() -> str | None:
-    here = Path(bench.__file__).resolve().parent.parent
+    here = Path(pcfbench.__file__).resolve().parent.parent
     try:
         out = subprocess.run(
             ["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
@@ -214,7 +214,7 @@ def run_cell(
             **identity,
             "status": "running",
             "partial": spec.partial,
-            "harness_version": bench.__version__,
+            "harness_version": pcfbench.__version__,
             "git_commit": git_commit(),
             "environment": environment(),
             "samples": len(ids),

@@ -19,7 +19,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bench.errors import PcfbenchError
+from pcfbench.errors import PcfbenchError
 
 CELL_FILE = "cell.json"
 ROWS_DIR = "rows"

@@ -1,6 +1,6 @@
 """A kit for plugin authors: a toy world, an in-memory dataset and contract checks.
 
-    from bench.testing import check_method, check_adapter
+    from pcfbench.testing import check_method, check_adapter
     check_method(MyMethod())              # raises AssertionError with what is wrong
     check_adapter(MyAdapter(root), "val")
 """
@@ -11,13 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.data import Forecast, Sample
-from bench.dataset import DatasetAdapter, Sequence
-from bench.geometry import transform_points, yaw_transform
-from bench.method import Method
-from bench.protocol import SETTINGS, SampleBuilder, Setting
-from bench.roi import EgoBox
-from bench.validate import validate_forecast
+from pcfbench.data import Forecast, Sample
+from pcfbench.dataset import DatasetAdapter, Sequence
+from pcfbench.geometry import transform_points, yaw_transform
+from pcfbench.method import Method
+from pcfbench.protocol import SETTINGS, SampleBuilder, Setting
+from pcfbench.roi import EgoBox
+from pcfbench.validate import validate_forecast
 
 
 def spinning_directions(beams: int = 16, azimuths: int = 360, fov_deg: tuple[float, float] = (-24.0, 2.0)) -> np.ndarray:
@@ -105,7 +105,7 @@ def toy_sample(setting: Setting | str = "kitti-1s", index: int = 8) -> tuple[Sam
 
 def check_method(method: Method, setting: str = "kitti-1s") -> Forecast:
     """Assert that ``method`` returns a valid forecast for a toy sample (and give it back)."""
-    assert isinstance(method, Method), f"{method!r} is not a bench.method.Method"
+    assert isinstance(method, Method), f"{method!r} is not a pcfbench.method.Method"
     assert getattr(method, "name", None), "a method needs a class attribute 'name'"
     sample, _ = toy_sample(setting)
     forecast = method.forecast(sample)
@@ -115,7 +115,7 @@ def check_method(method: Method, setting: str = "kitti-1s") -> Forecast:
 
 def check_adapter(adapter: DatasetAdapter, split: str, max_sweeps: int = 5) -> None:
     """Assert that ``adapter`` lists sequences of ``split`` and yields valid sweeps and poses."""
-    from bench.geometry import is_se3
+    from pcfbench.geometry import is_se3
 
     for attr in ("name", "version", "rate_hz", "ego_box"):
         assert getattr(adapter, attr, None) is not None, f"adapter is missing class attribute {attr!r}"

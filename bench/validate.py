@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.data import FLOAT32_MAX, Forecast, Sample, Sweep
-from bench.errors import DataError, ForecastError
-from bench.geometry import is_se3
+from pcfbench.data import FLOAT32_MAX, Forecast, Sample, Sweep
+from pcfbench.errors import DataError, ForecastError
+from pcfbench.geometry import is_se3
 
 
 def _check_points(arr, where: str, err=ForecastError) -> np.ndarray:

@@ -19,11 +19,11 @@ import pyarrow as pa
 import pyarrow.feather as feather
 import pyarrow.ipc as ipc
 
-from bench.dataset import CheckReport, DatasetAdapter, Sequence
-from bench.errors import DataError
-from bench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from bench.roi import EgoBox
-from datasets.layout import SequenceData
+from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
+from pcfbench.errors import DataError
+from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pcfbench.roi import EgoBox
+from pcfbench.datasets.layout import SequenceData
 
 SPLITS = ("train", "val", "test")
 POSE_COLUMNS = ("qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from bench.errors import PcfbenchError
-from datasets.layout import STANDARD_AXES, SequenceData, change_axes
+from pcfbench.errors import PcfbenchError
+from pcfbench.datasets.layout import STANDARD_AXES, SequenceData, change_axes
 
 #: convert targets: layout name -> (axis convention, description)
 LAYOUTS = {
@@ -24,8 +24,8 @@ LAYOUTS = {
 def open_adapter(spec: str):
     """``NAME[=ROOT]`` (ROOT may carry ``?key=value`` options) into an adapter instance; without
     a ROOT the configured one (environment, config file) or the embedded default is used."""
-    from bench import config
-    from bench.plugins import get_plugins
+    from pcfbench import config
+    from pcfbench.plugins import get_plugins
 
     (name,), roots = config.parse_dataset_args((spec,))
     cls = get_plugins().datasets.get(name)
@@ -59,20 +59,20 @@ def _rename(seqs: list[SequenceData], pools: dict[str, list[str]], default_split
 def write_layout(layout: str, out: Path, seqs: list[SequenceData]) -> list[tuple[str, str]]:
     """Write ``seqs`` in ``layout`` under ``out``; returns (source name, written name) pairs."""
     if layout == "kitti":
-        from datasets.kitti import SPLITS, write_kitti_sequence
+        from pcfbench.datasets.kitti import SPLITS, write_kitti_sequence
 
         named = _rename(seqs, {k: list(v) for k, v in SPLITS.items()}, "test", layout)
         for s in named:
             times = (s.timestamps_ns - s.timestamps_ns[0]) / 1e9
             write_kitti_sequence(out, s.name, (s.load(i) for i in range(len(s))), s.T_world_sensor, times)
     elif layout == "nuscenes":
-        from datasets.nuscenes import official_splits, write_nuscenes
+        from pcfbench.datasets.nuscenes import official_splits, write_nuscenes
 
         sp = official_splits()
         named = _rename(seqs, {"train": sp["train"], "val": sp["val"]}, "val", layout)
         write_nuscenes(out, named)
     elif layout in ("av2", "av2-sensor"):
-        from datasets.av2 import write_av2
+        from pcfbench.datasets.av2 import write_av2
 
         def log_id(s: SequenceData) -> str:  # av2 names are split/log_id already
             return s.name.rpartition("/")[2] if s.name.startswith(f"{s.split}/") else s.name.replace("/", "_")
@@ -80,7 +80,7 @@ def write_layout(layout: str, out: Path, seqs: list[SequenceData]) -> list[tuple
         named = [SequenceData(log_id(s), s.split if s.split in ("train", "val", "test") else "val", s.T_world_sensor, s.timestamps_ns, s.load) for s in seqs]
         write_av2(out, named, layout="sensor" if layout == "av2-sensor" else "lidar")
     elif layout.startswith("mcap"):
-        from datasets.mcap_writer import write_mcap_dataset
+        from pcfbench.datasets.mcap_writer import write_mcap_dataset
 
         named = [SequenceData(s.name.replace("/", "_"), "all", s.T_world_sensor, s.timestamps_ns, s.load) for s in seqs]
         write_mcap_dataset(out, named, {"mcap": "ros2", "mcap-foxglove": "protobuf", "mcap-json": "json"}[layout])
@@ -129,12 +129,12 @@ def add_commands(cli) -> None:
 
 def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = None, split: str | None = None,
            methods: tuple[str, ...] = (), policy: str = "full-context") -> tuple[Path, int]:
-    from bench.cli import parse_method_spec
-    from bench.method import parse_options
-    from bench.plugins import get_plugins
-    from bench.protocol import SampleBuilder, check_compatible, get_setting
-    from bench.validate import validate_forecast
-    from datasets.export_mcap import export_sample
+    from pcfbench.cli import parse_method_spec
+    from pcfbench.method import parse_options
+    from pcfbench.plugins import get_plugins
+    from pcfbench.protocol import SampleBuilder, check_compatible, get_setting
+    from pcfbench.validate import validate_forecast
+    from pcfbench.datasets.export_mcap import export_sample
 
     adapter = open_adapter(dataset)
     s = get_setting(setting)

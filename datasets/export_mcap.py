@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.data import Forecast, GroundTruth, Sample
-from bench.geometry import invert, rotation_to_quat_wxyz, transform_points
-from datasets.mcap_writer import foxglove_pointcloud, foxglove_transform
+from pcfbench.data import Forecast, GroundTruth, Sample
+from pcfbench.geometry import invert, rotation_to_quat_wxyz, transform_points
+from pcfbench.datasets.mcap_writer import foxglove_pointcloud, foxglove_transform
 
 WORLD = "world"
 SENSOR = "sensor"

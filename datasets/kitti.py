@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.dataset import DatasetAdapter, Sequence
-from bench.errors import DataError
-from bench.roi import EgoBox
+from pcfbench.dataset import DatasetAdapter, Sequence
+from pcfbench.errors import DataError
+from pcfbench.roi import EgoBox
 
 SPLITS = {
     "train": ("00", "01", "02", "03", "04", "05"),

@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from bench.errors import DataError
+from pcfbench.errors import DataError
 
 #: Axis conventions the adapters declare, and the rotation R_conv_std mapping the standard
 #: frame (x forward, y left, z up) into each one.

@@ -30,12 +30,12 @@ import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
-from bench.dataset import CheckReport, DatasetAdapter, Sequence
-from bench.errors import DataError
-from bench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from bench.roi import EgoBox
+from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
+from pcfbench.errors import DataError
+from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pcfbench.roi import EgoBox
 
-assert hasattr(mcap, "reader"), "datasets.mcap must import the mcap library"
+assert hasattr(mcap, "reader"), "pcfbench.datasets.mcap must import the mcap library"
 
 CLOUD_SCHEMAS = ("sensor_msgs/msg/PointCloud2", "foxglove.PointCloud")
 TF_SCHEMAS = ("tf2_msgs/msg/TFMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
@@ -454,6 +454,6 @@ def _close_state(state: dict) -> None:
 
 
 def _settings():
-    from bench.protocol import SETTINGS
+    from pcfbench.protocol import SETTINGS
 
     return SETTINGS

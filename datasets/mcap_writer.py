@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.geometry import invert, rotation_to_quat_wxyz
-from datasets.layout import SequenceData
+from pcfbench.geometry import invert, rotation_to_quat_wxyz
+from pcfbench.datasets.layout import SequenceData
 
 POINTCLOUD2_MSGDEF = """std_msgs/Header header
 uint32 height

@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.dataset import CheckReport, DatasetAdapter, Sequence
-from bench.errors import DataError
-from bench.geometry import invert, quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from bench.roi import EgoBox
-from datasets.layout import SequenceData
+from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
+from pcfbench.errors import DataError
+from pcfbench.geometry import invert, quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pcfbench.roi import EgoBox
+from pcfbench.datasets.layout import SequenceData
 
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "log")
 VERSIONS = ("v1.0-trainval", "v1.0-mini", "v1.0-test")

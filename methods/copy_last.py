@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from bench.data import Forecast, Sample
-from bench.method import Method
+from pcfbench.data import Forecast, Sample
+from pcfbench.method import Method
 
 
 class CopyLast(Method):

@@ -19,8 +19,8 @@ for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + ["PCF
 
 def write_tiny_kitti(root: Path, sequences=("08",), num_sweeps: int = 24, beams: int = 16, azimuths: int = 360) -> Path:
     """A KITTI Odometry tree (velodyne .bin, calib.txt, times.txt, poses/NN.txt) of the toy world."""
-    from bench.testing import toy_world_sweeps
-    from datasets.kitti import write_kitti_sequence
+    from pcfbench.testing import toy_world_sweeps
+    from pcfbench.datasets.kitti import write_kitti_sequence
 
     for i, name in enumerate(sequences):
         pts, poses, times = toy_world_sweeps(num_sweeps, beams=beams, azimuths=azimuths, seed=i)

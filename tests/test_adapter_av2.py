@@ -9,10 +9,10 @@ import pyarrow as pa
 import pyarrow.feather as feather
 import pytest
 
-from bench.errors import DataError
-from bench.testing import check_adapter, toy_world_sweeps
-from datasets.av2 import Argoverse2, write_av2
-from datasets.layout import SequenceData
+from pcfbench.errors import DataError
+from pcfbench.testing import check_adapter, toy_world_sweeps
+from pcfbench.datasets.av2 import Argoverse2, write_av2
+from pcfbench.datasets.layout import SequenceData
 
 LOG = "0c6e62d7-bdfa-3061-8d3d-03b13aa21f68"
 
@@ -118,7 +118,7 @@ def test_check_collects_every_problem(tmp_path):
 def test_end_to_end_copy_last(tmp_path, setting):
     from click.testing import CliRunner
 
-    from bench.cli import build_cli
+    from pcfbench.cli import build_cli
 
     stride = 2 if setting == "av2-1s" else 6
     num = 9 * stride + 3

@@ -7,11 +7,11 @@ import importlib
 import numpy as np
 import pytest
 
-from bench.errors import DataError
-from bench.testing import check_adapter, toy_world_sweeps
-from datasets.layout import SequenceData
-from datasets.mcap import McapRecording
-from datasets.mcap_writer import pointcloud2_message, write_foxglove_recording, write_ros2_recording
+from pcfbench.errors import DataError
+from pcfbench.testing import check_adapter, toy_world_sweeps
+from pcfbench.datasets.layout import SequenceData
+from pcfbench.datasets.mcap import McapRecording
+from pcfbench.datasets.mcap_writer import pointcloud2_message, write_foxglove_recording, write_ros2_recording
 
 T0 = 1_700_000_000_000_000_000
 
@@ -22,7 +22,7 @@ def _seq(n: int = 10, rate_hz: float = 10.0, seed: int = 0) -> tuple[SequenceDat
 
 
 def test_module_name_does_not_shadow_the_library():
-    mod = importlib.import_module("datasets.mcap")
+    mod = importlib.import_module("pcfbench.datasets.mcap")
     assert mod.mcap.__name__ == "mcap" and hasattr(mod.mcap, "reader")
 
 
@@ -67,7 +67,7 @@ def test_folder_options_and_rate_stride(tmp_path):
 
 
 def test_root_option_syntax_reaches_the_adapter(tmp_path):
-    from bench.config import split_root_options
+    from pcfbench.config import split_root_options
 
     seq, _, _ = _seq(n=12, rate_hz=20.0)
     write_ros2_recording(tmp_path / "r.mcap", seq)
@@ -80,7 +80,7 @@ def _write_raw_ros2(path, clouds, tf=True):
     """A ROS 2 recording from PointCloud2 dicts (to plant bad clouds)."""
     from mcap_ros2.writer import Writer
 
-    from datasets.mcap_writer import POINTCLOUD2_MSGDEF, TFMESSAGE_MSGDEF, _tf
+    from pcfbench.datasets.mcap_writer import POINTCLOUD2_MSGDEF, TFMESSAGE_MSGDEF, _tf
 
     with open(path, "wb") as f:
         w = Writer(f)
@@ -123,7 +123,7 @@ def test_bad_inputs_each_named(tmp_path):
 def test_zero_quaternion_and_missing_dynamic_transform(tmp_path):
     from mcap_ros2.writer import Writer
 
-    from datasets.mcap_writer import POINTCLOUD2_MSGDEF, TFMESSAGE_MSGDEF, _tf
+    from pcfbench.datasets.mcap_writer import POINTCLOUD2_MSGDEF, TFMESSAGE_MSGDEF, _tf
 
     _, pts, _ = _seq(n=3)
     path = tmp_path / "zq.mcap"
@@ -170,7 +170,7 @@ def test_check_reports_topics_frames_and_every_problem(tmp_path):
 def test_end_to_end_copy_last(tmp_path):
     from click.testing import CliRunner
 
-    from bench.cli import build_cli
+    from pcfbench.cli import build_cli
 
     seq, _, _ = _seq(n=44, rate_hz=20.0)
     write_ros2_recording(tmp_path / "drive.mcap", seq)
@@ -211,7 +211,7 @@ if given is not None:
     )
     def test_pointcloud2_layouts_decode_exactly(order, coord, big, pad, row_pad, height, seed):
         """Any field order, float32/64 coordinates, endianness, point and row padding."""
-        from datasets.mcap import cloud_points
+        from pcfbench.datasets.mcap import cloud_points
 
         rng = np.random.default_rng(seed)
         pts = rng.uniform(-80, 80, size=(10 * height, 3)).astype(np.float32)

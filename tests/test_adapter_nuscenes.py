@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.errors import DataError
-from bench.geometry import invert, transform_points
-from bench.testing import check_adapter, toy_world_sweeps
-from datasets.layout import STANDARD_AXES, SequenceData, change_axes
-from datasets.nuscenes import NuScenes, official_splits, write_nuscenes
+from pcfbench.errors import DataError
+from pcfbench.geometry import invert, transform_points
+from pcfbench.testing import check_adapter, toy_world_sweeps
+from pcfbench.datasets.layout import STANDARD_AXES, SequenceData, change_axes
+from pcfbench.datasets.nuscenes import NuScenes, official_splits, write_nuscenes
 
 
 def _scene(name: str, n: int, seed: int = 0, rate_hz: float = 2.0, **kw) -> SequenceData:
@@ -136,7 +136,7 @@ def test_check_collects_every_problem(tmp_path):
 def test_end_to_end_copy_last(tmp_path, setting):
     from click.testing import CliRunner
 
-    from bench.cli import build_cli
+    from pcfbench.cli import build_cli
 
     root = write_tiny_nuscenes(tmp_path / "nusc", names=("scene-0003",), n=16)
     args = ["run", "--dataset", f"nuscenes={root}", "--setting", setting, "--method", "copy-last",
@@ -151,7 +151,7 @@ def test_end_to_end_copy_last(tmp_path, setting):
 def test_datasets_check_cli_names_layout_splits_and_problems(tmp_path):
     from click.testing import CliRunner
 
-    from bench.cli import build_cli
+    from pcfbench.cli import build_cli
 
     root = write_tiny_nuscenes(tmp_path, names=("scene-0003", "scene-0001"), n=5)
     res = CliRunner().invoke(build_cli(), ["datasets", "check", str(root)])

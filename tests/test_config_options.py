@@ -3,10 +3,10 @@ from typing import Literal
 
 import pytest
 
-from bench import config
-from bench.cli import parse_method_spec
-from bench.errors import PcfbenchError
-from bench.method import options_hash, parse_options
+from pcfbench import config
+from pcfbench.cli import parse_method_spec
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import options_hash, parse_options
 
 
 @dataclass(frozen=True)

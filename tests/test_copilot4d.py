@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from methods.copilot4d.config import PAPER, TINY
-from methods.copilot4d.data import make_batch
-from methods.copilot4d.model import Tokenizer, VectorQuantizer, kmeans
-from methods.copilot4d.render import render_depth, sample_along_rays
-from methods.copilot4d.train import compute_losses, count_parameters, lr_at, make_optimizer, param_groups, train
+from pcfbench.methods.copilot4d.config import PAPER, TINY
+from pcfbench.methods.copilot4d.data import make_batch
+from pcfbench.methods.copilot4d.model import Tokenizer, VectorQuantizer, kmeans
+from pcfbench.methods.copilot4d.render import render_depth, sample_along_rays
+from pcfbench.methods.copilot4d.train import compute_losses, count_parameters, lr_at, make_optimizer, param_groups, train
 
 # a very small configuration of the same architecture, for fast tests
 MICRO = TINY.with_overrides(
@@ -26,7 +26,7 @@ MICRO = TINY.with_overrides(
 
 @pytest.fixture(scope="module")
 def toy_sweeps():
-    from bench.testing import toy_world_sweeps
+    from pcfbench.testing import toy_world_sweeps
 
     pts, _, _ = toy_world_sweeps(3, beams=16, azimuths=360)
     return pts
@@ -270,7 +270,7 @@ def test_resume_continues_exactly(tmp_path, toy_sweeps):
 
 
 def test_skipping_mask_threshold_and_noise():
-    from methods.copilot4d.render import logistic_noise_mask
+    from pcfbench.methods.copilot4d.render import logistic_noise_mask
 
     cfg = MICRO
     logits = torch.full((1, 64, 64, cfg.grid_z), -8.0)
@@ -286,7 +286,7 @@ def test_skipping_mask_threshold_and_noise():
 
 
 def test_calibrate_and_evaluate_reconstruction(toy_sweeps):
-    from methods.copilot4d.evaluate import SKIP_CANDIDATES, calibrate_skipping, evaluate_reconstruction, sweep_errors
+    from pcfbench.methods.copilot4d.evaluate import SKIP_CANDIDATES, calibrate_skipping, evaluate_reconstruction, sweep_errors
 
     class Source:
         split = "train"

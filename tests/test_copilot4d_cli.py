@@ -13,7 +13,7 @@ from click.testing import CliRunner
 def test_train_resume_report_tokenize(tmp_path, monkeypatch):
     from conftest import write_tiny_kitti
 
-    from bench.cli import build_cli
+    from pcfbench.cli import build_cli
 
     root = write_tiny_kitti(tmp_path / "kitti", sequences=("00", "06"), num_sweeps=4)
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from bench.cli import build_cli
-from bench.geometry import transform_points
+from pcfbench.cli import build_cli
+from pcfbench.geometry import transform_points
 
 
 def _read_back(path):
@@ -24,8 +24,8 @@ def _read_back(path):
 
 
 def test_export_reads_back(tiny_kitti, tmp_path):
-    from datasets.kitti import KittiOdometry
-    from bench.protocol import SETTINGS, SampleBuilder
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.protocol import SETTINGS, SampleBuilder
 
     out = tmp_path / "sample.mcap"
     res = CliRunner().invoke(build_cli(), ["export", "-d", f"kitti={tiny_kitti}", "-s", "kitti-1s", "--sample", "08/000010",
@@ -49,7 +49,7 @@ def test_export_reads_back(tiny_kitti, tmp_path):
     assert len(topics["/tf"]) == 10 and len(topics["/ego/trajectory"][0][2].poses) == 10
     # a ground-truth cloud, placed by its transform at its own time, lands on the truth in world coordinates
     tf = {m[1]: m[2] for m in topics["/tf"]}
-    from bench.geometry import quat_wxyz_to_rotation
+    from pcfbench.geometry import quat_wxyz_to_rotation
 
     t, msg = gt[2][1], gt[2][2]
     T = np.eye(4)
@@ -62,8 +62,8 @@ def test_export_reads_back(tiny_kitti, tmp_path):
 
 @pytest.mark.parametrize("layout", ["nuscenes", "av2-sensor", "mcap", "mcap-foxglove"])
 def test_convert_kitti_to_layout_keeps_world_points(tiny_kitti, tmp_path, layout):
-    from bench.plugins import get_plugins
-    from datasets.kitti import KittiOdometry
+    from pcfbench.plugins import get_plugins
+    from pcfbench.datasets.kitti import KittiOdometry
 
     out = tmp_path / layout
     res = CliRunner().invoke(build_cli(), ["convert", "--from", f"kitti={tiny_kitti}", "--to", f"{layout}={out}"])
@@ -82,8 +82,8 @@ def test_convert_kitti_to_layout_keeps_world_points(tiny_kitti, tmp_path, layout
 
 
 def test_convert_nuscenes_to_kitti_places_val_scene_in_kitti_val(tmp_path):
-    from datasets.kitti import KittiOdometry
-    from datasets.nuscenes import NuScenes
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.datasets.nuscenes import NuScenes
     from test_adapter_nuscenes import write_tiny_nuscenes
 
     src_root = write_tiny_nuscenes(tmp_path / "nusc", names=("scene-0003",), n=6)

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from bench.geometry import (
+from pcfbench.geometry import (
     invert, is_se3, quat_wxyz_to_rotation, rotate_vectors, rotation_to_quat_wxyz, se3, transform_points, yaw_transform,
 )
-from bench.roi import ROI, Box, EgoBox, clamp_ranges_to_box, ray_box_interval
+from pcfbench.roi import ROI, Box, EgoBox, clamp_ranges_to_box, ray_box_interval
 
 
 def random_se3(rng):

@@ -2,12 +2,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from bench.cli import build_cli
-from bench.errors import DataError
-from bench.geometry import invert, transform_points, yaw_transform
-from bench.protocol import SETTINGS, SampleBuilder
-from bench.testing import check_adapter
-from datasets.kitti import DEFAULT_TR, KittiOdometry, read_calib, write_kitti_sequence
+from pcfbench.cli import build_cli
+from pcfbench.errors import DataError
+from pcfbench.geometry import invert, transform_points, yaw_transform
+from pcfbench.protocol import SETTINGS, SampleBuilder
+from pcfbench.testing import check_adapter
+from pcfbench.datasets.kitti import DEFAULT_TR, KittiOdometry, read_calib, write_kitti_sequence
 
 
 def _write(root, name="08", n=6, semantic=False):

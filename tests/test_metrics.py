@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.data import RayQuery
-from bench.metrics import reference
-from bench.metrics.base import SweepContext
+from pcfbench.data import RayQuery
+from pcfbench.metrics import reference
+from pcfbench.metrics.base import SweepContext
 
 NAMES = (
     "chamfer", "chamfer_nf", "chamfer_nf@4docc", "l1@4docc", "absrel@4docc", "l1_mean", "absrel_mean",
@@ -15,7 +15,7 @@ NAMES = (
 
 
 def suite():
-    from bench.plugins import get_plugins
+    from pcfbench.plugins import get_plugins
 
     reg = get_plugins().metrics
     return [reg.get(n) for n in NAMES]
@@ -184,7 +184,7 @@ def test_ray_query_mode():
 
 
 def test_ray_box_interval_hand_cases():
-    from bench.roi import Box, clamp_ranges_to_box, ray_box_interval
+    from pcfbench.roi import Box, clamp_ranges_to_box, ray_box_interval
 
     box = Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
     o = np.zeros(3)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from test_metrics import suite
 
-from bench.data import Forecast
-from bench.method import Method
-from bench.protocol import SETTINGS, SampleBuilder
-from bench.runner import Resolved, process_sample
-from bench.testing import InMemoryDataset
+from pcfbench.data import Forecast
+from pcfbench.method import Method
+from pcfbench.protocol import SETTINGS, SampleBuilder
+from pcfbench.runner import Resolved, process_sample
+from pcfbench.testing import InMemoryDataset
 
 
 class Scripted(Method):

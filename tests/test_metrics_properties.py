@@ -76,7 +76,7 @@ def test_larger_ray_aligned_clouds_match_reference(seed, n):
        layout=st.sampled_from(["uniform", "clustered", "line", "far"]))
 def test_nearest_2d_matches_brute_force(seed, k, m, periodic, layout):
     """The grid (with its k-d tree fallback) finds the brute-force nearest distance, wrap included."""
-    from bench.metrics.nn import nearest_2d
+    from pcfbench.metrics.nn import nearest_2d
 
     rng = np.random.default_rng(seed)
     lo, hi = (-np.pi, np.pi)
@@ -101,8 +101,8 @@ def test_nearest_2d_matches_brute_force(seed, k, m, periodic, layout):
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 50))
 def test_ray_box_interval_matches_scalar_slab_walk(seed, n):
-    from bench.metrics.reference import segment_in_box
-    from bench.roi import ROI, ray_box_interval
+    from pcfbench.metrics.reference import segment_in_box
+    from pcfbench.roi import ROI, ray_box_interval
 
     rng = np.random.default_rng(seed)
     o = rng.uniform(-100, 100, 3) * rng.integers(0, 2, 3)  # some coordinates exactly 0
@@ -122,7 +122,7 @@ def test_ray_box_interval_matches_scalar_slab_walk(seed, n):
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 300), chunk=st.integers(1, 50))
 def test_nearest_angles_in_pieces_match_whole_searches(seed, n, chunk):
     """Sharing the grid passes out in pieces changes no answer (index, ties included)."""
-    from bench.metrics import nn
+    from pcfbench.metrics import nn
 
     rng = np.random.default_rng(seed)
     origin = rng.uniform(-2, 2, 3)
@@ -140,7 +140,7 @@ def test_nearest_angles_in_pieces_match_whole_searches(seed, n, chunk):
 
 def test_nearest_2d_ties_go_to_the_lowest_index():
     """Exact ties on a lattice (coordinates exact in binary): the brute-force argmin's index."""
-    from bench.metrics.nn import nearest_2d
+    from pcfbench.metrics.nn import nearest_2d
 
     rng = np.random.default_rng(3)
     data = rng.integers(-8, 8, (400, 2)) * 0.25

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from bench.errors import PluginError, UnknownNameError
-from bench.hookspecs import hookimpl
-from bench.method import Method
-from bench.plugins import Plugins, load_plugins
+from pcfbench.errors import PluginError, UnknownNameError
+from pcfbench.hookspecs import hookimpl
+from pcfbench.method import Method
+from pcfbench.plugins import Plugins, load_plugins
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -32,16 +32,16 @@ def test_builtins_load_through_entry_points():
 
 def test_duplicate_names_rejected_and_attributed():
     plugins = load_plugins()
-    dup = _plugin_module("dup", register_methods=lambda register: register("copy-last", "methods.copy_last:CopyLast"))
+    dup = _plugin_module("dup", register_methods=lambda register: register("copy-last", "pcfbench.methods.copy_last:CopyLast"))
     plugins.add_plugin(dup, "dup")
     assert "registered twice" in plugins.info["dup"].error and "builtin-methods" in plugins.info["dup"].error
 
 
 def test_type_checks_on_eager_and_lazy_targets():
     plugins = Plugins()
-    with pytest.raises(PluginError, match="subclass of bench.method.Method"):
+    with pytest.raises(PluginError, match="subclass of pcfbench.method.Method"):
         plugins.methods.add("bad", object, "p")
-    plugins.methods.add("lazy-bad", "bench.geometry:invert", "p")
+    plugins.methods.add("lazy-bad", "pcfbench.geometry:invert", "p")
     with pytest.raises(PluginError, match="lazy-bad.*subclass"):
         plugins.methods.get("lazy-bad")
     with pytest.raises(PluginError, match="must look like 'module:attribute'"):
@@ -88,9 +88,9 @@ EXTERNAL = {
         py-modules = ["pcfbench_example", "pcfbench_broken"]
     """,
     "pcfbench_example.py": """
-        from bench.data import Forecast
-        from bench.hookspecs import hookimpl
-        from bench.method import Method
+        from pcfbench.data import Forecast
+        from pcfbench.hookspecs import hookimpl
+        from pcfbench.method import Method
 
         class Shifted(Method):
             name = "shifted-copy"

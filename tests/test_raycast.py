@@ -5,19 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.data import RayQuery, Sample
-from bench.geometry import se3, yaw_transform
-from bench.roi import ROI, Box
-from bench.testing import check_method
-from bench.metrics.nn import angles_4docc
-from methods.raycast.common import aggregate, constant_velocity_poses, se3_exp, se3_log, views
-from methods.raycast.fastmath import atan2_array
-from methods.raycast.fourdocc import RaycastFourDOcc, render_4docc_views
-from methods.raycast.freespace import RaycastFreespace, carve
-from methods.raycast.grid import FOLLOW_RANGE, VoxelGrid, anchored_lo, sym3_smallest
-from methods.raycast.nn2d import NN2D
-from methods.raycast.voxel import RaycastVoxel, build_grid, ground_height
-from methods.raycast.zbuffer import RaycastZBuffer
+from pcfbench.data import RayQuery, Sample
+from pcfbench.geometry import se3, yaw_transform
+from pcfbench.roi import ROI, Box
+from pcfbench.testing import check_method
+from pcfbench.metrics.nn import angles_4docc
+from pcfbench.methods.raycast.common import aggregate, constant_velocity_poses, se3_exp, se3_log, views
+from pcfbench.methods.raycast.fastmath import atan2_array
+from pcfbench.methods.raycast.fourdocc import RaycastFourDOcc, render_4docc_views
+from pcfbench.methods.raycast.freespace import RaycastFreespace, carve
+from pcfbench.methods.raycast.grid import FOLLOW_RANGE, VoxelGrid, anchored_lo, sym3_smallest
+from pcfbench.methods.raycast.nn2d import NN2D
+from pcfbench.methods.raycast.voxel import RaycastVoxel, build_grid, ground_height
+from pcfbench.methods.raycast.zbuffer import RaycastZBuffer
 
 ALL = [RaycastFourDOcc, RaycastZBuffer, RaycastVoxel, RaycastFreespace]
 OCCLUSION_AWARE = [RaycastZBuffer, RaycastVoxel, RaycastFreespace]
@@ -105,7 +105,7 @@ def test_missing_past_and_future_sweeps_are_fine(cls):
 
 
 def test_registered():
-    from bench.plugins import get_plugins
+    from pcfbench.plugins import get_plugins
 
     methods = get_plugins(reload=True).methods
     for cls in ALL:

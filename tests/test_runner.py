@@ -10,15 +10,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench.data import Forecast
-from bench.errors import PcfbenchError
-from bench.method import Method, options_hash
-from bench.plugins import load_plugins
-from bench.report import collect, write_reports
-from bench.runner import run_cell
-from bench.store import Cell, CellSpec
-from bench.testing import check_method
-from methods.copy_last import CopyLast
+from pcfbench.data import Forecast
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import Method, options_hash
+from pcfbench.plugins import load_plugins
+from pcfbench.report import collect, write_reports
+from pcfbench.runner import run_cell
+from pcfbench.store import Cell, CellSpec
+from pcfbench.testing import check_method
+from pcfbench.methods.copy_last import CopyLast
 from tests_helpers import write_kitti_tree
 
 

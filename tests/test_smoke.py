@@ -1,7 +1,7 @@
 import numpy as np
 from click.testing import CliRunner
 
-from bench.cli import build_cli
+from pcfbench.cli import build_cli
 
 
 def test_run_then_report_then_rerun_does_no_work(tiny_kitti, tmp_path):

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from bench.errors import PcfbenchError, UnknownNameError
-from bench.protocol import SETTINGS, SampleBuilder
-from bench.testing import check_adapter
-from datasets.synthetic.domains import GENERATOR_VERSION, get_domain
-from datasets.synthetic.generate import (
+from pcfbench.errors import PcfbenchError, UnknownNameError
+from pcfbench.protocol import SETTINGS, SampleBuilder
+from pcfbench.testing import check_adapter
+from pcfbench.datasets.synthetic.domains import GENERATOR_VERSION, get_domain
+from pcfbench.datasets.synthetic.generate import (
     COMPLETE, ensure_domain, generate_domain, get_writer, simulate_sequence, split_complete,
 )
 
@@ -46,7 +46,7 @@ def test_generation_is_deterministic_byte_for_byte(tmp_path):
 
 
 def test_adapter_reads_generated_kitti_layout_and_builds_samples(tmp_path):
-    from datasets.synthetic.adapter import SyntheticTown
+    from pcfbench.datasets.synthetic.adapter import SyntheticTown
 
     dom = tiny(sweeps=20)
     generate_domain(dom, tmp_path, progress=False, splits=("test",))
@@ -73,7 +73,7 @@ def test_adapter_reads_generated_kitti_layout_and_builds_samples(tmp_path):
 
 
 def test_suburb_adapter_rate_and_settings(tmp_path):
-    from datasets.synthetic.adapter import SyntheticSuburb
+    from pcfbench.datasets.synthetic.adapter import SyntheticSuburb
 
     dom = tiny("synthetic-suburb", sweeps=6)
     generate_domain(dom, tmp_path, progress=False, splits=("test",))
@@ -82,7 +82,7 @@ def test_suburb_adapter_rate_and_settings(tmp_path):
     assert np.allclose(np.diff(seq.timestamps_ns), 500_000_000)
     assert SampleBuilder(adapter, SETTINGS["nuscenes-1s"]).sample_keys("test") == [("05", 1), ("05", 2), ("05", 3)]
     with pytest.raises(PcfbenchError, match="not 'synthetic-town'"):
-        from datasets.synthetic.adapter import SyntheticTown
+        from pcfbench.datasets.synthetic.adapter import SyntheticTown
 
         SyntheticTown(tmp_path)
 
@@ -107,11 +107,11 @@ def test_cache_generates_once_detects_interrupted_split_and_regenerates(tmp_path
 
 
 def test_managed_cache_generates_a_split_when_the_adapter_asks(tmp_path, monkeypatch):
-    import datasets.synthetic.adapter as adapter_mod
+    import pcfbench.datasets.synthetic.adapter as adapter_mod
 
     dom = tiny(sweeps=3)
     monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
-    import datasets.synthetic.generate as gen
+    import pcfbench.datasets.synthetic.generate as gen
 
     monkeypatch.setattr(gen, "get_domain", lambda name: dom)
     root = ensure_domain(dom, splits=("test",), progress=False, root=tmp_path / "c")
@@ -145,8 +145,8 @@ def test_unknown_names_are_clear_errors():
 
 
 def test_generate_command_and_plugin_registration(tmp_path):
-    from bench.cli import build_cli
-    from bench.plugins import get_plugins
+    from pcfbench.cli import build_cli
+    from pcfbench.plugins import get_plugins
 
     plugins = get_plugins()
     town = plugins.datasets.get("synthetic-town")
@@ -172,8 +172,8 @@ def test_moving_agents_move_between_sweeps():
 def test_copy_last_error_is_larger_on_moving_agents(tmp_path):
     """Moving agents make copy-last's error larger than on static points (robust statistics)
     and larger than on parked vehicles of the same shapes."""
-    from datasets.synthetic.adapter import SyntheticTown
-    from datasets.synthetic.analysis import copy_last_error_by_class
+    from pcfbench.datasets.synthetic.adapter import SyntheticTown
+    from pcfbench.datasets.synthetic.analysis import copy_last_error_by_class
 
     dom = tiny(sweeps=26, azimuths=512)
     generate_domain(dom, tmp_path, progress=False, splits=("test",))
@@ -186,9 +186,9 @@ def test_copy_last_error_is_larger_on_moving_agents(tmp_path):
 
 @pytest.mark.slow
 def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_path, monkeypatch):
-    import datasets.synthetic.adapter as adapter_mod
-    import datasets.synthetic.generate as gen
-    from bench.cli import build_cli
+    import pcfbench.datasets.synthetic.adapter as adapter_mod
+    import pcfbench.datasets.synthetic.generate as gen
+    from pcfbench.cli import build_cli
 
     dom = tiny(sweeps=56, azimuths=240)
     monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
@@ -216,8 +216,8 @@ def test_generate_other_layouts_read_back_by_their_adapters(tmp_path, layout, do
     world-frame points (whatever frame and axes the layout stores them in)."""
     from scipy.spatial import cKDTree
 
-    from bench.geometry import transform_points
-    from bench.plugins import get_plugins
+    from pcfbench.geometry import transform_points
+    from pcfbench.plugins import get_plugins
 
     dom = tiny(domain, sweeps=3, azimuths=120)
     dom = dataclasses.replace(dom, splits={"test": dom.splits["test"]})
@@ -229,7 +229,7 @@ def test_generate_other_layouts_read_back_by_their_adapters(tmp_path, layout, do
     match = [n for n in names if n == written or n.endswith("/" + written)]
     assert len(match) == 1, (names, written)
     seq = adapter.sequence(match[0])
-    from datasets.kitti import KittiOdometry
+    from pcfbench.datasets.kitti import KittiOdometry
 
     kitti = KittiOdometry(tmp_path / "kitti").sequence("05")
     assert len(seq) == len(kitti) == 3
@@ -246,7 +246,7 @@ def test_generate_other_layouts_read_back_by_their_adapters(tmp_path, layout, do
 
 def test_domains_differ_like_real_datasets():
     """Town vs suburb: sensor, rate, building heights and set-backs, traffic density."""
-    from datasets.synthetic.world import (
+    from pcfbench.datasets.synthetic.world import (
         STRUCTURE, SUBURB, TOWN, Ground, build_static, make_agents, make_road_graph,
     )
 

@@ -7,11 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from datasets.synthetic.domains import get_domain
-from datasets.synthetic.generate import simulate_sequence
-from datasets.synthetic.lidar import EGO_SHAPE, StaticScene, cast_sweep, ego_hits
-from datasets.synthetic.sensor import HDL32, HDL64
-from datasets.synthetic.world import EGO, GROUND, STRUCTURE, MeshSoup, box
+from pcfbench.datasets.synthetic.domains import get_domain
+from pcfbench.datasets.synthetic.generate import simulate_sequence
+from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, StaticScene, cast_sweep, ego_hits
+from pcfbench.datasets.synthetic.sensor import HDL32, HDL64
+from pcfbench.datasets.synthetic.world import EGO, GROUND, STRUCTURE, MeshSoup, box
 
 
 @pytest.fixture(scope="module", params=["synthetic-town", "synthetic-suburb"])

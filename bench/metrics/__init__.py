@@ -1,5 +1,5 @@
 """Metrics: small named, versioned functions of one future sweep (PROTOCOL.md section 4)."""
 
-from bench.metrics.base import Metric, SweepContext, score_sample
+from pcfbench.metrics.base import Metric, SweepContext, score_sample
 
 __all__ = ["Metric", "SweepContext", "score_sample"]

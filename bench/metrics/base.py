@@ -8,10 +8,10 @@ from typing import Callable
 
 import numpy as np
 
-from bench.data import Forecast, GroundTruth, RayQuery, Sample
-from bench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
-from bench.protocol import MIN_RANGE_M
-from bench.roi import ROI, Box, ray_box_interval
+from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
+from pcfbench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
+from pcfbench.protocol import MIN_RANGE_M
+from pcfbench.roi import ROI, Box, ray_box_interval
 
 
 @dataclass(frozen=True)
@@ -183,7 +183,7 @@ class SweepContext:
     @cached_property
     def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
         """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped),
-        the two exact searches shared out over two threads (bench.metrics.nn.nearest_angles)."""
+        the two exact searches shared out over two threads (pcfbench.metrics.nn.nearest_angles)."""
         return nearest_angles(self.pred_rel, self.gt_rel)
 
     def _ray_depth(self, which: int) -> np.ndarray | None:

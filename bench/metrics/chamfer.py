@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.metrics.base import Metric, SweepContext
-from bench.metrics.nn import nn_sq_dist
+from pcfbench.metrics.base import Metric, SweepContext
+from pcfbench.metrics.nn import nn_sq_dist
 
 __all__ = ["CHAMFER", "CHAMFER_NF", "CHAMFER_NF_4DOCC", "chamfer_value", "nn_sq_dist"]
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.metrics.base import Metric, SweepContext
-from bench.protocol import MIN_RANGE_M
+from pcfbench.metrics.base import Metric, SweepContext
+from pcfbench.protocol import MIN_RANGE_M
 
 NAN = float("nan")
 

@@ -5,7 +5,7 @@ in 3D (~0.1 s per 120k queries with pykdtree on the shared 2-core machine). A bu
 with about two points per cell, scanned with the GIL released, was measured side by side at
 0.57-0.59x the time of pykdtree's exact 2D search (both angle spaces, one thread, the same
 answers; 9 interleaved runs on the 120k pair, loaded machine). Queries are answered one by
-one, so any slice of them can go to another thread (bench.metrics.nn.nearest_angles).
+one, so any slice of them can go to another thread (pcfbench.metrics.nn.nearest_angles).
 
 Exactness: cells are scanned in Chebyshev rings around the query's cell (at most MAX_RINGS,
 then the query is handed back unanswered, index -1); cells whose rectangle is farther than
@@ -182,7 +182,7 @@ class Grid2D:
     def query(self, queries: np.ndarray, max_rings: int = MAX_RINGS) -> tuple[np.ndarray, np.ndarray]:
         """(squared distance, index) of each query's nearest point; index -1 where the nearest
         point is not proven within ``max_rings`` rings of cells (far from all data): those
-        queries need another search (bench.metrics.nn falls back to a k-d tree)."""
+        queries need another search (pcfbench.metrics.nn falls back to a k-d tree)."""
         q = np.asarray(queries, dtype=np.float64)
         out_i = np.empty(q.shape[0], np.int64)
         out_d = np.empty(q.shape[0], np.float64)

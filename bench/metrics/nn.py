@@ -18,7 +18,7 @@ import numba
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from bench.metrics.grid import Grid2D
+from pcfbench.metrics.grid import Grid2D
 
 TWO_PI = 2.0 * np.pi
 

@@ -2,7 +2,7 @@
 
 Brute force everywhere: no spatial index, nearest neighbours by scanning all candidates in
 chunks (O(N*M) time, bounded memory), the ROI clamp by a per-ray scalar slab walk written
-independently of bench.roi. Each function takes plain arrays and returns the per-sweep value
+independently of pcfbench.roi. Each function takes plain arrays and returns the per-sweep value
 with the same empty-input policy as the fast metric (NaN = skipped).
 """
 
@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from bench.roi import ROI, Box
+from pcfbench.roi import ROI, Box
 
 MIN_RANGE = 0.01
 NAN = float("nan")

@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.errors import DataError
-from bench.roi import EgoBox
-from datasets.kitti import KittiOdometry
-from datasets.synthetic.domains import GENERATOR_VERSION, get_domain
-from datasets.synthetic.generate import MANIFEST, ensure_domain, is_managed, split_complete
-from datasets.synthetic.lidar import EGO_SHAPE
+from pcfbench.errors import DataError
+from pcfbench.roi import EgoBox
+from pcfbench.datasets.kitti import KittiOdometry
+from pcfbench.datasets.synthetic.domains import GENERATOR_VERSION, get_domain
+from pcfbench.datasets.synthetic.generate import MANIFEST, ensure_domain, is_managed, split_complete
+from pcfbench.datasets.synthetic.lidar import EGO_SHAPE
 
 
 def _ego_box(margin: float = 0.15) -> EgoBox:

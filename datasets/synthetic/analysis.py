@@ -16,9 +16,9 @@ import json
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bench.geometry import transform_points
-from bench.protocol import MIN_RANGE_M, SampleBuilder, get_setting
-from datasets.synthetic.world import CLASS_NAMES, MOVING_CLASSES, STATIC_CLASSES
+from pcfbench.geometry import transform_points
+from pcfbench.protocol import MIN_RANGE_M, SampleBuilder, get_setting
+from pcfbench.datasets.synthetic.world import CLASS_NAMES, MOVING_CLASSES, STATIC_CLASSES
 
 #: range bins (m, from the future sensor) for the range-matched comparison
 RANGE_BINS = (0.0, 10.0, 20.0, 30.0, 50.0, 80.0, 130.0)
@@ -104,7 +104,7 @@ def copy_last_error_by_class(adapter, setting: str, split: str = "test", limit: 
 
 
 def main(argv: list[str] | None = None) -> None:
-    from bench.plugins import get_plugins
+    from pcfbench.plugins import get_plugins
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("dataset", nargs="?", default="synthetic-town")

@@ -16,9 +16,9 @@ def add_commands(cli: click.Group) -> None:
     @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
     def generate(domain, out, layout, splits, quiet):
         """Generate synthetic DOMAIN (synthetic-town, synthetic-suburb) deterministically."""
-        from bench.errors import PcfbenchError
-        from datasets.synthetic.domains import get_domain
-        from datasets.synthetic.generate import ensure_domain, generate_domain, get_writer
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.datasets.synthetic.domains import get_domain
+        from pcfbench.datasets.synthetic.generate import ensure_domain, generate_domain, get_writer
 
         dom = get_domain(domain)
         get_writer(layout)

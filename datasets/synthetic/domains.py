@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bench.errors import UnknownNameError
-from datasets.synthetic.sensor import HDL32, HDL64, LidarConfig
-from datasets.synthetic.world import SUBURB, TOWN, TownStyle
+from pcfbench.errors import UnknownNameError
+from pcfbench.datasets.synthetic.sensor import HDL32, HDL64, LidarConfig
+from pcfbench.datasets.synthetic.world import SUBURB, TOWN, TownStyle
 
 #: Bumped whenever the generated data would change; part of the cache folder name.
 GENERATOR_VERSION = "2"

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.geometry import transform_points
-from datasets.synthetic.domains import get_domain
-from datasets.synthetic.generate import simulate_sequence
-from datasets.synthetic.world import CLASS_NAMES
+from pcfbench.geometry import transform_points
+from pcfbench.datasets.synthetic.domains import get_domain
+from pcfbench.datasets.synthetic.generate import simulate_sequence
+from pcfbench.datasets.synthetic.world import CLASS_NAMES
 
 COLOURS = ["#b0b0b0", "#4c72b0", "#000000", "#55a868", "#8172b2", "#c44e52", "#dd8452", "#e377c2", "#7f7f7f"]
 

@@ -2,7 +2,7 @@
 
 ``simulate_sequence`` is pure (domain + sequence index -> sweeps, poses, labels); layout
 writers turn one simulated sequence into files; ``ensure_domain`` keeps a complete,
-versioned copy under ``bench.config.cache_dir() / "synthetic"`` and regenerates a copy whose
+versioned copy under ``pcfbench.config.cache_dir() / "synthetic"`` and regenerates a copy whose
 completion marker is missing (an interrupted generation).
 """
 
@@ -19,10 +19,10 @@ from typing import Callable
 
 import numpy as np
 
-from bench.errors import PcfbenchError, UnknownNameError
-from datasets.synthetic.domains import GENERATOR_VERSION, Domain, get_domain
-from datasets.synthetic.lidar import EGO_SHAPE, StaticScene, cast_sweep
-from datasets.synthetic.world import (
+from pcfbench.errors import PcfbenchError, UnknownNameError
+from pcfbench.datasets.synthetic.domains import GENERATOR_VERSION, Domain, get_domain
+from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, StaticScene, cast_sweep
+from pcfbench.datasets.synthetic.world import (
     CLASS_NAMES, Ground, build_static, make_agents, make_road_graph, make_route, speed_profile,
 )
 
@@ -122,7 +122,7 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
 
 def write_kitti(root: Path, seq: SimulatedSequence) -> None:
     """KITTI Odometry layout (plus SemanticKITTI-style ``labels/NNNNNN.label``)."""
-    from datasets.kitti import write_kitti_sequence
+    from pcfbench.datasets.kitti import write_kitti_sequence
 
     seq_dir = write_kitti_sequence(root, seq.name, seq.points, seq.T_world_sensor, seq.times_s, intensity=seq.intensity)
     labels = seq_dir / "labels"
@@ -138,7 +138,7 @@ EPOCH_NS = 1_600_000_000 * 10**9
 def _other_layouts() -> dict[str, str]:
     """Layouts of the adapters' shared writer (``datasets.commands.write_layout``) -> axes."""
     try:
-        from datasets.commands import LAYOUTS
+        from pcfbench.datasets.commands import LAYOUTS
     except ImportError:
         return {}
     return {name: axes for name, (axes, _) in LAYOUTS.items() if name != "kitti"}
@@ -153,8 +153,8 @@ def write_other_layout(layout: str, out: Path, seqs: list[SimulatedSequence], do
 
     Sensor frames are re-expressed in the layout's axis convention; times become absolute.
     """
-    from datasets.commands import write_layout
-    from datasets.layout import STANDARD_AXES, SequenceData, change_axes
+    from pcfbench.datasets.commands import write_layout
+    from pcfbench.datasets.layout import STANDARD_AXES, SequenceData, change_axes
 
     data = []
     for seq in seqs:
@@ -228,7 +228,7 @@ MANAGED = ".pcfbench-synthetic-cache"
 
 
 def cache_root(domain: Domain) -> Path:
-    from bench.config import cache_dir
+    from pcfbench.config import cache_dir
 
     return cache_dir() / "synthetic" / f"{domain.name}-v{GENERATOR_VERSION}"
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from datasets.synthetic.sensor import LidarConfig
-from datasets.synthetic.world import EGO, STATIC_CLASSES, Agent, MeshSoup, merge, _place
+from pcfbench.datasets.synthetic.sensor import LidarConfig
+from pcfbench.datasets.synthetic.world import EGO, STATIC_CLASSES, Agent, MeshSoup, merge, _place
 
 # Reflectance-like intensity per class (ground, structure, pole, vegetation, parked, vehicle, cyclist, pedestrian, ego).
 ALBEDO = np.array([0.25, 0.45, 0.6, 0.3, 0.7, 0.7, 0.5, 0.35, 0.5], np.float32)

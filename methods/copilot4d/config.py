@@ -123,7 +123,7 @@ CONFIGS = {"paper": PAPER, "tiny": TINY}
 
 
 def get_config(name: str) -> TokenizerConfig:
-    from bench.errors import PcfbenchError
+    from pcfbench.errors import PcfbenchError
 
     if name not in CONFIGS:
         raise PcfbenchError(f"unknown tokenizer config {name!r}; known: {', '.join(CONFIGS)}")

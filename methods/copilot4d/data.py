@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from methods.copilot4d.config import TokenizerConfig
+from pcfbench.methods.copilot4d.config import TokenizerConfig
 
 
 def open_dataset(name: str, root: str | Path | None = None, progress: bool = True):
     """The registered adapter ``name`` on ``root`` (else the configured root, else the
     adapter's default root, which embedded datasets generate)."""
-    from bench import config
-    from bench.plugins import get_plugins
+    from pcfbench import config
+    from pcfbench.plugins import get_plugins
 
     cls = get_plugins().datasets.get(name)
     if root is None:
@@ -36,7 +36,7 @@ class SweepSource:
         keys = keys[::stride]
         self.keys = keys[:limit] if limit else keys
         if not self.keys:
-            from bench.errors import DataError
+            from pcfbench.errors import DataError
 
             raise DataError(f"dataset {adapter.name!r} has no sweeps in split {split!r} under {adapter.root}")
 

@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.metrics.chamfer import chamfer_value
-from bench.roi import ROI, Box, clamp_ranges_to_box
-from methods.copilot4d.data import SweepSource, in_box, make_batch
-from methods.copilot4d.model import Tokenizer
-from methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
-from methods.copilot4d.train import autocast
+from pcfbench.metrics.chamfer import chamfer_value
+from pcfbench.roi import ROI, Box, clamp_ranges_to_box
+from pcfbench.methods.copilot4d.data import SweepSource, in_box, make_batch
+from pcfbench.methods.copilot4d.model import Tokenizer
+from pcfbench.methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
+from pcfbench.methods.copilot4d.train import autocast
 
 
 @torch.no_grad()

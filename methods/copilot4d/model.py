@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from methods.copilot4d.config import TokenizerConfig
-from methods.copilot4d.swin import PatchMerging, PatchUpsample, SwinStage, init_transformer_, sincos_2d
+from pcfbench.methods.copilot4d.config import TokenizerConfig
+from pcfbench.methods.copilot4d.swin import PatchMerging, PatchUpsample, SwinStage, init_transformer_, sincos_2d
 
 
 def voxelize(cfg: TokenizerConfig, points: torch.Tensor, batch: torch.Tensor):

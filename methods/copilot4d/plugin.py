@@ -8,12 +8,12 @@ from pathlib import Path
 
 import click
 
-from bench.hookspecs import hookimpl
+from pcfbench.hookspecs import hookimpl
 
 
 def _dataset(spec: str):
-    from bench.config import parse_dataset_args
-    from methods.copilot4d.data import open_dataset
+    from pcfbench.config import parse_dataset_args
+    from pcfbench.methods.copilot4d.data import open_dataset
 
     names, roots = parse_dataset_args((spec,))
     return open_dataset(names[0], roots.get(names[0]))
@@ -24,8 +24,8 @@ def _progress() -> bool:
 
 
 def _checkpoint(config: str, dataset_name: str, checkpoint: str | None) -> Path:
-    from bench.errors import PcfbenchError
-    from methods.copilot4d.train import checkpoint_dir
+    from pcfbench.errors import PcfbenchError
+    from pcfbench.methods.copilot4d.train import checkpoint_dir
 
     path = Path(checkpoint) if checkpoint else checkpoint_dir(config, dataset_name) / "last.pt"
     if not path.is_file():
@@ -38,8 +38,8 @@ def _skip_setting(model, adapter, ckpt: Path, step: int) -> dict:
     """The spatial-skipping threshold calibrated on training sweeps (cached next to the checkpoint)."""
     import json
 
-    from methods.copilot4d.data import SweepSource
-    from methods.copilot4d.evaluate import calibrate_skipping
+    from pcfbench.methods.copilot4d.data import SweepSource
+    from pcfbench.methods.copilot4d.evaluate import calibrate_skipping
 
     path = ckpt.with_name(ckpt.stem + "-skipping.json")
     if path.is_file():
@@ -54,9 +54,9 @@ def _skip_setting(model, adapter, ckpt: Path, step: int) -> dict:
 
 
 def _report(model, adapter, split: str, max_sweeps: int, reports: str | None, meta: dict, skip: dict | None = None) -> Path:
-    from bench.config import reports_dir
-    from methods.copilot4d.data import SweepSource
-    from methods.copilot4d.evaluate import evaluate_reconstruction, write_report
+    from pcfbench.config import reports_dir
+    from pcfbench.methods.copilot4d.data import SweepSource
+    from pcfbench.methods.copilot4d.evaluate import evaluate_reconstruction, write_report
 
     result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=max_sweeps, skip=skip)
     md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
@@ -95,10 +95,10 @@ def register_commands(cli):  # noqa: ANN001
         """Train the Copilot4D tokenizer (VQ-VAE with depth rendering); resumes from its checkpoint."""
         import torch
 
-        from bench.config import reports_dir
-        from methods.copilot4d.config import get_config
-        from methods.copilot4d.data import SweepSource
-        from methods.copilot4d.train import checkpoint_dir, count_parameters, default_device, train, write_curve
+        from pcfbench.config import reports_dir
+        from pcfbench.methods.copilot4d.config import get_config
+        from pcfbench.methods.copilot4d.data import SweepSource
+        from pcfbench.methods.copilot4d.train import checkpoint_dir, count_parameters, default_device, train, write_curve
 
         cfg = get_config(config_name)
         adapter = _dataset(dataset_spec)
@@ -131,9 +131,9 @@ def register_commands(cli):  # noqa: ANN001
     @click.option("--out", "out_dir", default=None, help="default: <cache>/copilot4d/tokens/<dataset>-<config>/<split>")
     def tokenize(config_name, dataset_spec, split, checkpoint, out_dir):
         """Cache the BEV token maps of a dataset split for the world model."""
-        from bench.config import cache_dir
-        from methods.copilot4d.evaluate import tokenize_split
-        from methods.copilot4d.train import load_tokenizer
+        from pcfbench.config import cache_dir
+        from pcfbench.methods.copilot4d.evaluate import tokenize_split
+        from pcfbench.methods.copilot4d.train import load_tokenizer
 
         adapter = _dataset(dataset_spec)
         model, _ = load_tokenizer(_checkpoint(config_name, adapter.name, checkpoint))
@@ -149,7 +149,7 @@ def register_commands(cli):  # noqa: ANN001
     @click.option("--reports", default=None)
     def tokenizer_report(config_name, dataset_spec, split, checkpoint, sweeps, reports):
         """Table-7-style reconstruction numbers (NFCD, L1 median/mean, CD) of a trained tokenizer."""
-        from methods.copilot4d.train import count_parameters, load_tokenizer
+        from pcfbench.methods.copilot4d.train import count_parameters, load_tokenizer
 
         adapter = _dataset(dataset_spec)
         path = _checkpoint(config_name, adapter.name, checkpoint)

@@ -8,7 +8,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from methods.copilot4d.config import TokenizerConfig
+from pcfbench.methods.copilot4d.config import TokenizerConfig
 
 
 def box_interval(cfg: TokenizerConfig, origins: torch.Tensor, dirs: torch.Tensor):

@@ -14,10 +14,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from methods.copilot4d.config import TokenizerConfig
-from methods.copilot4d.data import Batch, SweepSource, make_batch
-from methods.copilot4d.model import Tokenizer, occupancy_grid
-from methods.copilot4d.render import pool_mask, render_depth, render_loss, sample_along_rays
+from pcfbench.methods.copilot4d.config import TokenizerConfig
+from pcfbench.methods.copilot4d.data import Batch, SweepSource, make_batch
+from pcfbench.methods.copilot4d.model import Tokenizer, occupancy_grid
+from pcfbench.methods.copilot4d.render import pool_mask, render_depth, render_loss, sample_along_rays
 
 
 def default_device() -> torch.device:
@@ -83,7 +83,7 @@ def compute_losses(model: Tokenizer, batch: Batch, cfg: TokenizerConfig) -> dict
 
 
 def checkpoint_dir(cfg_name: str, dataset: str) -> Path:
-    from bench.config import cache_dir
+    from pcfbench.config import cache_dir
 
     return cache_dir() / "copilot4d" / f"tokenizer-{cfg_name}-{dataset}"
 

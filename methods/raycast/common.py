@@ -22,8 +22,8 @@ from typing import TypeVar
 import numba
 import numpy as np
 
-from bench.data import Forecast, Sample
-from bench.geometry import invert
+from pcfbench.data import Forecast, Sample
+from pcfbench.geometry import invert
 
 _EPS = 1e-9
 

@@ -25,11 +25,11 @@ from functools import partial
 import numba as nb
 import numpy as np
 
-from bench.data import Forecast, Sample
-from bench.method import Method
-from methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views
-from methods.raycast.fastmath import atan2
-from methods.raycast.nn2d import NN2D
+from pcfbench.data import Forecast, Sample
+from pcfbench.method import Method
+from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views
+from pcfbench.methods.raycast.fastmath import atan2
+from pcfbench.methods.raycast.nn2d import NN2D
 
 
 #: queries per thread of a view shared by all threads (see ``render_4docc_views``) come in this many pieces

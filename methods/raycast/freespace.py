@@ -22,12 +22,12 @@ from typing import Literal
 
 import numpy as np
 
-from bench.data import Forecast, Sample
-from bench.method import Method
-from methods.raycast.common import aggregate, assemble, views
-from methods.raycast.grid import VoxelGrid
-from methods.raycast.voxel import VoxelOptions, build_grid, render_voxel_views
-from methods.raycast.zbuffer import render_zbuffer_views
+from pcfbench.data import Forecast, Sample
+from pcfbench.method import Method
+from pcfbench.methods.raycast.common import aggregate, assemble, views
+from pcfbench.methods.raycast.grid import VoxelGrid
+from pcfbench.methods.raycast.voxel import VoxelOptions, build_grid, render_voxel_views
+from pcfbench.methods.raycast.zbuffer import render_zbuffer_views
 
 
 @dataclass(frozen=True)

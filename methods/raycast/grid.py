@@ -89,7 +89,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from bench.roi import ROI, Box
+from pcfbench.roi import ROI, Box
 
 #: the coarsest level of an empty-cell skip that may be stretched by the slab field
 FIELD_MAX_STEP = 1
@@ -508,7 +508,7 @@ def _inverse(d):
 
 @nb.njit(inline="always")
 def _slab(o, d, lo, hi, t_enter, t_exit):
-    """One slab of ``bench.roi.ray_box_interval`` for one ray (the same arithmetic)."""
+    """One slab of ``pcfbench.roi.ray_box_interval`` for one ray (the same arithmetic)."""
     if d == 0.0:  # parallel to the slab: inside it or never
         if lo <= o <= hi:
             return t_enter, t_exit

@@ -38,7 +38,7 @@ import math
 import numba as nb
 import numpy as np
 
-from methods.raycast.common import scratch
+from pcfbench.methods.raycast.common import scratch
 
 #: rings of the fine grid scanned before a query goes to the coarse grid
 MAX_RINGS = 2

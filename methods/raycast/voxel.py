@@ -42,12 +42,12 @@ from typing import Literal
 
 import numpy as np
 
-from bench.data import Forecast, Sample
-from bench.method import Method
-from bench.roi import ROI, Box
-from methods.raycast.common import aggregate, assemble, map_views, pieces, views
-from methods.raycast.grid import VoxelGrid
-from methods.raycast.zbuffer import ZBufferOptions, render_zbuffer
+from pcfbench.data import Forecast, Sample
+from pcfbench.method import Method
+from pcfbench.roi import ROI, Box
+from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, views
+from pcfbench.methods.raycast.grid import VoxelGrid
+from pcfbench.methods.raycast.zbuffer import ZBufferOptions, render_zbuffer
 
 
 #: levels of the occupancy pyramid above the voxels (0.2 m * 2**4 = 3.2 m cells): with 4

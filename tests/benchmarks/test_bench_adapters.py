@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datasets.layout import STANDARD_AXES, SequenceData, change_axes
+from pcfbench.datasets.layout import STANDARD_AXES, SequenceData, change_axes
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
 SWEEPS = 10
@@ -38,22 +38,22 @@ def _write(kind: str, root: Path):
     """(adapter sequence, the files holding its sweeps)."""
     seq = _sequence(POINTS[kind], {"nuscenes": "scene-0003", "av2": "log0", "kitti": "08", "mcap": "drive"}[kind], "val")
     if kind == "nuscenes":
-        from datasets.nuscenes import NuScenes, write_nuscenes
+        from pcfbench.datasets.nuscenes import NuScenes, write_nuscenes
 
         write_nuscenes(root, [change_axes(seq, STANDARD_AXES, NuScenes.axes)])
         return NuScenes(root).sequence("scene-0003"), sorted((root / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
     if kind == "av2":
-        from datasets.av2 import Argoverse2, write_av2
+        from pcfbench.datasets.av2 import Argoverse2, write_av2
 
         write_av2(root, [seq])
         return Argoverse2(root).sequence("val/log0"), sorted((root / "val" / "log0" / "sensors" / "lidar").glob("*.feather"))
     if kind == "kitti":
-        from datasets.kitti import KittiOdometry, write_kitti_sequence
+        from pcfbench.datasets.kitti import KittiOdometry, write_kitti_sequence
 
         write_kitti_sequence(root, "08", [seq.load(i) for i in range(SWEEPS)], seq.T_world_sensor, np.arange(SWEEPS) / 10)
         return KittiOdometry(root).sequence("08"), sorted((root / "sequences" / "08" / "velodyne").glob("*.bin"))
-    from datasets.mcap import McapRecording
-    from datasets.mcap_writer import write_ros2_recording
+    from pcfbench.datasets.mcap import McapRecording
+    from pcfbench.datasets.mcap_writer import write_ros2_recording
 
     write_ros2_recording(root / "drive.mcap", seq)
     return McapRecording(root / "drive.mcap").sequence("drive"), [root / "drive.mcap"]

@@ -8,14 +8,14 @@ import os
 
 import pytest
 
-from bench.method import options_hash
-from bench.plugins import get_plugins
-from bench.runner import Resolved, process_sample
-from bench.protocol import SETTINGS, SampleBuilder
-from bench.store import Cell, CellSpec
+from pcfbench.method import options_hash
+from pcfbench.plugins import get_plugins
+from pcfbench.runner import Resolved, process_sample
+from pcfbench.protocol import SETTINGS, SampleBuilder
+from pcfbench.store import Cell, CellSpec
 from conftest import write_tiny_kitti
-from datasets.kitti import KittiOdometry
-from methods.copy_last import CopyLast
+from pcfbench.datasets.kitti import KittiOdometry
+from pcfbench.methods.copy_last import CopyLast
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
 SAMPLES = 8

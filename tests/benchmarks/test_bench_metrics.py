@@ -26,10 +26,10 @@ import numpy as np
 import pytest
 import torch
 
-from bench.data import RayQuery
-from bench.geometry import invert, transform_points
-from bench.metrics.base import SweepContext
-from bench.testing import toy_world_sweeps
+from pcfbench.data import RayQuery
+from pcfbench.geometry import invert, transform_points
+from pcfbench.metrics.base import SweepContext
+from pcfbench.testing import toy_world_sweeps
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
 BEAMS, AZIMUTHS = (64, 1900) if FULL else (16, 360)
@@ -39,7 +39,7 @@ TIMES: dict[str, float] = {}
 
 
 def _suite():
-    from bench.plugins import get_plugins
+    from pcfbench.plugins import get_plugins
 
     reg = get_plugins().metrics
     return [reg.get(n) for n in reg.names()]

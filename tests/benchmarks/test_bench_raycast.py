@@ -21,14 +21,14 @@ import os
 import numpy as np
 import pytest
 
-from bench.protocol import SETTINGS, SampleBuilder
-from bench.testing import InMemoryDataset
-from methods.raycast.common import aggregate, map_views, views
-from methods.raycast.fourdocc import RaycastFourDOcc, angles, render_4docc_views
-from methods.raycast.freespace import RaycastFreespace, carve
-from methods.raycast.nn2d import NN2D
-from methods.raycast.voxel import RaycastVoxel, build_grid, render_voxel_views
-from methods.raycast.zbuffer import RaycastZBuffer, _lookup, build_image, render_zbuffer_views, spherical
+from pcfbench.protocol import SETTINGS, SampleBuilder
+from pcfbench.testing import InMemoryDataset
+from pcfbench.methods.raycast.common import aggregate, map_views, views
+from pcfbench.methods.raycast.fourdocc import RaycastFourDOcc, angles, render_4docc_views
+from pcfbench.methods.raycast.freespace import RaycastFreespace, carve
+from pcfbench.methods.raycast.nn2d import NN2D
+from pcfbench.methods.raycast.voxel import RaycastVoxel, build_grid, render_voxel_views
+from pcfbench.methods.raycast.zbuffer import RaycastZBuffer, _lookup, build_image, render_zbuffer_views, spherical
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
 METHODS = [RaycastFourDOcc, RaycastZBuffer, RaycastVoxel, RaycastFreespace]

@@ -12,8 +12,8 @@ import os
 import numpy as np
 import pytest
 
-from datasets.synthetic.domains import get_domain
-from datasets.synthetic.generate import simulate_sequence, write_kitti
+from pcfbench.datasets.synthetic.domains import get_domain
+from pcfbench.datasets.synthetic.generate import simulate_sequence, write_kitti
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
 SWEEPS = 30 if FULL else 3
@@ -38,9 +38,9 @@ def test_bench_generate_sequence(benchmark, name, tmp_path):
 
 
 def test_bench_baseline_toy_world(benchmark):
-    """Side-by-side baseline: bench.testing's analytic toy street (a few planes and posts, no
+    """Side-by-side baseline: pcfbench.testing's analytic toy street (a few planes and posts, no
     agents, no files) ray-cast with the town's ray count (64 beams x 512 columns)."""
-    from bench.testing import toy_world_sweeps
+    from pcfbench.testing import toy_world_sweeps
 
     points, poses, _ = benchmark.pedantic(
         lambda: toy_world_sweeps(SWEEPS, beams=64, azimuths=512), rounds=1 if not FULL else 2, iterations=1)
