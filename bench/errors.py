@@ -1,5 +1,9 @@
 """Errors the harness raises on purpose: each names the file, sample or name at fault."""
 
+from __future__ import annotations
+
+from typing import Iterable
+
 
 class PcfbenchError(Exception):
     """Base class: a clear, user-facing error (the CLI prints it without a traceback)."""
@@ -22,3 +26,21 @@ class UnknownNameError(PcfbenchError, KeyError):
 
 class PluginError(PcfbenchError):
     """A plugin failed to import or registered something invalid."""
+
+
+def unknown_name(kind: str, name: str, known: Iterable[str], note: str = "") -> UnknownNameError:
+    """The one "unknown X 'y'; did you mean ...? (known: ...)" error, for every kind of name.
+
+    ``note`` is appended after the list of known names (e.g. plugins that failed to load).
+    """
+    import difflib
+
+    known = sorted(known)
+    msg = f"unknown {kind} {name!r}"
+    close = difflib.get_close_matches(str(name), known, n=3, cutoff=0.5)
+    if close:
+        msg += f"; did you mean {' or '.join(repr(c) for c in close)}?"
+    msg += f" (known: {', '.join(known) or 'none'})"
+    if note:
+        msg += f"; {note}"
+    return UnknownNameError(msg)
