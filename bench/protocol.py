@@ -1,4 +1,4 @@
-"""Named settings, sample policies and the construction of samples (PROTOCOL.md section 2)."""
+"""Named settings, sample policies and the construction of samples (docs/protocol.md section 2)."""
 
 from __future__ import annotations
 

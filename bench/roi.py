@@ -1,4 +1,4 @@
-"""Boxes of the protocol: the ego-vehicle box (PROTOCOL.md section 1) and the ROI (section 3)."""
+"""Boxes of the protocol: the ego-vehicle box (docs/protocol.md section 1) and the ROI (section 3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Metrics: small named, versioned functions of one future sweep (PROTOCOL.md section 4)."""
+"""Metrics: small named, versioned functions of one future sweep (docs/protocol.md section 4)."""
 
 from pcfbench.metrics.base import Metric, SweepContext, score_sample
 

@@ -1,4 +1,4 @@
-"""Chamfer distances (PROTOCOL.md section 4): CD on whole sweeps, NFCD on ROI crops."""
+"""Chamfer distances (docs/protocol.md section 4): CD on whole sweeps, NFCD on ROI crops."""
 
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ CHAMFER = Metric(
     version="1",
     fn=_chamfer,
     description="Chamfer distance (CD): mean squared NN distance each way, the two means averaged; no crop",
-    reference="4D-Occ (Khurana et al. 2023), PROTOCOL.md section 4",
+    reference="4D-Occ (Khurana et al. 2023), docs/protocol.md section 4",
     unit="m^2",
     empty_policy="empty prediction: sweep skipped (NaN, counted)",
 )

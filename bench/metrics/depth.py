@@ -1,4 +1,4 @@
-"""Depth errors along the ground-truth rays (PROTOCOL.md section 4): L1 and AbsRel.
+"""Depth errors along the ground-truth rays (docs/protocol.md section 4): L1 and AbsRel.
 
 Every ground-truth ray from the sweep origin ``o`` to a point ``g`` gets a predicted depth (the
 forecast's per-ray depth, or the range of the predicted point nearest in angle space), both
@@ -55,8 +55,8 @@ def _ray(ctx: SweepContext, relative: bool) -> float:
     return float(np.mean(err[pos] / d_gt[pos])) if pos.any() else NAN
 
 
-_REF_4DOCC = "4D-Occ reference evaluation code (Khurana et al. 2023), PROTOCOL.md section 4"
-_REF = "PROTOCOL.md section 4 (corrected: true azimuth/elevation, azimuth wrap-around)"
+_REF_4DOCC = "4D-Occ reference evaluation code (Khurana et al. 2023), docs/protocol.md section 4"
+_REF = "docs/protocol.md section 4 (corrected: true azimuth/elevation, azimuth wrap-around)"
 _EMPTY = "empty prediction: sweep skipped (NaN, counted)"
 
 L1_4DOCC = Metric(
@@ -92,13 +92,13 @@ ABSREL_MEDIAN = Metric(
 )
 L1_RAY = Metric(
     name="l1_ray", version="1", fn=lambda c: _ray(c, False), unit="m", needs="depths",
-    reference="Argoverse 2 LiDAR forecasting challenge kit, PROTOCOL.md section 4",
+    reference="Argoverse 2 LiDAR forecasting challenge kit, docs/protocol.md section 4",
     description="ray-query mode: mean |d_gt - d_pred| over all query rays, no clamping",
     empty_policy="forecast without depths: skipped (NaN, counted)",
 )
 ABSREL_RAY = Metric(
     name="absrel_ray", version="1", fn=lambda c: _ray(c, True), unit="fraction", needs="depths",
-    reference="Argoverse 2 LiDAR forecasting challenge kit, PROTOCOL.md section 4",
+    reference="Argoverse 2 LiDAR forecasting challenge kit, docs/protocol.md section 4",
     description="ray-query mode: mean |d_gt - d_pred| / d_gt over all query rays, no clamping",
     empty_policy="forecast without depths: skipped (NaN, counted)",
 )

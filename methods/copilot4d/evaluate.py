@@ -114,7 +114,7 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
     """Reconstruct up to ``max_sweeps`` evenly spaced sweeps of ``source`` through their tokens,
     with spatial skipping as in the paper (Logistic noise, threshold 0.5), with the calibrated
     skipping setting ``skip`` (if given) and without skipping; per-sweep metrics averaged flat
-    (PROTOCOL.md 4)."""
+    (docs/protocol.md section 4)."""
     model.eval()
     picks = np.unique(np.linspace(0, len(source) - 1, min(max_sweeps, len(source))).round().astype(int))
     gen = torch.Generator().manual_seed(seed)
@@ -158,7 +158,7 @@ def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
     lines = [
         f"# Copilot4D tokenizer reconstruction ({meta.get('config')} config, {result['dataset']} {result['split']})",
         "",
-        f"{result['sweeps']} sweeps reconstructed from their tokens; metrics within the ROI as in PROTOCOL.md 4 "
+        f"{result['sweeps']} sweeps reconstructed from their tokens; metrics within the ROI as in docs/protocol.md section 4 "
         "(sensor frame = reference frame), flat mean over sweeps.",
         "",
         "| Rendering | Chamfer (within ROI) m^2 | L1 Median m | L1 Mean m | Chamfer m^2 | L1 Median, returns inside the grid m |",
