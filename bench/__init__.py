@@ -48,6 +48,9 @@ _EXPORTS: dict[str, str | None] = {
     "SweepContext": "pcfbench.metrics.base",
     # protocol
     "Setting": "pcfbench.protocol",
+    "SamplePolicy": "pcfbench.protocol",
+    "Protocol": "pcfbench.protocol",
+    "active_protocol": "pcfbench.protocol",
     # errors
     "PcfbenchError": "pcfbench.errors",
     "DataError": "pcfbench.errors",
@@ -81,4 +84,4 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench.hookspecs import hookimpl, hookspec
     from pcfbench.method import Method, NoOptions
     from pcfbench.metrics.base import Metric, SweepContext
-    from pcfbench.protocol import Setting
+    from pcfbench.protocol import Protocol, SamplePolicy, Setting, active_protocol

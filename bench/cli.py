@@ -13,7 +13,7 @@ import pcfbench
 from pcfbench import config
 from pcfbench.errors import PcfbenchError
 from pcfbench.plugins import get_plugins, warn_failed
-from pcfbench.protocol import SAMPLE_POLICIES, SETTINGS, get_setting
+from pcfbench.protocol import SAMPLE_POLICIES, all_settings, get_setting
 
 
 def parse_method_spec(text: str) -> tuple[str, dict[str, str]]:
@@ -78,7 +78,8 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
 @click.option("--split", "splits", multiple=True, help="Split (repeatable); default: the dataset's evaluation split.")
 @click.option("--method", "-m", "methods", multiple=True, metavar="NAME[:k=v,...]", help="Method (repeatable).")
 @click.option("--metric", "metrics", multiple=True, help="Metric (repeatable); default: every registered metric.")
-@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True)
+@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True,
+              help="Sample policy of the protocol file, e.g. subsample-4000 (Copilot4D's Argoverse 2 Table 2).")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (partial: kept out of leaderboards).")
 @click.option("--jobs", "-j", type=click.IntRange(min=0), default=0, show_default=True,
               help="Worker processes; 0: one per CPU for cells with enough samples, else serial.")
@@ -155,7 +156,7 @@ def ls_cmd(what, as_json):
         rows = [
             {"name": s.name, "rate_hz": s.rate_hz, "past": s.past, "future": s.future, "stride": s.stride,
              "horizon_s": s.horizon_s, "description": s.description}
-            for s in SETTINGS.values()
+            for s in all_settings().values()
         ]
     else:
         plugins = get_plugins()

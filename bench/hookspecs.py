@@ -7,7 +7,12 @@ import only breaks what uses it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pluggy
+
+if TYPE_CHECKING:  # pragma: no cover
+    from pcfbench.plugins import SettingRegister
 
 hookspec = pluggy.HookspecMarker("pcfbench")
 hookimpl = pluggy.HookimplMarker("pcfbench")
@@ -26,6 +31,20 @@ def register_methods(register):  # noqa: ANN001
 @hookspec
 def register_metrics(register):  # noqa: ANN001
     """Register metrics: ``register("name", "module:METRIC")`` (a pcfbench.metrics.Metric)."""
+
+
+@hookspec
+def register_settings(register: "SettingRegister") -> None:
+    """Register protocol settings beyond those of the protocol file (``protocol.toml``).
+
+    :param register: call ``register(pcfbench.Setting(name, rate_hz, past, future, stride,
+        description))`` once per setting.
+
+    A name the protocol file already uses, or that another plugin registered, is an error
+    reported against this plugin (``pcfbench plugins``). The setting's parameters are part of
+    the identity of every cell computed with it, so changing them later stops a rerun of such
+    a cell rather than mixing rows. Called once per plugin, when plugins load.
+    """
 
 
 @hookspec

@@ -126,6 +126,29 @@ class MetricRegister(Register):
     """``register(name, "module:METRIC" | Metric, description="")``."""
 
 
+class SettingRegister(Register):
+    """``register(setting)``: a ``pcfbench.Setting`` whose name the protocol file does not use."""
+
+    def __call__(self, setting: Any) -> None:  # type: ignore[override]
+        from pcfbench.protocol import Setting, active_protocol
+
+        if not isinstance(setting, Setting):
+            raise PluginError(f"plugin {self.plugin!r}: register_settings takes a pcfbench.Setting, got {setting!r}")
+        protocol = active_protocol()
+        if setting.name in protocol.settings:
+            raise PluginError(
+                f"plugin {self.plugin!r}: setting {setting.name!r} is already a setting of the protocol file "
+                f"{protocol.source}; register it under another name"
+            )
+        self._registry.add(setting.name, setting, self.plugin, setting.description)
+
+
+def _setting_check(obj: Any) -> str | None:
+    from pcfbench.protocol import Setting
+
+    return None if isinstance(obj, Setting) else f"must be a pcfbench.Setting, got {obj!r}"
+
+
 def _is_subclass_check(base_path: str) -> Callable[[Any], str | None]:
     def check(obj: Any) -> str | None:
         module_name, _, attr = base_path.partition(":")
@@ -162,6 +185,7 @@ class Plugins:
         self.datasets = Registry("dataset", _is_subclass_check("pcfbench.dataset:DatasetAdapter"))
         self.methods = Registry("method", _is_subclass_check("pcfbench.method:Method"))
         self.metrics = Registry("metric", _metric_check)
+        self.settings = Registry("setting", _setting_check)
         self.info: dict[str, PluginInfo] = {}
 
     def registries(self) -> dict[str, tuple[Registry, type[Register], str]]:
@@ -169,6 +193,7 @@ class Plugins:
             "datasets": (self.datasets, DatasetRegister, "register_datasets"),
             "methods": (self.methods, MethodRegister, "register_methods"),
             "metrics": (self.metrics, MetricRegister, "register_metrics"),
+            "settings": (self.settings, SettingRegister, "register_settings"),
         }
 
     def _fail(self, name: str, source: str, error: str) -> None:

@@ -1,26 +1,65 @@
-"""Named settings, sample policies and the construction of samples (docs/protocol.md section 2)."""
+"""The benchmark protocol as versioned data, and the construction of samples (docs/protocol.md 2).
+
+Protocol file and versioning
+----------------------------
+The protocol's values live in ``protocol.toml``, shipped inside the package and read once
+by :func:`load_protocol` into a frozen :class:`Protocol`: its ``version``, the named
+:class:`Setting` s, the ROI box, the minimum range and the named :class:`SamplePolicy` s.
+:func:`active_protocol` is the protocol every run uses; the module-level names
+``SETTINGS``, ``SAMPLE_POLICIES`` and ``MIN_RANGE_M`` (and ``pcfbench.roi.ROI``) are views
+of it, never separate copies.
+
+- Changing any value in the file changes what cells compute: bump ``version`` with it.
+- A malformed file is one :class:`~pcfbench.errors.PcfbenchError` naming the file, the key
+  and what was expected; no value falls back to a default silently.
+- Dataset plugins add settings through the ``register_settings`` hook; those names may not
+  collide with the file's or with each other. :func:`get_setting` looks in the protocol
+  first, then in the loaded plugins.
+- Every cell records the protocol version, the setting's parameters, the sample policy, the
+  ROI and the minimum range in its ``cell.json`` identity (:meth:`SampleBuilder.identity`);
+  a rerun under different values stops with an error naming the field rather than mixing
+  rows.
+"""
 
 from __future__ import annotations
 
 import hashlib
+import math
+import tomllib
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
 from pcfbench.data import GroundTruth, RayQuery, Sample
 from pcfbench.dataset import DatasetAdapter, Sequence
-from pcfbench.errors import PcfbenchError, UnknownNameError
+from pcfbench.errors import PcfbenchError, unknown_name
 from pcfbench.geometry import invert, rotate_vectors, transform_points
+from pcfbench.roi import Box
 from pcfbench.validate import validate_sweep
 
-#: Ground-truth points closer than this to their sensor are ignored by the metrics.
-MIN_RANGE_M = 0.01
+if TYPE_CHECKING:  # pragma: no cover
+    from pcfbench.plugins import Plugins
+
+#: The protocol file shipped in the package.
+PROTOCOL_FILE = "protocol.toml"
+
+
+def _is_int(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 @dataclass(frozen=True)
 class Setting:
-    """How many past / future sweeps a sample has and how far apart (in source sweeps)."""
+    """How many past / future sweeps a sample has and how far apart (in source sweeps).
+
+    ``rate_hz`` > 0 is the source sweep rate; ``past`` >= 1 counts t=0; ``future`` >= 1;
+    ``stride`` >= 1 source sweeps between used sweeps.
+    """
 
     name: str
     rate_hz: float
@@ -28,6 +67,21 @@ class Setting:
     future: int
     stride: int
     description: str = ""
+
+    def __post_init__(self) -> None:
+        where = f"setting {self.name!r}"
+        if not isinstance(self.name, str) or not self.name or any(c.isspace() for c in self.name):
+            raise PcfbenchError(f"setting name {self.name!r} must be a non-empty string without spaces")
+        if isinstance(self.rate_hz, bool) or not isinstance(self.rate_hz, (int, float)) or not (
+            math.isfinite(self.rate_hz) and self.rate_hz > 0
+        ):
+            raise PcfbenchError(f"{where}: rate_hz must be a positive number of Hz, got {self.rate_hz!r}")
+        for key in ("past", "future", "stride"):
+            value = getattr(self, key)
+            if not _is_int(value) or value < 1:
+                raise PcfbenchError(f"{where}: {key} must be an integer >= 1, got {value!r}")
+        if not isinstance(self.description, str):
+            raise PcfbenchError(f"{where}: description must be a string, got {self.description!r}")
 
     @property
     def horizon_s(self) -> float:
@@ -37,30 +91,241 @@ class Setting:
         """Time of future sweep ``step`` (0-based) after t=0, in seconds."""
         return (step + 1) * self.stride / self.rate_hz
 
+    def params(self) -> dict[str, Any]:
+        """What the setting computes with (its cell identity): everything but the description."""
+        return {"rate_hz": float(self.rate_hz), "past": self.past, "future": self.future, "stride": self.stride}
 
-SETTINGS: dict[str, Setting] = {
-    s.name: s
-    for s in (
-        Setting("kitti-1s", 10.0, 5, 5, 2, "KITTI 10 Hz: 5 past (-0.8..0 s), 5 future (+0.2..+1.0 s)"),
-        Setting("kitti-3s", 10.0, 5, 5, 6, "KITTI 10 Hz: 5 past (-2.4..0 s), 5 future (+0.6..+3.0 s)"),
-        Setting("nuscenes-1s", 2.0, 2, 2, 1, "nuScenes 2 Hz keyframes: 2 past, 2 future (+0.5, +1.0 s)"),
-        Setting("nuscenes-3s", 2.0, 6, 6, 1, "nuScenes 2 Hz keyframes: 6 past, 6 future (+0.5..+3.0 s)"),
-        Setting("av2-1s", 10.0, 5, 5, 2, "Argoverse 2 10 Hz: as kitti-1s"),
-        Setting("av2-3s", 10.0, 5, 5, 6, "Argoverse 2 10 Hz: as kitti-3s"),
+
+#: The anchor rules a policy can use; ``subsample`` thins another policy's anchors.
+POLICY_KINDS = ("full-context", "every-frame", "subsample")
+
+
+@dataclass(frozen=True)
+class SamplePolicy:
+    """Which reference sweeps of a split count as samples.
+
+    ``full-context``: anchors with every past and future sweep inside the sequence.
+    ``every-frame``: every sweep (past and future sweeps outside the sequence are empty).
+    ``subsample``: ``n`` of policy ``of``'s anchors, evenly spaced over the whole split in its
+    stable order (see :func:`evenly_spaced`); every anchor when there are ``n`` or fewer.
+    """
+
+    name: str
+    kind: str
+    n: int | None = None
+    of: str | None = None
+    description: str = ""
+    #: the anchor rule of the candidates: ``kind``, or for ``subsample`` the kind of ``of``
+    rule: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.rule:
+            object.__setattr__(self, "rule", self.kind)
+        if self.rule not in ("full-context", "every-frame"):
+            raise PcfbenchError(f"sample policy {self.name!r}: candidates must follow full-context or every-frame, not {self.rule!r}")
+
+    def params(self) -> dict[str, Any]:
+        """What the policy selects with (its cell identity): everything but the description."""
+        out: dict[str, Any] = {"name": self.name, "kind": self.kind}
+        if self.kind == "subsample":
+            out.update(n=self.n, of=self.of)
+        return out
+
+
+def evenly_spaced(count: int, n: int) -> list[int]:
+    """Indices of ``n`` of ``count`` candidates spread evenly: ``i * count // n`` for i < n.
+
+    Exact integer arithmetic: the first candidate is always kept and consecutive picks are
+    ``count // n`` or ``count // n + 1`` apart. With ``count <= n`` every candidate is kept.
+    """
+    if n < 1:
+        raise PcfbenchError(f"evenly_spaced: n must be >= 1, got {n}")
+    if count <= n:
+        return list(range(count))
+    return [i * count // n for i in range(n)]
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """The benchmark protocol: version, settings, ROI, minimum range and sample policies."""
+
+    version: str
+    settings: Mapping[str, Setting]
+    roi: Box
+    min_range_m: float
+    policies: Mapping[str, SamplePolicy]
+    default_policy: str = "full-context"
+    source: str = field(default="", compare=False)
+
+    def setting(self, name: str) -> Setting:
+        if name not in self.settings:
+            raise unknown_name("setting", name, self.settings)
+        return self.settings[name]
+
+    def policy(self, name: str) -> SamplePolicy:
+        if name not in self.policies:
+            raise unknown_name("sample policy", name, self.policies)
+        return self.policies[name]
+
+    def identity(self) -> dict[str, Any]:
+        """The protocol-wide part of a cell's identity (JSON-ready)."""
+        return {
+            "protocol_version": self.version,
+            "roi": {"lo": list(self.roi.lo), "hi": list(self.roi.hi)},
+            "min_range_m": self.min_range_m,
+        }
+
+
+_TOP_KEYS = {"version", "min_range_m", "roi", "policies", "settings"}
+_SETTING_KEYS = {"rate_hz", "past", "future", "stride", "description"}
+_POLICY_KEYS = {"kind", "n", "of", "description"}
+
+
+def _table(value: object, where: str) -> dict:
+    if not isinstance(value, dict):
+        raise PcfbenchError(f"{where} must be a table, got {value!r}")
+    return value
+
+
+def _no_extra(table: dict, allowed: set[str], where: str) -> None:
+    extra = sorted(set(table) - allowed)
+    if extra:
+        raise PcfbenchError(f"{where} has unknown key(s) {', '.join(extra)} (allowed: {', '.join(sorted(allowed))})")
+
+
+def _require(table: dict, key: str, where: str) -> Any:
+    if key not in table:
+        raise PcfbenchError(f"{where} is missing {key!r}")
+    return table[key]
+
+
+def _vector3(value: object, where: str) -> tuple[float, float, float]:
+    if not (isinstance(value, list) and len(value) == 3 and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
+    )):
+        raise PcfbenchError(f"{where} must be 3 finite numbers [x, y, z], got {value!r}")
+    return tuple(float(v) for v in value)  # type: ignore[return-value]
+
+
+def parse_protocol(data: dict, source: str) -> Protocol:
+    """Validate a protocol table (as read from TOML) into a :class:`Protocol`; errors name ``source``."""
+    _no_extra(data, _TOP_KEYS, f"protocol file {source}")
+    version = _require(data, "version", f"protocol file {source}")
+    if not isinstance(version, str) or not version:
+        raise PcfbenchError(f"protocol file {source}: version must be a non-empty string, got {version!r}")
+    min_range = _require(data, "min_range_m", f"protocol file {source}")
+    if isinstance(min_range, bool) or not isinstance(min_range, (int, float)) or not (math.isfinite(min_range) and min_range >= 0):
+        raise PcfbenchError(f"protocol file {source}: min_range_m must be a number of metres >= 0, got {min_range!r}")
+
+    roi_t = _table(_require(data, "roi", f"protocol file {source}"), f"protocol file {source} [roi]")
+    _no_extra(roi_t, {"lo", "hi"}, f"protocol file {source} [roi]")
+    lo = _vector3(_require(roi_t, "lo", f"protocol file {source} [roi]"), f"protocol file {source} roi.lo")
+    hi = _vector3(_require(roi_t, "hi", f"protocol file {source} [roi]"), f"protocol file {source} roi.hi")
+    if not all(a < b for a, b in zip(lo, hi)):
+        raise PcfbenchError(f"protocol file {source}: roi.lo {list(lo)} must be below roi.hi {list(hi)} on every axis")
+
+    settings: dict[str, Setting] = {}
+    for name, raw in _table(_require(data, "settings", f"protocol file {source}"), f"protocol file {source} [settings]").items():
+        where = f"protocol file {source} [settings.{name}]"
+        raw = _table(raw, where)
+        _no_extra(raw, _SETTING_KEYS, where)
+        args = {k: _require(raw, k, where) for k in ("rate_hz", "past", "future", "stride")}
+        try:
+            settings[name] = Setting(name, description=raw.get("description", ""), **args)
+        except PcfbenchError as exc:
+            raise PcfbenchError(f"{where}: {exc}") from None
+
+    policies: dict[str, SamplePolicy] = {}
+    raw_policies = _table(_require(data, "policies", f"protocol file {source}"), f"protocol file {source} [policies]")
+    for name, raw in raw_policies.items():
+        where = f"protocol file {source} [policies.{name}]"
+        raw = _table(raw, where)
+        _no_extra(raw, _POLICY_KEYS, where)
+        kind = _require(raw, "kind", where)
+        if kind not in POLICY_KINDS:
+            raise PcfbenchError(f"{where}: kind must be one of {', '.join(POLICY_KINDS)}, got {kind!r}")
+        n, of = raw.get("n"), raw.get("of")
+        if kind == "subsample":
+            if not _is_int(n) or n < 1:
+                raise PcfbenchError(f"{where}: a subsample policy needs n, an integer >= 1, got {n!r}")
+            base = raw_policies.get(of) if isinstance(of, str) else None
+            if not isinstance(base, dict) or base.get("kind") not in ("full-context", "every-frame"):
+                raise PcfbenchError(
+                    f"{where}: of must name a full-context or every-frame policy of the file, got {of!r}"
+                )
+        elif n is not None or of is not None:
+            raise PcfbenchError(f"{where}: only a subsample policy takes n and of")
+        rule = raw_policies[of]["kind"] if kind == "subsample" else kind
+        policies[name] = SamplePolicy(name, kind, n, of, raw.get("description", ""), rule)
+    if "full-context" not in policies:
+        raise PcfbenchError(f"protocol file {source} has no [policies.full-context] (the default sample policy)")
+
+    return Protocol(
+        version=version,
+        settings=MappingProxyType(settings),
+        roi=Box(lo=lo, hi=hi),
+        min_range_m=float(min_range),
+        policies=MappingProxyType(policies),
+        source=source,
     )
-}
-
-SAMPLE_POLICIES = ("full-context", "every-frame")
 
 
-def get_setting(name: str) -> Setting:
-    if name not in SETTINGS:
-        import difflib
+def load_protocol(path: str | Path | None = None) -> Protocol:
+    """Read and validate a protocol file; ``None`` reads the one shipped in the package."""
+    if path is None:
+        resource = resources.files("pcfbench").joinpath(PROTOCOL_FILE)
+        source, text = str(resource), resource.read_text(encoding="utf-8")
+    else:
+        source = str(path)
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise PcfbenchError(f"cannot read protocol file {source}: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise PcfbenchError(f"protocol file {source} is not valid TOML: {exc}") from None
+    return parse_protocol(data, source)
 
-        close = difflib.get_close_matches(name, SETTINGS, n=2)
-        hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else ""
-        raise UnknownNameError(f"unknown setting {name!r}{hint} (known: {', '.join(SETTINGS)})")
-    return SETTINGS[name]
+
+_ACTIVE = load_protocol()
+
+
+def active_protocol() -> Protocol:
+    """The protocol every run uses: the file shipped in the package, loaded once."""
+    return _ACTIVE
+
+
+#: Views of the active protocol (read-only), kept for the code that imports them.
+SETTINGS: Mapping[str, Setting] = _ACTIVE.settings
+SAMPLE_POLICIES: tuple[str, ...] = tuple(_ACTIVE.policies)
+#: Ground-truth points closer than this to their sensor are ignored by the metrics.
+MIN_RANGE_M: float = _ACTIVE.min_range_m
+
+
+def get_setting(name: str, plugins: "Plugins | None" = None) -> Setting:
+    """The protocol's setting ``name``, else one a plugin registered (``register_settings``)."""
+    if name in _ACTIVE.settings:
+        return _ACTIVE.settings[name]
+    from pcfbench.plugins import get_plugins
+
+    plugins = plugins or get_plugins()
+    if name in plugins.settings:
+        return plugins.settings.get(name)
+    failed = plugins.settings.failed_plugins
+    note = f"plugin(s) that failed to load and may provide it: {', '.join(sorted(failed))}" if failed else ""
+    raise unknown_name("setting", name, [*_ACTIVE.settings, *plugins.settings.names()], note)
+
+
+def all_settings(plugins: "Plugins | None" = None) -> dict[str, Setting]:
+    """The protocol's settings, then those registered by plugins (``register_settings``)."""
+    from pcfbench.plugins import get_plugins
+
+    plugins = plugins or get_plugins()
+    out = dict(_ACTIVE.settings)
+    for name in plugins.settings.names():
+        out[name] = plugins.settings.get(name)
+    return out
 
 
 def check_compatible(setting: Setting, adapter: DatasetAdapter) -> None:
@@ -71,15 +336,22 @@ def check_compatible(setting: Setting, adapter: DatasetAdapter) -> None:
         )
 
 
-def anchors(num_sweeps: int, setting: Setting, policy: str) -> list[int]:
-    """Reference-sweep indices of one sequence that count as samples under ``policy``."""
-    if policy == "full-context":
+def _policy(policy: str | SamplePolicy) -> SamplePolicy:
+    return policy if isinstance(policy, SamplePolicy) else _ACTIVE.policy(policy)
+
+
+def anchors(num_sweeps: int, setting: Setting, policy: str | SamplePolicy) -> list[int]:
+    """Candidate reference-sweep indices of one sequence under ``policy``.
+
+    For a ``subsample`` policy these are the candidates of the policy it thins; the thinning
+    itself spans the whole split (:meth:`SampleBuilder.sample_keys`).
+    """
+    p = _policy(policy)
+    if p.rule == "full-context":
         first = (setting.past - 1) * setting.stride
         last = num_sweeps - 1 - setting.future * setting.stride
         return list(range(first, last + 1))
-    if policy == "every-frame":
-        return list(range(num_sweeps))
-    raise UnknownNameError(f"unknown sample policy {policy!r} (known: {', '.join(SAMPLE_POLICIES)})")
+    return list(range(num_sweeps))  # every-frame (SamplePolicy admits no other rule)
 
 
 def sample_id(sequence: str, ref_index: int) -> str:
@@ -103,14 +375,24 @@ class SampleBuilder:
     """
 
     def __init__(self, adapter: DatasetAdapter, setting: Setting, policy: str = "full-context", cache_sweeps: int = 32):
-        if policy not in SAMPLE_POLICIES:
-            raise UnknownNameError(f"unknown sample policy {policy!r} (known: {', '.join(SAMPLE_POLICIES)})")
+        self.sample_policy = _policy(policy)
         self.adapter = adapter
         self.setting = setting
-        self.policy = policy
+        self.policy = self.sample_policy.name
         self._sequences: dict[str, Sequence] = {}
         self._cache: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
         self._cache_size = cache_sweeps
+
+    def identity(self) -> dict[str, Any]:
+        """The protocol's part of a cell's identity (JSON-ready): protocol version, ROI, minimum
+        range, the setting's parameters, the sample policy and the adapter's ego box."""
+        ego = self.adapter.ego_box
+        return {
+            **_ACTIVE.identity(),
+            "setting_params": self.setting.params(),
+            "sample_policy": self.sample_policy.params(),
+            "ego_box": {k: float(getattr(ego, k)) for k in ("x_min", "x_max", "y_min", "y_max")},
+        }
 
     def sequence(self, name: str) -> Sequence:
         if name not in self._sequences:
@@ -122,7 +404,9 @@ class SampleBuilder:
         keys = []
         for name in self.adapter.sequence_names(split):
             seq = self.sequence(name)
-            keys.extend((name, i) for i in anchors(len(seq), self.setting, self.policy))
+            keys.extend((name, i) for i in anchors(len(seq), self.setting, self.sample_policy))
+        if self.sample_policy.kind == "subsample":
+            keys = [keys[i] for i in evenly_spaced(len(keys), self.sample_policy.n)]
         return keys
 
     def points_sensor(self, seq: Sequence, index: int) -> np.ndarray:

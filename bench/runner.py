@@ -81,7 +81,7 @@ def resolve(spec: CellSpec, plugins: Plugins | None = None) -> Resolved:
     plugins = plugins or get_plugins()
     adapter_cls = plugins.datasets.get(spec.dataset)
     method_cls = plugins.methods.get(spec.method)
-    setting = get_setting(spec.setting)
+    setting = get_setting(spec.setting, plugins)
     root, root_options = config.split_root_options(spec.dataset_root)
     adapter = adapter_cls(root, **root_options)
     check_compatible(setting, adapter)
