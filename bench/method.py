@@ -12,6 +12,7 @@ from typing import Any, ClassVar
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
+from pcfbench.execution import ExecutionContext, current
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +36,19 @@ class Method(ABC):
 
     def __init__(self, options: Any = None) -> None:
         self.options = options if options is not None else self.Options()
+
+    @property
+    def execution(self) -> ExecutionContext:
+        """The thread budget the method's own threads stay within (``pcfbench.execution``): what
+        the runner gave it, else the process's (``current()``). Methods that run no threads of
+        their own can ignore it; parallel work goes through ``self.execution.map``."""
+        return self.__dict__.get("_execution") or current()
+
+    @execution.setter
+    def execution(self, context: ExecutionContext) -> None:
+        if not isinstance(context, ExecutionContext):
+            raise PcfbenchError(f"{type(self).__name__}.execution must be an ExecutionContext, not {context!r}")
+        self.__dict__["_execution"] = context
 
     @abstractmethod
     def forecast(self, sample: Sample) -> Forecast:

@@ -20,6 +20,8 @@ from tqdm import tqdm
 import pcfbench
 from pcfbench import config
 from pcfbench.errors import DataError, PcfbenchError
+from pcfbench.execution import ExecutionContext, applied
+from pcfbench.execution import apply as apply_execution
 from pcfbench.method import Method, parse_options
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
@@ -75,6 +77,13 @@ class Resolved:
     builder: SampleBuilder
     method: Method
     metrics: list[Metric]
+    #: the thread budget of the method and the metrics (None: the process's); set by ``bind``
+    execution: ExecutionContext | None = None
+
+    def bind(self, execution: ExecutionContext) -> None:
+        """Give the method and the metrics ``execution``'s thread budget."""
+        self.execution = execution
+        self.method.execution = execution
 
 
 def resolve(spec: CellSpec, plugins: Plugins | None = None) -> Resolved:
@@ -102,7 +111,7 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     try:
         forecast = validate_forecast(sample, res.method.forecast(sample))
         t2 = time.perf_counter()
-        rows = score_sample(sample, truth, forecast, res.metrics)
+        rows = score_sample(sample, truth, forecast, res.metrics, res.execution)
     except DataError:
         raise
     except Exception as exc:  # a method (or metric) failing on one sample is recorded, the run goes on
@@ -126,15 +135,13 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
 _WORKER: Resolved | None = None
 
 
-def _worker_init(spec: CellSpec) -> None:
+def _worker_init(spec: CellSpec, execution: ExecutionContext) -> None:
+    """Pin this worker process to its share of the threads (before resolving, so that what
+    the method imports starts within it), then resolve the cell and hand the share on."""
     global _WORKER
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-    except ImportError:  # pragma: no cover - torch is a dependency, but methods may not need it
-        pass
+    apply_execution(execution)
     _WORKER = resolve(spec)
+    _WORKER.bind(execution)
 
 
 def _worker_batch(keys: list[tuple[str, int]]) -> list[list[dict[str, Any]]]:
@@ -167,12 +174,16 @@ def run_cell(
     force: bool = False,
     progress: bool = True,
     plugins: Plugins | None = None,
+    threads: int | None = None,
 ) -> CellResult:
     """Run (or resume) one cell. Returns at once if the cell is already complete.
 
     ``jobs=0`` picks a pool of one worker per CPU when there are enough samples to pay for
-    starting it, else runs serially.
+    starting it, else runs serially. ``threads``: the run's thread budget (default: every CPU
+    this process may use); a serial run keeps all of it, each of N workers gets
+    ``max(1, threads // N)`` (``pcfbench.execution``). The rows do not depend on it.
     """
+    execution = ExecutionContext() if threads is None else ExecutionContext(threads)
     start = time.perf_counter()
     res = resolve(spec, plugins)
     keys = res.builder.sample_keys(spec.split)
@@ -241,7 +252,7 @@ def run_cell(
             jobs = (os.cpu_count() or 1) if len(todo) >= AUTO_POOL_MIN_SAMPLES else 1
         failed = 0
         try:
-            for rows in _execute(res, spec, todo, jobs):
+            for rows in _execute(res, spec, todo, jobs, execution):
                 buffer.extend(rows)
                 buffered_samples += 1
                 failed += rows[0]["status"] == "failed"
@@ -286,17 +297,22 @@ def _median_timings(df) -> dict[str, float]:
     return out
 
 
-def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: int) -> Iterable[list[dict[str, Any]]]:
-    """Yield each sample's rows; serial, or over a process pool in contiguous batches."""
+def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: int,
+             execution: ExecutionContext) -> Iterable[list[dict[str, Any]]]:
+    """Yield each sample's rows; serial within ``execution``, or over a process pool in
+    contiguous batches, each worker pinned to its share of ``execution``."""
     if jobs <= 1 or len(keys) < 2:
-        for key in keys:
-            yield process_sample(res, key)
+        with applied(execution):
+            res.bind(execution)
+            for key in keys:
+                yield process_sample(res, key)
         return
     batch = max(1, min(8, len(keys) // (jobs * 4) or 1))
     # forkserver, not fork: metric and method libraries run threads (numba, OpenMP k-d trees,
     # torch), and a child forked while one of them holds a lock deadlocks.
     ctx = multiprocessing.get_context("forkserver")
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init, initargs=(spec,)) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init,
+                             initargs=(spec, execution.share(jobs))) as pool:
         pending = set()
         it = _batches(keys, batch)
         for b in it:

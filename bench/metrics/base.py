@@ -9,6 +9,7 @@ from typing import Callable
 import numpy as np
 
 from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
+from pcfbench.execution import ExecutionContext
 from pcfbench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
 from pcfbench.protocol import MIN_RANGE_M
 from pcfbench.roi import ROI, Box, ray_box_interval
@@ -54,6 +55,7 @@ class SweepContext:
         pred_points: np.ndarray | None,
         pred_depths: np.ndarray | None,
         roi: Box = ROI,
+        execution: ExecutionContext | None = None,
     ) -> None:
         self.gt_points = gt_points  # (M, 3) float32, reference frame
         self.query = query
@@ -61,6 +63,7 @@ class SweepContext:
         self.pred_depths = pred_depths  # (M,) or None
         self._pred_points = pred_points  # (K, 3) or None
         self.roi = roi
+        self.execution = execution  # thread budget of the shared searches; None: the process's
 
     # -- points ----------------------------------------------------------------------------
     @cached_property
@@ -183,8 +186,8 @@ class SweepContext:
     @cached_property
     def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
         """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped),
-        the two exact searches shared out over two threads (pcfbench.metrics.nn.nearest_angles)."""
-        return nearest_angles(self.pred_rel, self.gt_rel)
+        the two exact searches shared out over the context's threads (pcfbench.metrics.nn.nearest_angles)."""
+        return nearest_angles(self.pred_rel, self.gt_rel, self.execution)
 
     def _ray_depth(self, which: int) -> np.ndarray | None:
         if self.pred_depths is not None:
@@ -225,9 +228,13 @@ class SweepContext:
 
 
 def score_sample(
-    sample: Sample, truth: GroundTruth, forecast: Forecast, metrics: list[Metric]
+    sample: Sample, truth: GroundTruth, forecast: Forecast, metrics: list[Metric],
+    execution: ExecutionContext | None = None,
 ) -> list[dict[str, float | int]]:
-    """Score every future sweep of a validated forecast: one row per sweep with every metric."""
+    """Score every future sweep of a validated forecast: one row per sweep with every metric.
+
+    ``execution``: the thread budget of the metrics' shared searches (default: the
+    process's); the rows do not depend on it."""
     rows = []
     for k, query in enumerate(sample.queries):
         gt = truth.future_points_ref[k]
@@ -236,6 +243,7 @@ def score_sample(
             query=query,
             pred_points=forecast.points_ref[k] if forecast.points_ref is not None else None,
             pred_depths=forecast.depths[k] if forecast.depths is not None else None,
+            execution=execution,
         )
         row: dict[str, float | int] = {"step": k, "n_gt": int(gt.shape[0]), "n_pred": int(ctx.pred_points.shape[0])}
         for metric in metrics:

@@ -12,12 +12,11 @@ fallback for queries far from all predicted points.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numba
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from pcfbench.execution import ExecutionContext, current
 from pcfbench.metrics.grid import Grid2D
 
 TWO_PI = 2.0 * np.pi
@@ -178,26 +177,40 @@ def nearest_angle_wrapped(pred_rel: np.ndarray, gt_rel: np.ndarray) -> np.ndarra
 CHUNK = 8192
 
 
-def nearest_angles(pred_rel: np.ndarray, gt_rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """nearest_angle_4docc and nearest_angle_wrapped together, on two threads.
+def nearest_angles(pred_rel: np.ndarray, gt_rel: np.ndarray,
+                   execution: ExecutionContext | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """nearest_angle_4docc and nearest_angle_wrapped together, over the threads of
+    ``execution`` (default: the process's, ``pcfbench.execution.current()``).
 
-    The angles and grids of the two spaces are made in parallel; then both grid passes are cut
-    into CHUNK-query pieces that two threads take in turn, so that a thread slowed down by
-    other load on its core (the reference machine is shared and the benchmark runs at nice 10)
-    takes fewer pieces instead of holding the other up; this thread answers the far queries
-    of the 4D-Occ space while the pieces of the wrapped one are still running. The answer of a
-    query does not depend on the piece it is in (bench/metrics/grid.py), so it is the same as
-    one whole pass's.
+    One thread: one search after the other. More: the angles and grids of the two spaces are
+    made as two jobs of the context's pool; then both grid passes are cut into CHUNK-query
+    pieces that the pool's threads take as they come free (a thread slowed by other load takes
+    fewer), and each space's far queries are answered by a job queued right after its pieces.
+    The calling thread only waits, so at most ``execution.threads`` threads are busy; it must
+    not be a worker of that pool. The answer of a query does not depend on the piece it is in
+    (pcfbench.nn2d), so it is the same as one whole pass's, whatever the thread count.
     """
+    execution = execution or current()
+    spaces = ((angles_4docc, 0.0), (angles_az_el, TWO_PI))
+    if execution.threads == 1:
+        out = []
+        for angles, period in spaces:
+            search = _Search2D(angles(pred_rel), angles(gt_rel), period)
+            out.append(search.finish(search.grid_pass()))
+        return out[0], out[1]
     m = gt_rel.shape[0]
     cuts = list(range(0, m, CHUNK)) + [m]
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        made = [pool.submit(lambda: _Search2D(angles_4docc(pred_rel), angles_4docc(gt_rel), 0.0)),
-                pool.submit(lambda: _Search2D(angles_az_el(pred_rel), angles_az_el(gt_rel), TWO_PI))]
-        searches = [f.result() for f in made]
-        pieces = [[pool.submit(s.grid_pass, a, b) for a, b in zip(cuts[:-1], cuts[1:])] for s in searches]
-        out = []
-        for search, fs in zip(searches, pieces):
-            idx = np.concatenate([f.result() for f in fs]) if fs else np.zeros(0, dtype=np.int64)
-            out.append(search.finish(idx))
-    return out[0], out[1]
+    pool = execution.pool()
+    made = [pool.submit(lambda a=angles, p=period: _Search2D(a(pred_rel), a(gt_rel), p)) for angles, period in spaces]
+    searches = [f.result() for f in made]
+    done = []
+    for search in searches:
+        pieces = [pool.submit(search.grid_pass, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+        # queued after its pieces: when a thread takes it, every piece has been taken (FIFO)
+        done.append(pool.submit(_finish, search, pieces))
+    return done[0].result(), done[1].result()
+
+
+def _finish(search: _Search2D, pieces: list) -> np.ndarray:
+    idx = np.concatenate([f.result() for f in pieces]) if pieces else np.zeros(0, dtype=np.int64)
+    return search.finish(idx)
