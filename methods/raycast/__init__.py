@@ -3,10 +3,7 @@
 One module per baseline (``fourdocc``, ``zbuffer``, ``voxel``, ``freespace``); shared pieces
 in ``common`` (aggregation, poses, angle spaces), ``nn2d`` (exact angle-space nearest
 neighbours) and ``grid`` (voxel occupancy and ray traversal).
+
+Their threads come from the method's execution context (``pcfbench.execution``); importing
+them sets no thread or threading-layer setting.
 """
-
-import numba
-
-# numba tries TBB first; the TBB found here is too old and every process warns about it.
-# OpenMP ships with numba's wheels and serves the prange kernels just as well.
-numba.config.THREADING_LAYER = "omp"

@@ -15,14 +15,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
 
-import numba
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
+from pcfbench.execution import ExecutionContext, current
 from pcfbench.geometry import invert
 
 _EPS = 1e-9
@@ -162,45 +161,18 @@ _T = TypeVar("_T")
 _R = TypeVar("_R")
 
 
-def map_views(fn: Callable[[_T], _R], items: Sequence[_T]) -> list[_R]:
-    """``[fn(x) for x in items]`` with the items shared out over ``numba.get_num_threads()``
-    Python threads as they come free; each runs its numba kernels on one thread.
+def map_views(fn: Callable[[_T], _R], items: Sequence[_T], execution: ExecutionContext | None = None) -> list[_R]:
+    """``[fn(x) for x in items]`` with the items shared out over the threads of ``execution``
+    (default: the process's, ``pcfbench.execution.current()``) as they come free; each runs
+    its numba kernels on one thread (``ExecutionContext.map``).
 
-    Views, not rays, are the unit of parallel work: numba's OpenMP ``prange`` joins all its
-    threads at the end of every kernel, and on the shared 2-core machine a thread that waits
-    for a core held everyone up (5 zbuffer views took 192 ms with prange on 2 threads and
-    51 ms serial on 1, same run, loaded machine). A thread slowed down here just takes fewer
-    views (or pieces of views: ``pieces``). The kernels keep ``prange`` loops where numba's parallel lowering is what makes
-    LLVM vectorise them (the projections: 2.2 ms against 12 ms for a plain loop on 636k
-    points, one thread); with one numba thread they run inline.
+    Views (or pieces of views: ``pieces``), not rays, are the unit of parallel work: numba's
+    ``prange`` joins all its threads at the end of every kernel, so one thread waiting for a
+    core would hold the others up, while here a slowed thread just takes fewer views. The
+    kernels keep ``prange`` loops where numba's parallel lowering is what makes LLVM
+    vectorise them; with one numba thread they run inline.
     """
-    threads = numba.get_num_threads()
-    if min(threads, len(items)) <= 1:
-        before = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            return [fn(x) for x in items]
-        finally:
-            numba.set_num_threads(before)
-    return list(_pool(threads).map(fn, items))
-
-
-_POOL: ThreadPoolExecutor | None = None
-_POOL_SIZE = 0
-_POOL_LOCK = threading.Lock()
-
-
-def _pool(size: int) -> ThreadPoolExecutor:
-    """The render threads, kept between calls so that their ``scratch`` buffers are too."""
-    global _POOL, _POOL_SIZE
-    with _POOL_LOCK:
-        if _POOL is None or _POOL_SIZE != size:
-            if _POOL is not None:
-                _POOL.shutdown(wait=False)
-            _POOL = ThreadPoolExecutor(max_workers=size, thread_name_prefix="raycast",
-                                       initializer=numba.set_num_threads, initargs=(1,))
-            _POOL_SIZE = size
-        return _POOL
+    return (execution or current()).map(fn, items)
 
 
 _LOCAL = threading.local()

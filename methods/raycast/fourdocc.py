@@ -26,6 +26,7 @@ import numba as nb
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
+from pcfbench.execution import ExecutionContext, current
 from pcfbench.method import Method
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views
 from pcfbench.methods.raycast.fastmath import atan2
@@ -75,7 +76,7 @@ def _ranges(cols, origin, idx):
     return out
 
 
-def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
+def render_4docc_views(cols: np.ndarray, vws, execution: ExecutionContext | None = None) -> list[np.ndarray]:
     """Depth per ray of each view (``common.View``): the range of the angle-space nearest past
     point among ``cols`` (3, N) (0 with no points). The views go to the threads; each builds
     its view's index in its own reused buffers (``common.scratch``), asks it and drops it.
@@ -98,10 +99,11 @@ def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
         nn, origin = index(v, "4docc")
         return _ranges(cols, origin, nn.query(angles(v.dcols, np.zeros(3))))
 
-    threads = nb.get_num_threads()
+    execution = execution or current()
+    threads = execution.threads
     whole = len(vws) - len(vws) % threads if threads > 1 else len(vws)
     if whole == len(vws):
-        return map_views(one, vws)
+        return map_views(one, vws, execution)
     shared = list(range(whole, len(vws)))
     built = {k: threading.Event() for k in shared}
     indexes: dict = {}
@@ -125,7 +127,7 @@ def render_4docc_views(cols: np.ndarray, vws) -> list[np.ndarray]:
     for k in shared:
         m = vws[k].dcols.shape[1]
         jobs += [partial(ask, k, sl) for sl in pieces(m, max(1, -(-m // (SHARED_PIECES * threads))))]
-    map_views(lambda job: job(), jobs)
+    map_views(lambda job: job(), jobs, execution)
     return out
 
 
@@ -137,5 +139,5 @@ class RaycastFourDOcc(Method):
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
         vws = views(sample, self.options.constant_velocity)
-        depths = render_4docc_views(agg.cols, vws)
+        depths = render_4docc_views(agg.cols, vws, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)

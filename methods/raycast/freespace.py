@@ -68,7 +68,7 @@ class RaycastFreespace(Method):
         cols, own = np.ascontiguousarray(agg.cols[:, keep]), agg.own_range[keep]
         vws = views(sample, self.options.constant_velocity)
         if self.options.renderer == "zbuffer":
-            depths = render_zbuffer_views(cols, own, vws, self.options)
+            depths = render_zbuffer_views(cols, own, vws, self.options, self.execution)
         else:
-            depths = render_voxel_views(grid, cols, own, vws, self.options)
+            depths = render_voxel_views(grid, cols, own, vws, self.options, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)

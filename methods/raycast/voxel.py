@@ -43,6 +43,7 @@ from typing import Literal
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
+from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
 from pcfbench.roi import ROI, Box
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, views
@@ -99,11 +100,12 @@ class VoxelOptions:
     constant_velocity: bool = False  # extrapolate future poses from the last two past poses
 
 
-def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts) -> list[np.ndarray]:
+def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts,
+                       execution: ExecutionContext | None = None) -> list[np.ndarray]:
     """Depth per query ray of each view of ``vws``; ``cols`` (3, N) and ``own_range`` are the
     past points of the z-buffer fallback (see ``render_zbuffer``). The casts go to the threads
-    in pieces of ``PIECE`` rays (finer than views, so that the threads finish together), then
-    the fallback of each view with escaped rays."""
+    of ``execution`` (default: the process's) in pieces of ``PIECE`` rays (finer than views,
+    so that the threads finish together), then the fallback of each view with escaped rays."""
     cone = opts.cone_factor * np.deg2rad(opts.el_res_deg)
     center = None if opts.cone_center == "future" else np.zeros(3)
     jobs = [(v, sl) for v in vws for sl in pieces(len(v.directions))]
@@ -111,6 +113,7 @@ def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts) -> list[np.n
         lambda job: grid.cast(job[0].origin, job[0].directions[job[1]], cone=cone, max_level=opts.max_level,
                               cone_center=center, surface=opts.surface == "plane"),
         jobs,
+        execution,
     ))
     depths = [np.concatenate([next(parts) for _ in pieces(len(v.directions))]) for v in vws]
     zb = ZBufferOptions(az_res_deg=opts.az_res_deg, el_res_deg=opts.el_res_deg)
@@ -119,7 +122,7 @@ def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts) -> list[np.n
         miss = np.isnan(depths[k])
         depths[k][miss] = render_zbuffer(cols, own_range, vws[k].subset(miss), zb)
 
-    map_views(fallback, [k for k, d in enumerate(depths) if np.isnan(d).any()])
+    map_views(fallback, [k for k, d in enumerate(depths) if np.isnan(d).any()], execution)
     return depths
 
 
@@ -132,5 +135,5 @@ class RaycastVoxel(Method):
         agg = aggregate(sample)
         grid = build_grid(agg.points, self.options)
         vws = views(sample, self.options.constant_velocity)
-        depths = render_voxel_views(grid, agg.cols, agg.own_range, vws, self.options)
+        depths = render_voxel_views(grid, agg.cols, agg.own_range, vws, self.options, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)

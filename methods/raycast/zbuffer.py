@@ -30,6 +30,7 @@ import numba as nb
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
+from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, scratch, views
 from pcfbench.methods.raycast.fastmath import atan2
@@ -262,9 +263,10 @@ def render_zbuffer(cols, own_range, view, opts) -> np.ndarray:
     return depth
 
 
-def render_zbuffer_views(cols, own_range, vws, opts) -> list[np.ndarray]:
-    """``render_zbuffer`` of each view of ``vws``, the views shared out over the threads."""
-    return map_views(lambda v: render_zbuffer(cols, own_range, v, opts), vws)
+def render_zbuffer_views(cols, own_range, vws, opts, execution: ExecutionContext | None = None) -> list[np.ndarray]:
+    """``render_zbuffer`` of each view of ``vws``, the views shared out over the threads of
+    ``execution`` (default: the process's)."""
+    return map_views(lambda v: render_zbuffer(cols, own_range, v, opts), vws, execution)
 
 
 class RaycastZBuffer(Method):
@@ -275,5 +277,5 @@ class RaycastZBuffer(Method):
     def forecast(self, sample: Sample) -> Forecast:
         agg = aggregate(sample)
         vws = views(sample, self.options.constant_velocity)
-        depths = render_zbuffer_views(agg.cols, agg.own_range, vws, self.options)
+        depths = render_zbuffer_views(agg.cols, agg.own_range, vws, self.options, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)
