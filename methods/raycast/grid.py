@@ -23,65 +23,33 @@ and at most ``FOLLOW_RANGE`` past it (``_surface_depth``): a grazing ray that en
 ground's voxel through its top face meets the ground further on, also across the unobserved
 voxels between far beams. Voxels without a surface, and longer follows, answer the projection
 of the mean of the voxel's points on the ray, clamped to the ray's segment in the voxel
-(``surface=False`` everywhere: the former rule). On a KITTI-sized toy-world sample (kitti-1s,
-all rays, with the grid phase below) this took the median depth error from 0.101 m to 0.023 m
-and the mean from 0.279 m to 0.146 m.
+(``surface=False`` everywhere: the former rule).
 
 Grid phase (``anchor_z``): the grid may start below the box so that a face of every level
 passes through a given height. ``raycast-voxel`` puts one half a voxel above the ground under
-the sensor: with a face at the ground (the box corner's phase put one at -1.70 m, 3 cm above a
-sensor-height ground at -1.73 m) its noise speckles the cells above that face at every level,
-and the rays that cross them near the ground take small steps; with the ground in the middle
-of its voxels those cells are clean. The surfaces make the depth independent of the phase.
+the sensor, so that the ground lies mid-voxel and its noise does not speckle the cells above
+it (which would make rays coming down to it take small steps). The surfaces make the depth
+independent of the phase.
 
-Speed: the pyramid is one bit per cell (the 0.2 m level of the ROI is 24 M cells, 3 MB
-packed), a hit voxel's points are found through the first key of its (x, y) column instead
-of a binary search over all occupied keys, and ``_cast`` is serial (nogil): the caller
-shares rays out over threads. Measured and left out: marching 4 or 8 rays side by side to
-overlap their dependent chains (no faster), multiplying by the inverse voxel size instead of
-dividing (2 % faster, but it moves points lying exactly on a voxel face), thresholds on the
-squared range instead of a square root for the cone level, and reading every level's bit
-per step instead of the climb-and-descend search (slower: the 0.2 m level then misses cache).
+Storage: the pyramid is one bit per cell, and a hit voxel's points are found through the
+first key of its (x, y) column. ``_cast`` is serial (nogil): the caller shares rays out over
+threads.
 
-Empty-box jumps: per sample (with the pyramid, 19 ms), ``_slab_field`` gives every level-1
-cell and every top-level cell the chessboard distance ``r`` in (x, y) to the nearest occupied
-cell of its z slice; the ``2r - 1`` x ``2r - 1`` x 1 box of cells around it is then empty,
-and a skip of an empty cell of that level jumps to the box's exit instead (at level 1 only
-while the cone needs at most level 1 up to there, so that no coarser occupied cell the plain
-traversal would stop at is jumped over). On the KITTI-sized benchmark sample this cut the
-skips from 11.4 to 6.9 a ray (profile of the plain traversal: 4.8 of the 11.4 were level-1
-skips of rays grazing the ground slab, 4.6 top-level skips at sensor height), with the same
-635,759 depths; the casts alone got 1.16-1.26x faster and the whole render (with the z-buffer
-fallback of the escaped rays, ~7 ms a view, unchanged) 1.05-1.15x, old and new alternating in
-one process (load 0.7-1.1), which is short of the 1.4x that 5 M rays/s needs. Where faces
-nearly meet, a grazing hit's entry point can move by less than the 10 um step past a face
-(random scenes, not the benchmark sample). Measured and left out: also stretching level-2
-and level-3 skips with the level-1 field (a little slower: the thin slab rarely beats the
-coarse cell). What remains per ray: ~3.8 small skips in the ground slab, whose level-1 cells
-near the sensor are speckled by the ground's noise (so the boxes stay small there), the
-descent at the hit, and the fallback's full projection of the past points per view.
+Empty-box jumps: ``_slab_field`` gives every level-1 cell and every top-level cell the
+chessboard distance ``r`` in (x, y) to the nearest occupied cell of its z slice; the
+``2r - 1`` x ``2r - 1`` x 1 box of cells around it is then empty, and a skip of an empty cell
+of that level jumps to the box's exit instead (at level 1 only while the cone needs at most
+level 1 up to there, so that no coarser occupied cell the plain traversal would stop at is
+jumped over). Where faces nearly meet, a grazing hit's entry point can move by less than the
+10 um step past a face.
 
-Cheaper steps (same cells, so the same depths): the cone's level from comparing ``t`` with the
-ranges where it doubles (the centre is the ray's origin by default; the distance only within
-1e-7 of one), the cell from a product with ``1 / vs`` (the division only within 1e-9 of a face,
-where the two could round apart), the grid's bounds checked once per segment, the slab test
-and the ray's state in scalars inside ``_cast`` (no per-ray arrays, no NumPy pass per piece),
-the climb starting at the last skip's level (one occupancy read a step fewer, same level found)
-and branch-free cell exits. Profile before: 7.9 steps a ray at ~40 ns each (single thread; in
-random ray order only 1.2x slower, so the steps are bound by their instructions, not memory).
-Old and new alternating in one process, 21 rounds, load 2.0-2.9 from other jobs, median of the
-paired ratios: voxel render 1.24x and casts 1.33x, freespace render 1.18x and casts 1.18x (an
-earlier 15 rounds: 1.27/1.27 and 1.25/1.21); single thread, casts only: 1.21-1.24x; identical
-depths for all 635,759 rays of the benchmark sample, both methods. Measured and left out: a
-parent known occupied from the last skip instead of re-reading it (no faster), the voxel's key
-and mean side by side in one row (no faster), branch-free empty-box exits (within noise). The
-hit's voxel look-up costs ~19 ns a ray (7 %), the z-buffer fallback ~10 ms of the ~105 ms render.
-
-Inlined march: ``_march`` was a compiled call of its own, one or two per ray, with six arrays
-among its arguments; numba counts references of arrays passed to a call (atomic updates
-of shared counters, which the two threads' casts contended on). Inlined into ``_cast``, the
-same depths came 1.2x faster on one thread (casts of the 5 benchmark views: 145 ms against
-175 ms) and 1.07-1.16x on two (render, old and new alternating).
+Exactness of the fast steps: the cone's level comes from comparing ``t`` with the ranges where
+it doubles (the distance to the centre only within 1e-7 of one), the cell from a product with
+``1 / vs`` (the division only within 1e-9 of a face, where the two could round apart), so the
+traversal visits the same cells, and gives the same depths, as the plain arithmetic. The
+march (``_march``) is inlined into ``_cast``'s per-ray loop (a compiled call per ray that
+takes arrays updates their shared reference counts, which threads contend on). Measurements, and what was
+tried and left out: docs/performance.md.
 """
 
 from __future__ import annotations
@@ -338,7 +306,7 @@ def _need(x, y, z, c0, c1, c2, vs, cone, max_level):
     return need
 
 
-@nb.njit(inline="always")  # see "Inlined march" above
+@nb.njit(inline="always")  # inlined: see the module docstring
 def _march(o0, o1, o2, d0, d1, d2, i0, i1, i2, t, t1, occ, offs, dims, lo, vs, cone, max_level, c0, c1, c2, thr0,
            field, ftop):
     """First occupied cell along the ray ``o + t d`` (``i``: the inverse direction, 0 where
