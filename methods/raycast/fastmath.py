@@ -1,9 +1,8 @@
 """A branch-light float64 ``atan2`` that numba inlines into the projection kernels.
 
-A call to the C library's ``atan2`` costs about 15x this on the reference machine (measured
-on 1.3 M points: 15.8 ms against 1.0 ms, 2 threads), and the per-view projections of the
-~640k aggregated past points of a KITTI-sized sample call it twice per point, which alone
-was most of the render budget. This is the Cephes ``atan`` (range reduction to
+The per-view projections call ``atan2`` twice per aggregated past point, and a call to the C
+library's costs many times this inlined one (measured: docs/performance.md). This is the
+Cephes ``atan`` (range reduction to
 ``|t| <= tan(pi/8)`` and its degree 4/5 rational approximation) with the quadrant logic of
 ``atan2``; it agrees with the C library to 2 ulp (|difference| <= 4.5e-16 rad on random
 inputs; numpy's own ``arctan2`` already differs from the C library by 1 ulp on about 2.5% of

@@ -7,25 +7,22 @@ over the ROI; every query ray is cast from the future origin to its first occupi
 Sparsity policy (documented, tested): far from the sensor consecutive beams are metres apart,
 so a thin ray from a new origin slips between occupied voxels. The ray is therefore a cone:
 at range ``t`` it stops at occupied space at the resolution ``t * cone_factor * el_res``
-(``cone_factor`` times the beam spacing; 1 scored better than 2 and 0 on the synthetic-town
-val split, on the pyramid level at least that coarse, at most
+(``cone_factor`` times the beam spacing, on the pyramid level at least that coarse, at most
 ``max_level``), and a coarse hit is refined at 0.2 m where the surface is dense enough.
 ``cone_center=past`` measures the range from the t=0 sensor instead (the gaps of the past
-beams); on synthetic-town it scored worse at 3 s, so the future origin is the default.
+beams); the future origin is the default (the choice of both defaults: docs/baselines.md).
 
 Depth at the hit (``surface``, version 2): where the ray crosses the hit voxel's fitted
 surface (the plane through the mean of its points, normal from the flat points around it),
 following it up to 3 m past the voxel for grazing rays (see ``methods.raycast.grid``);
-``surface=mean`` keeps version 1's projection of the voxel's mean on the ray. On
-synthetic-town (test split, side by side with version 1) it took ``l1_median`` from 0.123 m
-to 0.027 m at 1 s and from 0.278 m to 0.157 m at 3 s, and ``l1_mean`` from 1.614 m to 1.455 m
-and 2.623 m to 2.507 m.
+``surface=mean`` keeps version 1's projection of the voxel's mean on the ray (results of
+both versions: docs/baselines.md).
 
 Grid phase (``align_ground``): the grid is shifted down (by less than 3.2 m) so that every
 level has a face half a voxel above the ground under the sensor (``ground_height``: the median
 height of the most common 2 cm height band within 20 m). The ground then sits in the middle
 of its voxels, and the cells above it are free of its noise: fewer, longer steps for the rays
-coming down to it (speed, see the README's table; the surfaces keep the depth independent of
+coming down to it (speed, see docs/performance.md; the surfaces keep the depth independent of
 the phase).
 
 Rays that hit nothing: a ray that leaves the grid (the ROI) without meeting occupied space,
