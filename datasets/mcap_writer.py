@@ -1,6 +1,6 @@
 """Write sequences as MCAP recordings: ROS 2 PointCloud2 + /tf, or foxglove.PointCloud + FrameTransform.
 
-The layouts ``datasets.mcap`` reads: a cloud topic in the sensor frame and transforms
+The layouts ``pcfbench.datasets.mcap`` reads: a cloud topic in the sensor frame and transforms
 world -> base_link (dynamic, one per sweep) and base_link -> sensor (static), so the reader
 must chain links exactly as with a real robot's TF tree.
 """

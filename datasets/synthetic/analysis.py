@@ -5,7 +5,7 @@ distance can be split by class: for each future ground-truth point, the squared 
 the nearest point of copy-last's forecast (the t=0 sweep). A static world would make the two
 groups alike apart from the ego motion's disocclusions; moving agents make theirs larger.
 
-    python -m datasets.synthetic.analysis [synthetic-town] [kitti-1s] [--limit N]
+    python -m pcfbench.datasets.synthetic.analysis [synthetic-town] [kitti-1s] [--limit N]
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Bird's-eye views of generated sweeps: ``python -m datasets.synthetic.figure [OUT.png]``.
+"""Bird's-eye views of generated sweeps: ``python -m pcfbench.datasets.synthetic.figure [OUT.png]``.
 
 Top row: one sweep of each domain coloured by semantic class, with the ego trajectory.
 Bottom row: three sweeps of the same sequence 1 s apart (colour = time) around the ego

@@ -136,7 +136,7 @@ EPOCH_NS = 1_600_000_000 * 10**9
 
 
 def _other_layouts() -> dict[str, str]:
-    """Layouts of the adapters' shared writer (``datasets.commands.write_layout``) -> axes."""
+    """Layouts of the adapters' shared writer (``pcfbench.datasets.commands.write_layout``) -> axes."""
     try:
         from pcfbench.datasets.commands import LAYOUTS
     except ImportError:

@@ -2,7 +2,7 @@
 
 Everything is a function of a :class:`TownStyle` and a ``numpy.random.Generator``, so the
 same seed gives the same world. Geometry is kept as plain numpy triangle soups per semantic
-class; :mod:`datasets.synthetic.lidar` turns them into open3d ray-casting scenes.
+class; :mod:`pcfbench.datasets.synthetic.lidar` turns them into open3d ray-casting scenes.
 
 Conventions: world frame x east, y north, z up, metres; a route is a polyline resampled every
 ``ROUTE_STEP`` metres with its yaw; right-hand traffic (vehicles keep to the right lane).

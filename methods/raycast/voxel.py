@@ -2,7 +2,7 @@
 
 The past sweeps, concatenated in the reference frame, fill a ``voxel`` (0.2 m) occupancy grid
 over the ROI; every query ray is cast from the future origin to its first occupied voxel
-(see ``methods.raycast.grid`` for the traversal).
+(see ``pcfbench.methods.raycast.grid`` for the traversal).
 
 Sparsity policy (documented, tested): far from the sensor consecutive beams are metres apart,
 so a thin ray from a new origin slips between occupied voxels. The ray is therefore a cone:
@@ -14,7 +14,7 @@ beams); the future origin is the default (the choice of both defaults: docs/base
 
 Depth at the hit (``surface``, version 2): where the ray crosses the hit voxel's fitted
 surface (the plane through the mean of its points, normal from the flat points around it),
-following it up to 3 m past the voxel for grazing rays (see ``methods.raycast.grid``);
+following it up to 3 m past the voxel for grazing rays (see ``pcfbench.methods.raycast.grid``);
 ``surface=mean`` keeps version 1's projection of the voxel's mean on the ray (results of
 both versions: docs/baselines.md).
 
@@ -51,7 +51,7 @@ from pcfbench.methods.raycast.zbuffer import ZBufferOptions, render_zbuffer
 #: levels of the occupancy pyramid above the voxels (0.2 m * 2**4 = 3.2 m cells): with 4
 #: instead of 3 a ray over open ground skips 3.2 m at a step, 11.4 instead of 15.1 steps a ray
 #: on the KITTI-sized benchmark sample (the same depths there; a cone's hit can in principle
-#: move where its width crosses a level inside a skipped cell, see methods.raycast.grid)
+#: move where its width crosses a level inside a skipped cell, see pcfbench.methods.raycast.grid)
 PYRAMID = 4
 
 #: horizontal radius (m) around the reference sensor whose points give the ground's height
