@@ -15,7 +15,6 @@ from pcfbench.methods.raycast.fastmath import atan2_array
 from pcfbench.methods.raycast.fourdocc import RaycastFourDOcc, render_4docc_views
 from pcfbench.methods.raycast.freespace import RaycastFreespace, carve
 from pcfbench.methods.raycast.grid import FOLLOW_RANGE, VoxelGrid, anchored_lo, sym3_smallest
-from pcfbench.methods.raycast.nn2d import NN2D
 from pcfbench.methods.raycast.voxel import RaycastVoxel, build_grid, ground_height
 from pcfbench.methods.raycast.zbuffer import RaycastZBuffer
 
@@ -295,59 +294,6 @@ def test_4docc_views_shared_over_threads_match_one_thread(n_views):
         numba.set_num_threads(before)
     for a, b in zip(serial, shared):
         np.testing.assert_array_equal(a, b)
-
-
-def test_nn2d_exact_on_clustered_data_with_duplicates():
-    rng = np.random.default_rng(0)
-    pts = np.concatenate([rng.normal(0, 0.01, (3000, 2)), rng.uniform(-3, 3, (2000, 2)), np.zeros((50, 2)),
-                          np.stack([np.full(500, 1.0), rng.uniform(-1, 1, 500)], 1)])
-    q = np.concatenate([rng.uniform(-4, 4, (1500, 2)), rng.normal(0, 0.02, (500, 2)), [[10.0, 10.0], [-9.0, 0.0]]])
-    got = NN2D(pts).query(q)
-    dist = ((q[:, None, :] - pts[None]) ** 2).sum(-1)
-    np.testing.assert_allclose(dist[np.arange(len(q)), got], dist.min(1), rtol=0, atol=0)
-    assert (NN2D(np.zeros((0, 2))).query(q) == -1).all()
-
-
-def test_nn2d_ties_go_to_the_lowest_index_and_far_queries_are_exact():
-    rng = np.random.default_rng(5)
-    pts = rng.uniform(-1, 1, (4000, 2))
-    pts[100:110] = pts[3000]  # duplicates of a later point: the lowest index must win
-    grid_pts = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0)), -1).reshape(-1, 2) + 10.0
-    pts = np.concatenate([pts, grid_pts])  # a lattice far away: queries between lattice points tie
-    q = np.concatenate([pts[3000:3001], [[10.5, 10.5], [12.5, 11.0]], rng.uniform(-30, 30, (300, 2))])
-    got = NN2D(pts).query(q)
-    dist = ((q[:, None, :] - pts[None]) ** 2).sum(-1)
-    np.testing.assert_array_equal(got, dist.argmin(1))  # argmin: the first of equal minima
-    assert got[0] == 100
-
-
-def test_nn2d_matches_argmin_on_banded_data_with_ties_across_cells():
-    # like the 4D-Occ angle space: most points in thin dense bands, a sparse rest; exact
-    # duplicates at scattered indices and queries equidistant from two points, so ties are
-    # decided between cells (a cell's branch-free scan must still give the lowest index)
-    rng = np.random.default_rng(11)
-    bands = [np.stack([rng.uniform(-3, 3, 3000), rng.normal(c, 0.01, 3000)], 1) for c in (-3.0, -0.1, 0.0)]
-    pts = np.concatenate(bands + [rng.uniform(-3.1, 3.1, (1500, 2))])
-    pts = pts[rng.permutation(len(pts))]
-    src = rng.choice(len(pts), 300, replace=False)
-    dst = rng.choice(len(pts), 300, replace=False)
-    pts[dst] = pts[src]  # duplicates, the copy sometimes before and sometimes after the original
-    # exact ties between cells: pairs 2 * 2**-7 apart (dyadic, so both distances are exactly
-    # equal) in a sparse stretch, the query halfway, the pair's points at random indices
-    x = rng.integers(-180, 180, 200) / 64.0
-    y = 1.5 + rng.integers(0, 2, 200) / 64.0
-    d = 2.0**-7
-    left = np.stack([x - d, y], 1)
-    right = np.stack([x + d, y], 1)
-    slots = rng.choice(len(pts), 400, replace=False)
-    pts[slots[:200]], pts[slots[200:]] = left, right
-    a, b = rng.choice(len(pts), 400), rng.choice(len(pts), 400)
-    q = np.concatenate([np.stack([x, y], 1), pts[rng.choice(len(pts), 400)], (pts[a] + pts[b]) / 2,
-                        np.stack([rng.uniform(-3, 3, 600), rng.normal(0, 0.05, 600)], 1),
-                        rng.uniform(-4, 4, (200, 2))])
-    expect = np.concatenate([((c[:, None, :] - pts[None]) ** 2).sum(-1).argmin(1) for c in np.array_split(q, 8)])
-    for per_cell in (0.5, 4.0, 64.0):
-        np.testing.assert_array_equal(NN2D(pts, per_cell=per_cell).query(q), expect)
 
 
 def test_fast_atan2_matches_the_c_library_to_2_ulp():

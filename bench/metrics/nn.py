@@ -1,13 +1,10 @@
 """Exact nearest neighbours for the metrics: a k-d tree (pykdtree) with float64 distances.
 
-pykdtree was the fastest exact index measured on ray-aligned 120k x 120k LiDAR sweeps on the
-2-core reference machine (see tests/benchmarks/test_bench_metrics.py and the README's
-"Metrics" section): scipy's cKDTree(workers=-1) took 1.4-2.3x its time, open3d's core
-NearestNeighborSearch 1.0-2.0x (open3d's KDTreeFlann answers one query per Python call).
+pykdtree was the fastest exact index measured on ray-aligned LiDAR sweeps (against scipy's
+cKDTree and open3d's searches: docs/performance.md, tests/benchmarks/test_bench_metrics.py).
 Distances are recomputed in float64 from the returned indices (one numba pass), so they are
 exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
-angle-space searches use an exact bucket grid (bench/metrics/grid.py) with a k-d tree
-fallback for queries far from all predicted points.
+angle-space searches use the exact bucket grid of pcfbench.nn2d (ties to the lowest index).
 """
 
 from __future__ import annotations
@@ -17,7 +14,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from pcfbench.execution import ExecutionContext, current
-from pcfbench.metrics.grid import Grid2D
+from pcfbench.nn2d import NN2D
 
 TWO_PI = 2.0 * np.pi
 
@@ -110,54 +107,29 @@ def angles_az_el(rel: np.ndarray) -> np.ndarray:
     )
 
 
-def _nearest_2d_kdtree(data: np.ndarray, queries: np.ndarray, period: float) -> np.ndarray:
-    """Exact 2D nearest neighbours by k-d tree, dimension 0 periodic when ``period`` > 0.
-
-    Every shifted copy (+-period) of a data point is at least ``period / 2 - |x_q|`` away from a
-    query at ``x_q``, so only queries whose unwrapped neighbour is farther than that look at
-    the shifted copies.
-    """
-    d2, idx = Index(data).query(queries)
-    if period > 0:
-        bound = period / 2 - np.abs(queries[:, 0])
-        seam = np.flatnonzero(d2 >= bound * bound)
-        if seam.size:
-            shifted = np.concatenate([data + [period, 0.0], data - [period, 0.0]])
-            d2s, idxs = Index(shifted).query(queries[seam])
-            better = d2s < d2[seam]
-            idx[seam[better]] = idxs[better] % data.shape[0]
-    return idx
-
-
 class _Search2D:
     """One exact 2D nearest-neighbour search in pieces (grid pass over any slice of the queries,
     then the far queries), so that threads can share the grid pass out (see nearest_angles)."""
 
     def __init__(self, data: np.ndarray, queries: np.ndarray, period: float) -> None:
-        self.data, self.queries, self.period = data, queries, period
-        self.grid = Grid2D(data, period)
+        data = np.asarray(data, dtype=np.float64)
+        if data.shape[0] == 0:
+            raise ValueError("nearest_2d: no data points to search (an empty prediction has no nearest point)")
+        self.qx = np.ascontiguousarray(queries[:, 0], dtype=np.float64)
+        self.qy = np.ascontiguousarray(queries[:, 1], dtype=np.float64)
+        self.grid = NN2D(data, period)
 
     def grid_pass(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Nearest data index of queries[start:stop]; -1 where the fine grid cannot prove it."""
-        return self.grid.query(self.queries[start:stop])[1]
+        """Nearest data index of queries[start:stop]; -1 where the grid's first pass leaves it."""
+        return self.grid.near((self.qx[start:stop], self.qy[start:stop]))
 
     def finish(self, idx: np.ndarray) -> np.ndarray:
-        """Answer the queries the grid pass left at -1: coarser grids, then a k-d tree."""
-        data, queries, period = self.data, self.queries, self.period
-        far = np.flatnonzero(idx < 0)
-        for per_cell in (64.0, 1024.0):  # coarser grids reach farther for the few left over
-            if far.size == 0 or per_cell > 2 * data.shape[0]:
-                break
-            idx[far] = Grid2D(data, period, per_cell).query(queries[far])[1]
-            far = far[idx[far] < 0]
-        if far.size:
-            idx[far] = _nearest_2d_kdtree(data, queries[far], period)
-        return idx
+        """Answer the queries the grid pass left at -1 (in place; returns ``idx``)."""
+        return self.grid.settle((self.qx, self.qy), idx)
 
 
 def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0) -> np.ndarray:
-    """Index of the nearest data point for each query (exact): the grid, then a k-d tree for the
-    queries far from all data."""
+    """Index of the nearest data point for each query (exact, ties to the lowest index)."""
     search = _Search2D(data, queries, period)
     return search.finish(search.grid_pass())
 

@@ -10,7 +10,7 @@ the reference's behaviour and is kept on purpose.
 
 Per view, the angles of all past points and rays come from one vectorised pass
 (``fastmath.atan2``, within 2 ulp of the C library, the same function for points and rays)
-and the nearest point of every ray from an exact bucket-grid search (``nn2d``; ties go to
+and the nearest point of every ray from an exact bucket-grid search (``pcfbench.nn2d``; ties go to
 the lowest point index, like a brute-force argmin). The chosen points were the same as with
 numpy's ``arctan2`` and the former quantile-grid index for all 635,759 rays of the
 KITTI-sized benchmark sample.
@@ -30,7 +30,7 @@ from pcfbench.execution import ExecutionContext, current
 from pcfbench.method import Method
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views
 from pcfbench.methods.raycast.fastmath import atan2
-from pcfbench.methods.raycast.nn2d import NN2D
+from pcfbench.nn2d import NN2D
 
 
 #: queries per thread of a view shared by all threads (see ``render_4docc_views``) come in this many pieces
@@ -93,7 +93,7 @@ def render_4docc_views(cols: np.ndarray, vws, execution: ExecutionContext | None
     def index(v, prefix: str) -> tuple[NN2D, np.ndarray]:
         origin = np.asarray(v.origin, dtype=np.float64)
         u, w = angles_into(cols, origin, scratch(f"{prefix}.u", n), scratch(f"{prefix}.v", n))
-        return NN2D((u, w), reuse=f"{prefix}.nn2d"), origin
+        return NN2D((u, w), buffers=lambda name, k, dtype: scratch(f"{prefix}.nn2d.{name}", k, dtype)), origin
 
     def one(v) -> np.ndarray:
         nn, origin = index(v, "4docc")

@@ -34,7 +34,7 @@ from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, scratch, views
 from pcfbench.methods.raycast.fastmath import atan2
-from pcfbench.methods.raycast.nn2d import NN2D
+from pcfbench.nn2d import NN2D
 
 
 @dataclass(frozen=True)

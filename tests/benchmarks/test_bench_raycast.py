@@ -26,7 +26,7 @@ from pcfbench.testing import InMemoryDataset
 from pcfbench.methods.raycast.common import aggregate, map_views, views
 from pcfbench.methods.raycast.fourdocc import RaycastFourDOcc, angles, render_4docc_views
 from pcfbench.methods.raycast.freespace import RaycastFreespace, carve
-from pcfbench.methods.raycast.nn2d import NN2D
+from pcfbench.nn2d import NN2D
 from pcfbench.methods.raycast.voxel import RaycastVoxel, build_grid, render_voxel_views
 from pcfbench.methods.raycast.zbuffer import RaycastZBuffer, _lookup, build_image, render_zbuffer_views, spherical
 
