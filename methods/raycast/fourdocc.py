@@ -11,9 +11,7 @@ the reference's behaviour and is kept on purpose.
 Per view, the angles of all past points and rays come from one vectorised pass
 (``fastmath.atan2``, within 2 ulp of the C library, the same function for points and rays)
 and the nearest point of every ray from an exact bucket-grid search (``pcfbench.nn2d``; ties go to
-the lowest point index, like a brute-force argmin). The chosen points were the same as with
-numpy's ``arctan2`` and the former quantile-grid index for all 635,759 rays of the
-KITTI-sized benchmark sample.
+the lowest point index, like a brute-force argmin).
 """
 
 from __future__ import annotations
@@ -84,8 +82,8 @@ def render_4docc_views(cols: np.ndarray, vws, execution: ExecutionContext | None
     Views left over when they do not share out evenly over the threads (the fifth of five on
     two) are shared instead: one thread builds each such view's index first thing (in buffers
     of its own), and its queries go in ``SHARED_PIECES`` pieces per thread after the whole views,
-    to whichever thread comes free (5 views on 2 threads: 3 whole views' work on one thread
-    before, 2.5 now)."""
+    to whichever thread comes free (5 views on 2 threads: at most 2.5 views' work on one
+    thread, not 3)."""
     if cols.shape[1] == 0:
         return [np.zeros(v.dcols.shape[1]) for v in vws]
     n = cols.shape[1]

@@ -15,11 +15,9 @@ non-empty bin (bin centres, within ``fill_ring`` bins), then the same search on 
 coarser min-pooled images, and only when the whole image is empty around it the range of
 the angular nearest past point (exact, with azimuth wrap-around).
 
-Speed: per view, one vectorised pass projects every point (``fastmath.atan2``; the splat
-width uses ``cos(el) = h / r`` instead of a call to ``cos``), a serial pass splats them
-(the common one-row footprint without branches), and the views go to threads
-(``common.map_views``). Same depths as the former libm-based kernels for all 635,759 rays of
-the KITTI-sized benchmark sample.
+Per view, one vectorised pass projects every point (``fastmath.atan2``; the splat width uses
+``cos(el) = h / r`` instead of a call to ``cos``), a serial pass splats them, and the views
+go to threads (``common.map_views``). Measurements: docs/performance.md.
 """
 
 from __future__ import annotations
