@@ -83,12 +83,14 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (partial: kept out of leaderboards).")
 @click.option("--jobs", "-j", type=click.IntRange(min=0), default=0, show_default=True,
               help="Worker processes; 0: one per CPU for cells with enough samples, else serial.")
+@click.option("--threads", type=click.IntRange(min=1), default=None,
+              help="Thread budget of the run (default: every CPU); each of N workers gets threads // N, at least 1.")
 @click.option("--force", is_flag=True, help="Recompute cells that are already complete.")
 @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
 @click.option("--no-report", is_flag=True, help="Do not regenerate the leaderboard afterwards.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, force, store, reports, no_report, quiet):
+def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet):
     """Run (or resume) every cell of method x dataset x split x setting."""
     from pcfbench.method import options_hash, parse_options
     from pcfbench.report import write_reports
@@ -118,7 +120,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, force
             )
     failures = 0
     for spec in cells:
-        result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins)
+        result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads)
         if result.processed == 0 and result.done_before == result.samples:
             click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
         else:
