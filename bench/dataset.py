@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, ClassVar
+from typing import Any, Callable, ClassVar, Iterable
 
 import numpy as np
 
 from pcfbench.data import Sweep
+from pcfbench.errors import DataError
 from pcfbench.roi import EgoBox
 
 
@@ -40,6 +43,126 @@ class Sequence:
             timestamp_ns=int(self.timestamps_ns[index]),
             source=f"sequence {self.name} sweep {index}",
         )
+
+
+#: Above this many folders, a fingerprint's summary groups files by their top-level folder.
+MAX_FINGERPRINT_GROUPS = 256
+
+
+@dataclass(frozen=True)
+class DataFingerprint:
+    """A cheap identity of the files a split reads: each file's path relative to the root, its
+    size and its modification time (ns), hashed; contents are never read.
+
+    Equal digests mean no file was added, removed, resized or rewritten (writing a file
+    updates its modification time). ``files`` is sorted by path.
+    """
+
+    root: str
+    files: tuple[tuple[str, int, int], ...]  # (relative path, bytes, mtime ns)
+
+    @staticmethod
+    def _hash(files: "Iterable[tuple[str, int, int]]") -> str:
+        h = hashlib.sha256()
+        for rel, size, mtime_ns in files:
+            h.update(f"{rel}\0{size}\0{mtime_ns}\n".encode("utf-8", "surrogateescape"))
+        return h.hexdigest()[:16]
+
+    @property
+    def digest(self) -> str:
+        return self._hash(self.files)
+
+    def _grouped(self) -> dict[str, list[tuple[str, int, int]]]:
+        def parent(rel: str, depth: int | None) -> str:
+            parts = rel.split("/")[:-1]
+            return "/".join(parts[:depth]) or "."
+
+        for depth in (None, 1):
+            groups: dict[str, list[tuple[str, int, int]]] = {}
+            for f in self.files:
+                groups.setdefault(parent(f[0], depth), []).append(f)
+            if len(groups) <= MAX_FINGERPRINT_GROUPS:
+                break
+        return groups
+
+    def summary(self) -> dict[str, Any]:
+        """What ``cell.json`` keeps to say later which folder changed: per folder the file
+        count, bytes, newest modification time and digest."""
+        groups = {
+            key: {
+                "files": len(fs),
+                "bytes": sum(f[1] for f in fs),
+                "mtime_ns_max": max(f[2] for f in fs),
+                "digest": self._hash(fs),
+            }
+            for key, fs in sorted(self._grouped().items())
+        }
+        return {"digest": self.digest, "files": len(self.files), "bytes": sum(f[1] for f in self.files), "groups": groups}
+
+    def changes_since(self, old: dict[str, Any] | None, most: int = 5) -> str:
+        """Which folders (and, where cheap, which files) differ from an older ``summary()``."""
+        old_groups = (old or {}).get("groups") or {}
+        new_groups = self.summary()["groups"]
+        grouped = self._grouped()
+        lines = []
+        for key in sorted(set(old_groups) | set(new_groups)):
+            o, n = old_groups.get(key), new_groups.get(key)
+            if o == n:
+                continue
+            if o is None:
+                lines.append(f"{key}: {n['files']} new file(s)")
+            elif n is None:
+                lines.append(f"{key}: its {o['files']} file(s) are gone")
+            else:
+                parts = []
+                if o.get("files") != n["files"]:
+                    parts.append(f"{o.get('files')} -> {n['files']} files")
+                newer = [rel for rel, _, mtime in grouped[key] if mtime > o.get("mtime_ns_max", 0)]
+                if newer:
+                    more = f" and {len(newer) - most} more" if len(newer) > most else ""
+                    parts.append(f"modified since: {', '.join(newer[:most])}{more}")
+                if o.get("bytes") != n["bytes"]:
+                    parts.append(f"{o.get('bytes')} -> {n['bytes']} bytes")
+                lines.append(f"{key}: {'; '.join(parts) or 'file sizes or modification times differ'}")
+        if not lines:
+            return "the files' sizes or modification times differ"
+        more = f"; and {len(lines) - most} more folder(s)" if len(lines) > most else ""
+        return "; ".join(lines[:most]) + more
+
+
+def fingerprint_files(root: Path | None, paths: "Iterable[Path]") -> DataFingerprint:
+    """The :class:`DataFingerprint` of ``paths`` (stat only), named relative to ``root``."""
+    base = None if root is None else (Path(root) if Path(root).is_dir() else Path(root).parent)
+    files = {}
+    for p in paths:
+        p = Path(p)
+        try:
+            st = os.stat(p)
+        except OSError as exc:
+            raise DataError(f"dataset file {p} cannot be read for the data fingerprint: {exc.strerror or exc}") from None
+        rel = p.as_posix() if base is None else Path(os.path.relpath(p, base)).as_posix()
+        files[rel] = (rel, int(st.st_size), int(st.st_mtime_ns))
+    return DataFingerprint(str(root), tuple(files[k] for k in sorted(files)))
+
+
+def files_under(root: Path) -> list[Path]:
+    """Every file under ``root`` (symbolic links to folders followed, each folder once)."""
+    out: list[Path] = []
+    seen: set[str] = set()
+    stack = [Path(root)]
+    while stack:
+        d = stack.pop()
+        real = os.path.realpath(d)
+        if real in seen:
+            continue
+        seen.add(real)
+        with os.scandir(d) as it:
+            for entry in it:
+                if entry.is_dir():  # follows symbolic links
+                    stack.append(Path(entry.path))
+                elif entry.is_file():
+                    out.append(Path(entry.path))
+    return out
 
 
 @dataclass
@@ -108,6 +231,25 @@ class DatasetAdapter(ABC):
     @abstractmethod
     def sequence(self, name: str) -> Sequence:
         """Open one sequence: poses and timestamps now, points on demand."""
+
+    def data_files(self, split: str) -> list[Path]:
+        """The files whose change could change a number of ``split`` (the fingerprint's input).
+
+        Default: every file under the root (the root itself when it is a file). Adapters may
+        narrow it to what the split reads, so that other splits or side files do not change
+        the fingerprint, but never below that.
+        """
+        if self.root is None:
+            return []
+        if self.root.is_file():
+            return [self.root]
+        if not self.root.is_dir():
+            raise DataError(f"dataset {self.name!r}: root {self.root} does not exist")
+        return files_under(self.root)
+
+    def fingerprint(self, split: str) -> DataFingerprint:
+        """Sizes and modification times of :meth:`data_files`, hashed: part of a cell's identity."""
+        return fingerprint_files(self.root, self.data_files(split))
 
     def check(self) -> CheckReport:
         """Walk the whole dataset and report what was found and every problem (never raises)."""

@@ -26,7 +26,7 @@ from pcfbench.method import Method, parse_options
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
-from pcfbench.store import Cell, CellSpec, spec_to_meta
+from pcfbench.store import Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.validate import validate_forecast
 
 #: Flush a chunk after this many samples or seconds, whichever comes first.
@@ -196,6 +196,7 @@ def run_cell(
         )
     ids = [f"{s}/{i:06d}" for s, i in keys]
     id_hash = ids_hash(ids)
+    fingerprint = res.builder.adapter.fingerprint(spec.split)
     cell = Cell(store_root, spec)
     with cell:
         meta = cell.read_meta()
@@ -207,14 +208,12 @@ def run_cell(
             "dataset_version": res.builder.adapter.version,
             "metric_versions": {m.name: m.version for m in res.metrics},
             "sample_ids_hash": id_hash,
+            **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
+            "dataset_options": dict(sorted(config.split_root_options(spec.dataset_root)[1].items())),
+            "data_fingerprint": fingerprint.digest,
         }
         if meta is not None:
-            old = {k: meta.get(k) for k in identity}
-            if old != identity:
-                changed = ", ".join(k for k in identity if old[k] != identity[k])
-                raise PcfbenchError(
-                    f"cell {cell.dir} was computed with a different {changed}; rerun with --force to recompute it"
-                )
+            check_identity(cell.dir, meta, identity, fingerprint)
         done = cell.done_ids()
         todo = [k for k, sid in zip(keys, ids) if sid not in done]
         if not todo and meta is not None and meta.get("status") == "complete":
@@ -223,6 +222,7 @@ def run_cell(
             **(meta or {}),
             "spec": spec_to_meta(spec),
             **identity,
+            "data_files": fingerprint.summary(),
             "status": "running",
             "partial": spec.partial,
             "harness_version": pcfbench.__version__,

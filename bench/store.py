@@ -164,6 +164,57 @@ def iter_cells(root: Path) -> Iterator[tuple[Path, dict[str, Any]]]:
             continue
 
 
+#: Identity fields of cells written since the protocol became versioned data. A cell.json
+#: without them predates that: it is reused only when complete (no rows are added to it).
+PROTOCOL_IDENTITY = (
+    "protocol_version", "roi", "min_range_m", "setting_params", "sample_policy", "ego_box",
+    "dataset_options", "data_fingerprint",
+)
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as it reads back from cell.json (tuples become lists, keys strings)."""
+    return json.loads(json.dumps(value, sort_keys=True, default=str))
+
+
+def _difference(old: Any, new: Any) -> str:
+    if isinstance(old, dict) and isinstance(new, dict):
+        keys = sorted(set(old) | set(new), key=str)
+        return ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k))
+    return f"{old!r} -> {new!r}"
+
+
+def check_identity(cell_dir: Path, meta: dict[str, Any], identity: dict[str, Any], fingerprint: Any = None) -> None:
+    """Raise one error naming every identity field on which ``meta`` (a cell's cell.json) and
+    ``identity`` (this run's) differ, and how to recompute; return when the cell may be reused.
+
+    ``fingerprint`` (a :class:`pcfbench.dataset.DataFingerprint`) says which dataset files
+    changed, from the summary the cell keeps under ``data_files``.
+    """
+    identity = _plain(identity)
+    legacy = "protocol_version" not in meta
+    fields = [k for k in identity if not (legacy and k in PROTOCOL_IDENTITY)]
+    changed = [k for k in fields if meta.get(k) != identity[k]]
+    if changed:
+        details = []
+        for k in changed:
+            if k == "data_fingerprint" and fingerprint is not None:
+                details.append(f"dataset files changed: {fingerprint.changes_since(meta.get('data_files'))}")
+            else:
+                details.append(f"{k}: {_difference(meta.get(k), identity[k])}")
+        raise PcfbenchError(
+            f"cell {cell_dir} was computed with a different {', '.join(changed)} ({'; '.join(details)}); "
+            "its rows must not mix with new ones: rerun with --force to recompute it"
+        )
+    if legacy and meta.get("status") != "complete":
+        missing = ", ".join(k for k in PROTOCOL_IDENTITY if k in identity)
+        raise PcfbenchError(
+            f"cell {cell_dir} is incomplete and its cell.json predates the protocol identity ({missing}), "
+            "so new rows could not be told apart from rows computed on other data or settings: "
+            "rerun with --force to recompute it"
+        )
+
+
 def spec_from_meta(meta: dict[str, Any]) -> CellSpec:
     spec = dict(meta["spec"])
     spec["metrics"] = tuple(spec.get("metrics", ()))

@@ -127,6 +127,15 @@ class KittiOdometry(DatasetAdapter):
         path = self._seq_dir(sequence) / "velodyne" / f"{index:06d}.bin"
         return read_bin(path)[:, :3]
 
+    def data_files(self, split: str) -> list[Path]:
+        """What ``split`` reads: each sequence's velodyne/*.bin, calib.txt, times.txt and poses."""
+        files: list[Path] = []
+        for name in self.sequence_names(split):
+            seq_dir = self._seq_dir(name)
+            files.extend(sorted((seq_dir / "velodyne").glob("*.bin")))
+            files += [seq_dir / "calib.txt", seq_dir / "times.txt", self._poses_path(name)]
+        return files
+
 
 
 def _open_sequence(root: str, name: str) -> Sequence:
