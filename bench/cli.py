@@ -6,6 +6,7 @@ import itertools
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -15,17 +16,8 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.plugins import get_plugins, warn_failed
 from pcfbench.protocol import SAMPLE_POLICIES, all_settings, get_setting
 
-
-def parse_method_spec(text: str) -> tuple[str, dict[str, str]]:
-    """``name`` or ``name:key=value,key=value`` into the name and raw option strings."""
-    name, _, rest = text.partition(":")
-    options: dict[str, str] = {}
-    for item in filter(None, rest.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise PcfbenchError(f"--method {text!r}: option {item!r} must look like key=value")
-        options[key.strip()] = value.strip()
-    return name, options
+if TYPE_CHECKING:  # pragma: no cover
+    from pcfbench.method import MethodSpec
 
 
 class Group(click.Group):
@@ -45,21 +37,22 @@ def cli() -> None:
     """Benchmark LiDAR point-cloud forecasting methods under one exact protocol."""
 
 
-def _selected_methods(plugins, requested: tuple[str, ...]) -> list[tuple[str, dict[str, str]]]:
+def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
+    """The methods of ``--method`` (resolved now: an unknown name or option fails before any
+    work), else every registered method that is ready to run, with its default options."""
+    from pcfbench.method import resolve_method
+
     if requested:
-        out = [parse_method_spec(m) for m in requested]
-        for name, _ in out:
-            plugins.methods.get(name)  # unknown name or broken plugin: fail now, before any work
-        return out
+        return [resolve_method(m, plugins) for m in requested]
     out = []
     for name in plugins.methods.names():
         try:
-            cls = plugins.methods.get(name)
+            method = resolve_method((name, {}), plugins)
         except PcfbenchError as exc:
             click.echo(f"pcfbench: warning: skipping {exc}", err=True)
             continue
-        if getattr(cls, "ready", True):
-            out.append((name, {}))
+        if getattr(method.cls, "ready", True):
+            out.append(method)
     return out
 
 
@@ -92,7 +85,6 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet):
     """Run (or resume) every cell of method x dataset x split x setting."""
-    from pcfbench.method import options_hash, parse_options
     from pcfbench.report import write_reports
     from pcfbench.runner import default_metrics, run_cell
     from pcfbench.store import CellSpec
@@ -113,10 +105,10 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         ds_settings = settings or cls.default_settings
         if not ds_settings:
             raise PcfbenchError(f"dataset {name!r} declares no default settings: pass --setting")
-        for split, setting, (method, raw) in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
-            opts = parse_options(plugins.methods.get(method).Options, raw, f"method {method}")
+        for split, setting, method in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
             cells.append(
-                CellSpec(method, dict(raw), options_hash(opts), name, root, split, setting, policy, limit, metric_names)
+                CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, policy, limit,
+                         metric_names)
             )
     failures = 0
     for spec in cells:

@@ -1,31 +1,37 @@
-"""The method contract: a sample in, a forecast out; options are a typed dataclass."""
+"""The method contract: a sample in, a forecast out; options are a typed dataclass.
+
+``resolve_method`` is the one place a method spec (``NAME[:key=value,...]``) becomes a method:
+the command line, the runner and ``pcfbench export`` all go through it.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
-import typing
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext, current
+from pcfbench.options import NoOptions, options_dict, options_hash, parse_options
 
+if TYPE_CHECKING:  # pragma: no cover
+    from pcfbench.plugins import Plugins
 
-@dataclasses.dataclass(frozen=True)
-class NoOptions:
-    """A method without options."""
+__all__ = [
+    "Method", "MethodSpec", "NoOptions", "options_dict", "options_hash", "parse_method_spec", "parse_options",
+    "resolve_method",
+]
 
 
 class Method(ABC):
     """Base class of every method plugin.
 
     Subclasses set ``name``, ``version`` (bump it when outputs change) and ``Options`` (a
-    frozen dataclass; unknown keys are rejected) and implement ``forecast``. Learned methods
-    also override ``fit``, ``save`` and ``load``.
+    frozen dataclass whose fields are declared with ``pcfbench.option(default, help=...)``;
+    unknown keys are rejected) and implement ``forecast``. Learned methods also override
+    ``fit``, ``save`` and ``load``.
     """
 
     name: ClassVar[str]
@@ -58,62 +64,49 @@ class Method(ABC):
         raise PcfbenchError(f"method {self.name!r} does not train")
 
 
-def parse_options(options_cls: type, raw: dict[str, str | object], owner: str) -> Any:
-    """Build ``options_cls`` from strings (CLI) or values, converting by the field types."""
-    fields = {f.name: f for f in dataclasses.fields(options_cls)}
-    unknown = sorted(set(raw) - set(fields))
-    if unknown:
-        known = ", ".join(sorted(fields)) or "none"
-        raise PcfbenchError(f"{owner}: unknown option(s) {', '.join(unknown)} (known: {known})")
-    hints = typing.get_type_hints(options_cls)
-    values = {}
-    for key, value in raw.items():
-        values[key] = _convert(value, hints[key], f"{owner} option {key}")
-    return options_cls(**values)
+def parse_method_spec(text: str) -> tuple[str, dict[str, str]]:
+    """``name`` or ``name:key=value,key=value`` into the name and the raw option strings."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    if not name:
+        raise PcfbenchError(f"--method {text!r}: no method name (expected NAME[:key=value,...])")
+    options: dict[str, str] = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise PcfbenchError(f"--method {text!r}: option {item!r} must look like key=value")
+        if key.strip() in options:
+            raise PcfbenchError(f"--method {text!r}: option {key.strip()!r} is given twice")
+        options[key.strip()] = value.strip()
+    return name, options
 
 
-def _convert(value: object, typ: Any, where: str) -> object:
-    if not isinstance(value, str):
-        return value
-    origin = typing.get_origin(typ)
-    args = typing.get_args(typ)
-    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
-        if value.lower() in ("none", "null") and type(None) in args:
-            return None
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(value, arg, where)
-            except PcfbenchError:
-                continue
-        raise PcfbenchError(f"{where}: cannot read {value!r} as {typ}")
-    if typing.get_origin(typ) is typing.Literal:
-        if value not in args:
-            raise PcfbenchError(f"{where}: {value!r} is not one of {', '.join(map(str, args))}")
-        return value
-    try:
-        if typ is bool:
-            low = value.lower()
-            if low in ("1", "true", "yes", "on"):
-                return True
-            if low in ("0", "false", "no", "off"):
-                return False
-            raise ValueError(value)
-        if typ in (int, float, str):
-            return typ(value)
-        if origin is tuple:
-            return tuple(_convert(v, args[0], where) for v in value.split("/") if v)
-    except ValueError:
-        raise PcfbenchError(f"{where}: cannot read {value!r} as {getattr(typ, '__name__', typ)}") from None
-    raise PcfbenchError(f"{where}: options of type {typ} cannot be given on the command line")
+@dataclasses.dataclass(frozen=True)
+class MethodSpec:
+    """A method spec resolved against the plugins: the registered ``name``, the ``raw``
+    options as given (what a cell records), the typed ``options`` built from them, their
+    ``options_hash`` (part of the cell's identity) and the method class."""
+
+    name: str
+    raw: Mapping[str, Any]
+    options: Any
+    options_hash: str
+    cls: type[Method]
+
+    def create(self) -> Method:
+        """A new instance of the method with these options."""
+        return self.cls(self.options)
 
 
-def options_dict(options: Any) -> dict[str, Any]:
-    return dataclasses.asdict(options) if dataclasses.is_dataclass(options) else {}
+def resolve_method(spec: str | tuple[str, Mapping[str, Any]], plugins: Plugins | None = None) -> MethodSpec:
+    """Turn ``"NAME[:key=value,...]"`` (or ``(name, raw options)``, as a stored cell holds
+    them) into a ``MethodSpec``. An unknown name, a plugin that fails to load, an unknown
+    option or an unreadable value is one ``PcfbenchError`` naming it."""
+    if plugins is None:
+        from pcfbench.plugins import get_plugins
 
-
-def options_hash(options: Any) -> str:
-    """A short, stable hash of the option values (canonical JSON)."""
-    blob = json.dumps(options_dict(options), sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+        plugins = get_plugins()
+    name, raw = parse_method_spec(spec) if isinstance(spec, str) else (spec[0], dict(spec[1]))
+    cls = plugins.methods.get(name)
+    options = parse_options(cls.Options, raw, f"method {name}")
+    return MethodSpec(name, raw, options, options_hash(options), cls)

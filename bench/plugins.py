@@ -7,19 +7,18 @@ plugins (empty: none); ``PCFBENCH_BLOCK_PLUGINS`` blocks plugins by name, built-
 
 from __future__ import annotations
 
-import difflib
 import importlib
 import importlib.metadata
 import os
 import sys
 import traceback
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import pluggy
 
 from pcfbench import hookspecs
-from pcfbench.errors import PluginError, UnknownNameError
+from pcfbench.errors import PluginError, UnknownNameError, unknown_name
 
 BUILTIN_PREFIX = "builtin-"
 
@@ -74,7 +73,7 @@ class Registry:
         """The resolved object for ``name``; imports lazy targets on first use."""
         entry = self.entries.get(name)
         if entry is None:
-            raise UnknownNameError(self.unknown_message(name))
+            raise self.unknown(name)
         if entry.lazy and entry._resolved is None:
             module_name, _, attr = entry.target.partition(":")
             try:
@@ -92,15 +91,13 @@ class Registry:
             entry._resolved = obj
         return entry._resolved if entry.lazy else entry.target
 
-    def unknown_message(self, name: str) -> str:
-        msg = f"unknown {self.kind} {name!r}"
-        close = difflib.get_close_matches(name, self.names(), n=3, cutoff=0.5)
-        if close:
-            msg += f"; did you mean {' or '.join(repr(c) for c in close)}?"
-        msg += f" (known: {', '.join(self.names()) or 'none'})"
+    def unknown(self, name: str) -> UnknownNameError:
+        """The error for an unknown ``name`` (``errors.unknown_name``), naming the plugins that
+        failed to load, since one of them may have provided it."""
+        note = ""
         if self.failed_plugins:
-            msg += f"; plugin(s) that failed to load and may provide it: {', '.join(sorted(self.failed_plugins))}"
-        return msg
+            note = f"plugin(s) that failed to load and may provide it: {', '.join(sorted(self.failed_plugins))}"
+        return unknown_name(self.kind, name, self.names(), note)
 
 
 class Register:
@@ -177,7 +174,15 @@ class PluginInfo:
 
 
 class Plugins:
-    """The loaded plugin manager and the three registries."""
+    """The plugin manager and the registries of datasets, methods, metrics and settings.
+
+    Plugins are first added to the pluggy manager (``register``), then their registration
+    hooks are called (``collect``) hook by hook in pluggy's call order (``call_order``), so
+    ``@pcfbench.hookimpl(tryfirst=True)`` / ``(trylast=True)`` take effect. Each plugin's
+    implementation is called on its own, through ``pm.subset_hook_caller``, with a ``register``
+    that records the plugin's name: what it registers is attributed to it (``pcfbench
+    plugins``), and an exception in it marks that plugin failed without touching the others.
+    """
 
     def __init__(self) -> None:
         self.pm = pluggy.PluginManager("pcfbench")
@@ -201,42 +206,76 @@ class Plugins:
         for registry, _, _ in self.registries().values():
             registry.failed_plugins[name] = error
 
-    def add_plugin(self, plugin: Any, name: str, source: str = "") -> None:
-        """Register a plugin object or module and collect what it registers."""
+    def register(self, plugin: Any, name: str, source: str = "") -> bool:
+        """Add a plugin object or module to the manager without calling its hooks (``collect``
+        does). False, with the plugin marked failed, when pluggy rejects it (a misspelled hook,
+        an argument the hook spec does not have)."""
         try:
             self.pm.register(plugin, name=name)
             self.pm.check_pending()
-        except Exception as exc:  # a misspelled hook or a bad hookimpl signature
+        except Exception as exc:  # noqa: BLE001 - a bad plugin is reported, never raised
             try:
                 self.pm.unregister(name=name)
             except Exception:  # noqa: BLE001 - it may not have been registered at all
                 pass
             self._fail(name, source, f"{type(exc).__name__}: {exc}")
-            return
-        info = PluginInfo(name, source or getattr(plugin, "__name__", repr(plugin)))
-        self.info[name] = info
+            return False
+        self.info[name] = PluginInfo(name, source or getattr(plugin, "__name__", repr(plugin)))
+        return True
+
+    def add_plugin(self, plugin: Any, name: str, source: str = "") -> None:
+        """Register a plugin object or module and collect what it registers now."""
+        if self.register(plugin, name, source):
+            self.collect([name])
+
+    def call_order(self, hook_name: str) -> list[str]:
+        """The plugins implementing ``hook_name``, in the order ``pm.hook.<hook_name>(...)``
+        calls them: ``tryfirst`` implementations first, ``trylast`` ones last, and within each
+        group the plugin registered last first."""
+        return [impl.plugin_name for impl in reversed(getattr(self.pm.hook, hook_name).get_hookimpls())]
+
+    def _call(self, hook_name: str, plugin_name: str, **kwargs: Any) -> None:
+        """Call ``plugin_name``'s implementation of ``hook_name`` alone, through pluggy."""
+        impl = next(i for i in getattr(self.pm.hook, hook_name).get_hookimpls() if i.plugin_name == plugin_name)
+        if impl.hookwrapper or impl.wrapper:
+            raise PluginError(f"{hook_name} cannot be a hook wrapper (each plugin's registrations are made on their own)")
+        others = [p for n, p in self.pm.list_name_plugin() if n != plugin_name and p is not None]
+        self.pm.subset_hook_caller(hook_name, others)(**kwargs)
+
+    def _record_error(self, plugin_name: str, hook_name: str, exc: Exception) -> str:
+        info = self.info[plugin_name]
+        error = f"{hook_name}: {type(exc).__name__}: {exc}"
+        info.error = error if not info.error else f"{info.error}; {error}"
+        return error
+
+    def collect(self, names: Iterable[str] | None = None) -> None:
+        """Call the registration hooks (``register_datasets``, ``register_methods``,
+        ``register_metrics``, ``register_settings``) of the plugins ``names`` (default: every
+        registered plugin), each hook over the plugins in ``call_order``."""
+        only = None if names is None else set(names)
         for kind, (registry, register_cls, hook_name) in self.registries().items():
-            before = set(registry.entries)
-            for impl in getattr(self.pm.hook, hook_name).get_hookimpls():
-                if impl.plugin_name != name:
+            for plugin_name in self.call_order(hook_name):
+                if only is not None and plugin_name not in only:
                     continue
+                before = set(registry.entries)
                 try:
-                    impl.function(register=register_cls(registry, name))
-                except Exception as exc:
-                    info.error = f"{hook_name}: {type(exc).__name__}: {exc}"
-                    registry.failed_plugins[name] = info.error
-            added = sorted(set(registry.entries) - before)
-            if added:
-                info.registered[kind] = added
+                    self._call(hook_name, plugin_name, register=register_cls(registry, plugin_name))
+                except Exception as exc:  # noqa: BLE001 - a broken plugin stays isolated
+                    registry.failed_plugins[plugin_name] = self._record_error(plugin_name, hook_name, exc)
+                added = set(registry.entries) - before
+                if added:
+                    registered = self.info[plugin_name].registered
+                    registered[kind] = sorted(set(registered.get(kind, ())) | added)
 
     def add_commands(self, cli: Any) -> None:
-        for impl in self.pm.hook.register_commands.get_hookimpls():
+        """Call ``register_commands`` of every plugin in ``call_order``; a plugin whose hook
+        raises is marked failed and the others' commands stay."""
+        for plugin_name in self.call_order("register_commands"):
             try:
-                impl.function(cli=cli)
+                self._call("register_commands", plugin_name, cli=cli)
             except Exception as exc:  # noqa: BLE001 - a broken command must not break the CLI
-                info = self.info.get(impl.plugin_name)
-                if info is not None:
-                    info.error = f"register_commands: {type(exc).__name__}: {exc}"
+                if plugin_name in self.info:
+                    self._record_error(plugin_name, "register_commands", exc)
 
 
 def _env_list(var: str) -> set[str] | None:
@@ -253,6 +292,7 @@ def load_plugins() -> Plugins:
     block = _env_list("PCFBENCH_BLOCK_PLUGINS") or set()
     eps = sorted(importlib.metadata.entry_points(group="pcfbench"), key=lambda ep: (not ep.name.startswith(BUILTIN_PREFIX), ep.name))
     seen: set[str] = set()
+    loaded: list[tuple[importlib.metadata.EntryPoint, Any]] = []
     for ep in eps:
         if ep.name in seen or ep.name in block:
             continue
@@ -265,7 +305,12 @@ def load_plugins() -> Plugins:
             detail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             plugins._fail(ep.name, ep.value, detail)
             continue
-        plugins.add_plugin(module, ep.name, ep.value)
+        loaded.append((ep, module))
+    # pluggy calls the plugin registered last first (among implementations without tryfirst or
+    # trylast): registering in reverse calls the built-ins first, then the others by name
+    for ep, module in reversed(loaded):
+        plugins.register(module, ep.name, ep.value)
+    plugins.collect()
     return plugins
 
 

@@ -22,7 +22,7 @@ from pcfbench import config
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
-from pcfbench.method import Method, parse_options
+from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
@@ -89,14 +89,13 @@ class Resolved:
 def resolve(spec: CellSpec, plugins: Plugins | None = None) -> Resolved:
     plugins = plugins or get_plugins()
     adapter_cls = plugins.datasets.get(spec.dataset)
-    method_cls = plugins.methods.get(spec.method)
+    method = resolve_method((spec.method, spec.options), plugins)
     setting = get_setting(spec.setting, plugins)
     root, root_options = config.split_root_options(spec.dataset_root)
     adapter = adapter_cls(root, **root_options)
     check_compatible(setting, adapter)
-    options = parse_options(method_cls.Options, spec.options, f"method {spec.method}")
     metrics = [plugins.metrics.get(m) for m in spec.metrics]
-    return Resolved(SampleBuilder(adapter, setting, spec.policy), method_cls(options), metrics)
+    return Resolved(SampleBuilder(adapter, setting, spec.policy), method.create(), metrics)
 
 
 def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:

@@ -129,13 +129,16 @@ def add_commands(cli) -> None:
 
 def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = None, split: str | None = None,
            methods: tuple[str, ...] = (), policy: str = "full-context") -> tuple[Path, int]:
-    from pcfbench.cli import parse_method_spec
-    from pcfbench.method import parse_options
+    from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
     from pcfbench.protocol import SampleBuilder, check_compatible, get_setting
     from pcfbench.validate import validate_forecast
     from pcfbench.datasets.export_mcap import export_sample
 
+    resolved = [resolve_method(spec, get_plugins()) for spec in methods]  # a bad spec fails before any work
+    names = [method.name for method in resolved]
+    if len(set(names)) < len(names):
+        raise PcfbenchError(f"--method: each method can be exported once (its name is its MCAP topic), got {', '.join(methods)}")
     adapter = open_adapter(dataset)
     s = get_setting(setting)
     check_compatible(s, adapter)
@@ -151,11 +154,6 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
             raise PcfbenchError(f"--sample {sample_id!r}: expected SEQUENCE/INDEX, e.g. scene-0003/000005")
         index = int(idx)
     sample, truth = builder.build(seq, index)
-    forecasts = {}
-    plugins = get_plugins()
-    for spec in methods:
-        name, raw = parse_method_spec(spec)
-        cls = plugins.methods.get(name)
-        forecasts[name] = validate_forecast(sample, cls(parse_options(cls.Options, raw, f"method {name}")).forecast(sample))
+    forecasts = {method.name: validate_forecast(sample, method.create().forecast(sample)) for method in resolved}
     path = export_sample(out, sample, truth, forecasts)
     return path, len(sample.past_points_ref) + len(truth.future_points_ref) * (1 + len(forecasts))

@@ -4,9 +4,8 @@ from typing import Literal
 import pytest
 
 from pcfbench import config
-from pcfbench.cli import parse_method_spec
-from pcfbench.errors import PcfbenchError
-from pcfbench.method import options_hash, parse_options
+from pcfbench.errors import PcfbenchError, UnknownNameError
+from pcfbench.method import options_hash, parse_method_spec, parse_options
 
 
 @dataclass(frozen=True)
@@ -21,8 +20,10 @@ class Opts:
 def test_options_convert_by_type_and_reject_unknown_keys():
     o = parse_options(Opts, {"voxel": "0.1", "iters": "5", "dilate": "true", "mode": "b", "name": "none"}, "method x")
     assert o == Opts(0.1, 5, True, "b", None)
-    with pytest.raises(PcfbenchError, match="unknown option\\(s\\) voxle.*known: dilate, iters, mode, name, voxel"):
+    with pytest.raises(UnknownNameError, match=r"unknown method x option 'voxle'; did you mean 'voxel'\? \(known: dilate, iters, mode, name, voxel\)"):
         parse_options(Opts, {"voxle": "1"}, "method x")
+    with pytest.raises(PcfbenchError, match="unknown option\\(s\\) a, voxle.*known: dilate, iters, mode, name, voxel"):
+        parse_options(Opts, {"voxle": "1", "a": "2"}, "method x")
     with pytest.raises(PcfbenchError, match="cannot read 'abc' as int"):
         parse_options(Opts, {"iters": "abc"}, "method x")
     with pytest.raises(PcfbenchError, match="'c' is not one of a, b"):
@@ -39,6 +40,10 @@ def test_method_spec_syntax():
     assert parse_method_spec("copy-last") == ("copy-last", {})
     with pytest.raises(PcfbenchError, match="key=value"):
         parse_method_spec("m:oops")
+    with pytest.raises(PcfbenchError, match="'voxel' is given twice"):
+        parse_method_spec("raycast-voxel:voxel=0.1,voxel=0.2")
+    with pytest.raises(PcfbenchError, match="no method name"):
+        parse_method_spec(":voxel=0.1")
 
 
 def test_dataset_roots_cli_env_config_never_cwd(tmp_path, monkeypatch):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pcfbench.errors import UnknownNameError
+from pcfbench.errors import unknown_name
 from pcfbench.datasets.synthetic.sensor import HDL32, HDL64, LidarConfig
 from pcfbench.datasets.synthetic.world import SUBURB, TOWN, TownStyle
 
@@ -76,9 +76,5 @@ DOMAINS: dict[str, Domain] = {
 
 def get_domain(name: str) -> Domain:
     if name not in DOMAINS:
-        import difflib
-
-        close = difflib.get_close_matches(name, DOMAINS, n=2)
-        hint = f"; did you mean {' or '.join(map(repr, close))}?" if close else ""
-        raise UnknownNameError(f"unknown synthetic domain {name!r}{hint} (known: {', '.join(DOMAINS)})")
+        raise unknown_name("synthetic domain", name, DOMAINS)
     return DOMAINS[name]
