@@ -39,6 +39,8 @@ _EXPORTS: dict[str, str | None] = {
     # methods
     "Method": "pcfbench.method",
     "NoOptions": "pcfbench.method",
+    # typed options of methods and adapters (a help text per field)
+    "option": "pcfbench.options",
     # datasets
     "DatasetAdapter": "pcfbench.dataset",
     "Sequence": "pcfbench.dataset",
@@ -83,5 +85,6 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench.errors import DataError, PcfbenchError, PluginError, UnknownNameError
     from pcfbench.hookspecs import hookimpl, hookspec
     from pcfbench.method import Method, NoOptions
+    from pcfbench.options import option
     from pcfbench.metrics.base import Metric, SweepContext
     from pcfbench.protocol import Protocol, SamplePolicy, Setting, active_protocol
