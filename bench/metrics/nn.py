@@ -14,9 +14,13 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from pcfbench.execution import ExecutionContext, current
-from pcfbench.nn2d import NN2D
+from pcfbench.nn2d import NN2D, PER_CELL
 
 TWO_PI = 2.0 * np.pi
+#: points per grid cell of each angle space's search (any value gives the same answers): the
+#: fastest measured on the 120k x 120k benchmark pair (docs/performance.md)
+PER_CELL_4DOCC = 2.0
+PER_CELL_WRAPPED = 4.0
 
 
 class Index:
@@ -111,13 +115,13 @@ class _Search2D:
     """One exact 2D nearest-neighbour search in pieces (grid pass over any slice of the queries,
     then the far queries), so that threads can share the grid pass out (see nearest_angles)."""
 
-    def __init__(self, data: np.ndarray, queries: np.ndarray, period: float) -> None:
+    def __init__(self, data: np.ndarray, queries: np.ndarray, period: float, per_cell: float = PER_CELL) -> None:
         data = np.asarray(data, dtype=np.float64)
         if data.shape[0] == 0:
             raise ValueError("nearest_2d: no data points to search (an empty prediction has no nearest point)")
         self.qx = np.ascontiguousarray(queries[:, 0], dtype=np.float64)
         self.qy = np.ascontiguousarray(queries[:, 1], dtype=np.float64)
-        self.grid = NN2D(data, period)
+        self.grid = NN2D(data, period, per_cell)
 
     def grid_pass(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Nearest data index of queries[start:stop]; -1 where the grid's first pass leaves it."""
@@ -128,21 +132,21 @@ class _Search2D:
         return self.grid.settle((self.qx, self.qy), idx)
 
 
-def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0) -> np.ndarray:
+def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0, per_cell: float = PER_CELL) -> np.ndarray:
     """Index of the nearest data point for each query (exact, ties to the lowest index)."""
-    search = _Search2D(data, queries, period)
+    search = _Search2D(data, queries, period, per_cell)
     return search.finish(search.grid_pass())
 
 
 def nearest_angle_4docc(pred_rel: np.ndarray, gt_rel: np.ndarray) -> np.ndarray:
     """Index of the predicted point nearest to each ground-truth ray in the 4D-Occ angle space."""
-    return nearest_2d(angles_4docc(pred_rel), angles_4docc(gt_rel))
+    return nearest_2d(angles_4docc(pred_rel), angles_4docc(gt_rel), per_cell=PER_CELL_4DOCC)
 
 
 def nearest_angle_wrapped(pred_rel: np.ndarray, gt_rel: np.ndarray) -> np.ndarray:
     """Index of the predicted point nearest to each ground-truth ray in (azimuth, elevation),
     the azimuth difference taken around the circle (min(|da|, 2 pi - |da|))."""
-    return nearest_2d(angles_az_el(pred_rel), angles_az_el(gt_rel), period=TWO_PI)
+    return nearest_2d(angles_az_el(pred_rel), angles_az_el(gt_rel), period=TWO_PI, per_cell=PER_CELL_WRAPPED)
 
 
 #: queries per piece of the shared grid pass in nearest_angles
@@ -163,17 +167,18 @@ def nearest_angles(pred_rel: np.ndarray, gt_rel: np.ndarray,
     (pcfbench.nn2d), so it is the same as one whole pass's, whatever the thread count.
     """
     execution = execution or current()
-    spaces = ((angles_4docc, 0.0), (angles_az_el, TWO_PI))
+    spaces = ((angles_4docc, 0.0, PER_CELL_4DOCC), (angles_az_el, TWO_PI, PER_CELL_WRAPPED))
     if execution.threads == 1:
         out = []
-        for angles, period in spaces:
-            search = _Search2D(angles(pred_rel), angles(gt_rel), period)
+        for angles, period, per_cell in spaces:
+            search = _Search2D(angles(pred_rel), angles(gt_rel), period, per_cell)
             out.append(search.finish(search.grid_pass()))
         return out[0], out[1]
     m = gt_rel.shape[0]
     cuts = list(range(0, m, CHUNK)) + [m]
     pool = execution.pool()
-    made = [pool.submit(lambda a=angles, p=period: _Search2D(a(pred_rel), a(gt_rel), p)) for angles, period in spaces]
+    made = [pool.submit(lambda a=angles, p=period, c=per_cell: _Search2D(a(pred_rel), a(gt_rel), p, c))
+            for angles, period, per_cell in spaces]
     searches = [f.result() for f in made]
     done = []
     for search in searches:
