@@ -1,19 +1,24 @@
-"""Leaderboards regenerated from the store, in the shape of the published tables.
+"""Leaderboards regenerated from the store: paper-layout tables with intervals and comparisons.
 
-A block per (dataset, split, setting, policy), a row per method (+ options), a column per
-metric, the sample count beside each row. Partial cells (``--limit``) are left out, and a
-column never mixes metric versions.
+:func:`collect` reads every complete cell: the flat mean over (sample, future sweep) of each
+metric (the point estimate; skipped sweeps are counted, never averaged), its bootstrap
+interval over samples, and, per (dataset, split, setting, policy[, limit]) group, a paired
+comparison of every cell with the group's reference method on the samples both scored
+(``pcfbench.stats``). Partial cells (``--limit``) are kept apart in their own tables. A
+column never mixes metric versions. :func:`write_reports` renders the tables of
+``pcfbench.tables``' presets as Markdown, CSV, LaTeX and HTML.
 """
 
 from __future__ import annotations
 
-import html
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from pcfbench import stats, tables
 from pcfbench.errors import PcfbenchError
 from pcfbench.store import Cell, iter_cells, spec_from_meta
 
@@ -23,57 +28,71 @@ PREFERRED_ORDER = (
     "chamfer_nf@4docc", "l1@4docc", "absrel@4docc", "l1_ray", "absrel_ray",
 )
 BLOCK_KEYS = ["dataset", "split", "setting", "policy"]
+GROUP_KEYS = BLOCK_KEYS + ["limit"]
+DEFAULT_REFERENCE = "copy-last"
+DEFAULT_PRESET = "paper"
+#: The CSV's leading columns, in this order (scripts read them by position).
+CSV_LEAD = ["dataset", "split", "setting", "policy", "method", "method_version", "samples", "failed", "sweeps"]
+
+
+@dataclass
+class ReportOptions:
+    """How the report is computed and printed (``pcfbench report``'s options)."""
+
+    preset: str = DEFAULT_PRESET
+    tables_file: str | None = None
+    reference: str = DEFAULT_REFERENCE
+    ci: str = "pm"
+    resampling: stats.Resampling = field(default_factory=stats.Resampling)
 
 
 @dataclass
 class Leaderboard:
-    table: pd.DataFrame  # one row per cell; metric columns hold flat means over sweeps
-    by_step: pd.DataFrame  # one row per (cell, future step)
+    """``table`` / ``partial``: one row per complete (resp. ``--limit``) cell, holding per
+    metric ``m`` the flat mean ``m``, its interval ``m_lo``/``m_hi``, the skipped sweeps
+    ``m__skipped`` and against the reference ``m_rel`` (relative change) and ``m_p``.
+    ``by_step``: one row per (cell, future step) with the step's time in seconds.
+    ``comparisons``: one row per (cell, metric) paired comparison."""
+
+    table: pd.DataFrame
+    by_step: pd.DataFrame
     metric_columns: list[str]
     units: dict[str, str]
+    partial: pd.DataFrame = field(default_factory=pd.DataFrame)
+    comparisons: pd.DataFrame = field(default_factory=pd.DataFrame)
+    resampling: stats.Resampling = field(default_factory=stats.Resampling)
+    reference: str = DEFAULT_REFERENCE
+    notes: list[str] = field(default_factory=list)
 
 
-def _method_label(spec) -> str:
-    if not spec.options:
-        return spec.method
-    opts = ",".join(f"{k}={v}" for k, v in sorted(spec.options.items()))
-    return f"{spec.method}[{opts}]"
+def method_label(method: str, options: dict) -> str:
+    """A readable variant label: ``raycast-voxel (voxel=0.2, k=3)``; the bare name without options."""
+    if not options:
+        return method
+    return f"{method} (" + ", ".join(f"{k}={v}" for k, v in sorted(options.items())) + ")"
 
 
-def collect(store_root: Path) -> Leaderboard:
-    """Read every complete, non-partial cell under ``store_root``."""
-    rows, step_rows = [], []
-    versions: dict[str, dict[str, list[str]]] = {}
-    units: dict[str, str] = {}
-    for cell_dir, meta in iter_cells(store_root):
-        if meta.get("status") != "complete" or meta.get("partial"):
-            continue
-        spec = spec_from_meta(meta)
-        df = Cell(store_root, spec).read_rows()
-        ok = df[df["status"] == "ok"] if len(df) else df
-        metric_versions = meta.get("metric_versions", {})
-        units.update(meta.get("metric_units", {}))
-        base = {
-            "dataset": spec.dataset, "split": spec.split, "setting": spec.setting, "policy": spec.policy,
-            "method": _method_label(spec), "method_version": meta.get("method_version"),
-            "samples": meta.get("counts", {}).get("ok", 0), "failed": meta.get("counts", {}).get("failed", 0),
-            "sweeps": len(ok),
-        }
-        block = tuple(base[k] for k in BLOCK_KEYS)
-        row = dict(base)
-        for name, version in metric_versions.items():
-            versions.setdefault(name, {}).setdefault(version, []).append(f"{cell_dir} ({'/'.join(block)})")
-            values = ok[name].to_numpy(dtype=float) if name in ok else np.array([])
-            row[name] = float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
-            row[f"{name}__skipped"] = int((~np.isfinite(values)).sum())
-        rows.append(row)
-        if len(ok):
-            for step, g in ok.groupby("step"):
-                srow = dict(base, step=int(step), sweeps=len(g))
-                for name in metric_versions:
-                    v = g[name].to_numpy(dtype=float) if name in g else np.array([])
-                    srow[name] = float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
-                step_rows.append(srow)
+def _step_seconds(setting: str, steps: np.ndarray, notes: list[str]) -> np.ndarray:
+    from pcfbench.protocol import get_setting
+
+    try:
+        s = get_setting(setting)
+    except PcfbenchError as exc:
+        notes.append(f"per-horizon times of setting {setting!r} unknown ({exc}); time_s left empty")
+        return np.full(len(steps), np.nan)
+    return np.array([s.step_seconds(int(k)) for k in steps])
+
+
+def _horizon(setting: str) -> float:
+    from pcfbench.protocol import get_setting
+
+    try:
+        return get_setting(setting).horizon_s
+    except PcfbenchError:
+        return math.nan
+
+
+def _check_versions(versions: dict[str, dict[str, list[str]]]) -> None:
     mixed = {n: v for n, v in versions.items() if len(v) > 1}
     if mixed:
         lines = []
@@ -84,78 +103,179 @@ def collect(store_root: Path) -> Leaderboard:
             "refusing to mix metric versions in one column:\n" + "\n".join(lines)
             + "\nrerun the older cells with --force (or remove them) so every cell uses the same version"
         )
+
+
+def collect(store_root: Path, resampling: stats.Resampling | None = None,
+            reference: str = DEFAULT_REFERENCE) -> Leaderboard:
+    """Read and analyse every complete cell under ``store_root``."""
+    from threadpoolctl import threadpool_limits
+
+    # The products are small (resamples x units x metrics): BLAS threads only add overhead.
+    with threadpool_limits(1):
+        return _collect(Path(store_root), resampling or stats.Resampling(), reference)
+
+
+def _collect(store_root: Path, resampling: stats.Resampling, reference: str) -> Leaderboard:
+    rows, step_rows, sums, notes = [], [], [], []
+    versions = {False: {}, True: {}}
+    units: dict[str, str] = {}
+    for cell_dir, meta in iter_cells(store_root):
+        if meta.get("status") != "complete":
+            continue
+        spec = spec_from_meta(meta)
+        partial = bool(meta.get("partial"))
+        df = Cell(store_root, spec).read_rows()
+        ok = df[df["status"] == "ok"] if len(df) else df
+        metric_versions = meta.get("metric_versions", {})
+        units.update(meta.get("metric_units", {}))
+        base = {
+            "dataset": spec.dataset, "split": spec.split, "setting": spec.setting, "policy": spec.policy,
+            "method": spec.method, "method_version": meta.get("method_version"),
+            "samples": meta.get("counts", {}).get("ok", 0), "failed": meta.get("counts", {}).get("failed", 0),
+            "sweeps": len(ok), "variant": method_label(spec.method, spec.options), "options_hash": spec.options_hash,
+            "limit": spec.limit if partial else None, "horizon_s": _horizon(spec.setting),
+        }
+        for k, v in sorted(spec.options.items()):
+            base[f"option.{k}"] = v
+        block = tuple(str(base[k]) for k in BLOCK_KEYS)
+        names = sorted(metric_versions)
+        for name, version in metric_versions.items():
+            versions[partial].setdefault(name, {}).setdefault(version, []).append(f"{cell_dir} ({'/'.join(block)})")
+        ss = stats.sample_sums(ok, names)
+        iv = stats.interval(ss, resampling)
+        row = dict(base, partial=partial, ci_units=iv.units)
+        for j, name in enumerate(names):
+            values = ok[name].to_numpy(dtype=float) if name in ok else np.array([])
+            row[name] = float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
+            row[f"{name}_lo"], row[f"{name}_hi"] = float(iv.lo[j]), float(iv.hi[j])
+            row[f"{name}__skipped"] = int((~np.isfinite(values)).sum())
+        rows.append(row)
+        sums.append(ss)
+        if len(ok):
+            groups = list(ok.groupby("step"))
+            seconds = _step_seconds(spec.setting, np.array([s for s, _ in groups]), notes)
+            for (step, g), t in zip(groups, seconds):
+                srow = {k: base[k] for k in ("dataset", "split", "setting", "policy", "method", "variant", "options_hash", "limit")}
+                srow.update(step=int(step), time_s=float(t), sweeps=len(g))
+                siv = stats.interval(stats.sample_sums(g, names), resampling)
+                for j, name in enumerate(names):
+                    v = g[name].to_numpy(dtype=float) if name in g else np.array([])
+                    srow[name] = float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+                    srow[f"{name}_lo"], srow[f"{name}_hi"] = float(siv.lo[j]), float(siv.hi[j])
+                step_rows.append(srow)
+    _check_versions(versions[False])
+    _check_versions(versions[True])
+    all_names = set(versions[False]) | set(versions[True])
+    metric_cols = sorted(all_names, key=lambda n: (PREFERRED_ORDER.index(n) if n in PREFERRED_ORDER else 99, n))
     table = pd.DataFrame(rows)
-    metric_cols = sorted(versions, key=lambda n: (PREFERRED_ORDER.index(n) if n in PREFERRED_ORDER else 99, n))
+    comparisons = _compare_groups(table, sums, reference, resampling, notes) if len(table) else pd.DataFrame()
     if len(table):
-        table = table.sort_values(BLOCK_KEYS + ["method"]).reset_index(drop=True)
-    return Leaderboard(table, pd.DataFrame(step_rows), metric_cols, units)
+        for flag in ("partial",):
+            table[flag] = table[flag].astype(bool)
+        table = table.sort_values(GROUP_KEYS + ["variant"], na_position="first").reset_index(drop=True)
+        complete, partial_t = table[~table["partial"]], table[table["partial"]]
+    else:
+        complete, partial_t = table, table
+    return Leaderboard(complete.reset_index(drop=True), pd.DataFrame(step_rows), metric_cols, units,
+                       partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)))
 
 
-def _fmt(value: float, unit: str) -> str:
-    if value is None or not np.isfinite(value):
-        return "-"
-    if unit == "fraction":
-        return f"{100 * value:.2f}%"
-    return f"{value:.3f}"
+def _compare_groups(table: pd.DataFrame, sums: list, reference: str, resampling: stats.Resampling,
+                    notes: list[str]) -> pd.DataFrame:
+    """Fill ``m_rel``/``m_p`` of ``table`` in place; the long comparison table."""
+    table["is_reference"] = False
+    out = []
+    keyed = table.assign(_limit=table["limit"].fillna(-1))
+    for key, g in keyed.groupby(BLOCK_KEYS + ["_limit"], sort=True):
+        refs = g[g["method"] == reference].sort_values("variant", key=lambda s: s.str.len())
+        if not len(refs):
+            notes.append(f"{' / '.join(map(str, key[:4]))}: no {reference!r} cell to compare with")
+            continue
+        ri = refs.index[0]
+        table.loc[ri, "is_reference"] = True
+        rss = sums[ri]
+        for i in g.index:
+            if i == ri:
+                continue
+            css = sums[i]
+            if css.metrics != rss.metrics:
+                common = tuple(m for m in css.metrics if m in rss.metrics)
+                css, rss_i = _restrict(css, common), _restrict(rss, common)
+            else:
+                rss_i = rss
+            c = stats.compare(css, rss_i, resampling)
+            for j, name in enumerate(css.metrics):
+                table.loc[i, f"{name}_rel"] = float(c.relative[j])
+                table.loc[i, f"{name}_p"] = float(c.p[j])
+                out.append({
+                    **{k: table.loc[i, k] for k in BLOCK_KEYS + ["limit", "method", "variant", "options_hash"]},
+                    "reference": table.loc[ri, "variant"], "metric": name, "shared_samples": c.shared,
+                    "ci_units": c.units, "mean": float(c.mean[j]), "reference_mean": float(c.reference_mean[j]),
+                    "diff": float(c.diff[j]), "diff_lo": float(c.diff_lo[j]), "diff_hi": float(c.diff_hi[j]),
+                    "relative_change": float(c.relative[j]), "p_value": float(c.p[j]),
+                    "significant": bool(np.isfinite(c.p[j]) and c.p[j] < 1 - resampling.confidence),
+                })
+    return pd.DataFrame(out)
 
 
-def _header(name: str, unit: str) -> str:
-    return f"{name} (%)" if unit == "fraction" else (f"{name} ({unit})" if unit else name)
+def _restrict(ss: stats.SampleSums, metrics: tuple[str, ...]) -> stats.SampleSums:
+    cols = [ss.metrics.index(m) for m in metrics]
+    return stats.SampleSums(ss.sample_ids, ss.sequences, ss.ref_index, metrics, ss.sums[:, cols], ss.counts[:, cols])
 
 
-def display_blocks(lb: Leaderboard) -> list[tuple[str, pd.DataFrame]]:
-    """(title, formatted table) per block, columns: method, samples, metrics."""
-    blocks = []
-    if not len(lb.table):
-        return blocks
-    for key, g in lb.table.groupby(BLOCK_KEYS, sort=True):
-        dataset, split, setting, policy = key
-        cols = [m for m in lb.metric_columns if m in g and g[m].notna().any()]
-        out = pd.DataFrame({"method": g["method"], "samples": g["samples"].astype(int)})
-        for m in cols:
-            out[_header(m, lb.units.get(m, ""))] = [_fmt(v, lb.units.get(m, "")) for v in g[m]]
-        title = f"{dataset} / {split} / {setting}" + ("" if policy == "full-context" else f" ({policy})")
-        sweeps = int(g["sweeps"].max())
-        title += f" - {int(g['samples'].max())} samples, {sweeps} sweeps"
-        blocks.append((title, out.reset_index(drop=True)))
-    return blocks
+def _csv_frame(lb: Leaderboard, df: pd.DataFrame) -> pd.DataFrame:
+    option_cols = sorted(c for c in df.columns if c.startswith("option."))
+    metric_cols = []
+    for m in lb.metric_columns:
+        metric_cols += [m, f"{m}_lo", f"{m}_hi", f"{m}_rel", f"{m}_p"]
+    keep = CSV_LEAD + ["variant", "options_hash"] + option_cols + ["horizon_s", "ci_units", "is_reference"] + metric_cols
+    if not len(df):
+        return pd.DataFrame(columns=keep)
+    return df.reindex(columns=keep)
 
 
-def _markdown(df: pd.DataFrame) -> str:
-    cols = list(df.columns)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" if c == "method" else "---:" for c in cols) + "|"]
-    for _, r in df.iterrows():
-        lines.append("| " + " | ".join(str(r[c]) for c in cols) + " |")
-    return "\n".join(lines)
+def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None = None,
+                  leaderboard: Leaderboard | None = None) -> dict[str, Path]:
+    """Write the leaderboard (Markdown, CSV, LaTeX, HTML in the chosen preset), the per-horizon
+    and comparison CSVs and every preset's tables under ``tables/``; returns the paths.
 
-
-def write_reports(store_root: Path, out_dir: Path) -> dict[str, Path]:
-    """Write leaderboard.{md,csv,tex,html} and leaderboard_by_step.csv; returns the paths."""
-    lb = collect(store_root)
+    ``leaderboard``: the :func:`collect` result of the same store and options, if already made.
+    """
+    options = options or ReportOptions()
+    presets = tables.load_presets(options.tables_file)
+    main = tables.get_preset(options.preset, presets)
+    lb = leaderboard or collect(store_root, options.resampling, options.reference)
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    blocks = display_blocks(lb)
-    paths = {ext: out_dir / f"leaderboard.{ext}" for ext in ("md", "csv", "tex", "html")}
-    md = ["# pcfbench leaderboard", ""]
-    if not blocks:
-        md.append("No complete cells in the store yet: run `pcfbench run` first.")
-    md.append("Metric means are flat over (sample, future sweep); `-` means no sweep could be scored.\n")
-    for title, df in blocks:
-        md += [f"## {title}", "", _markdown(df), ""]
-    paths["md"].write_text("\n".join(md) + "\n")
-    keep = BLOCK_KEYS + ["method", "method_version", "samples", "failed", "sweeps"] + lb.metric_columns
-    csv_table = lb.table[[c for c in keep if c in lb.table]] if len(lb.table) else pd.DataFrame(columns=keep)
-    csv_table.to_csv(paths["csv"], index=False)
-    tex = []
-    for title, df in blocks:
-        tex.append(f"% {title}")
-        tex.append(df.to_latex(index=False, caption=title.replace("_", r"\_"), escape=True))
-    paths["tex"].write_text("\n".join(tex) + "\n")
-    body = "".join(f"<h2>{html.escape(t)}</h2>\n{df.to_html(index=False, border=0)}\n" for t, df in blocks)
-    paths["html"].write_text(
-        "<!doctype html><html><head><meta charset='utf-8'><title>pcfbench leaderboard</title>"
-        "<style>body{font-family:sans-serif}td,th{padding:2px 8px;text-align:right}</style></head><body>"
-        f"<h1>pcfbench leaderboard</h1>\n{body}</body></html>\n"
-    )
+    alpha = 1 - options.resampling.confidence
+    paths: dict[str, Path] = {}
+
+    def render(preset, stem: Path, key: str | None) -> None:
+        t = tables.build(lb, preset, options.ci)
+        tex, _fit = tables.latex(t, alpha)  # the fit is the .tex file's first line
+        for ext, content in (("md", tables.markdown(t, alpha)), ("tex", tex), ("html", tables.html_page(t, alpha))):
+            p = stem.with_suffix(f".{ext}")
+            p.write_text(content)
+            paths[f"{key}.{ext}" if key else ext] = p
+
+    render(main, out_dir / "leaderboard", None)
+    paths["csv"] = out_dir / "leaderboard.csv"
+    _csv_frame(lb, lb.table).to_csv(paths["csv"], index=False)
+    paths["partial_csv"] = out_dir / "leaderboard_partial.csv"
+    _csv_frame(lb, lb.partial).to_csv(paths["partial_csv"], index=False)
     paths["by_step"] = out_dir / "leaderboard_by_step.csv"
     lb.by_step.to_csv(paths["by_step"], index=False)
+    paths["comparisons"] = out_dir / "leaderboard_comparisons.csv"
+    lb.comparisons.to_csv(paths["comparisons"], index=False)
+    (out_dir / "tables").mkdir(exist_ok=True)
+    for name, preset in presets.items():
+        render(preset, out_dir / "tables" / name, f"tables/{name}")
     return paths
+
+
+def summary(store_root: Path, options: ReportOptions | None = None, leaderboard: Leaderboard | None = None) -> str:
+    """The terminal summary: the preset's columns with intervals, a block per group."""
+    options = options or ReportOptions()
+    preset = tables.get_preset(options.preset, tables.load_presets(options.tables_file))
+    lb = leaderboard or collect(store_root, options.resampling, options.reference)
+    return tables.text(tables.build(lb, preset, options.ci), 1 - options.resampling.confidence)
