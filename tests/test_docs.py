@@ -19,6 +19,7 @@ import pcfbench
 from pcfbench import docs
 from pcfbench.errors import PcfbenchError
 from pcfbench.metrics.base import Metric
+from pcfbench.options import describe_options
 from pcfbench.plugins import load_plugins
 
 REPO = Path(__file__).resolve().parent.parent
@@ -79,6 +80,8 @@ def test_readme_plugin_registers_and_passes_check_method(tmp_path):
     assert info.error is None and info.registered == {"methods": ["lifted-copy"]}
     method_cls = plugins.methods.get("lifted-copy")
     assert pcfbench.testing.check_method(method_cls()) is not None
+    (dz,) = describe_options(method_cls.Options, "lifted-copy")  # what `ls methods --options` prints
+    assert (dz.name, dz.default, dz.help) == ("dz", 0.0, "height added to every point (m)")
 
     # by hand: every future sweep is the t=0 sweep with dz added to z, nothing else moved
     lifted = method_cls(method_cls.Options(dz=0.5))
