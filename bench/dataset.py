@@ -122,7 +122,9 @@ class DataFingerprint:
                     more = f" and {len(newer) - most} more" if len(newer) > most else ""
                     parts.append(f"modified since: {', '.join(newer[:most])}{more}")
                 if o.get("bytes") != n["bytes"]:
-                    parts.append(f"{o.get('bytes')} -> {n['bytes']} bytes")
+                    before = o.get("bytes")
+                    parts.append(f"{before:,}" if isinstance(before, int) else repr(before))
+                    parts[-1] += f" -> {n['bytes']:,} bytes"
                 lines.append(f"{key}: {'; '.join(parts) or 'file sizes or modification times differ'}")
         if not lines:
             return "the files' sizes or modification times differ"

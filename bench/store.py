@@ -3,6 +3,11 @@
 Every write is a temporary file renamed into place, and the set of finished samples is
 derived from the chunks themselves, so a run killed at any moment (SIGKILL included) resumes
 without losing or duplicating rows: a chunk either exists whole or not at all.
+
+A cell's folder is named by its :class:`CellSpec`; what its rows were computed with (method,
+dataset and metric versions, sample ids, protocol version, setting, policy, ROI, dataset
+options, the dataset files' fingerprint) is its identity in ``cell.json``. A rerun whose
+identity differs stops with one error (:func:`check_identity`) instead of adding rows.
 """
 
 from __future__ import annotations
