@@ -122,7 +122,11 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
             )
         failures += result.failed
     if not no_report:
-        paths = write_reports(store_path, reports_path)
+        from pcfbench.report import collect, summary
+
+        board = collect(store_path)
+        paths = write_reports(store_path, reports_path, leaderboard=board)
+        click.echo(summary(store_path, leaderboard=board))
         click.echo(f"leaderboard: {paths['md']}")
     if failures:
         click.echo(f"pcfbench: {failures} sample(s) failed; their tracebacks are in the cells' rows", err=True)
@@ -131,14 +135,30 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 @cli.command()
 @click.option("--store", type=click.Path(file_okay=False), default=None)
 @click.option("--reports", type=click.Path(file_okay=False), default=None)
-def report(store, reports):
-    """Regenerate reports/leaderboard.{md,csv,tex,html} from the store."""
-    from pcfbench.report import write_reports
+@click.option("--preset", default="paper", show_default=True, help="Table preset of leaderboard.* (see tables.toml).")
+@click.option("--tables", "tables_file", type=click.Path(dir_okay=False), default=None,
+              help="A TOML file of extra table presets ([presets.NAME]).")
+@click.option("--reference", default="copy-last", show_default=True, help="Method every cell is compared with.")
+@click.option("--ci", type=click.Choice(["pm", "interval", "none"]), default="pm", show_default=True,
+              help="Intervals shown as ±half-width, as [lo, hi], or not at all.")
+@click.option("--resample", default="sample", show_default=True, metavar="sample|sequence|block:N",
+              help="Bootstrap unit: samples, whole sequences, or blocks of N consecutive samples.")
+@click.option("--resamples", type=click.IntRange(min=100), default=2000, show_default=True)
+@click.option("--seed", type=int, default=17, show_default=True, help="Bootstrap seed (output is deterministic).")
+def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed):
+    """Regenerate the leaderboard tables (reports/leaderboard.*, reports/tables/) from the store."""
+    from pcfbench.report import ReportOptions, collect, summary, write_reports
+    from pcfbench.stats import Resampling
 
+    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed))
     reports_path = config.reports_dir(reports)
-    paths = write_reports(config.store_dir(store, reports_path), reports_path)
+    store_path = config.store_dir(store, reports_path)
+    board = collect(store_path, options.resampling, options.reference)
+    paths = write_reports(store_path, reports_path, options, leaderboard=board)
+    click.echo(summary(store_path, options, leaderboard=board))
     for p in paths.values():
         click.echo(str(p))
+    click.echo(paths["tex"].read_text().splitlines()[0].lstrip("% "))
 
 
 @cli.command(name="ls")
