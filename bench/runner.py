@@ -262,6 +262,12 @@ def run_cell(
             # Rows in the buffer belong to finished samples: keep them even when interrupted.
             flush()
             bar.close()
+        after = res.builder.adapter.fingerprint(spec.split)
+        if after.digest != fingerprint.digest:  # rows from both versions of the data: never complete
+            raise PcfbenchError(
+                f"the files of {spec.dataset}:{spec.split} changed while cell {cell.dir} was computed "
+                f"({after.changes_since(fingerprint.summary())}); it stays incomplete: rerun with --force to recompute it"
+            )
         df = cell.read_rows()
         sample_status = df.groupby("sample_id")["status"].first() if len(df) else None
         n_failed = int((sample_status == "failed").sum()) if sample_status is not None else 0

@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pcfbench.data import Forecast
 from pcfbench.datasets.kitti import KittiOdometry, read_bin
-from pcfbench.dataset import DataFingerprint, DatasetAdapter, fingerprint_files
+from pcfbench.dataset import DatasetAdapter, fingerprint_files
 from pcfbench.errors import PcfbenchError
 from pcfbench.hookspecs import hookimpl
-from pcfbench.method import options_hash
+from pcfbench.method import Method, options_hash
 from pcfbench.plugins import load_plugins
 from pcfbench.protocol import Setting
 from pcfbench.report import collect
@@ -249,3 +250,35 @@ def test_cells_from_before_the_protocol_identity(tiny_kitti, store):
     path.write_text(json.dumps({**legacy, "dataset_version": "0"}))
     with pytest.raises(PcfbenchError, match=r"different dataset_version \(dataset_version: '0' -> '1'\)"):
         run_cell(spec, store, progress=False)
+
+
+class TouchesASweep(Method):
+    """Copies the last sweep, and on one sample rewrites a sweep file of the dataset (a file
+    edited by someone else while the cell runs)."""
+
+    name = "touches-a-sweep"
+    sweep: Path | None = None
+
+    def forecast(self, sample):
+        if sample.ref_index == 10 and self.sweep is not None:
+            st = self.sweep.stat()
+            _shift_sweep(self.sweep, 0.25)
+            os.utime(self.sweep, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+        return Forecast(points_ref=tuple(sample.past_points_ref[-1] for _ in range(sample.num_future)))
+
+
+def test_data_changed_during_the_run_leaves_the_cell_incomplete(tiny_kitti, store):
+    TouchesASweep.sweep = tiny_kitti / "sequences" / "08" / "velodyne" / "000020.bin"
+    plugins = load_plugins()
+    plugins.methods.add("touches-a-sweep", TouchesASweep, "test")
+    spec = CellSpec("touches-a-sweep", {}, options_hash(None), "kitti", str(tiny_kitti), "test", "kitti-1s",
+                    "full-context", None, METRICS)
+    with pytest.raises(PcfbenchError, match=r"files of kitti:test changed while cell .* was computed "
+                                            r"\(sequences/08/velodyne: modified since: sequences/08/velodyne/000020.bin\).*--force"):
+        run_cell(spec, store, progress=False, plugins=plugins)
+    assert _meta(store, spec)["status"] == "running"  # never complete ...
+    assert len(collect(store).table) == 0  # ... so no leaderboard reads its mixed rows
+    TouchesASweep.sweep = None
+    with pytest.raises(PcfbenchError, match="different data_fingerprint"):  # and a plain rerun does not resume it
+        run_cell(spec, store, progress=False, plugins=plugins)
+    assert run_cell(spec, store, progress=False, plugins=plugins, force=True).processed == 6
