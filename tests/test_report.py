@@ -1,0 +1,300 @@
+"""The leaderboard: point estimates unchanged, paper-layout presets, intervals and comparisons
+in every format, partial cells in their own table, option columns, seconds per horizon."""
+
+import dataclasses
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+import pcfbench
+from conftest import write_tiny_kitti
+from pcfbench.data import Forecast
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import Method, options_hash, parse_options
+from pcfbench.plugins import load_plugins
+from pcfbench.report import ReportOptions, collect, summary, write_reports
+from pcfbench.runner import run_cell
+from pcfbench.store import Cell, CellSpec, iter_cells, spec_from_meta
+from pcfbench import tables
+
+METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
+
+
+class Shifted(Method):
+    """The last past sweep moved by ``dx`` metres along x."""
+
+    name = "shifted"
+
+    @dataclasses.dataclass(frozen=True)
+    class Options:
+        dx: float = pcfbench.option(0.0, help="shift along x, metres")
+
+    def forecast(self, sample):
+        last = sample.past_points_ref[-1] + np.array([self.options.dx, 0, 0], dtype=np.float32)
+        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
+
+
+def _spec(root, method="copy-last", raw=None, limit=None):
+    plugins = _plugins()
+    opts = parse_options(plugins.methods.get(method).Options, raw or {}, method)
+    return CellSpec(method, dict(raw or {}), options_hash(opts), "kitti", str(root), "test", "kitti-1s",
+                    "full-context", limit, METRICS)
+
+
+def _plugins():
+    plugins = load_plugins()
+    if "shifted" not in plugins.methods:
+        plugins.methods.add("shifted", Shifted, "test")
+    return plugins
+
+
+@pytest.fixture(scope="module")
+def board(tmp_path_factory):
+    """A store: copy-last, shifted by 0 (copy-last again) and by 0.5 m, and two --limit cells."""
+    tmp = tmp_path_factory.mktemp("report")
+    root = write_tiny_kitti(tmp / "kitti", sequences=("08", "09"))
+    store = tmp / "store"
+    for method, raw, limit in [("copy-last", None, None), ("shifted", {"dx": "0.5"}, None),
+                               ("shifted", {"dx": "0"}, None), ("shifted", {"dx": "0.5"}, 2), ("copy-last", None, 2)]:
+        run_cell(_spec(root, method, raw, limit), store, plugins=_plugins(), progress=False)
+    out = tmp / "rep"
+    paths = write_reports(store, out)
+    return store, out, paths
+
+
+def test_point_estimates_are_the_flat_means_of_the_rows(board):
+    """The leaderboard's numbers, computed as before the intervals existed: nanmean of ok rows."""
+    store, _, paths = board
+    csv = pd.read_csv(paths["csv"])
+    expected = {}
+    for _, meta in iter_cells(store):
+        if meta["partial"]:
+            continue
+        spec = spec_from_meta(meta)
+        rows = Cell(store, spec).read_rows()
+        ok = rows[rows.status == "ok"]
+        expected[spec.options_hash] = {m: float(np.nanmean(ok[m].to_numpy(dtype=float))) for m in METRICS}
+    assert len(csv) == len(expected) == 3
+    for _, r in csv.iterrows():
+        for m in METRICS:
+            assert r[m] == expected[r["options_hash"]][m]  # exactly
+            assert r[f"{m}_lo"] <= r[m] <= r[f"{m}_hi"]
+    lb = collect(store)
+    assert len(lb.table) == 3 and len(lb.partial) == 2
+
+
+def test_csv_has_the_old_lead_columns_option_columns_and_comparisons(board):
+    _, _, paths = board
+    csv = pd.read_csv(paths["csv"])
+    assert list(csv.columns[:9]) == ["dataset", "split", "setting", "policy", "method", "method_version",
+                                     "samples", "failed", "sweeps"]
+    assert sorted(csv["variant"]) == ["copy-last", "shifted (dx=0)", "shifted (dx=0.5)"]
+    assert sorted(csv["option.dx"].dropna()) == [0.0, 0.5]  # pivotable
+    ref = csv[csv.is_reference]
+    assert ref["method"].tolist() == ["copy-last"] and ref["chamfer_rel"].isna().all()
+    same = csv[csv.variant == "shifted (dx=0)"].iloc[0]
+    far = csv[csv.variant == "shifted (dx=0.5)"].iloc[0]
+    assert same["chamfer_rel"] == 0 and same["chamfer_p"] == 1
+    assert far["chamfer_rel"] == pytest.approx(far["chamfer"] / ref["chamfer"].iloc[0] - 1)
+    cmp = pd.read_csv(paths["comparisons"])
+    row = cmp[(cmp.variant == "shifted (dx=0.5)") & (cmp.metric == "chamfer")].iloc[0]
+    assert row["shared_samples"] == 12 and row["reference"] == "copy-last" and bool(row["significant"])
+    assert row["diff_lo"] <= row["diff"] <= row["diff_hi"]
+
+
+def test_by_step_gives_seconds(board):
+    _, _, paths = board
+    by_step = pd.read_csv(paths["by_step"])
+    cell = by_step[(by_step.variant == "copy-last") & by_step.limit.isna()].sort_values("step")
+    setting = pcfbench.protocol.get_setting("kitti-1s")
+    assert cell["time_s"].tolist() == pytest.approx([setting.step_seconds(k) for k in range(5)])
+    assert cell["time_s"].iloc[-1] == pytest.approx(setting.horizon_s)
+    assert (cell["chamfer_lo"] <= cell["chamfer"]).all() and (cell["chamfer"] <= cell["chamfer_hi"]).all()
+
+
+def _md_table(text, heading_start):
+    lines = text.splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith(heading_start))
+    block = []
+    for line in lines[i + 2:]:
+        if not line.startswith("|"):
+            break
+        block.append([c.strip() for c in line.strip("|").split("|")])
+    return block[0], block[2:]
+
+
+def test_markdown_is_the_paper_layout_ranked_with_bold_best_and_changes(board):
+    store, out, _ = board
+    md = (out / "leaderboard.md").read_text()
+    head, rows = _md_table(md, "## kitti / test / kitti-1s (1 s)")
+    assert head[2:] == ["Chamfer (ROI) ↓ (m^2)", "L1 Med ↓ (m)", "AbsRel Med ↓ (%)", "L1 Mean ↓ (m)",
+                        "AbsRel Mean ↓ (%)", "Chamfer (full) ↓ (m^2)"]
+    lb = collect(store)
+    ranked = lb.table.sort_values(["chamfer_nf", "variant"])
+    assert [r[0] for r in rows] == [v + (" (ref)" if v == "copy-last" else "") for v in ranked["variant"]]
+    col = head.index("Chamfer (ROI) ↓ (m^2)")
+    best = lb.table["chamfer_nf"].min()
+    for r, (_, t) in zip(rows, ranked.iterrows()):
+        value = f"{t['chamfer_nf']:.3f}"
+        assert r[col].startswith(f"**{value}**" if t["chamfer_nf"] == best else value)
+        half = (t["chamfer_nf_hi"] - t["chamfer_nf_lo"]) / 2
+        assert f"±{half:.3f}" in r[col]
+        if t["variant"] == "shifted (dx=0)":
+            assert r[col].endswith("(+0 %†)")  # identical to the reference: a tie
+        if t["variant"] == "shifted (dx=0.5)":
+            assert r[col].endswith(f"({100 * t['chamfer_nf_rel']:+.0f} %)")
+    assert "PARTIAL runs (--limit)" in md
+    partial = md[md.index("PARTIAL runs"):]
+    assert "limit=2" in partial and "2 samples" in partial
+    assert "limit=2" not in md[:md.index("PARTIAL runs")]
+
+
+def test_partial_cells_are_their_own_table_in_every_format(board):
+    _, out, paths = board
+    partial = pd.read_csv(paths["partial_csv"])
+    assert sorted(partial["variant"]) == ["copy-last", "shifted (dx=0.5)"] and (partial.samples == 2).all()
+    assert "PARTIAL (--limit)" in paths["tex"].read_text()
+    assert "PARTIAL runs (--limit)" in paths["html"].read_text()
+
+
+def test_latex_booktabs_right_aligned_real_units_and_fit_note(board):
+    _, out, paths = board
+    tex = paths["tex"].read_text()
+    first = tex.splitlines()[0]
+    assert first.startswith("% pcfbench leaderboard, preset paper: ")
+    assert "fits the A4 text width" in first or "landscape" in first
+    assert ("sidewaystable" in tex) == ("landscape" in first)
+    assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
+    assert re.search(r"\\begin\{tabular\}\{lr+\}", tex)
+    assert r"$\mathrm{m}^{2}$" in tex and r"$\mathrm{m}$" in tex and "m^2" not in tex.replace(r"\mathrm{m}^{2}", "")
+    assert r"$\downarrow$" in tex and r"$\pm$" in tex and r"\textbf{" in tex
+    assert "shifted (dx=0.5)" in tex and r"$^\dagger$" in tex
+
+
+def test_latex_width_estimate_picks_the_page_layout():
+    lb = _tiny_board({"chamfer": 1.0})
+    narrow = tables.latex(tables.build(lb, tables.Preset("n", "narrow", (tables.Column("chamfer", "CD"),)), "none"), 0.05)
+    assert "fits the A4 text width" in narrow[1] and r"\begin{table}" in narrow[0] and "resizebox" not in narrow[0]
+    nine = _tiny_board({f"metric_{i}": 1.0 + i for i in range(9)})
+    mid = tables.latex(tables.build(nine, tables.Preset("m", "nine", None), "pm"), 0.05)
+    assert "switched to a landscape table (sidewaystable)" in mid[1] and "resizebox" not in mid[0]
+    wide = _tiny_board({f"metric_{i}": 1.0 + i for i in range(14)})
+    big = tables.latex(tables.build(wide, tables.Preset("w", "wide", None), "pm"), 0.05)
+    assert "scaled to the page" in big[1] and r"\resizebox{\linewidth}" in big[0] and "sidewaystable" in big[0]
+
+
+def _tiny_board(values):
+    """A one-cell leaderboard built by hand."""
+    from pcfbench.report import Leaderboard
+
+    row = {"dataset": "d", "split": "s", "setting": "kitti-1s", "policy": "full-context", "method": "m",
+           "variant": "m", "samples": 3, "failed": 0, "sweeps": 15, "limit": None, "horizon_s": 1.0,
+           "is_reference": True, "partial": False}
+    for k, v in values.items():
+        row.update({k: v, f"{k}_lo": v - 0.1, f"{k}_hi": v + 0.1})
+    return Leaderboard(pd.DataFrame([row]), pd.DataFrame(), list(values), {k: "m" for k in values},
+                       pd.DataFrame())
+
+
+@pytest.mark.skipif(not (shutil.which("pdflatex") or shutil.which("lualatex")), reason="no TeX engine installed")
+def test_latex_compiles_on_an_a4_page_without_overfull_boxes(board, tmp_path):
+    _, _, paths = board
+    engine = shutil.which("pdflatex") or shutil.which("lualatex")
+    doc = tmp_path / "doc.tex"
+    doc.write_text("\\documentclass[a4paper]{article}\n\\usepackage[margin=2.5cm]{geometry}\n"
+                   "\\usepackage{booktabs,graphicx,rotating}\n\\begin{document}\n"
+                   f"\\input{{{paths['tex']}}}\n\\end{{document}}\n")
+    res = subprocess.run([engine, "-interaction=nonstopmode", "-halt-on-error", doc.name], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout[-3000:]
+    assert "Overfull \\hbox" not in (tmp_path / "doc.log").read_text()
+
+
+def test_html_keeps_method_names_on_one_line(board):
+    _, _, paths = board
+    page = paths["html"].read_text()
+    assert "white-space:nowrap" in page
+    assert "<td class='method'>shifted (dx=0.5)</td>" in page
+    assert "<strong>" in page and "95% CI [" in page and "<th>Chamfer (ROI) ↓ (m^2)</th>" in page
+
+
+def test_every_preset_is_written_and_reports_are_deterministic(board, tmp_path):
+    store, out, paths = board
+    for name in ("paper", "roi", "full"):
+        for ext in ("md", "tex", "html"):
+            assert (out / "tables" / f"{name}.{ext}").is_file()
+    full = (out / "tables" / "full.md").read_text()
+    for m in METRICS:
+        assert f"| {m} ↓" in full or f"{m} ↓ (" in full
+    assert "Chamfer (full)" not in (out / "tables" / "roi.md").read_text()
+    again = write_reports(store, tmp_path / "again")
+    for key in ("md", "csv", "tex", "html", "by_step", "comparisons"):
+        assert again[key].read_text() == paths[key].read_text(), key
+
+
+def test_user_presets_extend_and_bad_presets_are_named(board, tmp_path):
+    store, _, _ = board
+    mine = tmp_path / "mine.toml"
+    mine.write_text('[presets.cd]\ntitle = "Chamfer only"\n'
+                    'columns = [{ metric = "chamfer", label = "CD" }, { metric = "nope", label = "X" }]\n')
+    paths = write_reports(store, tmp_path / "r", ReportOptions(preset="cd", tables_file=str(mine)))
+    md = paths["md"].read_text()
+    assert "| CD ↓ (m^2) |" in md and "no cell in the store has nope" in md
+    assert (tmp_path / "r" / "tables" / "paper.md").is_file()
+    cases = {
+        '[presets.x]\ncolumns = "all"\ncolour = 1\n': r"mine.toml: preset 'x': unknown key\(s\) colour",
+        '[presets.x]\ncolumns = [{ metric = "chamfer", better = "up" }]\n': "better must be",
+        '[presets.x]\nrank_by = "l1_mean"\ncolumns = [{ metric = "chamfer" }]\n': "rank_by 'l1_mean'",
+        '[presets.x]\ncolumns = []\n': "columns must be a non-empty list",
+        'presets = 3\n': r"expected only \[presets.NAME\]",
+        '[presets.x\n': "not valid TOML",
+    }
+    for text, message in cases.items():
+        mine.write_text(text)
+        with pytest.raises(PcfbenchError, match=message):
+            tables.load_presets(mine)
+    with pytest.raises(PcfbenchError, match="does not exist"):
+        tables.load_presets(tmp_path / "missing.toml")
+    with pytest.raises(PcfbenchError, match="unknown table preset 'papr'; did you mean 'paper'"):
+        write_reports(store, tmp_path / "r", ReportOptions(preset="papr"))
+
+
+def test_interval_style_and_resampling_options(board, tmp_path):
+    store, _, _ = board
+    from pcfbench.stats import Resampling
+
+    paths = write_reports(store, tmp_path / "r", ReportOptions(ci="interval", resampling=Resampling.parse("sequence")))
+    csv = pd.read_csv(paths["csv"])
+    assert (csv["ci_units"] == 2).all()  # two sequences
+    md = paths["md"].read_text()
+    assert re.search(r"\[\d+\.\d{3}, \d+\.\d{3}\]", md) and "whole sequences" in md
+    none = write_reports(store, tmp_path / "n", ReportOptions(ci="none"))["md"].read_text()
+    assert "±" not in none.split("## ", 1)[1]
+
+
+def test_summary_and_cli_report(board, tmp_path):
+    store, _, _ = board
+    text = summary(store)
+    assert "kitti / test / kitti-1s (1 s)" in text and "copy-last (ref)" in text and "±" in text
+    assert "PARTIAL (--limit) kitti / test / kitti-1s" in text
+    from pcfbench.cli import build_cli
+
+    res = CliRunner().invoke(build_cli(), ["report", "--store", str(store), "--reports", str(tmp_path / "r"),
+                                           "--preset", "roi", "--resample", "block:2", "--seed", "3"])
+    assert res.exit_code == 0, res.output
+    assert "Chamfer ↓ (m^2)" in res.output and "pcfbench leaderboard, preset roi:" in res.output
+    assert "blocks of 2 consecutive samples" in (tmp_path / "r" / "leaderboard.md").read_text()
+    bad = CliRunner().invoke(build_cli(), ["report", "--store", str(store), "--reports", str(tmp_path / "r"),
+                                           "--resample", "block:0"])
+    assert bad.exit_code == 2 and "block:N with N >= 1" in bad.output
+
+
+def test_empty_store_reports_nothing_yet(tmp_path):
+    paths = write_reports(tmp_path / "none", tmp_path / "r")
+    assert "No complete cells in the store yet" in paths["md"].read_text()
+    assert list(pd.read_csv(paths["csv"]).columns[:9])[0] == "dataset"
