@@ -164,8 +164,12 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
 @cli.command(name="ls")
 @click.argument("what", type=click.Choice(["methods", "datasets", "metrics", "settings"]))
 @click.option("--json", "as_json", is_flag=True)
-def ls_cmd(what, as_json):
+@click.option("--options", "with_options", is_flag=True,
+              help="Methods and datasets: each option (NAME:key=value / ROOT?key=value) with its type, default and help.")
+def ls_cmd(what, as_json, with_options):
     """List registered methods, datasets, metrics or the protocol's settings."""
+    if with_options and what not in ("methods", "datasets"):
+        raise PcfbenchError(f"--options lists the options of methods and datasets; {what} have none")
     if what == "settings":
         rows = [
             {"name": s.name, "rate_hz": s.rate_hz, "past": s.past, "future": s.future, "stride": s.stride,
@@ -177,14 +181,40 @@ def ls_cmd(what, as_json):
         registry = getattr(plugins, what)
         rows = [{"name": e.name, "plugin": e.plugin, "description": e.description} for e in registry.entries.values()]
         rows.sort(key=lambda r: r["name"])
+        if with_options:
+            for r in rows:
+                r["options"], r["error"] = _options_of(registry, r["name"])
     if as_json:
-        click.echo(json.dumps(rows, indent=2))
+        click.echo(json.dumps(rows, indent=2, default=str))
         return
+    opts = [o for r in rows for o in r.get("options", ())]
+    widths = [max((len(f) for f in fs), default=0) for fs in zip(*((o["name"], o["type"], repr(o["default"])) for o in opts))]
     for r in rows:
         if what == "settings":
             click.echo(f"{r['name']:<14} {r['rate_hz']:>4g} Hz  past {r['past']}  future {r['future']}  stride {r['stride']}  {r['description']}")
-        else:
-            click.echo(f"{r['name']:<22} {r['plugin']:<22} {r['description']}")
+            continue
+        click.echo(f"{r['name']:<22} {r['plugin']:<22} {r['description']}")
+        if not with_options:
+            continue
+        if r["error"]:
+            click.echo(f"    (options unavailable: {r['error']})")
+        elif not r["options"]:
+            click.echo("    (no options)")
+        for o in r["options"]:
+            click.echo(f"    {o['name']:<{widths[0]}}  {o['type']:<{widths[1]}}  {o['default']!r:<{widths[2]}}  {o['help']}")
+
+
+def _options_of(registry, name: str) -> tuple[list[dict], str | None]:
+    """The option fields of registry item ``name`` (a method or adapter class), or the error
+    that stopped its class from loading."""
+    from pcfbench.options import describe_options
+
+    try:
+        cls = registry.get(name)
+        fields = describe_options(cls.Options, f"{registry.kind} {name}")
+    except PcfbenchError as exc:
+        return [], str(exc)
+    return [{"name": f.name, "type": f.type, "default": f.default, "help": f.help} for f in fields], None
 
 
 @cli.command()
@@ -221,15 +251,15 @@ def check(root, layout):
     ROOT may carry adapter options: PATH?key=value&key=value.
     """
     state = get_plugins()
-    root, options = config.split_root_options(root)
-    if not Path(root).exists():
-        raise PcfbenchError(f"{root} does not exist")
+    path = config.split_root_options(root)[0]
+    if not Path(path).exists():
+        raise PcfbenchError(f"{path} does not exist")
     if layout is None:
-        found = [n for n in state.datasets.names() if state.datasets.get(n).detect(Path(root))]
+        found = [n for n in state.datasets.names() if state.datasets.get(n).detect(Path(path))]
         if not found:
-            raise PcfbenchError(f"{root}: no known layout recognised (known: {', '.join(state.datasets.names())})")
+            raise PcfbenchError(f"{path}: no known layout recognised (known: {', '.join(state.datasets.names())})")
         layout = found[0]
-    adapter = state.datasets.get(layout)(root, **options)
+    adapter = config.open_adapter(layout, state.datasets.get(layout), root)
     rep = adapter.check()
     click.echo(f"layout: {rep.layout}  (adapter {layout} v{adapter.version})")
     click.echo(f"root: {rep.root}")

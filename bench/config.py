@@ -72,13 +72,29 @@ def resolve_root(name: str, adapter_cls: type, cli_roots: dict[str, str], progre
         return str(adapter_cls.default_root(progress=progress))
     if not Path(split_root_options(root)[0]).exists():
         raise PcfbenchError(f"dataset {name!r}: root {root} does not exist")
+    root_options(name, adapter_cls, root)  # an unknown or unreadable option fails now, before any work
     return root
 
 
-def split_root_options(root: str | None) -> tuple[str | None, dict[str, str]]:
-    """``PATH?key=value&key=value`` into the path and the adapter's keyword options (strings).
+def root_options(name: str, adapter_cls: type, root: str | None) -> object:
+    """The typed ``Options`` of dataset ``name``'s adapter from the query of ``root``
+    (``PATH?key=value&...``), read by the parser of method options (``pcfbench.options``)."""
+    from pcfbench.options import parse_options
 
-    Lets ``--dataset mcap=rec.mcap?topic=/points&rate_hz=10`` reach ``Adapter(path, **options)``.
+    path, raw = split_root_options(root)
+    return parse_options(adapter_cls.Options, raw, f"dataset {name} root {path}")
+
+
+def open_adapter(name: str, adapter_cls: type, root: str | None) -> object:
+    """``adapter_cls`` opened on ``root`` (``PATH?key=value&...``) with its typed options."""
+    return adapter_cls(split_root_options(root)[0], root_options(name, adapter_cls, root))
+
+
+def split_root_options(root: str | None) -> tuple[str | None, dict[str, str]]:
+    """``PATH?key=value&key=value`` into the path and the adapter's options as strings
+    (``root_options`` types them by the adapter's ``Options``).
+
+    Lets ``--dataset mcap=rec.mcap?topic=/points&rate_hz=10`` reach the adapter's options.
     """
     if root is None or "?" not in root:
         return root, {}
@@ -88,6 +104,8 @@ def split_root_options(root: str | None) -> tuple[str | None, dict[str, str]]:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise PcfbenchError(f"dataset root {root!r}: option {item!r} must look like key=value")
+        if key in options:
+            raise PcfbenchError(f"dataset root {root!r}: option {key!r} is given twice")
         options[key] = value
     return path, options
 

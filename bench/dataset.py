@@ -13,6 +13,7 @@ import numpy as np
 
 from pcfbench.data import Sweep
 from pcfbench.errors import DataError
+from pcfbench.options import NoOptions
 from pcfbench.roi import EgoBox
 
 
@@ -185,9 +186,11 @@ class DatasetAdapter(ABC):
     """Base class of every dataset plugin.
 
     Subclasses set ``name``, ``version``, ``rate_hz``, ``ego_box`` and ``default_settings``,
-    take the dataset root (and keyword options) in ``__init__`` and implement ``splits``,
+    take the dataset root (and options) in ``__init__`` and implement ``splits``,
     ``sequence_names`` and ``sequence``. Axis convention: x forward, y left, z up unless the
-    adapter says otherwise in ``axes``.
+    adapter says otherwise in ``axes``. Root options (``ROOT?key=value&...``) are the fields
+    of ``Options``, a frozen dataclass declared with ``pcfbench.option(default, help=...)``
+    like a method's; ``self.options`` holds them, typed.
     """
 
     name: ClassVar[str]
@@ -200,6 +203,8 @@ class DatasetAdapter(ABC):
     #: True for a dataset that makes its own data (generated on first use): the default of
     #: ``pcfbench run`` when no dataset is named.
     embedded: ClassVar[bool] = False
+    #: the root options (a frozen dataclass); none by default
+    Options: ClassVar[type] = NoOptions
 
     @classmethod
     def default_root(cls, progress: bool = True) -> Path:
@@ -217,10 +222,20 @@ class DatasetAdapter(ABC):
         """True when ``root`` looks like this adapter's layout (used by ``datasets check``)."""
         return False
 
-    def __init__(self, root: str | Path | None, **options: object) -> None:
+    def __init__(self, root: str | Path | None, options: Any = None, **raw: object) -> None:
+        """``options``: an instance of ``Options``; or give them as keywords (``raw``: values
+        or strings, as in ``ROOT?key=value``), read by the same typed parser as a method's."""
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.options import parse_options
+
         self.root = Path(root) if root is not None else None
-        if options:
-            raise TypeError(f"dataset {self.name!r} takes no options, got {sorted(options)}")
+        if options is None:
+            options = parse_options(type(self).Options, raw, f"dataset {self.name}")
+        elif raw:
+            raise PcfbenchError(f"dataset {self.name}: pass options as an Options instance or as keywords, not both")
+        elif not isinstance(options, type(self).Options):
+            raise PcfbenchError(f"dataset {self.name}: options must be a {type(self).Options.__qualname__}, got {options!r}")
+        self.options = options
 
     @abstractmethod
     def splits(self) -> tuple[str, ...]:

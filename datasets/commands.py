@@ -29,8 +29,7 @@ def open_adapter(spec: str):
 
     (name,), roots = config.parse_dataset_args((spec,))
     cls = get_plugins().datasets.get(name)
-    path, options = config.split_root_options(config.resolve_root(name, cls, roots))
-    return cls(path, **options)
+    return config.open_adapter(name, cls, config.resolve_root(name, cls, roots))
 
 
 def source_sequences(adapter, splits: tuple[str, ...]) -> list[SequenceData]:

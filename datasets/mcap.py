@@ -22,6 +22,7 @@ import base64
 import inspect
 import json
 import weakref
+from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from pathlib import Path
 
@@ -31,8 +32,9 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
-from pcfbench.errors import DataError
+from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pcfbench.options import option
 from pcfbench.roi import EgoBox
 
 assert hasattr(mcap, "reader"), "pcfbench.datasets.mcap must import the mcap library"
@@ -300,6 +302,28 @@ class _Recording:
         return T
 
 
+@dataclass(frozen=True)
+class McapOptions:
+    """Root options of ``mcap`` (``rec.mcap?topic=/points&world_frame=map``)."""
+
+    topic: str | None = option(None, help="point-cloud topic (default: the recording's only point-cloud topic)")
+    world_frame: str | None = option(None, help="TF frame the poses are expressed in (default: the root of the TF tree)")
+    sensor_frame: str | None = option(None, help="TF frame of the sensor (default: the cloud's frame_id)")
+    rate_hz: float | None = option(None, help="sweep rate, Hz; a lower rate that divides the recorded one keeps every "
+                                              "k-th sweep (default: measured, snapped to 2 or 10 Hz within 2 %)")
+    ego_box: tuple[float, ...] | None = option(None, help="xmin,xmax,ymin,ymax of the ego vehicle, metres in the sensor "
+                                                          "frame (default: the adapter's ego_box)")
+    tf_tolerance_ms: float = option(60.0, help="how far outside a dynamic TF link's samples a cloud may be, ms")
+
+    def __post_init__(self) -> None:
+        if self.ego_box is not None and len(self.ego_box) != 4:
+            raise PcfbenchError(f"MCAP option ego_box={self.ego_box!r}: expected xmin,xmax,ymin,ymax")
+        if self.rate_hz is not None and not float(self.rate_hz) > 0:
+            raise PcfbenchError(f"MCAP option rate_hz={self.rate_hz!r}: expected a positive rate in Hz")
+        if not float(self.tf_tolerance_ms) >= 0:
+            raise PcfbenchError(f"MCAP option tf_tolerance_ms={self.tf_tolerance_ms!r}: expected milliseconds >= 0")
+
+
 class McapRecording(DatasetAdapter):
     name = "mcap"
     version = "1"
@@ -308,19 +332,18 @@ class McapRecording(DatasetAdapter):
     default_settings = ()
     default_split = "all"
 
-    def __init__(self, root, topic: str | None = None, world_frame: str | None = None, sensor_frame: str | None = None,
-                 rate_hz: float | str | None = None, ego_box: str | tuple | None = None, tf_tolerance_ms: float | str = 60.0) -> None:
-        super().__init__(root)
-        self.topic = topic or None
-        self.world_frame = world_frame or None
-        self.sensor_frame = sensor_frame or None
-        self._wanted_rate = float(rate_hz) if rate_hz not in (None, "") else None
-        self.tf_tolerance_ns = int(float(tf_tolerance_ms) * 1e6)
-        if ego_box is not None:
-            vals = [float(v) for v in (ego_box.split(",") if isinstance(ego_box, str) else ego_box)]
-            if len(vals) != 4:
-                raise DataError(f"MCAP option ego_box={ego_box!r}: expected xmin,xmax,ymin,ymax")
-            self.ego_box = EgoBox(*vals)
+    Options = McapOptions
+
+    def __init__(self, root, options: McapOptions | None = None, **raw: object) -> None:
+        super().__init__(root, options, **raw)
+        o = self.options
+        self.topic = o.topic or None
+        self.world_frame = o.world_frame or None
+        self.sensor_frame = o.sensor_frame or None
+        self._wanted_rate = float(o.rate_hz) if o.rate_hz is not None else None
+        self.tf_tolerance_ns = int(float(o.tf_tolerance_ms) * 1e6)
+        if o.ego_box is not None:
+            self.ego_box = EgoBox(*(float(v) for v in o.ego_box))
         self._recordings: dict[str, _Recording] = {}
         self.stride = 1
         try:  # the rate is the first recording's; a broken file is reported by check()/sequence()

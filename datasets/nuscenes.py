@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from dataclasses import dataclass
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -21,6 +22,7 @@ import numpy as np
 from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
 from pcfbench.errors import DataError
 from pcfbench.geometry import invert, quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pcfbench.options import option
 from pcfbench.roi import EgoBox
 from pcfbench.datasets.layout import SequenceData
 
@@ -72,6 +74,15 @@ def _pose(record: dict, table_path: Path) -> np.ndarray:
     return T
 
 
+@dataclass(frozen=True)
+class NuScenesOptions:
+    """Root options of ``nuscenes`` (``ROOT?version=v1.0-mini``)."""
+
+    version: str | None = option(None, help=f"release folder of the JSON tables, e.g. {VERSIONS[1]} (default: the "
+                                            f"first of {', '.join(VERSIONS)} present, else the first v* folder)")
+    channel: str = option("LIDAR_TOP", help="sensor channel whose keyframe sweeps are read")
+
+
 class NuScenes(DatasetAdapter):
     name = "nuscenes"
     version = "1"
@@ -81,10 +92,12 @@ class NuScenes(DatasetAdapter):
     default_split = "val"
     axes = "x right, y forward, z up"
 
-    def __init__(self, root, version: str | None = None, channel: str = "LIDAR_TOP") -> None:
-        super().__init__(root)
-        self.channel = channel
-        self.release = version or self._find_version(self.root)
+    Options = NuScenesOptions
+
+    def __init__(self, root, options: NuScenesOptions | None = None, **raw: object) -> None:
+        super().__init__(root, options, **raw)
+        self.channel = self.options.channel
+        self.release = self.options.version or self._find_version(self.root)
 
     @staticmethod
     def _find_version(root: Path) -> str:

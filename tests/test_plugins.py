@@ -150,3 +150,115 @@ def test_allow_and_block_lists(external_plugin):
     assert "example" in allowed and "broken" not in allowed
     blocked = _cli(["ls", "methods"], external_plugin, PCFBENCH_BLOCK_PLUGINS="example,builtin-methods")
     assert "shifted-copy" not in blocked.stdout and "copy-last" not in blocked.stdout
+
+
+def _hookimpl_module(name, hook, fn, **marks):
+    mod = types.ModuleType(name)
+    setattr(mod, hook, hookimpl(**marks)(fn) if marks else hookimpl(fn))
+    return mod
+
+
+def _registering(*names, fail=None):
+    def register_methods(register):
+        for n in names:
+            register(n, "pcfbench.methods.copy_last:CopyLast", "test")
+        if fail:
+            raise RuntimeError(fail)
+
+    return register_methods
+
+
+@pytest.fixture
+def fake_entry_points(monkeypatch):
+    """Add modules as entry points of the pcfbench group, beside the installed ones."""
+    import importlib.metadata
+
+    real = importlib.metadata.entry_points(group="pcfbench")
+    added = []
+
+    def install(name, module):
+        monkeypatch.setitem(sys.modules, module.__name__, module)
+        added.append(importlib.metadata.EntryPoint(name, module.__name__, "pcfbench"))
+
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group: [*real, *added] if group == "pcfbench" else [])
+    return install
+
+
+def test_hooks_run_in_pluggys_order_tryfirst_and_trylast_honoured(fake_entry_points):
+    fake_entry_points("zz-first", _hookimpl_module("pcfb_t_first", "register_methods", _registering("m-first"), tryfirst=True))
+    fake_entry_points("aa-last", _hookimpl_module("pcfb_t_last", "register_methods", _registering("m-last"), trylast=True))
+    fake_entry_points("mm-plain", _hookimpl_module("pcfb_t_plain", "register_methods", _registering("m-plain")))
+    plugins = load_plugins()
+    builtins = ["copy-last", "raycast-4docc", "raycast-zbuffer", "raycast-voxel", "raycast-freespace"]
+    # tryfirst first, then the built-ins, the others by entry-point name, trylast last
+    assert list(plugins.methods.entries) == ["m-first", *builtins, "m-plain", "m-last"]
+    # ... which is exactly the order of one pm.hook call (pluggy itself as the reference)
+    called = []
+    plugins.pm.hook.register_methods(register=lambda name, target, description="": called.append(name))
+    assert called == list(plugins.methods.entries)
+    # attributed to the plugin that registered it
+    assert plugins.methods.entries["m-first"].plugin == "zz-first"
+    assert plugins.info["aa-last"].registered == {"methods": ["m-last"]} and plugins.info["aa-last"].error is None
+
+
+def test_a_failing_hook_marks_only_its_plugin(fake_entry_points):
+    fake_entry_points("bb", _hookimpl_module("pcfb_t_boom", "register_methods", _registering("m-boom", fail="boom"),
+                                             tryfirst=True))
+    fake_entry_points("cc", _hookimpl_module("pcfb_t_after", "register_methods", _registering("m-after")))
+    plugins = load_plugins()
+    assert plugins.info["bb"].error == "register_methods: RuntimeError: boom"
+    assert plugins.info["bb"].registered == {"methods": ["m-boom"]}  # what it registered before raising stays
+    assert plugins.methods.failed_plugins == {"bb": "register_methods: RuntimeError: boom"}
+    assert plugins.info["cc"].error is None and plugins.methods.entries["m-after"].plugin == "cc"
+    assert plugins.info["builtin-methods"].error is None and plugins.methods.get("raycast-voxel")
+
+
+def test_trylast_loses_a_name_conflict_whatever_the_names(fake_entry_points):
+    fake_entry_points("aa", _hookimpl_module("pcfb_t_aa", "register_methods", _registering("dup"), trylast=True))
+    fake_entry_points("zz", _hookimpl_module("pcfb_t_zz", "register_methods", _registering("dup")))
+    plugins = load_plugins()
+    assert plugins.methods.entries["dup"].plugin == "zz" and plugins.info["zz"].error is None
+    assert "'dup' is registered twice: by plugin 'zz' and by plugin 'aa'" in plugins.info["aa"].error
+    fake_entry_points("ab", _hookimpl_module("pcfb_t_ab", "register_methods", _registering("dup2")))
+    fake_entry_points("ac", _hookimpl_module("pcfb_t_ac", "register_methods", _registering("dup2")))
+    plugins = load_plugins()  # no marks: by entry-point name
+    assert plugins.methods.entries["dup2"].plugin == "ab" and "by plugin 'ac'" in plugins.info["ac"].error
+
+
+def test_impls_are_called_through_pluggy_and_wrappers_rejected():
+    plugins = Plugins()
+    plugins.add_plugin(_hookimpl_module("noargs", "register_methods", lambda: None), "noargs")  # fewer args: allowed
+    assert plugins.info["noargs"].error is None
+
+    def wrapper(register):
+        yield
+
+    plugins.add_plugin(_hookimpl_module("wrap", "register_methods", wrapper, wrapper=True), "wrap")
+    assert "register_methods cannot be a hook wrapper" in plugins.info["wrap"].error
+
+
+def test_register_commands_ordering_lets_a_plugin_extend_anothers_group():
+    import click
+
+    def make_group(cli):
+        @cli.group("grp")
+        def grp():
+            """A group."""
+
+    def extend(cli):
+        @cli.commands["grp"].command("sub")
+        def sub():
+            """A subcommand."""
+
+    def broken(cli):
+        raise RuntimeError("no commands today")
+
+    plugins = Plugins()
+    plugins.add_plugin(_hookimpl_module("ext", "register_commands", extend, trylast=True), "aa-ext")
+    plugins.add_plugin(_hookimpl_module("grp", "register_commands", make_group), "zz-grp")
+    plugins.add_plugin(_hookimpl_module("brk", "register_commands", broken), "mm-broken")
+    group = click.Group("pcfbench")
+    plugins.add_commands(group)
+    assert set(group.commands["grp"].commands) == {"sub"}
+    assert plugins.info["aa-ext"].error is None
+    assert plugins.info["mm-broken"].error == "register_commands: RuntimeError: no commands today"

@@ -44,8 +44,8 @@ class SyntheticKitti(KittiOdometry):
         except (OSError, ValueError):
             return False
 
-    def __init__(self, root, **options):
-        super().__init__(root, **options)
+    def __init__(self, root, options=None, **raw):
+        super().__init__(root, options, **raw)
         self._splits = {split: tuple(n for n, _ in seqs) for split, seqs in get_domain(self.domain).splits.items()}
         if self.root is not None and (self.root / MANIFEST).is_file():
             try:

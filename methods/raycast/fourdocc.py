@@ -26,6 +26,7 @@ import numpy as np
 from pcfbench.data import Forecast, Sample
 from pcfbench.execution import ExecutionContext, current
 from pcfbench.method import Method
+from pcfbench.options import option
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views
 from pcfbench.methods.raycast.fastmath import atan2
 from pcfbench.nn2d import NN2D
@@ -37,7 +38,8 @@ SHARED_PIECES = 2
 
 @dataclass(frozen=True)
 class FourDOccOptions:
-    constant_velocity: bool = False  # extrapolate future poses from the last two past poses
+    constant_velocity: bool = option(False, help="extrapolate the future poses from the last two past poses "
+                                                 "instead of using the sample's future poses")
 
 
 @nb.njit(nogil=True, parallel=True, cache=True)

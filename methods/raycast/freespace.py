@@ -23,6 +23,7 @@ import numpy as np
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.method import Method
+from pcfbench.options import option
 from pcfbench.methods.raycast.common import aggregate, assemble, views
 from pcfbench.methods.raycast.grid import VoxelGrid
 from pcfbench.methods.raycast.voxel import VoxelOptions, build_grid, render_voxel_views
@@ -33,14 +34,17 @@ from pcfbench.methods.raycast.zbuffer import render_zbuffer_views
 class FreespaceOptions(VoxelOptions):
     """raycast-voxel's options (the caster of the carved grid), and the carving's."""
 
-    l_hit: float = 0.85  # log-odds added per return in a voxel
-    l_miss: float = 0.4  # log-odds removed per past ray passing through a voxel
-    carve_margin_m: float = 0.5  # rays carve up to this far before their return ...
-    carve_margin_frac: float = 0.15  # ... or this fraction of their range, whichever is more
-    renderer: Literal["voxel", "zbuffer"] = "voxel"  # cast the carved grid, or z-buffer the surviving points
-    splat: float = 1.0  # z-buffer renderer: as raycast-zbuffer
-    max_splat: int = 4  # z-buffer renderer: as raycast-zbuffer
-    fill_ring: int = 8  # z-buffer renderer: as raycast-zbuffer
+    l_hit: float = option(0.85, help="log-odds added to a voxel per past return in it")
+    l_miss: float = option(0.4, help="log-odds removed from a voxel per past ray passing through it")
+    carve_margin_m: float = option(0.5, help="a ray carves up to this far before its return, metres, or "
+                                             "carve_margin_frac of its range if that is more")
+    carve_margin_frac: float = option(0.15, help="a ray carves up to this fraction of its range before its return, "
+                                                 "or carve_margin_m if that is more")
+    renderer: Literal["voxel", "zbuffer"] = option(
+        "voxel", help="cast the carved grid (voxel), or z-buffer the points that survive the carving (zbuffer)")
+    splat: float = option(1.0, help="zbuffer renderer: splat diameter, as raycast-zbuffer's")
+    max_splat: int = option(4, help="zbuffer renderer: largest splat half-width, bins, as raycast-zbuffer's")
+    fill_ring: int = option(8, help="zbuffer renderer: empty-bin fill radius, bins, as raycast-zbuffer's")
 
 
 def carve(grid: VoxelGrid, origins, points, own_range, opts) -> np.ndarray:

@@ -42,6 +42,7 @@ import numpy as np
 from pcfbench.data import Forecast, Sample
 from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
+from pcfbench.options import option
 from pcfbench.roi import ROI, Box
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, views
 from pcfbench.methods.raycast.grid import VoxelGrid
@@ -86,15 +87,19 @@ def build_grid(points: np.ndarray, opts) -> VoxelGrid:
 
 @dataclass(frozen=True)
 class VoxelOptions:
-    voxel: float = 0.2  # voxel edge, metres
-    cone_factor: float = 1.0  # ray thickness in units of the beam spacing (0: thin rays)
-    max_level: int = 3  # coarsest level a cone may use (0.2 * 2**3 = 1.6 m)
-    cone_center: Literal["future", "past"] = "future"  # cone width grows with range from the future or the t=0 sensor
-    az_res_deg: float = 0.2  # z-buffer fallback bins (see raycast-zbuffer)
-    el_res_deg: float = 0.4  # beam spacing: z-buffer fallback bins and cone width
-    surface: Literal["plane", "mean"] = "plane"  # depth in a hit voxel: on its fitted surface, or its mean's projection
-    align_ground: bool = True  # grid faces half a voxel above the ground (speed: a clean face above it)
-    constant_velocity: bool = False  # extrapolate future poses from the last two past poses
+    voxel: float = option(0.2, help="voxel edge of the occupancy grid, metres")
+    cone_factor: float = option(1.0, help="ray thickness in units of the beam spacing el_res_deg (0: thin rays)")
+    max_level: int = option(3, help="coarsest pyramid level a cone may stop on (voxel * 2**level: 1.6 m at 3)")
+    cone_center: Literal["future", "past"] = option(
+        "future", help="the cone widens with the range from the future sensor, or from the t=0 sensor (past)")
+    az_res_deg: float = option(0.2, help="azimuth bin width of the z-buffer fallback (as raycast-zbuffer), degrees")
+    el_res_deg: float = option(0.4, help="beam spacing: elevation bins of the z-buffer fallback and the cone width, "
+                                         "degrees")
+    surface: Literal["plane", "mean"] = option(
+        "plane", help="depth in a hit voxel: where the ray crosses its fitted surface, or its mean projected on the ray")
+    align_ground: bool = option(True, help="shift the grid so a face lies half a voxel above the ground (speed only)")
+    constant_velocity: bool = option(False, help="extrapolate the future poses from the last two past poses "
+                                                 "instead of using the sample's future poses")
 
 
 def render_voxel_views(grid: VoxelGrid, cols, own_range, vws, opts,

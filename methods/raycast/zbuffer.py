@@ -30,6 +30,7 @@ import numpy as np
 from pcfbench.data import Forecast, Sample
 from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
+from pcfbench.options import option
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, scratch, views
 from pcfbench.methods.raycast.fastmath import atan2
 from pcfbench.nn2d import NN2D
@@ -37,12 +38,14 @@ from pcfbench.nn2d import NN2D
 
 @dataclass(frozen=True)
 class ZBufferOptions:
-    az_res_deg: float = 0.2  # azimuth bin width
-    el_res_deg: float = 0.4  # elevation bin height (beam spacing)
-    splat: float = 1.0  # splat diameter in units of the point's own beam spacing (0: one bin per point)
-    max_splat: int = 4  # largest splat half-width, in bins
-    fill_ring: int = 8  # empty bins take the angularly nearest non-empty bin within this many bins
-    constant_velocity: bool = False  # extrapolate future poses from the last two past poses
+    az_res_deg: float = option(0.2, help="azimuth bin width of the range image, degrees")
+    el_res_deg: float = option(0.4, help="elevation bin height of the range image (the beam spacing), degrees")
+    splat: float = option(1.0, help="splat diameter in units of the point's own beam spacing (0: one bin per point)")
+    max_splat: int = option(4, help="largest splat half-width, bins")
+    fill_ring: int = option(8, help="an empty bin takes the angularly nearest non-empty bin within this many bins, "
+                                    "then the same on coarser images")
+    constant_velocity: bool = option(False, help="extrapolate the future poses from the last two past poses "
+                                                 "instead of using the sample's future poses")
 
 
 @nb.njit(inline="always")
