@@ -10,7 +10,7 @@ from pcfbench.geometry import se3, yaw_transform
 from pcfbench.roi import ROI, Box
 from pcfbench.testing import check_method
 from pcfbench.metrics.nn import angles_4docc
-from pcfbench.methods.raycast.common import aggregate, constant_velocity_poses, se3_exp, se3_log, views
+from pcfbench.methods.raycast.common import aggregate, views
 from pcfbench.methods.raycast.fastmath import atan2_array
 from pcfbench.methods.raycast.fourdocc import RaycastFourDOcc, render_4docc_views
 from pcfbench.methods.raycast.freespace import RaycastFreespace, carve
@@ -314,27 +314,6 @@ def test_4docc_angle_space_is_the_reference_quirk():
 
 
 # ---------------------------------------------------------------- constant velocity
-
-
-def test_se3_log_exp_round_trip():
-    rng = np.random.default_rng(1)
-    for _ in range(20):
-        xi = np.concatenate([rng.normal(0, 3, 3), rng.normal(0, 0.8, 3)])
-        np.testing.assert_allclose(se3_log(se3_exp(xi)), xi, atol=1e-9)
-    np.testing.assert_allclose(se3_exp(np.zeros(6)), np.eye(4))
-
-
-def test_constant_velocity_follows_an_arc_with_uneven_timestamps():
-    xi = np.array([8.0, 0.2, 0.0, 0.0, 0.01, 0.3])  # per second: forward, turning
-    t_past = np.array([-0.81, -0.6, -0.39, -0.2, 0.0])
-    t_fut = np.array([0.2, 0.41, 0.6, 1.0, 3.0])
-    past = np.stack([se3_exp(t * xi) for t in t_past])
-    got = constant_velocity_poses(past, (t_past * 1e9).astype(np.int64), (t_fut * 1e9).astype(np.int64))
-    for g, t in zip(got, t_fut):
-        np.testing.assert_allclose(g, se3_exp(t * xi), atol=1e-9)
-    # a single past pose: standing still
-    still = constant_velocity_poses(past[-1:], np.array([0]), np.array([10**8]))
-    np.testing.assert_allclose(still[0], past[-1])
 
 
 def test_constant_velocity_option_ignores_the_given_future_poses():

@@ -5,10 +5,10 @@ Constant velocity. With ``constant_velocity=True`` a baseline ignores the given 
 poses (and the query origins, which are their positions): each future sensor pose is
 extrapolated from the last two past poses, ``T(t) = T_0 exp(s log(T_-1^-1 T_0))`` with
 ``s = (t - t_0) / (t_0 - t_-1)`` from the timestamps (SE(3) exponential map, so a turning
-vehicle follows an arc). The query directions are cast from the extrapolated origin, and the
-forecast carries points only (depths along the given query rays would need the true origin),
-so the metrics read it as a point cloud, as the reference code's
-``--assume-constant-velocity`` results are read.
+vehicle follows an arc: ``pcfbench.geometry.constant_velocity_poses``). The query directions
+are cast from the extrapolated origin, and the forecast carries points only (depths along the
+given query rays would need the true origin), so the metrics read it as a point cloud, as the
+reference code's ``--assume-constant-velocity`` results are read.
 """
 
 from __future__ import annotations
@@ -22,82 +22,7 @@ import numpy as np
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.execution import ExecutionContext, current
-from pcfbench.geometry import invert
-
-_EPS = 1e-9
-
-
-def _hat(w: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    K = _hat(w)
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
-
-
-def _so3_log(R: np.ndarray) -> np.ndarray:
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    th = float(np.arccos(c))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-9:
-        return 0.5 * v
-    if np.pi - th < 1e-6:  # near pi: axis from the symmetric part
-        A = (R + np.eye(3)) / 2.0
-        axis = np.sqrt(np.maximum(np.diag(A), 0.0))
-        i = int(np.argmax(axis))
-        axis = A[i] / np.sqrt(max(A[i, i], _EPS))
-        return th * axis / np.linalg.norm(axis)
-    return th / (2.0 * np.sin(th)) * v
-
-
-def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    K = _hat(w)
-    if th < 1e-9:
-        return np.eye(3) + 0.5 * K
-    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
-
-
-def se3_log(T: np.ndarray) -> np.ndarray:
-    """(4, 4) rigid transform to its twist (6,) = (rho, omega)."""
-    w = _so3_log(T[:3, :3])
-    rho = np.linalg.solve(_left_jacobian(w), T[:3, 3])
-    return np.concatenate([rho, w])
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """Twist (6,) = (rho, omega) to a (4, 4) rigid transform."""
-    rho, w = xi[:3], xi[3:]
-    T = np.eye(4)
-    T[:3, :3] = _so3_exp(w)
-    T[:3, 3] = _left_jacobian(w) @ rho
-    return T
-
-
-def constant_velocity_poses(
-    past_T: np.ndarray, past_t_ns: np.ndarray, future_t_ns: np.ndarray
-) -> np.ndarray:
-    """Future poses (F, 4, 4) extrapolated from the last two past poses at constant SE(3) velocity.
-
-    With a single past pose (or equal timestamps) the vehicle is taken as standing still.
-    """
-    past_T = np.asarray(past_T, dtype=np.float64)
-    T0 = past_T[-1]
-    out = np.repeat(T0[None], len(future_t_ns), axis=0)
-    if len(past_T) < 2:
-        return out
-    dt = float(past_t_ns[-1] - past_t_ns[-2])
-    if dt <= 0:
-        return out
-    xi = se3_log(invert(past_T[-2]) @ T0)
-    for k, t in enumerate(future_t_ns):
-        s = float(t - past_t_ns[-1]) / dt
-        out[k] = T0 @ se3_exp(s * xi)
-    return out
+from pcfbench.geometry import constant_velocity_poses
 
 
 @dataclass(frozen=True)
