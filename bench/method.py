@@ -41,7 +41,14 @@ class Method(ABC):
     ready: ClassVar[bool] = True
 
     def __init__(self, options: Any = None) -> None:
-        self.options = options if options is not None else self.Options()
+        """``options``: an instance of ``Options`` (default: its defaults); from a spec's
+        strings, ``resolve_method`` builds it."""
+        if options is None:
+            options = self.Options()
+        elif not isinstance(options, self.Options):
+            who = getattr(type(self), "name", type(self).__name__)
+            raise PcfbenchError(f"method {who}: options must be a {self.Options.__qualname__}, got {options!r}")
+        self.options = options
 
     @property
     def execution(self) -> ExecutionContext:

@@ -183,3 +183,12 @@ def test_cli_rejects_a_bad_root_option_before_any_work(tmp_path):
     assert res.exit_code == 2, res.output
     assert "unknown dataset nuscenes root" in res.output and "option 'chanel'; did you mean 'channel'?" in res.output
     assert not (tmp_path / "store").exists()
+
+
+def test_a_method_takes_only_its_own_options_class(plugins):
+    voxel, freespace = plugins.methods.get("raycast-voxel"), plugins.methods.get("raycast-freespace")
+    assert voxel().options == voxel.Options() and voxel(voxel.Options(voxel=0.1)).options.voxel == 0.1
+    with pytest.raises(PcfbenchError, match=r"method raycast-freespace: options must be a FreespaceOptions, got VoxelOptions"):
+        freespace(voxel.Options())
+    with pytest.raises(PcfbenchError, match=r"method raycast-voxel: options must be a VoxelOptions, got \{'voxel': 0.1\}"):
+        voxel({"voxel": 0.1})
