@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -146,6 +147,17 @@ def fingerprint_files(root: Path | None, paths: "Iterable[Path]") -> DataFingerp
         rel = p.as_posix() if base is None else Path(os.path.relpath(p, base)).as_posix()
         files[rel] = (rel, int(st.st_size), int(st.st_mtime_ns))
     return DataFingerprint(str(root), tuple(files[k] for k in sorted(files)))
+
+
+def options_identity(adapter: "DatasetAdapter", raw: dict[str, str]) -> dict[str, Any]:
+    """The root options a cell is computed with (JSON-ready): the adapter's typed ``options``,
+    defaults included, plus any raw ``ROOT?key=value`` option that is not one of their fields
+    (an adapter that reads its keywords itself)."""
+    from pcfbench.options import options_dict
+
+    typed = options_dict(getattr(adapter, "options", None))
+    out = {**{k: v for k, v in raw.items() if k not in typed}, **typed}
+    return json.loads(json.dumps(dict(sorted(out.items())), default=str))
 
 
 def files_under(root: Path) -> list[Path]:

@@ -26,6 +26,7 @@ from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
+from pcfbench.dataset import options_identity
 from pcfbench.store import Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.validate import validate_forecast
 
@@ -208,7 +209,7 @@ def run_cell(
             "metric_versions": {m.name: m.version for m in res.metrics},
             "sample_ids_hash": id_hash,
             **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
-            "dataset_options": dict(sorted(config.split_root_options(spec.dataset_root)[1].items())),
+            "dataset_options": options_identity(res.builder.adapter, config.split_root_options(spec.dataset_root)[1]),
             "data_fingerprint": fingerprint.digest,
         }
         if meta is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -12,10 +13,11 @@ import pytest
 
 from pcfbench.data import Forecast
 from pcfbench.datasets.kitti import KittiOdometry, read_bin
-from pcfbench.dataset import DatasetAdapter, fingerprint_files
+from pcfbench.dataset import DatasetAdapter, fingerprint_files, options_identity
 from pcfbench.errors import PcfbenchError
 from pcfbench.hookspecs import hookimpl
 from pcfbench.method import Method, options_hash
+from pcfbench.options import option
 from pcfbench.plugins import load_plugins
 from pcfbench.protocol import Setting
 from pcfbench.report import collect
@@ -178,8 +180,20 @@ def test_a_sweep_that_changes_size_or_disappears_is_noticed(tmp_path):
         run_cell(spec, tmp_path / "s", progress=False)
 
 
+@dataclasses.dataclass(frozen=True)
+class FlavourOptions:
+    flavour: str = option("plain", help="a root option that a test changes")
+
+
 class KittiWithOption(KittiOdometry):
     name = "kitti-opt"
+    Options = FlavourOptions
+
+
+class KittiKeywords(KittiOdometry):
+    """An adapter that reads a keyword itself instead of declaring Options."""
+
+    name = "kitti-kw"
 
     def __init__(self, root, flavour: str = "plain"):
         super().__init__(root)
@@ -192,10 +206,37 @@ def test_a_changed_root_option_is_noticed(tiny_kitti, store):
     spec = _spec(f"{tiny_kitti}?flavour=plain", dataset="kitti-opt")
     run_cell(spec, store, progress=False, plugins=plugins)
     assert _meta(store, spec)["dataset_options"] == {"flavour": "plain"}
+    # the typed value is the identity: the default spelled out or left out is the same cell
+    assert run_cell(_spec(tiny_kitti, dataset="kitti-opt"), store, progress=False, plugins=plugins).processed == 0
     other = _spec(f"{tiny_kitti}?flavour=salted", dataset="kitti-opt")
     assert Cell(store, other).dir == Cell(store, spec).dir  # the same cell folder ...
     with pytest.raises(PcfbenchError, match=r"different dataset_options \(dataset_options: flavour 'plain' -> 'salted'\).*--force"):
         run_cell(other, store, progress=False, plugins=plugins)  # ... so it must not be reused
+
+
+def test_a_changed_keyword_of_an_adapter_without_options_is_noticed(tiny_kitti, store):
+    plugins = load_plugins()
+    plugins.datasets.add("kitti-kw", KittiKeywords, "test")
+    spec = _spec(f"{tiny_kitti}?flavour=plain", dataset="kitti-kw")
+    run_cell(spec, store, progress=False, plugins=plugins)
+    assert _meta(store, spec)["dataset_options"] == {"flavour": "plain"}
+    with pytest.raises(PcfbenchError, match=r"dataset_options: flavour 'plain' -> 'salted'"):
+        run_cell(_spec(f"{tiny_kitti}?flavour=salted", dataset="kitti-kw"), store, progress=False, plugins=plugins)
+
+
+@dataclasses.dataclass(frozen=True)
+class BoxOptions:
+    box: tuple[float, ...] | None = option(None, help="a tuple option")
+    where: Path = option(Path("/data"), help="a path option")
+
+
+def test_options_identity_is_plain_json():
+    class Adapter:
+        options = BoxOptions(box=(-1.0, 1.0))
+
+    # typed values as cell.json reads them back; a raw keyword that is no field is kept as given
+    assert options_identity(Adapter(), {"box": "-1,1", "extra": "x"}) == {"box": [-1.0, 1.0], "extra": "x", "where": "/data"}
+    assert options_identity(object(), {"b": "2", "a": "1"}) == {"a": "1", "b": "2"}
 
 
 def _setting_plugin(setting: Setting):
