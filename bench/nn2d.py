@@ -61,14 +61,14 @@ def _bbox(px, py):
     x1 = -np.inf
     y0 = np.inf
     y1 = -np.inf
-    check = 0.0
+    nan = False
     for i in range(px.shape[0]):
         x0 = min(x0, px[i])
         x1 = max(x1, px[i])
         y0 = min(y0, py[i])
         y1 = max(y1, py[i])
-        check += px[i] * 0.0 + py[i] * 0.0  # NaN once any coordinate is NaN or infinite
-    return x0, x1, y0, y1, check == 0.0
+        nan |= (px[i] != px[i]) | (py[i] != py[i])  # (min and max pass NaN over)
+    return x0, x1, y0, y1, not nan and -np.inf < x0 and x1 < np.inf and -np.inf < y0 and y1 < np.inf
 
 
 @nb.njit(nogil=True, cache=True)
