@@ -26,11 +26,13 @@ CI_STYLES = ("pm", "interval", "none")
 _PRESET_KEYS = {"title", "description", "columns", "rank_by"}
 _COLUMN_KEYS = {"metric", "label", "better"}
 
-# LaTeX page geometry (A4, 2.5 cm margins) and a \small tabular's glyph width, in pt.
+# LaTeX page geometry (A4, 2.5 cm margins: 455 x 702 pt) and a \small tabular's glyph width
+# (calibrated on pdflatex output, rounded up), in pt.
 A4_TEXTWIDTH_PT = 455.0
-A4_TEXTHEIGHT_PT = 650.0
-_CHAR_PT = 4.6
-_COLSEP_PT = 12.0
+A4_TEXTHEIGHT_PT = 700.0
+_CHAR_PT = 5.0
+_COLSEP_PT = 8.0
+_FOOTNOTE_SCALE = 8 / 9  # \footnotesize (8 pt) against \small (9 pt)
 
 
 @dataclass(frozen=True)
@@ -366,17 +368,35 @@ def tex_unit(unit: str) -> str:
     return rf"$\mathrm{{{tex_escape(base)}}}" + (f"^{{{power}}}" if power else "") + "$"
 
 
-def _tex_cell(p: Parts) -> tuple[str, int]:
-    """The LaTeX of a cell and its approximate printed width in characters."""
-    s = rf"\textbf{{{p.value}}}" if p.best else p.value
-    width = len(p.value)
+def _tex_cell(p: Parts) -> tuple[str, float]:
+    """The LaTeX of a cell and its approximate printed width in characters of the body font.
+
+    The interval and the change go on a second, smaller line under the value, which keeps
+    a six-column table within a portrait A4 page.
+    """
+    value = rf"\textbf{{{p.value}}}" if p.best else p.value
+    extra = []
     if p.ci:
-        s += r"\,{\scriptsize " + p.ci.replace("±", r"$\pm$") + "}"
-        width += int(0.75 * len(p.ci)) + 1
+        extra.append(tex_escape(p.ci).replace("±", r"$\pm$"))
     if p.change:
-        s += r"\,{\scriptsize (" + tex_escape(p.change).replace("-", "$-$") + (r"$^\dagger$" if p.tie else "") + ")}"
-        width += int(0.75 * (len(p.change) + 3))
-    return s, width
+        extra.append("(" + tex_escape(p.change).replace("-", "$-$") + (r"$^\dagger$" if p.tie else "") + ")")
+    if not extra:
+        return value, len(p.value)
+    small = " ".join(extra)
+    width = max(len(p.value), 0.85 * (len(p.ci) + len(p.change) + 3 + int(p.tie)))
+    return r"\begin{tabular}[t]{@{}r@{}}" + value + r"\\[-2pt]{\scriptsize " + small + r"}\end{tabular}", width
+
+
+def _tex_head(c: ShownColumn) -> tuple[str, int]:
+    """A column header on two lines (split at the space nearest the middle) with its arrow."""
+    arrow = r" $\downarrow$" if c.better == "lower" else r" $\uparrow$"
+    words = c.label.split(" ")
+    if len(words) == 1:
+        return tex_escape(c.label) + arrow, len(c.label) + 2
+    cut = min(range(1, len(words)), key=lambda k: abs(len(" ".join(words[:k])) - len(" ".join(words[k:]))))
+    top, bottom = " ".join(words[:cut]), " ".join(words[cut:])
+    return (r"\begin{tabular}[b]{@{}r@{}}" + tex_escape(top) + r"\\" + tex_escape(bottom) + arrow + r"\end{tabular}",
+            max(len(top), len(bottom) + 2))
 
 
 def latex(t: Table, alpha: float) -> tuple[str, str]:
@@ -389,10 +409,10 @@ def latex(t: Table, alpha: float) -> tuple[str, str]:
     failed = _show_failed(t)
     groups = [(g, False) for g in t.groups] + [(g, True) for g in t.partial]
     ncols = 2 + int(failed) + len(t.columns)
-    head1 = ["Method", "$n$"] + (["failed"] if failed else []) + [
-        tex_escape(c.label) + (r" $\downarrow$" if c.better == "lower" else r" $\uparrow$") for c in t.columns]
+    heads = [_tex_head(c) for c in t.columns]
+    head1 = ["Method", "$n$"] + (["failed"] if failed else []) + [h for h, _ in heads]
     head2 = ["", ""] + ([""] if failed else []) + [f"[{tex_unit(c.unit)}]" if c.unit else "" for c in t.columns]
-    widths = [max(len(c.label) + 2, 6) for c in t.columns]
+    widths: list[float] = [max(w, 6) for _, w in heads]
     widths = [max(len("Method"), 1), 3] + ([6] if failed else []) + widths
     body = []
     for g, partial in groups:
@@ -409,11 +429,19 @@ def latex(t: Table, alpha: float) -> tuple[str, str]:
                 j = 2 + int(failed) + i
                 widths[j] = max(widths[j], w)
             body.append(" & ".join(cells) + r" \\")
-    est = sum(_CHAR_PT * w + _COLSEP_PT for w in widths)
+    chars = sum(widths)
+    est = _CHAR_PT * chars + _COLSEP_PT * len(widths)  # set in \small
+    est_fn = _CHAR_PT * _FOOTNOTE_SCALE * chars + _COLSEP_PT * len(widths)  # in \footnotesize
+    env, size, resize = "table", r"\small", False
     fit = "fits the A4 text width"
-    env, resize = "table", False
-    if est > A4_TEXTWIDTH_PT:
-        env, fit = "sidewaystable", f"switched to a landscape table (sidewaystable): about {est:.0f} pt wide, the A4 text width is {A4_TEXTWIDTH_PT:.0f} pt"
+    if est > A4_TEXTWIDTH_PT and est_fn <= A4_TEXTWIDTH_PT:
+        size = r"\footnotesize"
+        fit = (f"set in \\footnotesize to fit the A4 text width ({A4_TEXTWIDTH_PT:.0f} pt): "
+               f"about {est:.0f} pt wide in \\small, {est_fn:.0f} pt in \\footnotesize")
+    elif est > A4_TEXTWIDTH_PT:
+        env = "sidewaystable"
+        fit = (f"switched to a landscape table (sidewaystable): about {est:.0f} pt wide, "
+               f"the A4 text width is {A4_TEXTWIDTH_PT:.0f} pt")
         if est > A4_TEXTHEIGHT_PT:
             resize = True
             fit = (f"switched to a landscape table scaled to the page: about {est:.0f} pt wide, "
@@ -424,7 +452,7 @@ def latex(t: Table, alpha: float) -> tuple[str, str]:
         f"% pcfbench leaderboard, preset {t.preset.name}: {fit}",
         r"% needs \usepackage{booktabs,graphicx,rotating}",
         rf"\begin{{{env}}}" + ("[p]" if env == "sidewaystable" else "[t]"),
-        r"\centering\small",
+        r"\centering" + size + r"\setlength{\tabcolsep}{4pt}",
         rf"\caption{{{caption}}}",
         rf"\label{{tab:pcfbench-{tex_escape(t.preset.name)}}}",
     ]

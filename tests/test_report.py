@@ -167,7 +167,7 @@ def test_latex_booktabs_right_aligned_real_units_and_fit_note(board):
     tex = paths["tex"].read_text()
     first = tex.splitlines()[0]
     assert first.startswith("% pcfbench leaderboard, preset paper: ")
-    assert "fits the A4 text width" in first or "landscape" in first
+    assert any(k in first for k in ("fits the A4 text width", "footnotesize to fit", "landscape"))
     assert ("sidewaystable" in tex) == ("landscape" in first)
     assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
     assert re.search(r"\\begin\{tabular\}\{lr+\}", tex)
@@ -180,6 +180,9 @@ def test_latex_width_estimate_picks_the_page_layout():
     lb = _tiny_board({"chamfer": 1.0})
     narrow = tables.latex(tables.build(lb, tables.Preset("n", "narrow", (tables.Column("chamfer", "CD"),)), "none"), 0.05)
     assert "fits the A4 text width" in narrow[1] and r"\begin{table}" in narrow[0] and "resizebox" not in narrow[0]
+    seven = _tiny_board({f"metric_{i}": 1.0 + i for i in range(7)})
+    small = tables.latex(tables.build(seven, tables.Preset("s", "seven", None), "pm"), 0.05)
+    assert "footnotesize to fit" in small[1] and r"\centering\footnotesize" in small[0] and r"\begin{table}" in small[0]
     nine = _tiny_board({f"metric_{i}": 1.0 + i for i in range(9)})
     mid = tables.latex(tables.build(nine, tables.Preset("m", "nine", None), "pm"), 0.05)
     assert "switched to a landscape table (sidewaystable)" in mid[1] and "resizebox" not in mid[0]
@@ -203,16 +206,17 @@ def _tiny_board(values):
 
 @pytest.mark.skipif(not (shutil.which("pdflatex") or shutil.which("lualatex")), reason="no TeX engine installed")
 def test_latex_compiles_on_an_a4_page_without_overfull_boxes(board, tmp_path):
-    _, _, paths = board
+    _, out, _ = board
     engine = shutil.which("pdflatex") or shutil.which("lualatex")
-    doc = tmp_path / "doc.tex"
-    doc.write_text("\\documentclass[a4paper]{article}\n\\usepackage[margin=2.5cm]{geometry}\n"
-                   "\\usepackage{booktabs,graphicx,rotating}\n\\begin{document}\n"
-                   f"\\input{{{paths['tex']}}}\n\\end{{document}}\n")
-    res = subprocess.run([engine, "-interaction=nonstopmode", "-halt-on-error", doc.name], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stdout[-3000:]
-    assert "Overfull \\hbox" not in (tmp_path / "doc.log").read_text()
+    for tex in sorted((out / "tables").glob("*.tex")):
+        doc = tmp_path / f"doc-{tex.stem}.tex"
+        doc.write_text("\\documentclass[a4paper]{article}\n\\usepackage[margin=2.5cm]{geometry}\n"
+                       "\\usepackage{booktabs,graphicx,rotating}\n\\begin{document}\n"
+                       f"\\input{{{tex}}}\n\\end{{document}}\n")
+        res = subprocess.run([engine, "-interaction=nonstopmode", "-halt-on-error", doc.name], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stdout[-3000:]
+        assert "Overfull \\hbox" not in doc.with_suffix(".log").read_text(), tex.name
 
 
 def test_html_keeps_method_names_on_one_line(board):
