@@ -205,7 +205,9 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     return np.concatenate([rho, w])
 
 
-def constant_velocity_poses(past_T_ref_sensor: np.ndarray, past_t_ns: np.ndarray, future_t_ns: np.ndarray) -> np.ndarray:
+def constant_velocity_poses(
+    past_T_ref_sensor: np.ndarray, past_t_ns: np.ndarray, future_t_ns: np.ndarray
+) -> np.ndarray:
     """Future poses ``T_ref_sensor`` (F, 4, 4) extrapolated from the last two past poses at
     constant SE(3) velocity: ``T(t) = T_0 se3_exp(s se3_log(T_-1^-1 T_0))`` with
     ``s = (t - t_0) / (t_0 - t_-1)`` (a turning vehicle follows an arc).

@@ -95,7 +95,8 @@ def test_empty_inputs():
     assert NN2D(np.zeros((0, 2))).query(q).tolist() == [-1, -1]
     assert NN2D((np.zeros(0), np.zeros(0)), period=2 * np.pi).near(q).tolist() == [-1, -1]
     nn = NN2D(np.array([[0.0, 0.0]]))
-    for out in (nn.query(np.zeros((0, 2))), nn.near(np.zeros((0, 2))), nn.settle(np.zeros((0, 2)), np.zeros(0, np.int64))):
+    none = np.zeros((0, 2))
+    for out in (nn.query(none), nn.near(none), nn.settle(none, np.zeros(0, np.int64))):
         assert out.shape == (0,) and out.dtype == np.int64
 
 

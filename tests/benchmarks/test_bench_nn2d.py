@@ -50,6 +50,11 @@ def _raycast_jobs():
                               for v in views(sample, False)]}
 
 
+def _rows(a) -> np.ndarray:
+    """(N, 2) rows of an (N, 2) array or an (x, y) tuple of columns."""
+    return np.stack(a, 1) if isinstance(a, tuple) else a
+
+
 @pytest.fixture(scope="module")
 def workloads():
     return {**_metrics_jobs(), **_raycast_jobs()}
@@ -70,7 +75,7 @@ def test_nn2d(benchmark, workloads, workload):
     finally:
         numba.set_num_threads(before)
     data, queries, period, _ = jobs[0]
-    d, q = np.stack(data, 1) if isinstance(data, tuple) else data, np.stack(queries, 1) if isinstance(queries, tuple) else queries
+    d, q = _rows(data), _rows(queries)
     sub = q[:: max(1, len(q) // 200)]  # spot check against a brute-force argmin
     dx = np.abs(sub[:, None, 0] - d[None, :, 0])
     if period:
@@ -78,6 +83,6 @@ def test_nn2d(benchmark, workloads, workload):
     want = (dx * dx + (sub[:, None, 1] - d[None, :, 1]) ** 2).argmin(1)
     np.testing.assert_array_equal(out[0][:: max(1, len(q) // 200)], want)
     if benchmark.stats is not None:
-        n_queries = sum(len(j[1][0]) if isinstance(j[1], tuple) else len(j[1]) for j in jobs)
+        n_queries = sum(len(_rows(j[1])) for j in jobs)
         benchmark.extra_info["queries"] = n_queries
         benchmark.extra_info["queries_per_s"] = n_queries / benchmark.stats.stats.median
