@@ -225,8 +225,15 @@ def _scale(unit: str) -> tuple[float, int]:
     return (100.0, 2) if unit == "fraction" else (1.0, 3)
 
 
+_SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
+
+
 def unit_text(unit: str) -> str:
-    return "%" if unit == "fraction" else unit
+    """A metric unit as printed in text tables: fraction -> %, m^2 -> m²."""
+    if unit == "fraction":
+        return "%"
+    base, sep, power = unit.partition("^")
+    return base + power.translate(_SUPERSCRIPT) if sep else unit
 
 
 def _num(v: float, unit: str) -> str:

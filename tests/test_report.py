@@ -132,12 +132,12 @@ def test_markdown_is_the_paper_layout_ranked_with_bold_best_and_changes(board):
     store, out, _ = board
     md = (out / "leaderboard.md").read_text()
     head, rows = _md_table(md, "## kitti / test / kitti-1s (1 s)")
-    assert head[2:] == ["Chamfer (ROI) ↓ (m^2)", "L1 Med ↓ (m)", "AbsRel Med ↓ (%)", "L1 Mean ↓ (m)",
-                        "AbsRel Mean ↓ (%)", "Chamfer (full) ↓ (m^2)"]
+    assert head[2:] == ["Chamfer (ROI) ↓ (m²)", "L1 Med ↓ (m)", "AbsRel Med ↓ (%)", "L1 Mean ↓ (m)",
+                        "AbsRel Mean ↓ (%)", "Chamfer (full) ↓ (m²)"]
     lb = collect(store)
     ranked = lb.table.sort_values(["chamfer_nf", "variant"])
     assert [r[0] for r in rows] == [v + (" (ref)" if v == "copy-last" else "") for v in ranked["variant"]]
-    col = head.index("Chamfer (ROI) ↓ (m^2)")
+    col = head.index("Chamfer (ROI) ↓ (m²)")
     best = lb.table["chamfer_nf"].min()
     for r, (_, t) in zip(rows, ranked.iterrows()):
         value = f"{t['chamfer_nf']:.3f}"
@@ -224,7 +224,7 @@ def test_html_keeps_method_names_on_one_line(board):
     page = paths["html"].read_text()
     assert "white-space:nowrap" in page
     assert "<td class='method'>shifted (dx=0.5)</td>" in page
-    assert "<strong>" in page and "95% CI [" in page and "<th>Chamfer (ROI) ↓ (m^2)</th>" in page
+    assert "<strong>" in page and "95% CI [" in page and "<th>Chamfer (ROI) ↓ (m²)</th>" in page
 
 
 def test_every_preset_is_written_and_reports_are_deterministic(board, tmp_path):
@@ -248,7 +248,7 @@ def test_user_presets_extend_and_bad_presets_are_named(board, tmp_path):
                     'columns = [{ metric = "chamfer", label = "CD" }, { metric = "nope", label = "X" }]\n')
     paths = write_reports(store, tmp_path / "r", ReportOptions(preset="cd", tables_file=str(mine)))
     md = paths["md"].read_text()
-    assert "| CD ↓ (m^2) |" in md and "no cell in the store has nope" in md
+    assert "| CD ↓ (m²) |" in md and "no cell in the store has nope" in md
     assert (tmp_path / "r" / "tables" / "paper.md").is_file()
     cases = {
         '[presets.x]\ncolumns = "all"\ncolour = 1\n': r"mine.toml: preset 'x': unknown key\(s\) colour",
@@ -291,7 +291,7 @@ def test_summary_and_cli_report(board, tmp_path):
     res = CliRunner().invoke(build_cli(), ["report", "--store", str(store), "--reports", str(tmp_path / "r"),
                                            "--preset", "roi", "--resample", "block:2", "--seed", "3"])
     assert res.exit_code == 0, res.output
-    assert "Chamfer ↓ (m^2)" in res.output and "pcfbench leaderboard, preset roi:" in res.output
+    assert "Chamfer ↓ (m²)" in res.output and "pcfbench leaderboard, preset roi:" in res.output
     assert "blocks of 2 consecutive samples" in (tmp_path / "r" / "leaderboard.md").read_text()
     bad = CliRunner().invoke(build_cli(), ["report", "--store", str(store), "--reports", str(tmp_path / "r"),
                                            "--resample", "block:0"])
