@@ -138,7 +138,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 @click.option("--preset", default="paper", show_default=True, help="Table preset of leaderboard.* (see tables.toml).")
 @click.option("--tables", "tables_file", type=click.Path(dir_okay=False), default=None,
               help="A TOML file of extra table presets ([presets.NAME]).")
-@click.option("--reference", default="copy-last", show_default=True, help="Method every cell is compared with.")
+@click.option("--reference", default=None, help="Method every cell is compared with (default: copy-last where present).")
 @click.option("--ci", type=click.Choice(["pm", "interval", "none"]), default="pm", show_default=True,
               help="Intervals shown as ±half-width, as [lo, hi], or not at all.")
 @click.option("--resample", default="sample", show_default=True, metavar="sample|sequence|block:N",

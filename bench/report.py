@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from pcfbench import stats, tables
-from pcfbench.errors import PcfbenchError
+from pcfbench.errors import PcfbenchError, unknown_name
 from pcfbench.store import Cell, iter_cells, spec_from_meta
 
 #: Columns in the order of the published tables; other metrics follow alphabetically.
@@ -41,7 +41,7 @@ class ReportOptions:
 
     preset: str = DEFAULT_PRESET
     tables_file: str | None = None
-    reference: str = DEFAULT_REFERENCE
+    reference: str | None = None  # None: DEFAULT_REFERENCE, and groups without it are only noted
     ci: str = "pm"
     resampling: stats.Resampling = field(default_factory=stats.Resampling)
 
@@ -106,8 +106,12 @@ def _check_versions(versions: dict[str, dict[str, list[str]]]) -> None:
 
 
 def collect(store_root: Path, resampling: stats.Resampling | None = None,
-            reference: str = DEFAULT_REFERENCE) -> Leaderboard:
-    """Read and analyse every complete cell under ``store_root``."""
+            reference: str | None = None) -> Leaderboard:
+    """Read and analyse every complete cell under ``store_root``.
+
+    ``reference``: the method every cell is compared with; None means ``copy-last`` where a
+    group has it. A reference named explicitly must be a method of the store.
+    """
     from threadpoolctl import threadpool_limits
 
     # The products are small (resamples x units x metrics): BLAS threads only add overhead.
@@ -115,7 +119,7 @@ def collect(store_root: Path, resampling: stats.Resampling | None = None,
         return _collect(Path(store_root), resampling or stats.Resampling(), reference)
 
 
-def _collect(store_root: Path, resampling: stats.Resampling, reference: str) -> Leaderboard:
+def _collect(store_root: Path, resampling: stats.Resampling, reference: str | None) -> Leaderboard:
     rows, step_rows, sums, notes = [], [], [], []
     versions = {False: {}, True: {}}
     units: dict[str, str] = {}
@@ -168,6 +172,14 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str) -> 
     all_names = set(versions[False]) | set(versions[True])
     metric_cols = sorted(all_names, key=lambda n: (PREFERRED_ORDER.index(n) if n in PREFERRED_ORDER else 99, n))
     table = pd.DataFrame(rows)
+    if len(table) and reference is not None and reference not in set(table["method"]):
+        raise unknown_name("reference method", reference, set(table["method"]), "the store has no cell of it")
+    reference = reference or DEFAULT_REFERENCE
+    for _, r in table.iterrows():
+        if r["ci_units"] < stats.MIN_UNITS:
+            limit = f" (limit={int(r['limit'])})" if r["partial"] else ""
+            notes.append(f"{r['dataset']} / {r['split']} / {r['setting']}{limit} {r['variant']}: {r['ci_units']} "
+                         f"resampling unit(s) ({resampling.unit}), too few for an interval")
     comparisons = _compare_groups(table, sums, reference, resampling, notes) if len(table) else pd.DataFrame()
     if len(table):
         for flag in ("partial",):
@@ -247,13 +259,12 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     lb = leaderboard or collect(store_root, options.resampling, options.reference)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    alpha = 1 - options.resampling.confidence
     paths: dict[str, Path] = {}
 
     def render(preset, stem: Path, key: str | None) -> None:
         t = tables.build(lb, preset, options.ci)
-        tex, _fit = tables.latex(t, alpha)  # the fit is the .tex file's first line
-        for ext, content in (("md", tables.markdown(t, alpha)), ("tex", tex), ("html", tables.html_page(t, alpha))):
+        tex, _fit = tables.latex(t)  # the fit is the .tex file's first line
+        for ext, content in (("md", tables.markdown(t)), ("tex", tex), ("html", tables.html_page(t))):
             p = stem.with_suffix(f".{ext}")
             p.write_text(content)
             paths[f"{key}.{ext}" if key else ext] = p
@@ -278,4 +289,4 @@ def summary(store_root: Path, options: ReportOptions | None = None, leaderboard:
     options = options or ReportOptions()
     preset = tables.get_preset(options.preset, tables.load_presets(options.tables_file))
     lb = leaderboard or collect(store_root, options.resampling, options.reference)
-    return tables.text(tables.build(lb, preset, options.ci), 1 - options.resampling.confidence)
+    return tables.text(tables.build(lb, preset, options.ci))

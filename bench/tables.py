@@ -151,6 +151,7 @@ class Table:
     legend: list[str]
     notes: list[str]
     ci: str = "pm"
+    alpha: float = 0.05  # a change with p >= alpha is a tie
 
 
 def _title(r: pd.Series, horizon_s: float | None) -> str:
@@ -217,7 +218,7 @@ def build(lb, preset: Preset, ci: str = "pm") -> Table:
         "-: no sweep could be scored",
     ]
     return Table(preset, columns, _groups(lb.table, columns, rank), _groups(lb.partial, columns, rank),
-                 legend, notes + list(lb.notes), ci)
+                 legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence)
 
 
 # -- formatting ------------------------------------------------------------------------
@@ -255,7 +256,7 @@ class Parts:
     title: str = ""
 
 
-def cell_parts(row: pd.Series, col: ShownColumn, best: dict[str, float], ci: str) -> Parts:
+def cell_parts(row: pd.Series, col: ShownColumn, best: dict[str, float], ci: str, alpha: float) -> Parts:
     m, unit = col.metric, col.unit
     v = row.get(m, math.nan)
     if v is None or not math.isfinite(v):
@@ -272,13 +273,9 @@ def cell_parts(row: pd.Series, col: ShownColumn, best: dict[str, float], ci: str
     rel, pv = row.get(f"{m}_rel", math.nan), row.get(f"{m}_p", math.nan)
     if rel is not None and math.isfinite(rel):
         p.change = f"{100 * rel:+.0f} %"
-        p.tie = not (pv is not None and math.isfinite(pv) and pv < row.get("_alpha", 0.05))
+        p.tie = not (pv is not None and math.isfinite(pv) and pv < alpha)
         p.title += f"; {p.change} vs reference, p = {pv:.3g}"
     return p
-
-
-def _with_alpha(g: Group, alpha: float) -> pd.DataFrame:
-    return g.rows.assign(_alpha=alpha)
 
 
 def _header_label(c: ShownColumn) -> str:
@@ -305,46 +302,46 @@ def _md_cell(p: Parts) -> str:
     return s
 
 
-def _md_groups(t: Table, groups: list[Group], alpha: float, level: str) -> list[str]:
+def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
     failed = _show_failed(t)
     head = ["method", "n"] + (["failed"] if failed else []) + [_header_label(c) for c in t.columns]
     out = []
     for g in groups:
         out += [f"{level} {g.title}", "", "| " + " | ".join(head) + " |",
                 "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
-        for _, r in _with_alpha(g, alpha).iterrows():
+        for _, r in g.rows.iterrows():
             cells = [_label(r, g).replace("|", "\\|"), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
-            cells += [_md_cell(cell_parts(r, c, g.best, t.ci)) for c in t.columns]
+            cells += [_md_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
     return out
 
 
-def markdown(t: Table, alpha: float, heading: str = "#") -> str:
+def markdown(t: Table, heading: str = "#") -> str:
     lines = [f"{heading} pcfbench leaderboard: {t.preset.title}", ""]
     lines += [f"- {x}" for x in t.legend] + [""]
     lines += [f"> note: {n}" for n in t.notes] + ([""] if t.notes else [])
     if not t.groups:
         lines += ["No complete cells in the store yet: run `pcfbench run` first.", ""]
-    lines += _md_groups(t, t.groups, alpha, heading + "#")
+    lines += _md_groups(t, t.groups, heading + "#")
     if t.partial:
         lines += [f"{heading}# PARTIAL runs (--limit): the first N samples only, not comparable with the tables above", ""]
-        lines += _md_groups(t, t.partial, alpha, heading + "##")
+        lines += _md_groups(t, t.partial, heading + "##")
     return "\n".join(lines).rstrip() + "\n"
 
 
 # -- plain text (the terminal) ---------------------------------------------------------
-def text(t: Table, alpha: float) -> str:
+def text(t: Table) -> str:
     """A compact fixed-width summary: the preset's columns with their intervals."""
     out = []
     for title, groups in (("", t.groups), ("PARTIAL (--limit) ", t.partial)):
         for g in groups:
             head = ["method", "n"] + [_header_label(c) for c in t.columns]
             rows = []
-            for _, r in _with_alpha(g, alpha).iterrows():
+            for _, r in g.rows.iterrows():
                 cells = [_label(r, g), str(int(r["samples"]))]
                 for c in t.columns:
-                    p = cell_parts(r, c, g.best, t.ci)
+                    p = cell_parts(r, c, g.best, t.ci, t.alpha)
                     s = ("*" if p.best else "") + p.value + (f" {p.ci}" if p.ci else "")
                     cells.append(s + (f" {p.change}{'†' if p.tie else ''}" if p.change else ""))
                 rows.append(cells)
@@ -406,7 +403,7 @@ def _tex_head(c: ShownColumn) -> tuple[str, int]:
             max(len(top), len(bottom) + 2))
 
 
-def latex(t: Table, alpha: float) -> tuple[str, str]:
+def latex(t: Table) -> tuple[str, str]:
     """The booktabs table (a fragment for \\input) and how it was fitted to an A4 page.
 
     Needs \\usepackage{booktabs,graphicx,rotating}. The width is estimated from the longest
@@ -426,12 +423,12 @@ def latex(t: Table, alpha: float) -> tuple[str, str]:
         body.append(r"\midrule")
         title = ("PARTIAL (--limit), not comparable: " if partial else "") + g.title
         body.append(rf"\multicolumn{{{ncols}}}{{l}}{{\textit{{{tex_escape(title)}}}}} \\")
-        for _, r in _with_alpha(g, alpha).iterrows():
+        for _, r in g.rows.iterrows():
             label = _label(r, g)
             cells = [tex_escape(label), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
             widths[0] = max(widths[0], len(label))
             for i, c in enumerate(t.columns):
-                s, w = _tex_cell(cell_parts(r, c, g.best, t.ci))
+                s, w = _tex_cell(cell_parts(r, c, g.best, t.ci, t.alpha))
                 cells.append(s)
                 j = 2 + int(failed) + i
                 widths[j] = max(widths[j], w)
@@ -497,34 +494,34 @@ def _html_cell(p: Parts) -> str:
     return f"<td{title}>{s}</td>"
 
 
-def html_table(t: Table, groups: list[Group], alpha: float, caption: str) -> str:
+def html_table(t: Table, groups: list[Group], caption: str) -> str:
     failed = _show_failed(t)
     head = ["<th class='method'>method</th>", "<th>n</th>"] + (["<th>failed</th>"] if failed else [])
     head += [f"<th>{_html.escape(_header_label(c))}</th>" for c in t.columns]
     rows = []
     for g in groups:
         rows.append(f"<tr class='group'><th colspan='{len(head)}'>{_html.escape(g.title)}</th></tr>")
-        for _, r in _with_alpha(g, alpha).iterrows():
+        for _, r in g.rows.iterrows():
             cells = [f"<td class='method'>{_html.escape(_label(r, g))}</td>", f"<td>{int(r['samples'])}</td>"]
             cells += [f"<td>{int(r['failed'])}</td>"] if failed else []
-            cells += [_html_cell(cell_parts(r, c, g.best, t.ci)) for c in t.columns]
+            cells += [_html_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             rows.append("<tr>" + "".join(cells) + "</tr>")
     return (f"<table class='pcf'><caption>{_html.escape(caption)}</caption><thead><tr>{''.join(head)}</tr></thead>"
             f"<tbody>\n" + "\n".join(rows) + "\n</tbody></table>")
 
 
-def html_page(t: Table, alpha: float) -> str:
+def html_page(t: Table) -> str:
     parts = [f"<h1>pcfbench leaderboard: {_html.escape(t.preset.title)}</h1>", "<ul>"]
     parts += [f"<li>{_html.escape(x)}</li>" for x in t.legend] + ["</ul>"]
     parts += [f"<p class='note'>note: {_html.escape(n)}</p>" for n in t.notes]
     if t.groups:
-        parts.append(html_table(t, t.groups, alpha, t.preset.title))
+        parts.append(html_table(t, t.groups, t.preset.title))
     else:
         parts.append("<p>No complete cells in the store yet: run <code>pcfbench run</code> first.</p>")
     if t.partial:
         parts.append("<div class='partial'><h2>PARTIAL runs (--limit): the first N samples only, "
                      "not comparable with the table above</h2>")
-        parts.append(html_table(t, t.partial, alpha, "partial runs") + "</div>")
+        parts.append(html_table(t, t.partial, "partial runs") + "</div>")
     return ("<!doctype html><html><head><meta charset='utf-8'>"
             f"<title>pcfbench leaderboard: {_html.escape(t.preset.title)}</title>"
             f"<style>body{{font-family:sans-serif}}{HTML_STYLE}</style></head><body>\n"

@@ -178,16 +178,16 @@ def test_latex_booktabs_right_aligned_real_units_and_fit_note(board):
 
 def test_latex_width_estimate_picks_the_page_layout():
     lb = _tiny_board({"chamfer": 1.0})
-    narrow = tables.latex(tables.build(lb, tables.Preset("n", "narrow", (tables.Column("chamfer", "CD"),)), "none"), 0.05)
+    narrow = tables.latex(tables.build(lb, tables.Preset("n", "narrow", (tables.Column("chamfer", "CD"),)), "none"))
     assert "fits the A4 text width" in narrow[1] and r"\begin{table}" in narrow[0] and "resizebox" not in narrow[0]
     seven = _tiny_board({f"metric_{i}": 1.0 + i for i in range(7)})
-    small = tables.latex(tables.build(seven, tables.Preset("s", "seven", None), "pm"), 0.05)
+    small = tables.latex(tables.build(seven, tables.Preset("s", "seven", None), "pm"))
     assert "footnotesize to fit" in small[1] and r"\centering\footnotesize" in small[0] and r"\begin{table}" in small[0]
     nine = _tiny_board({f"metric_{i}": 1.0 + i for i in range(9)})
-    mid = tables.latex(tables.build(nine, tables.Preset("m", "nine", None), "pm"), 0.05)
+    mid = tables.latex(tables.build(nine, tables.Preset("m", "nine", None), "pm"))
     assert "switched to a landscape table (sidewaystable)" in mid[1] and "resizebox" not in mid[0]
     wide = _tiny_board({f"metric_{i}": 1.0 + i for i in range(14)})
-    big = tables.latex(tables.build(wide, tables.Preset("w", "wide", None), "pm"), 0.05)
+    big = tables.latex(tables.build(wide, tables.Preset("w", "wide", None), "pm"))
     assert "scaled to the page" in big[1] and r"\resizebox{\linewidth}" in big[0] and "sidewaystable" in big[0]
 
 
@@ -296,6 +296,32 @@ def test_summary_and_cli_report(board, tmp_path):
     bad = CliRunner().invoke(build_cli(), ["report", "--store", str(store), "--reports", str(tmp_path / "r"),
                                            "--resample", "block:0"])
     assert bad.exit_code == 2 and "block:N with N >= 1" in bad.output
+
+
+def test_reference_choice(board, tmp_path):
+    store, _, _ = board
+    with pytest.raises(PcfbenchError, match="unknown reference method 'copy-lst'; did you mean 'copy-last'"):
+        collect(store, reference="copy-lst")
+    lb = collect(store, reference="shifted")
+    ref = lb.table[lb.table.is_reference]
+    assert ref["variant"].tolist() == ["shifted (dx=0)"]  # the shortest label of the method: its first variant
+    assert lb.table.loc[lb.table.variant == "copy-last", "chamfer_rel"].iloc[0] == 0
+    md = write_reports(store, tmp_path / "r", ReportOptions(reference="shifted"))["md"].read_text()
+    assert "shifted (dx=0) (ref)" in md and "reference 'shifted'" in md
+
+
+def test_too_few_units_are_noted(board):
+    store, _, _ = board
+    from pcfbench.stats import Resampling
+
+    lb = collect(store, Resampling.parse("block:100"))  # one block per sequence: 2 units
+    assert (lb.table["ci_units"] == 2).all()
+    # the --limit 2 cells hold 2 samples of one sequence: one unit, no interval, and a note says so
+    assert (lb.partial["ci_units"] == 1).all() and lb.partial["chamfer_lo"].isna().all()
+    assert lb.notes == [f"kitti / test / kitti-1s (limit=2) {v}: 1 resampling unit(s) (block), too few for an interval"
+                        for v in ("copy-last", "shifted (dx=0.5)")]
+    one = tables.build(_tiny_board({"chamfer": 1.0}), tables.Preset("p", "p", None))
+    assert one.notes == []
 
 
 def test_empty_store_reports_nothing_yet(tmp_path):
