@@ -362,6 +362,18 @@ def tex_escape(s: str) -> str:
     return "".join(_TEX_ESCAPES.get(ch, ch) for ch in str(s))
 
 
+_TEX_SYMBOLS = {"±": r"$\pm$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "†": r"$^\dagger$", ">=": r"$\geq$",
+                "<=": r"$\leq$", "<": r"$<$", ">": r"$>$", "²": r"$^2$"}
+
+
+def tex_text(s: str) -> str:
+    """Escape ``s`` for LaTeX text mode, with the symbols the legends use as math."""
+    out = tex_escape(s)
+    for sym, tex in _TEX_SYMBOLS.items():
+        out = out.replace(sym, tex)
+    return out
+
+
 def tex_unit(unit: str) -> str:
     """A metric unit in LaTeX math: m -> \\mathrm{m}, m^2 -> \\mathrm{m}^2, fraction -> \\%."""
     if unit == "fraction":
@@ -396,10 +408,10 @@ def _tex_head(c: ShownColumn) -> tuple[str, int]:
     arrow = r" $\downarrow$" if c.better == "lower" else r" $\uparrow$"
     words = c.label.split(" ")
     if len(words) == 1:
-        return tex_escape(c.label) + arrow, len(c.label) + 2
+        return tex_text(c.label) + arrow, len(c.label) + 2
     cut = min(range(1, len(words)), key=lambda k: abs(len(" ".join(words[:k])) - len(" ".join(words[k:]))))
     top, bottom = " ".join(words[:cut]), " ".join(words[cut:])
-    return (r"\begin{tabular}[b]{@{}r@{}}" + tex_escape(top) + r"\\" + tex_escape(bottom) + arrow + r"\end{tabular}",
+    return (r"\begin{tabular}[b]{@{}r@{}}" + tex_text(top) + r"\\" + tex_text(bottom) + arrow + r"\end{tabular}",
             max(len(top), len(bottom) + 2))
 
 
@@ -422,10 +434,10 @@ def latex(t: Table) -> tuple[str, str]:
     for g, partial in groups:
         body.append(r"\midrule")
         title = ("PARTIAL (--limit), not comparable: " if partial else "") + g.title
-        body.append(rf"\multicolumn{{{ncols}}}{{l}}{{\textit{{{tex_escape(title)}}}}} \\")
+        body.append(rf"\multicolumn{{{ncols}}}{{l}}{{\textit{{{tex_text(title)}}}}} \\")
         for _, r in g.rows.iterrows():
             label = _label(r, g)
-            cells = [tex_escape(label), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
+            cells = [tex_text(label), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
             widths[0] = max(widths[0], len(label))
             for i, c in enumerate(t.columns):
                 s, w = _tex_cell(cell_parts(r, c, g.best, t.ci, t.alpha))
@@ -450,8 +462,7 @@ def latex(t: Table) -> tuple[str, str]:
             resize = True
             fit = (f"switched to a landscape table scaled to the page: about {est:.0f} pt wide, "
                    f"more than the A4 landscape text width of {A4_TEXTHEIGHT_PT:.0f} pt")
-    caption = tex_escape(t.preset.title) + ". " + tex_escape("; ".join(t.legend[:4]).replace("±", "+-")).replace("+-", r"$\pm$")
-    caption = caption.replace("↓", r"$\downarrow$").replace("†", r"$^\dagger$")
+    caption = tex_text(t.preset.title) + ". " + tex_text("; ".join(t.legend[:4]))
     lines = [
         f"% pcfbench leaderboard, preset {t.preset.name}: {fit}",
         r"% needs \usepackage{booktabs,graphicx,rotating}",

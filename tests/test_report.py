@@ -174,6 +174,15 @@ def test_latex_booktabs_right_aligned_real_units_and_fit_note(board):
     assert r"$\mathrm{m}^{2}$" in tex and r"$\mathrm{m}$" in tex and "m^2" not in tex.replace(r"\mathrm{m}^{2}", "")
     assert r"$\downarrow$" in tex and r"$\pm$" in tex and r"\textbf{" in tex
     assert "shifted (dx=0.5)" in tex and r"$^\dagger$" in tex
+    assert [ch for ch in tex if ord(ch) > 127] == []  # pdflatex without inputenc setup chokes on the rest
+
+
+def test_latex_text_escapes_and_symbols():
+    assert tables.tex_text("my_method [a&b] 50 % #1 {x} ~ ^") == (
+        r"my\_method [a\&b] 50 \% \#1 \{x\} \textasciitilde{} \textasciicircum{}")
+    assert tables.tex_text("p >= 0.05 ↓ ↑ † ±") == r"p $\geq$ 0.05 $\downarrow$ $\uparrow$ $^\dagger$ $\pm$"
+    assert tables.tex_unit("m^2") == r"$\mathrm{m}^{2}$" and tables.tex_unit("fraction") == r"\%"
+    assert tables.unit_text("m^2") == "m²" and tables.unit_text("fraction") == "%"
 
 
 def test_latex_width_estimate_picks_the_page_layout():
