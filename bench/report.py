@@ -51,7 +51,8 @@ class Leaderboard:
     """``table`` / ``partial``: one row per complete (resp. ``--limit``) cell, holding per
     metric ``m`` the flat mean ``m``, its interval ``m_lo``/``m_hi``, the skipped sweeps
     ``m__skipped`` and against the reference ``m_rel`` (relative change) and ``m_p``.
-    ``by_step``: one row per (cell, future step) with the step's time in seconds.
+    ``by_step``: one row per (cell, future step) with the step's time in seconds (``partial``
+    marks the ``--limit`` cells' rows).
     ``comparisons``: one row per (cell, metric) paired comparison."""
 
     table: pd.DataFrame
@@ -160,6 +161,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             seconds = _step_seconds(spec.setting, np.array([s for s, _ in groups]), notes)
             for (step, g), t in zip(groups, seconds):
                 srow = {k: base[k] for k in ("dataset", "split", "setting", "policy", "method", "variant", "options_hash", "limit")}
+                srow["partial"] = partial
                 srow.update(step=int(step), time_s=float(t), sweeps=len(g))
                 siv = stats.interval(stats.sample_sums(g, names), resampling)
                 for j, name in enumerate(names):
@@ -182,8 +184,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
                          f"resampling unit(s) ({resampling.unit}), too few for an interval")
     comparisons = _compare_groups(table, sums, reference, resampling, notes) if len(table) else pd.DataFrame()
     if len(table):
-        for flag in ("partial",):
-            table[flag] = table[flag].astype(bool)
+        table["partial"] = table["partial"].astype(bool)
         table = table.sort_values(GROUP_KEYS + ["variant"], na_position="first").reset_index(drop=True)
         complete, partial_t = table[~table["partial"]], table[table["partial"]]
     else:
@@ -274,8 +275,10 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     _csv_frame(lb, lb.table).to_csv(paths["csv"], index=False)
     paths["partial_csv"] = out_dir / "leaderboard_partial.csv"
     _csv_frame(lb, lb.partial).to_csv(paths["partial_csv"], index=False)
-    paths["by_step"] = out_dir / "leaderboard_by_step.csv"
-    lb.by_step.to_csv(paths["by_step"], index=False)
+    for key, name, keep in (("by_step", "leaderboard_by_step.csv", False), ("partial_by_step", "leaderboard_partial_by_step.csv", True)):
+        paths[key] = out_dir / name
+        steps = lb.by_step[lb.by_step["partial"] == keep] if len(lb.by_step) else lb.by_step
+        steps.drop(columns="partial", errors="ignore").to_csv(paths[key], index=False)
     paths["comparisons"] = out_dir / "leaderboard_comparisons.csv"
     lb.comparisons.to_csv(paths["comparisons"], index=False)
     (out_dir / "tables").mkdir(exist_ok=True)

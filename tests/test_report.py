@@ -110,7 +110,10 @@ def test_csv_has_the_old_lead_columns_option_columns_and_comparisons(board):
 def test_by_step_gives_seconds(board):
     _, _, paths = board
     by_step = pd.read_csv(paths["by_step"])
-    cell = by_step[(by_step.variant == "copy-last") & by_step.limit.isna()].sort_values("step")
+    assert by_step.limit.isna().all() and len(by_step) == 3 * 5  # complete cells only
+    partial = pd.read_csv(paths["partial_by_step"])
+    assert (partial.limit == 2).all() and len(partial) == 2 * 5
+    cell = by_step[by_step.variant == "copy-last"].sort_values("step")
     setting = pcfbench.protocol.get_setting("kitti-1s")
     assert cell["time_s"].tolist() == pytest.approx([setting.step_seconds(k) for k in range(5)])
     assert cell["time_s"].iloc[-1] == pytest.approx(setting.horizon_s)
