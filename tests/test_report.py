@@ -340,3 +340,16 @@ def test_empty_store_reports_nothing_yet(tmp_path):
     paths = write_reports(tmp_path / "none", tmp_path / "r")
     assert "No complete cells in the store yet" in paths["md"].read_text()
     assert list(pd.read_csv(paths["csv"]).columns[:9])[0] == "dataset"
+
+
+def test_run_prints_the_summary_table(tiny_kitti, tmp_path):
+    from pcfbench.cli import build_cli
+
+    res = CliRunner().invoke(build_cli(), ["run", "--dataset", f"kitti={tiny_kitti}", "--setting", "kitti-1s",
+                                           "--method", "copy-last", "--reports", str(tmp_path / "rep"), "-q"])
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    at = lines.index("kitti / test / kitti-1s (1 s) - 6 samples, 30 sweeps")
+    assert lines[at + 1].split()[:3] == ["method", "n", "Chamfer"]
+    assert lines[at + 2].startswith("copy-last (ref)") and "±" in lines[at + 2]
+    assert lines[-1] == f"leaderboard: {tmp_path / 'rep' / 'leaderboard.md'}"
