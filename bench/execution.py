@@ -79,9 +79,10 @@ class ExecutionContext:
 
     def map(self, fn: Callable[[_T], _R], items: Iterable[_T]) -> list[_R]:
         """``[fn(x) for x in items]``, the items shared out over the pool as its workers come
-        free; in this thread, numba on one thread, when there is one thread or one item."""
+        free; in this thread, numba on one thread, when there is one thread or one item or
+        this thread is itself a pool worker (a job never waits for the pool it runs in)."""
         items = list(items)
-        if self.threads == 1 or len(items) <= 1:
+        if self.threads == 1 or len(items) <= 1 or in_pool_worker():
             import numba
 
             before = numba.get_num_threads()
@@ -96,6 +97,12 @@ class ExecutionContext:
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 _CURRENT: ExecutionContext | None = None
+_WORKER = threading.local()
+
+
+def in_pool_worker() -> bool:
+    """True in a worker thread of a context's pool (work started there stays on that thread)."""
+    return getattr(_WORKER, "active", False)
 
 
 def _forget_pools_in_child() -> None:  # a forked child has the dicts but not the threads
@@ -118,6 +125,7 @@ def _pin_pool_thread() -> None:
 
     numba.set_num_threads(1)
     threadpool_limits(1, user_api="openmp")
+    _WORKER.active = True
 
 
 def pool_sizes() -> list[int]:

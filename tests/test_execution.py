@@ -71,6 +71,31 @@ def test_the_pool_is_made_once_per_size_and_its_workers_run_one_thread_each():
         assert numba_threads == 1 and all(n == 1 for n in openmp)
 
 
+def test_work_started_inside_a_pool_worker_stays_on_that_thread():
+    """Every worker asking the same pool for more work would wait for itself: it runs inline."""
+    import threading
+
+    from pcfbench.execution import in_pool_worker
+    from pcfbench.metrics import nn
+
+    ctx = ExecutionContext(2)
+    rng = np.random.default_rng(3)
+    pred_rel, gt_rel = rng.normal(size=(300, 3)) * 20, rng.normal(size=(250, 3)) * 20
+    want = nn.nearest_angles(pred_rel, gt_rel, ExecutionContext(1))
+
+    def job(_):
+        me = threading.get_ident()
+        inner = ctx.map(lambda x: (x, threading.get_ident()), range(5))
+        got = nn.nearest_angles(pred_rel, gt_rel, ctx)
+        return in_pool_worker(), {t for _, t in inner} == {me}, got
+
+    assert not in_pool_worker()
+    for worker, inline, got in ctx.map(job, range(4)):  # 4 jobs on 2 workers: all would block
+        assert worker and inline
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+
+
 def test_applied_pins_this_process_and_puts_everything_back():
     import numba
     import torch
@@ -254,7 +279,8 @@ def _probe_env(tmp_path: Path) -> dict[str, str]:
     (site / "thread_probe_plugin.py").write_text(_PROBE)
     out = tmp_path / "records"
     out.mkdir()
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(site), str(TESTS)]), PCFBENCH_PLUGINS="thread-probe",
+    path = [str(site), str(TESTS)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path), PCFBENCH_PLUGINS="thread-probe",
                THREAD_PROBE_OUT=str(out), PCFBENCH_NO_PROGRESS="1")
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         env.pop(var, None)

@@ -13,7 +13,7 @@ import numba
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from pcfbench.execution import ExecutionContext, current
+from pcfbench.execution import ExecutionContext, current, in_pool_worker
 from pcfbench.nn2d import NN2D, PER_CELL
 
 TWO_PI = 2.0 * np.pi
@@ -158,17 +158,17 @@ def nearest_angles(pred_rel: np.ndarray, gt_rel: np.ndarray,
     """nearest_angle_4docc and nearest_angle_wrapped together, over the threads of
     ``execution`` (default: the process's, ``pcfbench.execution.current()``).
 
-    One thread: one search after the other. More: the angles and grids of the two spaces are
-    made as two jobs of the context's pool; then both grid passes are cut into CHUNK-query
-    pieces that the pool's threads take as they come free (a thread slowed by other load takes
-    fewer), and each space's far queries are answered by a job queued right after its pieces.
-    The calling thread only waits, so at most ``execution.threads`` threads are busy; it must
-    not be a worker of that pool. The answer of a query does not depend on the piece it is in
-    (pcfbench.nn2d), so it is the same as one whole pass's, whatever the thread count.
+    One thread (or called from a pool worker): one search after the other. More: the angles
+    and grids of the two spaces are made as two jobs of the context's pool; then both grid
+    passes are cut into CHUNK-query pieces that the pool's threads take as they come free (a
+    thread slowed by other load takes fewer), and each space's far queries are answered by a
+    job queued right after its pieces. The calling thread only waits, so at most
+    ``execution.threads`` threads are busy. The answer of a query does not depend on the piece
+    it is in (pcfbench.nn2d), so it is the same as one whole pass's, whatever the thread count.
     """
     execution = execution or current()
     spaces = ((angles_4docc, 0.0, PER_CELL_4DOCC), (angles_az_el, TWO_PI, PER_CELL_WRAPPED))
-    if execution.threads == 1:
+    if execution.threads == 1 or in_pool_worker():
         out = []
         for angles, period, per_cell in spaces:
             search = _Search2D(angles(pred_rel), angles(gt_rel), period, per_cell)
