@@ -5,7 +5,7 @@ busy at once. The runner decides it (``--jobs N`` with a budget of C threads: ea
 gets ``max(1, C // N)``; a serial run all C) and hands it to the method
 (``Method.execution``) and to the metrics (``score_sample``). ``apply`` (a worker process,
 for good) and ``applied`` (the calling process, for a while) pin numba, torch and the
-BLAS/OpenMP libraries to it. Importing a pcfbench module changes no thread setting.
+BLAS/OpenMP libraries to it.
 
 Invariant: under a context of n threads at most n threads are busy. The calling thread either
 works itself (numba kernels, torch and BLAS on at most n threads once the context is applied)
@@ -13,8 +13,11 @@ or waits while ``map`` or ``pool`` jobs run on the context's pool of n threads, 
 runs its numba kernels and OpenMP regions on one thread. Pool jobs must not call threaded
 BLAS on large arrays: OpenBLAS's thread count is process-wide, not per thread.
 
+Importing a pcfbench module changes no thread setting; before its first parallel work
+(``map``, ``pool``, ``apply``) pcfbench asks numba for its OpenMP layer (``_prefer_omp``).
+
 Results must not depend on the number of threads: work is cut into pieces whose answers do
-not depend on the cut (tests/test_execution.py compares 1 and 2 threads bit for bit).
+not depend on the cut (tests/test_execution.py compares 1, 2 and 3 threads bit for bit).
 """
 
 from __future__ import annotations
@@ -69,6 +72,7 @@ class ExecutionContext:
         workers' thread-local buffers are too). Each worker runs numba kernels and OpenMP
         regions on one thread. Jobs may wait for jobs submitted before them (the queue is
         first in, first out), never for later ones."""
+        _prefer_omp()
         with _POOLS_LOCK:
             pool = _POOLS.get(self.threads)
             if pool is None:
@@ -82,6 +86,7 @@ class ExecutionContext:
         free; in this thread, numba on one thread, when there is one thread or one item or
         this thread is itself a pool worker (a job never waits for the pool it runs in)."""
         items = list(items)
+        _prefer_omp()  # the jobs run numba's parallel kernels, concurrently
         if self.threads == 1 or len(items) <= 1 or in_pool_worker():
             import numba
 
@@ -140,16 +145,18 @@ def current() -> ExecutionContext:
 
 
 def _prefer_omp() -> None:
-    """Ask numba for its OpenMP threading layer first, if it has not chosen one yet: the pool
-    workers launch numba kernels concurrently, which the workqueue layer cannot do, and an
-    older TBB than numba wants makes every process warn."""
+    """Ask numba for its OpenMP threading layer first, unless numba has chosen one already or
+    the user named one: the pool workers launch numba kernels concurrently, which the
+    workqueue layer cannot do, and an older TBB than numba wants (open3d ships one) makes
+    every process warn. Called before pcfbench's parallel work, never at import."""
     import numba
 
     try:
         from numba.np.ufunc import parallel
     except ImportError:  # pragma: no cover - numba moved it; keep numba's own choice
         return
-    if getattr(parallel, "_is_initialized", True) or numba.config.THREADING_LAYER != "default":
+    if (getattr(parallel, "_is_initialized", True) or numba.config.THREADING_LAYER != "default"
+            or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ):
         return
     order = list(numba.config.THREADING_LAYER_PRIORITY)
     numba.config.THREADING_LAYER_PRIORITY = ["omp"] + [layer for layer in order if layer != "omp"]

@@ -320,3 +320,26 @@ def test_jobs_2_workers_stay_within_the_thread_budget(tmp_path, threads):
             firsts.setdefault(r["pid"], r)
         assert any(r["pools"] == [share] for r in records if r is not firsts[r["pid"]])
     assert all(r["worker"] for r in records)
+
+
+def test_parallel_work_outside_the_runner_asks_numba_for_openmp_first():
+    """No context applied (a notebook, a test): the first map still gets numba's OpenMP layer,
+    so the TBB that open3d ships (older than numba wants) is never tried and never warned about."""
+    script = textwrap.dedent("""
+        import json, warnings
+        import open3d  # noqa: F401 - loads its own TBB
+        import numba
+        from pcfbench.methods.raycast.zbuffer import RaycastZBuffer
+        from pcfbench.testing import toy_sample
+        sample, _ = toy_sample()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            RaycastZBuffer().forecast(sample)
+        print(json.dumps({"layer": numba.threading_layer(), "warnings": [str(w.message) for w in caught]}))
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                         env={k: v for k, v in os.environ.items() if not k.startswith("NUMBA_THREADING_LAYER")})
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["layer"] == "omp"
+    assert not [w for w in got["warnings"] if "TBB" in w], got["warnings"]
