@@ -1,8 +1,15 @@
 """Plugin loading and the registries of datasets, methods and metrics.
 
 Built-ins and third-party plugins load the same way: entry points of the ``pcfbench``
-group. ``PCFBENCH_PLUGINS`` (comma-separated entry-point names) allow-lists third-party
-plugins (empty: none); ``PCFBENCH_BLOCK_PLUGINS`` blocks plugins by name, built-ins too.
+group. Built-ins are the entry points of the ``pcfbench`` distribution itself
+(``ep.dist.name``), never recognised by their name: a third-party entry point called
+``builtin-...`` is a third-party plugin like any other, and one that takes the name of a
+built-in is refused (reported, never loaded). ``PCFBENCH_PLUGINS`` (comma-separated
+entry-point names) allow-lists third-party plugins (empty: none); ``PCFBENCH_BLOCK_PLUGINS``
+blocks plugins by name, built-ins too.
+
+Registration is transactional per plugin: a plugin whose registration hook raises (a
+duplicate name, a bad target, its own error) keeps nothing it registered, in any registry.
 """
 
 from __future__ import annotations
@@ -21,6 +28,15 @@ from pcfbench import hookspecs
 from pcfbench.errors import PluginError, UnknownNameError, unknown_name
 
 BUILTIN_PREFIX = "builtin-"
+#: the distribution whose entry points are the built-ins
+BUILTIN_DISTRIBUTION = "pcfbench"
+
+
+def is_builtin_entry_point(ep: importlib.metadata.EntryPoint) -> bool:
+    """True for an entry point of the ``pcfbench`` distribution itself (whatever its name)."""
+    dist = getattr(ep, "dist", None)
+    name = getattr(dist, "name", None) if dist is not None else None
+    return name is not None and name.replace("_", "-").lower() == BUILTIN_DISTRIBUTION
 
 
 @dataclass
@@ -47,6 +63,13 @@ class Registry:
         self._check = check
         self.entries: dict[str, Entry] = {}
         self.failed_plugins: dict[str, str] = {}
+
+    def remove_plugin(self, plugin: str) -> list[str]:
+        """Drop every entry ``plugin`` registered (a failed plugin keeps nothing); their names."""
+        gone = [name for name, entry in self.entries.items() if entry.plugin == plugin]
+        for name in gone:
+            del self.entries[name]
+        return gone
 
     def add(self, name: str, target: Any, plugin: str, description: str = "") -> None:
         if not isinstance(name, str) or not name or any(c.isspace() for c in name):
@@ -106,8 +129,14 @@ class Register:
     def __init__(self, registry: Registry, plugin: str) -> None:
         self._registry = registry
         self.plugin = plugin
+        self.closed = False
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise PluginError(f"plugin {self.plugin!r}: register called after its registration hook returned")
 
     def __call__(self, name: str, target: Any, description: str = "") -> None:
+        self._check_open()
         self._registry.add(name, target, self.plugin, description)
 
 
@@ -129,6 +158,7 @@ class SettingRegister(Register):
     def __call__(self, setting: Any) -> None:  # type: ignore[override]
         from pcfbench.protocol import Setting, active_protocol
 
+        self._check_open()
         if not isinstance(setting, Setting):
             raise PluginError(f"plugin {self.plugin!r}: register_settings takes a pcfbench.Setting, got {setting!r}")
         protocol = active_protocol()
@@ -171,6 +201,8 @@ class PluginInfo:
     source: str
     error: str | None = None
     registered: dict[str, list[str]] = field(default_factory=dict)
+    #: an entry point of the pcfbench distribution itself
+    builtin: bool = False
 
 
 class Plugins:
@@ -253,19 +285,34 @@ class Plugins:
         ``register_metrics``, ``register_settings``) of the plugins ``names`` (default: every
         registered plugin), each hook over the plugins in ``call_order``."""
         only = None if names is None else set(names)
+        failed: set[str] = set()
         for kind, (registry, register_cls, hook_name) in self.registries().items():
             for plugin_name in self.call_order(hook_name):
-                if only is not None and plugin_name not in only:
+                if (only is not None and plugin_name not in only) or plugin_name in failed:
                     continue
                 before = set(registry.entries)
+                register = register_cls(registry, plugin_name)
                 try:
-                    self._call(hook_name, plugin_name, register=register_cls(registry, plugin_name))
+                    self._call(hook_name, plugin_name, register=register)
                 except Exception as exc:  # noqa: BLE001 - a broken plugin stays isolated
-                    registry.failed_plugins[plugin_name] = self._record_error(plugin_name, hook_name, exc)
+                    error = self._record_error(plugin_name, hook_name, exc)
+                    self._roll_back(plugin_name, error)
+                    failed.add(plugin_name)
+                    continue
+                finally:
+                    register.closed = True
                 added = set(registry.entries) - before
                 if added:
                     registered = self.info[plugin_name].registered
                     registered[kind] = sorted(set(registered.get(kind, ())) | added)
+
+    def _roll_back(self, plugin_name: str, error: str) -> None:
+        """A plugin's registration failed: remove what it registered from every registry and
+        mark it failed in each (an unknown name then says that it may have provided it)."""
+        for registry, _, _ in self.registries().values():
+            registry.remove_plugin(plugin_name)
+            registry.failed_plugins[plugin_name] = error
+        self.info[plugin_name].registered = {}
 
     def add_commands(self, cli: Any) -> None:
         """Call ``register_commands`` of every plugin in ``call_order``; a plugin whose hook
@@ -290,26 +337,37 @@ def load_plugins() -> Plugins:
     plugins = Plugins()
     allow = _env_list("PCFBENCH_PLUGINS")
     block = _env_list("PCFBENCH_BLOCK_PLUGINS") or set()
-    eps = sorted(importlib.metadata.entry_points(group="pcfbench"), key=lambda ep: (not ep.name.startswith(BUILTIN_PREFIX), ep.name))
+    all_eps = list(importlib.metadata.entry_points(group="pcfbench"))
+    builtin_names = {ep.name for ep in all_eps if is_builtin_entry_point(ep)}
+    # the built-ins first, then the others by name (a stable order, whatever the metadata's)
+    eps = sorted(all_eps, key=lambda ep: (not is_builtin_entry_point(ep), ep.name, ep.value))
     seen: set[str] = set()
-    loaded: list[tuple[importlib.metadata.EntryPoint, Any]] = []
+    loaded: list[tuple[importlib.metadata.EntryPoint, Any, bool]] = []
     for ep in eps:
+        builtin = is_builtin_entry_point(ep)
+        if not builtin and ep.name in builtin_names:
+            dist = getattr(getattr(ep, "dist", None), "name", None) or "an unknown distribution"
+            key = f"{ep.name} ({dist})"
+            plugins._fail(key, ep.value, f"entry point {ep.name!r} of {dist} takes the name of a pcfbench built-in; not loaded")
+            continue
         if ep.name in seen or ep.name in block:
             continue
         seen.add(ep.name)
-        if allow is not None and not ep.name.startswith(BUILTIN_PREFIX) and ep.name not in allow:
+        if allow is not None and not builtin and ep.name not in allow:
             continue
         try:
             module = ep.load()
         except Exception as exc:
             detail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             plugins._fail(ep.name, ep.value, detail)
+            plugins.info[ep.name].builtin = builtin
             continue
-        loaded.append((ep, module))
+        loaded.append((ep, module, builtin))
     # pluggy calls the plugin registered last first (among implementations without tryfirst or
     # trylast): registering in reverse calls the built-ins first, then the others by name
-    for ep, module in reversed(loaded):
-        plugins.register(module, ep.name, ep.value)
+    for ep, module, builtin in reversed(loaded):
+        if plugins.register(module, ep.name, ep.value) or ep.name in plugins.info:
+            plugins.info[ep.name].builtin = builtin
     plugins.collect()
     return plugins
 
