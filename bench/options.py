@@ -12,6 +12,12 @@ the field's type; an unknown key or an unreadable value is one ``PcfbenchError``
 owner, the key and what was expected. The help lives in the field's metadata, which
 ``dataclasses.asdict`` (and so ``options_hash``) never sees: adding or editing help texts keeps
 every option hash.
+
+An option may declare its valid range in the same metadata (``option(0.2, help=..., gt=0,
+max=10)``: ``min``/``max`` inclusive, ``gt``/``lt`` exclusive); ``parse_options`` checks every
+value against it, and refuses NaN and infinities in ``float`` options unless the option says
+``finite=False``, so an option that parses but means nothing is one error before any work.
+Ranges are metadata too: declaring or changing one keeps every option hash.
 """
 
 from __future__ import annotations
@@ -27,18 +33,76 @@ from pcfbench.errors import PcfbenchError, unknown_name
 
 #: the field-metadata key holding an option's help text
 HELP = "pcfbench.help"
+#: the field-metadata key holding an option's valid range (a ``Range``)
+RANGE = "pcfbench.range"
 
 
-def option(default: Any = dataclasses.MISSING, *, help: str, default_factory: Any = dataclasses.MISSING) -> Any:  # noqa: A002
-    """A dataclass field of an ``Options`` class: its default and a one-line help text.
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The valid values of a numeric option: ``min <= v <= max``, ``gt < v < lt`` (each bound
+    optional), and finite unless ``finite`` is False. For a tuple option, every item."""
+
+    min: float | None = None
+    max: float | None = None
+    gt: float | None = None
+    lt: float | None = None
+    finite: bool = True
+
+    def describe(self) -> str:
+        """The range as ``ls --options`` prints it: ``> 0, <= 10``."""
+        parts = [f"{op} {v:g}" for op, v in ((">=", self.min), (">", self.gt), ("<=", self.max), ("<", self.lt))
+                 if v is not None]
+        return ", ".join(parts)
+
+    def problem(self, value: float) -> str | None:
+        """Why ``value`` is outside the range, or None."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return None
+        if value != value or value in (float("inf"), float("-inf")):
+            if self.finite:
+                return f"must be a finite number, got {value!r}"
+            return None
+        for ok, bound, text in (
+            (self.min is None or value >= self.min, self.min, ">="),
+            (self.gt is None or value > self.gt, self.gt, ">"),
+            (self.max is None or value <= self.max, self.max, "<="),
+            (self.lt is None or value < self.lt, self.lt, "<"),
+        ):
+            if not ok:
+                return f"must be {text} {bound:g} (valid: {self.describe()}), got {value!r}"
+        return None
+
+
+def option(
+    default: Any = dataclasses.MISSING, *, help: str, default_factory: Any = dataclasses.MISSING,  # noqa: A002
+    min: float | None = None, max: float | None = None, gt: float | None = None,  # noqa: A002
+    lt: float | None = None, finite: bool = True,
+) -> Any:
+    """A dataclass field of an ``Options`` class: its default, a one-line help text and,
+    for a number, its valid range.
 
     ``help`` says what the value means and its unit; ``pcfbench ls methods --options`` and
-    ``pcfbench ls datasets --options`` print it. It is metadata only: it does not enter the
-    option values, ``dataclasses.asdict`` or ``options_hash``.
+    ``pcfbench ls datasets --options`` print it. ``min``/``max`` (inclusive) and ``gt``/``lt``
+    (exclusive) bound a numeric value; ``finite=False`` admits NaN and infinities in a
+    ``float`` option (refused by default). ``parse_options`` checks them. All of it is
+    metadata only: it does not enter the option values, ``dataclasses.asdict`` or
+    ``options_hash``.
     """
     if not isinstance(help, str) or not help.strip():
         raise TypeError("pcfbench.option needs a non-empty help text (help=...)")
-    return dataclasses.field(default=default, default_factory=default_factory, metadata={HELP: help.strip()})
+    bounds = {"min": min, "max": max, "gt": gt, "lt": lt}
+    for key, bound in bounds.items():
+        if bound is not None and (isinstance(bound, bool) or not isinstance(bound, (int, float)) or bound != bound):
+            raise TypeError(f"pcfbench.option: {key}= must be a number, got {bound!r}")
+    metadata: dict[str, Any] = {HELP: help.strip()}
+    if any(b is not None for b in bounds.values()) or not finite:
+        metadata[RANGE] = Range(min=min, max=max, gt=gt, lt=lt, finite=bool(finite))
+    return dataclasses.field(default=default, default_factory=default_factory, metadata=metadata)
+
+
+def option_range(f: dataclasses.Field) -> Range:
+    """The valid range of an option field (finite, unbounded when it declares none)."""
+    return f.metadata.get(RANGE) or Range()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +118,8 @@ class OptionInfo:
     type: str
     default: Any
     help: str
+    #: the declared range (``> 0, <= 10``), "" when none
+    range: str = ""
 
 
 def _check_options_class(options_cls: Any, owner: str) -> None:
@@ -88,7 +154,8 @@ def describe_options(options_cls: type, owner: str = "options") -> list[OptionIn
             default = f.default_factory()
         else:
             default = dataclasses.MISSING
-        out.append(OptionInfo(f.name, type_name(hints[f.name]), default, f.metadata.get(HELP, "")))
+        out.append(OptionInfo(f.name, type_name(hints[f.name]), default, f.metadata.get(HELP, ""),
+                              option_range(f).describe()))
     return out
 
 
@@ -106,10 +173,31 @@ def parse_options(options_cls: type, raw: dict[str, str | object], owner: str) -
         raise PcfbenchError(f"{owner}: unknown option(s) {', '.join(unknown)} (known: {known})")
     hints = typing.get_type_hints(options_cls)
     values = {key: _convert(value, hints[key], f"{owner} option {key}") for key, value in raw.items()}
+    for key, value in values.items():
+        _check_range(fields[key], value, f"{owner} option {key}")
     try:
         return options_cls(**values)
     except (TypeError, ValueError) as exc:  # a missing required field, or a __post_init__ check
         raise PcfbenchError(f"{owner} options: {exc}") from None
+
+
+def check_options(options: Any, owner: str) -> Any:
+    """``options`` itself when every field is within its declared range (and finite), else
+    one ``PcfbenchError`` naming the owner, the option, its range and the value. For options
+    built directly (``Options(voxel=...)``) rather than by ``parse_options``."""
+    if dataclasses.is_dataclass(options) and not isinstance(options, type):
+        for f in dataclasses.fields(options):
+            _check_range(f, getattr(options, f.name), f"{owner} option {f.name}")
+    return options
+
+
+def _check_range(f: dataclasses.Field, value: Any, where: str) -> None:
+    rng = option_range(f)
+    items = value if isinstance(value, tuple) else (value,)
+    for item in items:
+        problem = rng.problem(item)
+        if problem:
+            raise PcfbenchError(f"{where} {problem}")
 
 
 def _convert(value: object, typ: Any, where: str) -> object:

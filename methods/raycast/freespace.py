@@ -34,17 +34,19 @@ from pcfbench.methods.raycast.zbuffer import render_zbuffer_views
 class FreespaceOptions(VoxelOptions):
     """raycast-voxel's options (the caster of the carved grid), and the carving's."""
 
-    l_hit: float = option(0.85, help="log-odds added to a voxel per past return in it")
-    l_miss: float = option(0.4, help="log-odds removed from a voxel per past ray passing through it")
+    l_hit: float = option(0.85, help="log-odds added to a voxel per past return in it", gt=0, max=100)
+    l_miss: float = option(0.4, help="log-odds removed from a voxel per past ray passing through it", min=0, max=100)
     carve_margin_m: float = option(0.5, help="a ray carves up to this far before its return, metres, or "
-                                             "carve_margin_frac of its range if that is more")
+                                             "carve_margin_frac of its range if that is more", min=0, max=1000)
     carve_margin_frac: float = option(0.15, help="a ray carves up to this fraction of its range before its return, "
-                                                 "or carve_margin_m if that is more")
+                                                 "or carve_margin_m if that is more", min=0, max=1)
     renderer: Literal["voxel", "zbuffer"] = option(
         "voxel", help="cast the carved grid (voxel), or z-buffer the points that survive the carving (zbuffer)")
-    splat: float = option(1.0, help="zbuffer renderer: splat diameter, as raycast-zbuffer's")
-    max_splat: int = option(4, help="zbuffer renderer: largest splat half-width, bins, as raycast-zbuffer's")
-    fill_ring: int = option(8, help="zbuffer renderer: empty-bin fill radius, bins, as raycast-zbuffer's")
+    splat: float = option(1.0, help="zbuffer renderer: splat diameter, as raycast-zbuffer's", min=0, max=100)
+    max_splat: int = option(4, help="zbuffer renderer: largest splat half-width, bins, as raycast-zbuffer's",
+                            min=0, max=256)
+    fill_ring: int = option(8, help="zbuffer renderer: empty-bin fill radius, bins, as raycast-zbuffer's",
+                            min=0, max=1800)
 
 
 def carve(grid: VoxelGrid, origins, points, own_range, opts) -> np.ndarray:

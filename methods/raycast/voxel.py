@@ -87,14 +87,17 @@ def build_grid(points: np.ndarray, opts) -> VoxelGrid:
 
 @dataclass(frozen=True)
 class VoxelOptions:
-    voxel: float = option(0.2, help="voxel edge of the occupancy grid, metres")
-    cone_factor: float = option(1.0, help="ray thickness in units of the beam spacing el_res_deg (0: thin rays)")
-    max_level: int = option(3, help="coarsest pyramid level a cone may stop on (voxel * 2**level: 1.6 m at 3)")
+    voxel: float = option(0.2, help="voxel edge of the occupancy grid, metres", gt=0, max=10)
+    cone_factor: float = option(1.0, help="ray thickness in units of the beam spacing el_res_deg (0: thin rays)",
+                                min=0, max=100)
+    max_level: int = option(3, help="coarsest pyramid level a cone may stop on (voxel * 2**level: 1.6 m at 3)",
+                            min=0, max=10)
     cone_center: Literal["future", "past"] = option(
         "future", help="the cone widens with the range from the future sensor, or from the t=0 sensor (past)")
-    az_res_deg: float = option(0.2, help="azimuth bin width of the z-buffer fallback (as raycast-zbuffer), degrees")
+    az_res_deg: float = option(0.2, help="azimuth bin width of the z-buffer fallback (as raycast-zbuffer), degrees",
+                                gt=0, max=360)
     el_res_deg: float = option(0.4, help="beam spacing: elevation bins of the z-buffer fallback and the cone width, "
-                                         "degrees")
+                                         "degrees", gt=0, max=180)
     surface: Literal["plane", "mean"] = option(
         "plane", help="depth in a hit voxel: where the ray crosses its fitted surface, or its mean projected on the ray")
     align_ground: bool = option(True, help="shift the grid so a face lies half a voxel above the ground (speed only)")

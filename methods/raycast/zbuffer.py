@@ -38,12 +38,14 @@ from pcfbench.nn2d import NN2D
 
 @dataclass(frozen=True)
 class ZBufferOptions:
-    az_res_deg: float = option(0.2, help="azimuth bin width of the range image, degrees")
-    el_res_deg: float = option(0.4, help="elevation bin height of the range image (the beam spacing), degrees")
-    splat: float = option(1.0, help="splat diameter in units of the point's own beam spacing (0: one bin per point)")
-    max_splat: int = option(4, help="largest splat half-width, bins")
+    az_res_deg: float = option(0.2, help="azimuth bin width of the range image, degrees", gt=0, max=360)
+    el_res_deg: float = option(0.4, help="elevation bin height of the range image (the beam spacing), degrees",
+                                gt=0, max=180)
+    splat: float = option(1.0, help="splat diameter in units of the point's own beam spacing (0: one bin per point)",
+                           min=0, max=100)
+    max_splat: int = option(4, help="largest splat half-width, bins", min=0, max=256)
     fill_ring: int = option(8, help="an empty bin takes the angularly nearest non-empty bin within this many bins, "
-                                    "then the same on coarser images")
+                                    "then the same on coarser images", min=0, max=1800)
     constant_velocity: bool = option(False, help="extrapolate the future poses from the last two past poses "
                                                  "instead of using the sample's future poses")
 
