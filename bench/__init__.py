@@ -41,6 +41,8 @@ _EXPORTS: dict[str, str | None] = {
     "NoOptions": "pcfbench.method",
     # typed options of methods and adapters (a help text per field)
     "option": "pcfbench.options",
+    # the thread budget a method or metric may use (Method.execution)
+    "ExecutionContext": "pcfbench.execution",
     # datasets
     "DatasetAdapter": "pcfbench.dataset",
     "Sequence": "pcfbench.dataset",
@@ -85,6 +87,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench.errors import DataError, PcfbenchError, PluginError, UnknownNameError
     from pcfbench.hookspecs import hookimpl, hookspec
     from pcfbench.method import Method, NoOptions
+    from pcfbench.execution import ExecutionContext
     from pcfbench.options import option
     from pcfbench.metrics.base import Metric, SweepContext
     from pcfbench.protocol import Protocol, SamplePolicy, Setting, active_protocol
