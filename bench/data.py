@@ -6,11 +6,21 @@ Frames are in the names: ``*_ref`` arrays are in the sample's reference (t=0) se
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def read_only_copy(arr: np.ndarray) -> np.ndarray:
+    """A copy of ``arr`` that cannot be written: a read-only view of a read-only copy, so the
+    view's ``writeable`` flag cannot be turned back on either."""
+    owner = np.array(arr, copy=True)
+    owner.flags.writeable = False
+    view = owner.view()
+    view.flags.writeable = False
+    return view
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,6 +77,22 @@ class Sample:
     @property
     def num_future(self) -> int:
         return len(self.queries)
+
+    def for_method(self) -> "Sample":
+        """What a method receives: a copy whose every array (points, poses, timestamps, query
+        origins and directions) is read-only, so a method writing into its input gets a
+        ``ValueError`` and, whatever it does to the copy, the sample it is scored against (this
+        one, kept by the runner) is untouched."""
+        return replace(
+            self,
+            past_points_ref=tuple(read_only_copy(p) for p in self.past_points_ref),
+            past_T_ref_sensor=read_only_copy(self.past_T_ref_sensor),
+            past_timestamps_ns=read_only_copy(self.past_timestamps_ns),
+            future_T_ref_sensor=read_only_copy(self.future_T_ref_sensor),
+            future_timestamps_ns=read_only_copy(self.future_timestamps_ns),
+            queries=tuple(RayQuery(read_only_copy(q.origin_ref), read_only_copy(q.directions_ref)) for q in self.queries),
+            T_world_ref=read_only_copy(self.T_world_ref),
+        )
 
 
 @dataclass(frozen=True, eq=False)

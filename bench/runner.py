@@ -96,7 +96,27 @@ def resolve(spec: CellSpec, plugins: Plugins | None = None) -> Resolved:
     adapter = adapter_cls(root, **root_options)
     check_compatible(setting, adapter)
     metrics = [plugins.metrics.get(m) for m in spec.metrics]
-    return Resolved(SampleBuilder(adapter, setting, spec.policy), method.create(), metrics)
+    return Resolved(SampleBuilder(adapter, setting, spec.policy), _create_method(spec, method), metrics)
+
+
+def _create_method(spec: CellSpec, method: Any) -> Method:
+    """The method of ``spec``; a trained one with its checkpoint loaded (verified, and the
+    very file the cell is keyed by)."""
+    from pcfbench.training import Checkpoint, is_trained
+
+    instance = method.create()
+    if not is_trained(method.cls):
+        return instance
+    if not spec.checkpoint:
+        raise PcfbenchError(f"cell {spec.label}: {spec.method} is a trained method and the cell names no checkpoint")
+    ck = Checkpoint.open(spec.checkpoint)
+    ck.check_method(method)
+    if ck.sha256 != spec.checkpoint_sha256:
+        raise PcfbenchError(f"checkpoint {ck.weights_path} changed since cell {spec.label} was set up "
+                            f"(sha256 {ck.sha256[:12]}, the cell is keyed by {str(spec.checkpoint_sha256)[:12]}); run again")
+    instance.load(ck)
+    instance.checkpoint = ck
+    return instance
 
 
 def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
@@ -109,7 +129,8 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     t1 = time.perf_counter()
     base = {"sample_id": sample.sample_id, "sequence": sample.sequence, "ref_index": sample.ref_index}
     try:
-        forecast = validate_forecast(sample, res.method.forecast(sample))
+        # the method gets a read-only copy; the forecast is checked and scored against `sample`
+        forecast = validate_forecast(sample, res.method.forecast(sample.for_method()))
         t2 = time.perf_counter()
         rows = score_sample(sample, truth, forecast, res.metrics, res.execution)
     except DataError:
@@ -175,8 +196,12 @@ def run_cell(
     progress: bool = True,
     plugins: Plugins | None = None,
     threads: int | None = None,
+    allow_train_split: bool = False,
 ) -> CellResult:
     """Run (or resume) one cell. Returns at once if the cell is already complete.
+
+    A trained method's cell is refused on the very data its checkpoint was trained on (same
+    dataset, split and file fingerprint) unless ``allow_train_split``; cell.json then says so.
 
     ``jobs=0`` picks a pool of one worker per CPU when there are enough samples to pay for
     starting it, else runs serially. ``threads``: the run's thread budget (default: every CPU
@@ -211,6 +236,7 @@ def run_cell(
             **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
             "dataset_options": options_identity(res.builder.adapter, config.split_root_options(spec.dataset_root)[1]),
             "data_fingerprint": fingerprint.digest,
+            **_trained_identity(spec, res.method, fingerprint.digest, allow_train_split),
         }
         if meta is not None:
             check_identity(cell.dir, meta, identity, fingerprint)
@@ -290,6 +316,22 @@ def run_cell(
         )
         cell.write_meta(meta)
     return CellResult(spec, cell.dir, "complete", len(ids), len(done), len(todo), failed, elapsed)
+
+
+def _trained_identity(spec: CellSpec, method: Method, digest: str, allow_train_split: bool) -> dict[str, Any]:
+    """A trained method's part of the cell identity: the checkpoint's sha256, its training
+    data and whether this cell evaluates on that very data (refused unless allowed)."""
+    ck = getattr(method, "checkpoint", None)
+    if not spec.checkpoint_sha256 or ck is None:
+        return {}
+    t = ck.train_on
+    on_train = t.get("dataset") == spec.dataset and t.get("split") == spec.split and t.get("fingerprint") == digest
+    if on_train and not allow_train_split:
+        raise PcfbenchError(
+            f"{spec.label}: checkpoint {ck.manifest_path} was trained on this very data ({spec.dataset}:{spec.split}, "
+            f"fingerprint {digest}); evaluate another split, or pass --allow-train-split to score it anyway "
+            "(the cell and the leaderboard then mark it)")
+    return {"checkpoint_sha256": ck.sha256, "train_on": t, "evaluated_on_training_data": on_train}
 
 
 def _median_timings(df) -> dict[str, float]:

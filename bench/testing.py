@@ -108,7 +108,7 @@ def check_method(method: Method, setting: str = "kitti-1s") -> Forecast:
     assert isinstance(method, Method), f"{method!r} is not a pcfbench.method.Method"
     assert getattr(method, "name", None), "a method needs a class attribute 'name'"
     sample, _ = toy_sample(setting)
-    forecast = method.forecast(sample)
+    forecast = method.forecast(sample.for_method())  # read-only arrays, as the runner gives them
     checked = validate_forecast(sample, forecast)  # raises ForecastError with what is wrong
     return checked
 

@@ -153,6 +153,6 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
             raise PcfbenchError(f"--sample {sample_id!r}: expected SEQUENCE/INDEX, e.g. scene-0003/000005")
         index = int(idx)
     sample, truth = builder.build(seq, index)
-    forecasts = {method.name: validate_forecast(sample, method.create().forecast(sample)) for method in resolved}
+    forecasts = {method.name: validate_forecast(sample, method.create().forecast(sample.for_method())) for method in resolved}
     path = export_sample(out, sample, truth, forecasts)
     return path, len(sample.past_points_ref) + len(truth.future_points_ref) * (1 + len(forecasts))
