@@ -129,7 +129,8 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             continue
         spec = spec_from_meta(meta)
         partial = bool(meta.get("partial"))
-        df = Cell(store_root, spec).read_rows()
+        # in sample order: every mean below adds in one order, whatever the chunk order
+        df = stats.in_sample_order(Cell(store_root, spec).read_rows())
         ok = df[df["status"] == "ok"] if len(df) else df
         metric_versions = meta.get("metric_versions", {})
         units.update(meta.get("metric_units", {}))

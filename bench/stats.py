@@ -106,9 +106,21 @@ class SampleSums:
                           self.sums[keep], self.counts[keep])
 
 
+def in_sample_order(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` sorted by (sample_id, step), stably, with a fresh index: every sum and mean
+    taken over them then adds in one order, whatever order the chunks (or a pool's workers)
+    wrote them in, so the same rows give bit-identical numbers."""
+    keys = [k for k in ("sample_id", "step") if k in rows]
+    if not len(rows) or not keys:
+        return rows
+    return rows.sort_values(keys, kind="stable").reset_index(drop=True)
+
+
 def sample_sums(rows: pd.DataFrame, metrics) -> SampleSums:
-    """Sum and count the finite values of ``metrics`` per sample of scored rows (status ok)."""
+    """Sum and count the finite values of ``metrics`` per sample of scored rows (status ok),
+    adding in sample order (``in_sample_order``)."""
     metrics = tuple(metrics)
+    rows = in_sample_order(rows)
     if not len(rows):
         empty = np.zeros((0, len(metrics)))
         return SampleSums(np.array([], dtype=object), np.array([], dtype=object), np.array([], dtype=np.int64),
