@@ -1,0 +1,293 @@
+"""Absorbing-uniform discrete diffusion for the world model (paper 4.2-4.3, A.5-A.6):
+Algorithm 1 (training with a mixture of objectives), Algorithm 2 (sampling one frame, with
+classifier-free guidance by equation 2 in one forward pass) and the MaskGIT variant.
+
+Token maps are ``(B, T, H, W)`` integer codes in 0..|V|-1; the mask token is |V|
+(``model.mask_token``). A frame has N = H * W tokens. gamma(u) = cos(u pi / 2).
+
+Any module with the :class:`~pcfbench.methods.copilot4d.world.WorldModel` call signature
+``model(tokens, T_ref_sensor, temporal_mask, frame_index) -> logits (B, T, H, W, |V|)`` and
+attributes ``mask_token`` can be trained and sampled here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcfbench.methods.copilot4d.world import causal_mask, guidance_mask, identity_mask
+from pcfbench.methods.copilot4d.world_config import WorldModelConfig
+
+#: Objectives of section 4.3, in this order: condition on the clean past and denoise the
+#: future (causal mask); denoise past and future jointly (causal mask); denoise each frame
+#: alone (identity mask: the unconditional model that guidance needs).
+OBJECTIVES = ("future", "joint", "individual")
+OBJECTIVE_PROBS = (0.5, 0.4, 0.1)
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What distinguishes Copilot4D's discrete diffusion from MaskGIT (Algorithms 1 and 2).
+
+    eta: percent; up to eta % of the tokens left unmasked are replaced by uniform codes.
+    masked_only_loss: cross entropy on masked tokens only (MaskGIT) instead of on all tokens.
+    revise: decoded tokens are re-sampled at every later step (never re-masked); if False
+    they are frozen once decoded (MaskGIT).
+    """
+
+    name: str
+    eta: float
+    masked_only_loss: bool
+    revise: bool
+
+
+COPILOT4D = Variant("copilot4d", eta=20.0, masked_only_loss=False, revise=True)
+MASKGIT = Variant("maskgit", eta=0.0, masked_only_loss=True, revise=False)
+VARIANTS = {v.name: v for v in (COPILOT4D, MASKGIT)}
+
+#: Algorithm 2 defaults (A.6, Table 3/4): K steps, guidance weight w, top-k sampling of x0.
+DEFAULT_STEPS = 10
+DEFAULT_GUIDANCE = 2.0
+DEFAULT_TOP_K = 3
+
+
+def get_variant(name: str) -> Variant:
+    from pcfbench.errors import unknown_name
+
+    if name not in VARIANTS:
+        raise unknown_name("diffusion variant", name, VARIANTS)
+    return VARIANTS[name]
+
+
+def gamma(u):
+    """The mask schedule gamma(u) = cos(u pi / 2) (a float or a tensor)."""
+    if isinstance(u, torch.Tensor):
+        return torch.cos(u * (math.pi / 2))
+    return math.cos(u * math.pi / 2)
+
+
+def _ceil(x):
+    # ceil of a product like gamma * N that is an integer in exact arithmetic must not gain a
+    # token from float error (cos(pi / 3) * N = N / 2 + 1e-16 N); 1e-9 is far below 1 / N.
+    if isinstance(x, torch.Tensor):
+        return torch.ceil(x - 1e-9).long()
+    return math.ceil(x - 1e-9)
+
+
+def decoded_count(k: int, K: int, N: int) -> int:
+    """Algorithm 2 line 6: M = ceil(gamma(k / K) N) tokens are non-mask in x_k (the top-M of
+    the confidence l_k); the other N - M stay masked. M grows from about N pi / (2K) at
+    k = K - 1 to N at k = 0."""
+    return _ceil(gamma(k / K) * N)
+
+
+# --------------------------------------------------------------------------- Algorithm 1
+@dataclass(frozen=True)
+class Corruption:
+    """One training input built from clean tokens ``targets`` (B, T, H, W).
+
+    tokens: the masked-and-noised input x_k. masked / noised: (B, T, H, W) bool, disjoint.
+    loss_mask: (B, T, H, W) bool, where the cross entropy applies. temporal_mask: (B, T, T).
+    objective: (B,) index into OBJECTIVES. u0, u1: (B, T) float64, the draws of Algorithm 1
+    (NaN for frames left clean). denoised: (B, T) bool, the frames corrupted and scored.
+    """
+
+    tokens: torch.Tensor
+    targets: torch.Tensor
+    masked: torch.Tensor
+    noised: torch.Tensor
+    loss_mask: torch.Tensor
+    temporal_mask: torch.Tensor
+    objective: torch.Tensor
+    denoised: torch.Tensor
+    u0: torch.Tensor
+    u1: torch.Tensor
+
+
+def corrupt(x0: torch.Tensor, n_past: int, codebook_size: int, variant: Variant = COPILOT4D,
+            generator: torch.Generator | None = None, objective: torch.Tensor | None = None) -> Corruption:
+    """Algorithm 1 lines 3-7 under the mixture of objectives, for each sequence independently.
+
+    Each sequence draws its objective (probabilities OBJECTIVE_PROBS) unless ``objective``
+    (B,) is given. Every frame to denoise draws its own u0, u1 ~ U(0, 1) (the per-frame
+    diffusion steps k_1..k_T of section 4.3): exactly ceil(gamma(u0) N) of its tokens, chosen
+    uniformly, become the mask token, then exactly floor(u1 eta / 100 (N - masked)) of the
+    rest, chosen uniformly, become codes drawn uniformly from all |V| (so a noised token keeps
+    its value with probability 1 / |V|, as in uniform diffusion, A.5). Frames of the past
+    under the "future" objective stay clean and are not scored.
+    """
+    if x0.dim() != 4:
+        raise ValueError(f"x0 has shape {tuple(x0.shape)}; expected (B, T, H, W) token codes")
+    B, T, H, W = x0.shape
+    if not 1 <= n_past < T:
+        raise ValueError(f"n_past={n_past} must leave at least one future frame in {T} frames")
+    lo, hi = int(x0.min()), int(x0.max())
+    if lo < 0 or hi >= codebook_size:
+        raise ValueError(f"clean token codes span {lo}..{hi}; expected 0..{codebook_size - 1}")
+    dev, N = x0.device, H * W
+
+    def rand(*shape, dtype=torch.float32):
+        return torch.rand(*shape, generator=generator, device=dev, dtype=dtype)
+
+    if objective is None:
+        probs = torch.tensor(OBJECTIVE_PROBS, dtype=torch.float64, device=dev)
+        objective = torch.searchsorted(probs.cumsum(0), rand(B, dtype=torch.float64), right=True).clamp_(max=2)
+    objective = objective.to(dev)
+    denoised = torch.ones(B, T, dtype=torch.bool, device=dev)
+    denoised[objective == 0, :n_past] = False
+
+    u0, u1 = rand(B, T, dtype=torch.float64), rand(B, T, dtype=torch.float64)
+    n_mask = torch.where(denoised, _ceil(gamma(u0) * N), 0)
+    n_noise = torch.where(denoised, torch.floor(u1 * (variant.eta / 100.0) * (N - n_mask)).long(), 0)
+    # one uniform random order per frame: its first n_mask positions are masked, the next
+    # n_noise noised (a uniform subset of the unmasked ones)
+    rank = rand(B, T, N).argsort(-1).argsort(-1)
+    masked = rank < n_mask[..., None]
+    noised = (rank >= n_mask[..., None]) & (rank < (n_mask + n_noise)[..., None])
+    codes = torch.randint(0, codebook_size, (B, T, N), generator=generator, device=dev)
+    flat = x0.reshape(B, T, N)
+    tokens = torch.where(masked, codebook_size, torch.where(noised, codes, flat))
+
+    scored = masked if variant.masked_only_loss else denoised[..., None].expand(B, T, N)
+    tmask = torch.where((objective == 2)[:, None, None], identity_mask(T, dev), causal_mask(T, dev))
+    nan = torch.full_like(u0, float("nan"))
+    return Corruption(
+        tokens=tokens.view(B, T, H, W), targets=x0, masked=masked.view(B, T, H, W), noised=noised.view(B, T, H, W),
+        loss_mask=scored.reshape(B, T, H, W), temporal_mask=tmask, objective=objective, denoised=denoised,
+        u0=torch.where(denoised, u0, nan), u1=torch.where(denoised, u1, nan),
+    )
+
+
+def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor, n_past: int,
+                  variant: Variant = COPILOT4D, label_smoothing: float = 0.1,
+                  generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict]:
+    """Algorithm 1 line 8: cross entropy (label smoothing) of the clean tokens given the
+    corrupted sequence, averaged over the scored tokens of the batch. Returns the loss and
+    {"loss", "accuracy" (argmax on scored tokens), "masked_accuracy"} as floats."""
+    c = corrupt(x0, n_past, model.mask_token, variant, generator)
+    logits = model(c.tokens, T_ref_sensor, c.temporal_mask)
+    sel = c.loss_mask
+    picked = logits[sel].float()
+    target = c.targets[sel]
+    loss = F.cross_entropy(picked, target, label_smoothing=label_smoothing)
+    with torch.no_grad():
+        hit = picked.argmax(-1) == target
+        on_masked = c.masked[sel]
+        stats = {
+            "loss": float(loss),
+            "accuracy": float(hit.float().mean()),
+            "masked_accuracy": float(hit[on_masked].float().mean()) if bool(on_masked.any()) else float("nan"),
+        }
+    return loss, stats
+
+
+def make_optimizer(model: nn.Module, cfg: WorldModelConfig) -> torch.optim.Optimizer:
+    """A.3 AdamW: lr, betas (0.9, 0.95), weight decay 1e-4 on Linear weight matrices only
+    (biases, the tied embedding / un-embedding, positional encodings and LayerNorm excluded).
+    The schedule (linear warm-up, cosine decay to 10 %) is :func:`lr_at`; gradient clipping
+    at ``cfg.grad_clip`` is the training loop's."""
+    from pcfbench.methods.copilot4d.train import param_groups
+
+    return torch.optim.AdamW(param_groups(model, cfg.weight_decay), lr=cfg.lr, betas=cfg.betas)
+
+
+def lr_at(cfg: WorldModelConfig, step: int) -> float:
+    """Learning rate at ``step``: linear warm-up over ``cfg.warmup`` steps, then cosine decay
+    over ``cfg.decay_steps`` to ``cfg.min_lr_ratio * cfg.lr`` (the tokenizer's schedule)."""
+    from pcfbench.methods.copilot4d.train import lr_at as schedule
+
+    return schedule(cfg, step)
+
+
+# --------------------------------------------------------------------------- Algorithm 2
+def guided_logits(model: nn.Module, tokens: torch.Tensor, T_ref_sensor: torch.Tensor, guidance: float,
+                  frame_index: torch.Tensor | None = None) -> torch.Tensor:
+    """Logits (B, H, W, |V|) in float32 for the last frame of ``tokens`` (B, T, H, W), the
+    earlier frames being its context c, by equation 2: logits_c + w (logits_c - logits_u).
+
+    w = 0 returns the conditional logits of a causal pass, exactly. Otherwise one pass on
+    T + 1 frames: the last frame appended again (same pose and temporal position) under
+    :func:`guidance_mask`, so the copy sees only itself and gives the unconditional logits.
+    """
+    B, T = tokens.shape[:2]
+    dev = tokens.device
+    if frame_index is None:
+        frame_index = torch.arange(T, device=dev)
+    if guidance == 0:
+        return model(tokens, T_ref_sensor, causal_mask(T, dev), frame_index)[:, -1].float()
+    out = model(torch.cat([tokens, tokens[:, -1:]], 1), torch.cat([T_ref_sensor, T_ref_sensor[:, -1:]], 1),
+                guidance_mask(T, dev), torch.cat([frame_index, frame_index[-1:]]))
+    cond, uncond = out[:, T - 1].float(), out[:, T].float()
+    return cond + guidance * (cond - uncond)
+
+
+def _gumbel(shape, generator, device) -> torch.Tensor:
+    u = torch.rand(shape, generator=generator, device=device).clamp_(1e-20, 1.0 - 1e-7)
+    return -torch.log(-torch.log(u))
+
+
+@torch.no_grad()
+def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Tensor, *,
+                 steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
+                 revise: bool = True, generator: torch.Generator | None = None,
+                 frame_index: torch.Tensor | None = None, trace: list | None = None) -> torch.Tensor:
+    """Algorithm 2: decode the frame after ``context`` (B, Tc, H, W) clean codes, given the
+    poses ``T_ref_sensor`` (B, Tc + 1, 4, 4) of the context frames and of the new frame.
+
+    From all-mask x_K, for k = K-1 .. 0: x~0 is sampled among the top-k guided logits;
+    l_k = log p(x~0) (the guided distribution over all codes) + Gumbel * k / K, +inf where
+    x_{k+1} is already decoded; x_k takes x~0 on the top ceil(gamma(k/K) N) of l_k and is
+    masked elsewhere. Decoded tokens are therefore never re-masked; with ``revise`` they take
+    the new x~0 (re-sampled), without it (MaskGIT) they keep their value. Returns (B, H, W)
+    codes; ``trace``, if a list, receives x_k (B, H, W) after each step.
+    """
+    if steps < 1:
+        raise ValueError(f"steps={steps}: Algorithm 2 needs at least one step")
+    B, Tc, H, W = context.shape
+    if T_ref_sensor.shape[:2] != (B, Tc + 1):
+        raise ValueError(f"T_ref_sensor has shape {tuple(T_ref_sensor.shape)}; expected ({B}, {Tc + 1}, 4, 4): "
+                         "the context frames' poses and the new frame's")
+    dev, N, mask_id = context.device, H * W, model.mask_token
+    x = torch.full((B, N), mask_id, dtype=torch.long, device=dev)
+    for k in range(steps - 1, -1, -1):
+        seq = torch.cat([context, x.view(B, 1, H, W)], 1)
+        logits = guided_logits(model, seq, T_ref_sensor, guidance, frame_index).reshape(B, N, -1)
+        top_val, top_idx = logits.topk(min(top_k, logits.shape[-1]), dim=-1)
+        pick = (top_val + _gumbel(top_val.shape, generator, dev)).argmax(-1, keepdim=True)
+        x0 = top_idx.gather(-1, pick).squeeze(-1)
+        logp = logits.log_softmax(-1).gather(-1, x0[..., None]).squeeze(-1)
+        conf = logp + _gumbel(logp.shape, generator, dev) * (k / steps)
+        decoded = x != mask_id
+        conf = conf.masked_fill(decoded, float("inf"))
+        keep = torch.zeros_like(decoded)
+        keep.scatter_(1, conf.topk(decoded_count(k, steps, N), dim=-1).indices, True)
+        new = torch.where(keep, x0, mask_id)
+        x = new if revise else torch.where(decoded, x, new)
+        if trace is not None:
+            trace.append(x.view(B, H, W).clone())
+    return x.view(B, H, W)
+
+
+@torch.no_grad()
+def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
+                    steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
+                    revise: bool = True, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Autoregressive forecast (section 4.3): future frames one at a time with
+    :func:`sample_frame`, each decoded frame joining the context of the next.
+
+    past: (B, P, H, W) codes, oldest first; T_ref_sensor: (B, P + n_future, 4, 4), past then
+    future poses in the reference frame. Returns (B, n_future, H, W) codes.
+    """
+    P = past.shape[1]
+    if T_ref_sensor.shape[1] != P + n_future:
+        raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
+    seq = past
+    for f in range(n_future):
+        nxt = sample_frame(model, seq, T_ref_sensor[:, : P + f + 1], steps=steps, guidance=guidance, top_k=top_k,
+                           revise=revise, generator=generator)
+        seq = torch.cat([seq, nxt[:, None]], 1)
+    return seq[:, P:]

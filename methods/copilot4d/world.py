@@ -1,0 +1,251 @@
+"""The Copilot4D world model (paper 4.4, A.2.2): a U-Net spatio-temporal Transformer over BEV
+token maps that outputs, for every frame and token, logits over the tokenizer's codebook.
+
+Shapes: ``B`` sequences of ``T`` frames of ``H x W`` tokens; feature maps are channels-last
+``(B, T, H, W, C)``. Spatial attention is Swin window attention inside each frame (the blocks
+of :mod:`pcfbench.methods.copilot4d.swin`); temporal attention is a GPT-2 block over the ``T``
+frames at one feature-map location, under a boolean ``(T, T)`` or ``(B, T, T)`` mask where
+``mask[i, j]`` is True when frame i may attend to frame j (see :func:`causal_mask`,
+:func:`identity_mask`, :func:`guidance_mask`).
+
+Actions are the ego poses ``T_ref_sensor`` (B, T, 4, 4): frame k's sensor pose in the
+reference sensor frame (t = 0, the last past frame), i.e. the transform mapping points of
+sweep k's sensor frame into the reference frame, as in :class:`pcfbench.data.Sample`
+(``past_T_ref_sensor`` then ``future_T_ref_sensor``). The reference frame's own pose is the
+identity.
+
+The network holds no device or dtype of its own beyond its parameters: inputs decide, so it
+runs on CUDA under ``torch.autocast("cuda", dtype=torch.bfloat16)`` unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcfbench.methods.copilot4d.swin import PatchMerging, PatchUpsample, SwinBlock, init_transformer_, sincos_2d
+from pcfbench.methods.copilot4d.world_config import WorldModelConfig
+
+
+# --------------------------------------------------------------------------- temporal masks
+def causal_mask(T: int, device=None) -> torch.Tensor:
+    """(T, T) bool: frame i attends to frames 0..i (objectives 1 and 2, and sampling)."""
+    return torch.ones(T, T, dtype=torch.bool, device=device).tril()
+
+
+def identity_mask(T: int, device=None) -> torch.Tensor:
+    """(T, T) bool: each frame attends to itself only (objective 3: the unconditional model)."""
+    return torch.eye(T, dtype=torch.bool, device=device)
+
+
+def guidance_mask(T: int, device=None) -> torch.Tensor:
+    """(T + 1, T + 1) bool for classifier-free guidance in one pass (Figure 10): causal over the
+    first T frames (past and the frame being decoded), and an appended copy of frame T-1 that
+    attends only to itself and is attended by no other frame."""
+    m = torch.zeros(T + 1, T + 1, dtype=torch.bool, device=device)
+    m[:T, :T] = causal_mask(T, device)
+    m[T, T] = True
+    return m
+
+
+def check_temporal_mask(mask: torch.Tensor, B: int, T: int) -> torch.Tensor:
+    """Validate a temporal mask and return it as (B or 1, T, T) bool."""
+    if mask.dtype != torch.bool:
+        raise ValueError(f"temporal mask must be bool (True = may attend), got {mask.dtype}")
+    if mask.dim() == 2:
+        mask = mask.unsqueeze(0)
+    if mask.dim() != 3 or mask.shape[-2:] != (T, T) or mask.shape[0] not in (1, B):
+        raise ValueError(f"temporal mask has shape {tuple(mask.shape)}; expected ({T}, {T}) or ({B}, {T}, {T})")
+    if not bool(mask.diagonal(dim1=-2, dim2=-1).all()):
+        raise ValueError("temporal mask must let every frame attend to itself (its diagonal must be True)")
+    return mask
+
+
+# --------------------------------------------------------------------------- blocks
+class TemporalBlock(nn.Module):
+    """GPT-2 pre-norm block over time at each location: x + Attn(LN(x)); x + MLP(LN(x)).
+    Bias-free Linear layers (A.2.2)."""
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.norm1 = nn.LayerNorm(dim)
+        self.attn = nn.Module()
+        self.attn.qkv = nn.Linear(dim, 3 * dim, bias=False)
+        self.attn.proj = nn.Linear(dim, dim, bias=False)
+        self.norm2 = nn.LayerNorm(dim)
+        hidden = int(dim * mlp_ratio)
+        self.fc1 = nn.Linear(dim, hidden, bias=False)
+        self.fc2 = nn.Linear(hidden, dim, bias=False)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """x (B, T, H, W, C); mask (B or 1, T, T) bool."""
+        B, T, H, W, C = x.shape
+        h = self.heads
+        y = self.norm1(x).permute(0, 2, 3, 1, 4).reshape(B * H * W, T, C)
+        q, k, v = self.attn.qkv(y).view(B * H * W, T, 3, h, C // h).permute(2, 0, 3, 1, 4)
+        if mask.shape[0] == 1:
+            attn_mask = mask  # (1, T, T) broadcasts over sequences and heads
+        else:
+            attn_mask = mask[:, None].expand(B, H * W, T, T).reshape(B * H * W, 1, T, T)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
+        y = self.attn.proj(y.transpose(1, 2).reshape(B * H * W, T, C))
+        x = x + y.view(B, H, W, T, C).permute(0, 3, 1, 2, 4)
+        return x + self.fc2(F.gelu(self.fc1(self.norm2(x))))
+
+
+def _spatial_block(dim: int, heads: int, window: int, shift: bool, mlp_ratio: float) -> SwinBlock:
+    blk = SwinBlock(dim, heads, window, shift, mlp_ratio)
+    # A.2.2 removes every Linear bias except the Swin query/key/value projection.
+    blk.fc1 = nn.Linear(blk.fc1.in_features, blk.fc1.out_features, bias=False)
+    return blk
+
+
+class Group(nn.Module):
+    """``n_spatial`` Swin blocks on each frame (alternately shifted), then one temporal block."""
+
+    def __init__(self, dim: int, heads: int, window: int, n_spatial: int, mlp_ratio: float) -> None:
+        super().__init__()
+        self.spatial = nn.ModuleList(_spatial_block(dim, heads, window, i % 2 == 1, mlp_ratio) for i in range(n_spatial))
+        self.temporal = TemporalBlock(dim, heads, mlp_ratio)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        B, T, H, W, C = x.shape
+        y = x.reshape(B * T, H, W, C)
+        for blk in self.spatial:
+            y = blk(y)
+        return self.temporal(y.view(B, T, H, W, C), mask)
+
+
+class Stage(nn.Module):
+    def __init__(self, n_groups: int, dim: int, heads: int, window: int, n_spatial: int, mlp_ratio: float) -> None:
+        super().__init__()
+        self.groups = nn.ModuleList(Group(dim, heads, window, n_spatial, mlp_ratio) for _ in range(n_groups))
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        for g in self.groups:
+            x = g(x, mask)
+        return x
+
+
+class LevelMerging(nn.Module):
+    """A.2.2 Level Merging: the coarser map up-sampled 2x (swin.PatchUpsample: a Linear
+    'deconvolution' to 2 x 2 features), concatenated with the finer map, LayerNorm, a Linear
+    reducing to the finer width. The caller adds the result to the finer map (a residual)."""
+
+    def __init__(self, coarse_dim: int, fine_dim: int) -> None:
+        super().__init__()
+        self.up = PatchUpsample(coarse_dim, fine_dim)
+        self.norm = nn.LayerNorm(2 * fine_dim)
+        self.reduction = nn.Linear(2 * fine_dim, fine_dim, bias=False)
+
+    def forward(self, coarse: torch.Tensor, fine: torch.Tensor) -> torch.Tensor:
+        B, T, h, w, C = coarse.shape
+        up = self.up(coarse.reshape(B * T, h, w, C)).view(B, T, 2 * h, 2 * w, -1)
+        return self.reduction(self.norm(torch.cat([up, fine], dim=-1)))
+
+
+def _lin_ln_lin(d_in: int, d: int) -> nn.Sequential:
+    """Linear -> LayerNorm -> Linear: how every conditioning input enters (A.2.2)."""
+    return nn.Sequential(nn.Linear(d_in, d, bias=False), nn.LayerNorm(d), nn.Linear(d, d, bias=False))
+
+
+# --------------------------------------------------------------------------- the network
+class WorldModel(nn.Module):
+    """Logits (B, T, H, W, |V|) from tokens (B, T, H, W) in {0..|V|} (|V| = the mask token),
+    ego poses ``T_ref_sensor`` (B, T, 4, 4) and a temporal mask.
+
+    ``frame_index`` (T,) long gives each input frame's temporal position (default 0..T-1);
+    the appended unconditional copy of guidance repeats the position of the frame it copies.
+    Positions run 0 .. ``cfg.n_frames`` - 1 (the oldest past frame is 0).
+    """
+
+    def __init__(self, cfg: WorldModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        d1, d2, d3 = cfg.dims
+        (h1, h2, h3), (w1, w2, w3) = cfg.heads, cfg.windows
+        V, S, r = cfg.codebook_size, cfg.spatial_per_group, cfg.mlp_ratio
+        self.mask_token = V
+        self.embed = nn.Embedding(V + 1, d1)  # row V: the learnable mask token; rows 0..V-1 tied to the output
+        self.embed_proj = _lin_ln_lin(d1, d1)
+        self.time_embed = nn.Parameter(torch.zeros(cfg.n_frames, d1))
+        self.register_buffer("pos_embed", sincos_2d(cfg.token_grid, cfg.token_grid, d1), persistent=False)
+        self.action = nn.ModuleList(_lin_ln_lin(16, d) for d in cfg.dims)  # added at each level's start
+        self.down1 = Stage(cfg.groups_down[0], d1, h1, w1, S, r)
+        self.merge12 = PatchMerging(d1, d2)
+        self.down2 = Stage(cfg.groups_down[1], d2, h2, w2, S, r)
+        self.merge23 = PatchMerging(d2, d3)
+        self.down3 = Stage(cfg.groups_down[2], d3, h3, w3, S, r)
+        self.up32 = LevelMerging(d3, d2)
+        self.up2 = Stage(cfg.groups_up[1], d2, h2, w2, S, r)
+        self.up21 = LevelMerging(d2, d1)
+        self.up1 = Stage(cfg.groups_up[0], d1, h1, w1, S, r)
+        self.out_norm = nn.LayerNorm(d1)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """A.3: fan-in normal init N(0, 1/(3 fan_in)) everywhere; on each level the Linear layers
+        feeding a residual are scaled by sqrt(1/L), L = 2 x the Transformer blocks of that level.
+        The tied embedding is initialised as the output layer it also is (fan-in = width)."""
+        cfg, S = self.cfg, self.cfg.spatial_per_group
+        init_transformer_(self, 1)
+        per_level = [
+            ([self.down1, self.up1], cfg.groups_down[0] + cfg.groups_up[0]),
+            ([self.down2, self.up2], cfg.groups_down[1] + cfg.groups_up[1]),
+            ([self.down3], cfg.groups_down[2]),
+        ]
+        for stages, n_groups in per_level:
+            for st in stages:
+                init_transformer_(st, 2 * n_groups * (S + 1))
+        nn.init.normal_(self.embed.weight, 0.0, math.sqrt(1.0 / (3.0 * cfg.dims[0])))
+        nn.init.normal_(self.time_embed, 0.0, 0.02)
+
+    def _action(self, level: int, poses: torch.Tensor) -> torch.Tensor:
+        return self.action[level](poses)[:, :, None, None, :]  # (B, T, 1, 1, C)
+
+    def forward(self, tokens: torch.Tensor, T_ref_sensor: torch.Tensor, temporal_mask: torch.Tensor,
+                frame_index: torch.Tensor | None = None) -> torch.Tensor:
+        cfg = self.cfg
+        if tokens.dim() != 4 or tokens.shape[-2:] != (cfg.token_grid, cfg.token_grid):
+            raise ValueError(f"tokens have shape {tuple(tokens.shape)}; expected (B, T, {cfg.token_grid}, {cfg.token_grid})")
+        if tokens.dtype not in (torch.int64, torch.int32):
+            raise ValueError(f"tokens must be integer codes, got {tokens.dtype}")
+        B, T = tokens.shape[:2]
+        if T_ref_sensor.shape != (B, T, 4, 4):
+            raise ValueError(f"T_ref_sensor has shape {tuple(T_ref_sensor.shape)}; expected ({B}, {T}, 4, 4)")
+        mask = check_temporal_mask(temporal_mask.to(tokens.device), B, T)
+        if frame_index is None:
+            frame_index = torch.arange(T, device=tokens.device)
+        if frame_index.shape != (T,) or int(frame_index.min()) < 0 or int(frame_index.max()) >= cfg.n_frames:
+            raise ValueError(f"frame_index {frame_index.tolist()} must hold {T} positions in 0..{cfg.n_frames - 1}")
+        lo, hi = int(tokens.min()), int(tokens.max())
+        if lo < 0 or hi > self.mask_token:
+            raise ValueError(f"token codes span {lo}..{hi}; expected 0..{cfg.codebook_size} ({cfg.codebook_size} = mask)")
+
+        poses = T_ref_sensor.reshape(B, T, 16).to(self.embed.weight.dtype)
+        x = self.embed_proj(self.embed(tokens))  # (B, T, H, W, C1)
+        x = x + self.pos_embed + self.time_embed[frame_index][None, :, None, None, :] + self._action(0, poses)
+        x1 = self.down1(x, mask)
+        x = self._merge(self.merge12, x1) + self._action(1, poses)
+        x2 = self.down2(x, mask)
+        x = self._merge(self.merge23, x2) + self._action(2, poses)
+        x = self.down3(x, mask)
+        x = x2 + self.up32(x, x2)
+        x = self.up2(x, mask)
+        x = x1 + self.up21(x, x1)
+        x = self.up1(x, mask)
+        return F.linear(self.out_norm(x), self.embed.weight[: cfg.codebook_size])
+
+    @staticmethod
+    def _merge(layer: PatchMerging, x: torch.Tensor) -> torch.Tensor:
+        B, T, H, W, C = x.shape
+        y = layer(x.reshape(B * T, H, W, C))
+        return y.view(B, T, *y.shape[1:])
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

@@ -1,0 +1,115 @@
+"""World-model configurations: ``paper`` (the sizes of A.2.2 / A.3) and ``tiny`` (CPU scale).
+
+Both build the same network (:mod:`pcfbench.methods.copilot4d.world`). The token grid and the
+codebook size come from the matching tokenizer configuration in
+:mod:`pcfbench.methods.copilot4d.config`, so a world model always fits its tokenizer's output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+from pcfbench.methods.copilot4d.config import PAPER as PAPER_TOKENIZER
+from pcfbench.methods.copilot4d.config import TINY as TINY_TOKENIZER
+
+
+@dataclass(frozen=True)
+class WorldModelConfig:
+    """One U-Net world model over BEV token maps of ``token_grid`` x ``token_grid`` codes.
+
+    Levels 1, 2, 3 run at 1x, 2x, 4x down-sampled resolution with widths ``dims`` and
+    ``heads`` attention heads. A *group* is ``spatial_per_group`` Swin blocks followed by one
+    GPT-2 temporal block; ``groups_down[i]`` groups run on level i+1 on the way down and
+    ``groups_up[i]`` groups on level i+1 on the way up (level 3 has none: it is the bottom).
+    """
+
+    name: str
+    codebook_size: int  # |V|; the mask token is index ``codebook_size``
+    token_grid: int  # tokens along each BEV axis (H = W)
+    n_past: int  # past frames, t = -(n_past-1) .. 0
+    n_future: int  # future frames predicted
+    dims: tuple[int, int, int]
+    heads: tuple[int, int, int]
+    windows: tuple[int, int, int]  # Swin window size per level
+    groups_down: tuple[int, int, int] = (2, 2, 1)
+    groups_up: tuple[int, int] = (2, 1)  # levels 1 and 2 on the way up
+    spatial_per_group: int = 2
+    mlp_ratio: float = 4.0
+    # --- optimisation (A.3, world model); Algorithms 1 and 2 live in diffusion.py ---
+    label_smoothing: float = 0.1
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.95)
+    weight_decay: float = 1e-4
+    warmup: int = 2000
+    decay_steps: int = 750_000
+    min_lr_ratio: float = 0.1
+    grad_clip: float = 5.0
+    batch_size: int = 8
+    max_steps: int = 750_000
+
+    def __post_init__(self) -> None:
+        from pcfbench.errors import PcfbenchError
+
+        problems = []
+        for lvl in range(3):
+            size = self.token_grid >> lvl
+            if self.token_grid % (1 << lvl) or size % self.windows[lvl]:
+                problems.append(f"level {lvl + 1} is {self.token_grid / (1 << lvl):g} tokens wide, "
+                                f"not a multiple of its window {self.windows[lvl]}")
+            if self.dims[lvl] % self.heads[lvl]:
+                problems.append(f"level {lvl + 1} width {self.dims[lvl]} is not divisible by {self.heads[lvl]} heads")
+        if self.dims[0] % 4:
+            problems.append(f"level 1 width {self.dims[0]} must be divisible by 4 (2-D sine-cosine encoding)")
+        if self.n_past < 1 or self.n_future < 1:
+            problems.append(f"n_past={self.n_past} and n_future={self.n_future} must both be at least 1")
+        if problems:
+            raise PcfbenchError(f"world model config {self.name!r}: " + "; ".join(problems))
+
+    @property
+    def n_frames(self) -> int:
+        """Frames in one training sequence: past (including t=0) then future."""
+        return self.n_past + self.n_future
+
+    @property
+    def tokens_per_frame(self) -> int:
+        return self.token_grid * self.token_grid
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def with_overrides(self, **kw) -> "WorldModelConfig":
+        return replace(self, **kw)
+
+
+# A.2.2: 128 x 128 tokens of a 1024-code tokenizer, widths (256, 384, 512), 32 dimensions per
+# head, windows 8 / 8 / 16; down (2S 1T 2S 1T), (2S 1T 2S 1T), (2S 1T); up (2S 1T) on level 2
+# and (2S 1T 2S 1T) on level 1. KITTI / Argoverse 2 protocol: 5 past and 5 future frames.
+PAPER = WorldModelConfig(
+    name="paper",
+    codebook_size=PAPER_TOKENIZER.codebook_size, token_grid=PAPER_TOKENIZER.bev_tokens,
+    n_past=5, n_future=5,
+    dims=(256, 384, 512), heads=(8, 12, 16), windows=(8, 8, 16),
+    groups_down=(2, 2, 1), groups_up=(2, 1),
+)
+
+# CPU scale: the tiny tokenizer's grid and codebook, the paper's block layout at an eighth to a
+# fifth of its widths (still 32 dimensions per head) and a batch of one sequence: about 0.5 s
+# per training step on a 2-core CPU, so 4000 steps fit in about 35 minutes.
+TINY = WorldModelConfig(
+    name="tiny",
+    codebook_size=TINY_TOKENIZER.codebook_size, token_grid=TINY_TOKENIZER.bev_tokens,
+    n_past=5, n_future=5,
+    dims=(32, 64, 96), heads=(1, 2, 3), windows=(8, 8, 8),
+    groups_down=(2, 2, 1), groups_up=(2, 1),
+    warmup=200, decay_steps=4000, batch_size=1, max_steps=4000,
+)
+
+CONFIGS = {"paper": PAPER, "tiny": TINY}
+
+
+def get_world_config(name: str) -> WorldModelConfig:
+    from pcfbench.errors import unknown_name
+
+    if name not in CONFIGS:
+        raise unknown_name("world model config", name, CONFIGS)
+    return CONFIGS[name]

@@ -1,0 +1,422 @@
+"""Copilot4D world model: sizes, temporal masks, Algorithm 1 (corruption and loss),
+Algorithm 2 (sampling, revision, guidance) and a short overfit run."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pcfbench.errors import PcfbenchError, UnknownNameError
+from pcfbench.methods.copilot4d import config as tok_config
+from pcfbench.methods.copilot4d import diffusion as D
+from pcfbench.methods.copilot4d.world import (
+    WorldModel,
+    causal_mask,
+    count_parameters,
+    guidance_mask,
+    identity_mask,
+)
+from pcfbench.methods.copilot4d.world_config import PAPER, TINY, WorldModelConfig, get_world_config
+
+# the same architecture, small enough for unit tests: 8 x 8 tokens, 16 codes, 3 frames
+MICRO = WorldModelConfig(
+    name="micro", codebook_size=16, token_grid=8, n_past=2, n_future=1,
+    dims=(32, 32, 32), heads=(2, 2, 2), windows=(4, 4, 2), groups_down=(1, 1, 1), groups_up=(1, 1),
+    mlp_ratio=2.0, lr=3e-3, warmup=5, decay_steps=200,
+)
+
+
+def _eye_poses(B: int, T: int) -> torch.Tensor:
+    return torch.eye(4, dtype=torch.float64).repeat(B, T, 1, 1)
+
+
+def _random_poses(B: int, T: int, gen: torch.Generator) -> torch.Tensor:
+    P = _eye_poses(B, T)
+    P[..., :3, 3] = torch.randn(B, T, 3, generator=gen, dtype=torch.float64) * 5.0
+    return P
+
+
+@pytest.fixture(scope="module")
+def micro_model():
+    torch.manual_seed(0)
+    m = WorldModel(MICRO).eval()
+    with torch.no_grad():  # a non-trivial temporal mixing: zero-init would hide mask errors
+        m.time_embed.normal_(0.0, 1.0)
+    return m
+
+
+# --------------------------------------------------------------------------- configs
+def test_parameter_counts():
+    # A.2: "the world model is a 39-Million parameter model"
+    n_paper = count_parameters(WorldModel(PAPER))
+    assert n_paper == 39_350_696
+    assert abs(n_paper - 39e6) / 39e6 < 0.03
+    assert count_parameters(WorldModel(TINY)) == 1_077_562
+
+
+def test_configs_match_their_tokenizers():
+    assert (PAPER.token_grid, PAPER.codebook_size) == (128, 1024)
+    assert (PAPER.token_grid, PAPER.codebook_size) == (tok_config.PAPER.bev_tokens, tok_config.PAPER.codebook_size)
+    assert (TINY.token_grid, TINY.codebook_size) == (tok_config.TINY.bev_tokens, tok_config.TINY.codebook_size)
+    assert PAPER.dims == (256, 384, 512) and PAPER.heads == (8, 12, 16) and PAPER.windows == (8, 8, 16)
+    for cfg in (PAPER, TINY):
+        assert all(d // h == 32 for d, h in zip(cfg.dims, cfg.heads))
+        assert (cfg.n_past, cfg.n_future) == (5, 5)
+    assert (PAPER.lr, PAPER.betas, PAPER.weight_decay, PAPER.warmup, PAPER.grad_clip, PAPER.batch_size) == (
+        1e-3, (0.9, 0.95), 1e-4, 2000, 5.0, 8)
+
+
+def test_config_errors():
+    with pytest.raises(PcfbenchError, match="level 3 is 2 tokens wide, not a multiple of its window 8"):
+        MICRO.with_overrides(windows=(4, 4, 8))
+    with pytest.raises(UnknownNameError, match="did you mean 'tiny'"):
+        get_world_config("tiyn")
+
+
+# --------------------------------------------------------------------------- temporal masks
+def test_temporal_masks_by_hand():
+    t, f = True, False
+    assert causal_mask(3).tolist() == [[t, f, f], [t, t, f], [t, t, t]]
+    assert identity_mask(3).tolist() == [[t, f, f], [f, t, f], [f, f, t]]
+    assert guidance_mask(3).tolist() == [
+        [t, f, f, f],
+        [t, t, f, f],
+        [t, t, t, f],
+        [f, f, f, t],  # the appended copy of frame 2 sees only itself
+    ]
+
+
+def test_temporal_masks_act_on_the_network(micro_model):
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randint(0, 17, (1, 3, 8, 8), generator=gen)
+    P = _random_poses(1, 3, gen)
+    y = x.clone()
+    y[:, 0] = (y[:, 0] + 1) % 16  # change the first frame only
+    with torch.no_grad():
+        causal_x, causal_y = micro_model(x, P, causal_mask(3)), micro_model(y, P, causal_mask(3))
+        ident_x, ident_y = micro_model(x, P, identity_mask(3)), micro_model(y, P, identity_mask(3))
+    assert not torch.allclose(causal_x[:, 1:], causal_y[:, 1:], atol=1e-4)  # later frames see frame 0
+    assert torch.allclose(ident_x[:, 1:], ident_y[:, 1:], atol=1e-6)  # ... unless the mask is the identity
+    z = x.clone()
+    z[:, 2] = (z[:, 2] + 1) % 16  # change the last frame only: earlier frames cannot see it
+    with torch.no_grad():
+        causal_z = micro_model(z, P, causal_mask(3))
+    assert torch.allclose(causal_x[:, :2], causal_z[:, :2], atol=1e-6)
+
+
+def test_bad_masks_and_inputs_are_refused(micro_model):
+    x = torch.zeros(1, 3, 8, 8, dtype=torch.long)
+    P = _eye_poses(1, 3)
+    with pytest.raises(ValueError, match="must be bool"):
+        micro_model(x, P, causal_mask(3).float())
+    with pytest.raises(ValueError, match="diagonal must be True"):
+        micro_model(x, P, ~identity_mask(3))
+    with pytest.raises(ValueError, match=r"expected \(3, 3\)"):
+        micro_model(x, P, causal_mask(4))
+    bad = x.clone()
+    bad[0, 1, 2, 3] = 17
+    with pytest.raises(ValueError, match=r"token codes span 0..17; expected 0..16 \(16 = mask\)"):
+        micro_model(bad, P, causal_mask(3))
+    with pytest.raises(ValueError, match=r"T_ref_sensor has shape \(1, 2, 4, 4\)"):
+        micro_model(x, P[:, :2], causal_mask(3))
+
+
+def test_actions_are_each_frames_pose(micro_model):
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randint(0, 16, (1, 3, 8, 8), generator=gen)
+    P = _random_poses(1, 3, gen)
+    Q = P.clone()
+    Q[:, 2, 0, 3] += 1.0  # move the last frame's sensor 1 m along x of the reference frame
+    with torch.no_grad():
+        a, b = micro_model(x, P, identity_mask(3)), micro_model(x, Q, identity_mask(3))
+    assert torch.allclose(a[:, :2], b[:, :2], atol=1e-6)
+    assert not torch.allclose(a[:, 2], b[:, 2], atol=1e-4)
+
+
+def test_bf16_autocast_runs_unchanged(micro_model):
+    x = torch.randint(0, 16, (1, 3, 8, 8), generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        ref = micro_model(x, _eye_poses(1, 3), causal_mask(3))
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = micro_model(x, _eye_poses(1, 3), causal_mask(3))
+    assert low.dtype == torch.bfloat16
+    assert (low.float().argmax(-1) == ref.argmax(-1)).float().mean() > 0.8
+
+
+# --------------------------------------------------------------------------- Algorithm 1
+def _exact_expectations(N: int, eta: float) -> tuple[float, float]:
+    """E[masked] / N and E[noised] / N for one frame, by exact summation over the mask count
+    m = ceil(cos(u0 pi / 2) N): P(m) is the length of the u0 interval giving m, and
+    E[floor(u1 c)] = sum_{j=1..floor(c)} (1 - j / c) for u1 ~ U(0, 1)."""
+    e_mask = e_noise = 0.0
+    for m in range(1, N + 1):
+        p = (math.acos((m - 1) / N) - math.acos(m / N)) * 2 / math.pi
+        c = eta / 100 * (N - m)
+        e_mask += p * m
+        e_noise += p * sum(1 - j / c for j in range(1, math.floor(c) + 1))
+    return e_mask / N, e_noise / N
+
+
+def test_corruption_counts_are_exact():
+    gen = torch.Generator().manual_seed(11)
+    V, B, T, H = 16, 64, 4, 6
+    x0 = torch.randint(0, V, (B, T, H, H), generator=gen)
+    c = D.corrupt(x0, n_past=2, codebook_size=V, generator=gen)
+    N = H * H
+    masked, noised = c.masked.view(B, T, N), c.noised.view(B, T, N)
+    assert not (masked & noised).any()
+    for b in range(B):
+        obj = int(c.objective[b])
+        assert c.temporal_mask[b].tolist() == (identity_mask(T) if obj == 2 else causal_mask(T)).tolist()
+        for t in range(T):
+            if obj == 0 and t < 2:  # the clean past of future prediction: untouched, not scored
+                assert not c.denoised[b, t] and not masked[b, t].any() and not noised[b, t].any()
+                assert not c.loss_mask[b, t].any() and torch.equal(c.tokens[b, t], x0[b, t])
+                continue
+            u0, u1 = float(c.u0[b, t]), float(c.u1[b, t])
+            m = math.ceil(math.cos(u0 * math.pi / 2) * N)
+            assert int(masked[b, t].sum()) == m
+            assert int(noised[b, t].sum()) == math.floor(u1 * 0.20 * (N - m))
+            assert c.loss_mask[b, t].all()  # Copilot4D: cross entropy on every token
+    assert torch.equal(c.tokens[c.masked], torch.full_like(c.tokens[c.masked], V))
+    keep = ~c.masked & ~c.noised
+    assert torch.equal(c.tokens[keep], x0[keep])
+
+
+def test_corruption_proportions_statistically():
+    gen = torch.Generator().manual_seed(12)
+    V, B, T, H = 16, 6000, 2, 8
+    N = H * H
+    x0 = torch.randint(0, V, (B, T, H, H), generator=gen)
+    c = D.corrupt(x0, n_past=1, codebook_size=V, generator=gen)
+
+    # objectives 50 / 40 / 10 %: each frequency within 4.5 binomial standard deviations
+    for i, p in enumerate(D.OBJECTIVE_PROBS):
+        freq = float((c.objective == i).float().mean())
+        assert abs(freq - p) < 4.5 * math.sqrt(p * (1 - p) / B), (D.OBJECTIVES[i], freq)
+
+    frames = c.denoised
+    n = int(frames.sum())
+    assert n == 2 * B - int((c.objective == 0).sum())
+    mask_frac = c.masked.view(B, T, N).sum(-1)[frames].double() / N
+    noise_frac = c.noised.view(B, T, N).sum(-1)[frames].double() / N
+    e_mask, e_noise = _exact_expectations(N, 20.0)
+    assert abs(e_mask - (2 / math.pi)) < 1.0 / N  # ceil adds less than one token on average
+    for got, want in ((mask_frac, e_mask), (noise_frac, e_noise)):
+        assert abs(float(got.mean()) - want) < 4.5 * float(got.std()) / math.sqrt(n)
+    # gamma(u0) with u0 uniform: P(masked fraction <= 1/2) = P(u0 >= 2/3) = 1/3
+    p_half = float((mask_frac <= 0.5).double().mean())
+    assert abs(p_half - 1 / 3) < 4.5 * math.sqrt(2 / 9 / n)
+
+    # masked and noised positions are uniform over the frame
+    rate = c.masked.view(B, T, N)[frames].double().mean(0)
+    assert float((rate - rate.mean()).abs().max()) < 4.5 * math.sqrt(0.25 / n)
+    # noise codes are uniform over all |V| codes (chi-square, 15 dof, p = 1e-4 quantile 46.8)
+    codes = c.tokens[c.noised]
+    counts = torch.bincount(codes, minlength=V).double()
+    chi2 = float(((counts - counts.mean()) ** 2 / counts.mean()).sum())
+    assert chi2 < 46.8
+    changed = float((codes != x0[c.noised]).double().mean())
+    assert abs(changed - (1 - 1 / V)) < 4.5 * math.sqrt((1 / V) * (1 - 1 / V) / codes.numel())
+
+
+def test_maskgit_variant_has_no_noise_and_scores_masked_tokens_only():
+    gen = torch.Generator().manual_seed(13)
+    x0 = torch.randint(0, 16, (200, 3, 4, 4), generator=gen)
+    c = D.corrupt(x0, n_past=2, codebook_size=16, variant=D.MASKGIT, generator=gen)
+    assert not c.noised.any()
+    assert torch.equal(c.loss_mask, c.masked)
+    assert torch.equal(c.tokens[~c.masked], x0[~c.masked])
+    bad = x0.clone()
+    bad[5, 1, 2, 3] = 16
+    with pytest.raises(ValueError, match=r"clean token codes span 0..16; expected 0..15"):
+        D.corrupt(bad, n_past=2, codebook_size=16)
+    with pytest.raises(UnknownNameError, match="did you mean 'maskgit'"):
+        D.get_variant("maskgti")
+
+
+class _CopyModel(nn.Module):
+    """Logit `a` on the input code and 0 elsewhere; all zeros on mask tokens."""
+
+    def __init__(self, V: int, a: float) -> None:
+        super().__init__()
+        self.mask_token, self.V, self.a = V, V, a
+
+    def forward(self, tokens, T_ref_sensor, temporal_mask, frame_index=None):
+        out = torch.zeros(*tokens.shape, self.V)
+        seen = tokens != self.mask_token
+        out[seen] = F.one_hot(tokens[seen], self.V).float() * self.a
+        return out
+
+
+def test_training_loss_by_hand():
+    V, a, eps = 16, 3.0, 0.1
+    model = _CopyModel(V, a)
+    x0 = torch.randint(0, V, (8, 3, 4, 4), generator=torch.Generator().manual_seed(14))
+    P = _eye_poses(8, 3)
+
+    log_z = math.log(math.exp(a) + V - 1)
+    ce_right = -((1 - eps + eps / V) * (a - log_z) + (V - 1) * (eps / V) * (0 - log_z))  # input = target
+    ce_wrong = -((1 - eps + eps / V) * (0 - log_z) + (eps / V) * (a - log_z) + (V - 2) * (eps / V) * (0 - log_z))
+    ce_mask = math.log(V)  # uniform logits: label smoothing cannot change log |V|
+
+    # MaskGIT scores masked tokens only, where this model is uniform: the loss is log |V| exactly
+    loss, _ = D.training_loss(model, x0, P, 2, D.MASKGIT, generator=torch.Generator().manual_seed(1))
+    assert abs(float(loss) - ce_mask) < 1e-5
+
+    loss, stats = D.training_loss(model, x0, P, 2, D.COPILOT4D, generator=torch.Generator().manual_seed(2))
+    c = D.corrupt(x0, 2, V, D.COPILOT4D, generator=torch.Generator().manual_seed(2))  # the same draws
+    sel = c.loss_mask
+    n_mask = int((c.masked & sel).sum())
+    n_right = int((~c.masked & sel & (c.tokens == x0)).sum())
+    n_wrong = int((~c.masked & sel & (c.tokens != x0)).sum())
+    assert n_wrong > 0 and n_mask > 0 and n_right > 0
+    want = (n_mask * ce_mask + n_right * ce_right + n_wrong * ce_wrong) / (n_mask + n_right + n_wrong)
+    assert abs(float(loss) - want) < 1e-5
+    n_hit = n_right + int((c.masked & sel & (x0 == 0)).sum())  # argmax of uniform logits is code 0
+    assert abs(stats["accuracy"] - n_hit / int(sel.sum())) < 1e-6
+
+
+def test_optimizer_follows_a3(micro_model):
+    opt = D.make_optimizer(micro_model, MICRO)
+    decayed = {id(p) for g in opt.param_groups if g["weight_decay"] > 0 for p in g["params"]}
+    assert id(micro_model.embed.weight) not in decayed  # tied embedding / un-embedding
+    assert id(micro_model.time_embed) not in decayed
+    assert id(micro_model.out_norm.weight) not in decayed
+    assert id(micro_model.down1.groups[0].temporal.attn.qkv.weight) in decayed
+    assert opt.defaults["betas"] == (0.9, 0.95)
+    assert all(g["weight_decay"] in (0.0, 1e-4) for g in opt.param_groups)
+    assert D.lr_at(PAPER, 0) == pytest.approx(1e-3 / 2000)
+    assert D.lr_at(PAPER, 1999) == pytest.approx(1e-3)
+    assert D.lr_at(PAPER, 750_000) == pytest.approx(1e-4)
+
+
+# --------------------------------------------------------------------------- Algorithm 2
+class _ToyModel(nn.Module):
+    """The answer is `target`; but while more than half of the frame being decoded is masked
+    it is confidently wrong ((target + 1) mod V). Context frames are ignored."""
+
+    def __init__(self, target: torch.Tensor, V: int) -> None:
+        super().__init__()
+        self.target, self.mask_token, self.V = target, V, V  # target: (H, W)
+        self.calls: list[tuple[int, list]] = []
+
+    def forward(self, tokens, T_ref_sensor, temporal_mask, frame_index=None):
+        self.calls.append((tokens.shape[1], temporal_mask.tolist()))
+        B, T = tokens.shape[:2]
+        frac = (tokens == self.mask_token).float().flatten(2).mean(-1)  # (B, T)
+        code = torch.where(frac[..., None, None] > 0.5, (self.target + 1) % self.V, self.target)
+        return F.one_hot(code, self.V).float() * 30.0
+
+
+@pytest.mark.parametrize("revise", [True, False])
+def test_sampling_on_a_toy_model(revise):
+    V, H, K = 8, 10, 10
+    N = H * H
+    target = torch.randint(0, V, (H, H), generator=torch.Generator().manual_seed(21))
+    model = _ToyModel(target, V)
+    context = target[None, None].clone()
+    trace: list[torch.Tensor] = []
+    out = D.sample_frame(model, context, _eye_poses(1, 2), steps=K, guidance=2.0, revise=revise,
+                         generator=torch.Generator().manual_seed(0), trace=trace)
+    assert len(trace) == K and len(model.calls) == K
+    # one pass per step, context + frame + its unconditional copy under the guidance mask
+    assert all(T == 3 and m == guidance_mask(2).tolist() for T, m in model.calls)
+    prev = torch.zeros(1, H, H, dtype=torch.bool)
+    for step, x in enumerate(trace):
+        k = K - 1 - step
+        decoded = x != V
+        assert int(decoded.sum()) == math.ceil(math.cos(k / K * math.pi / 2) * N - 1e-9)  # M = ceil(gamma(k/K) N)
+        assert not (prev & ~decoded).any()  # decoded tokens are never masked again
+        prev = decoded
+    # the toy is wrong while more than half is masked: steps k = 9, 8, 7, 6 (masked 1, .84, .69, .55)
+    wrong_until = math.ceil(math.cos(6 / K * math.pi / 2) * N)
+    early = trace[3] != V
+    assert int(early.sum()) == wrong_until
+    assert torch.equal(trace[3][early], ((target + 1) % V).unsqueeze(0)[early])
+    right = target.unsqueeze(0)
+    if revise:  # Copilot4D revises the early tokens: everything ends right
+        assert torch.equal(out, right)
+        assert torch.equal(trace[4][early], right[early])
+    else:  # MaskGIT freezes them: exactly the early tokens stay wrong
+        assert int((out != right).sum()) == wrong_until
+        assert torch.equal(out[early], ((right + 1) % V)[early])
+
+
+def test_decoded_count_follows_gamma():
+    assert [D.decoded_count(k, 10, 100) for k in range(9, -1, -1)] == [
+        math.ceil(100 * math.cos(k * math.pi / 20) - 1e-9) for k in range(9, -1, -1)]
+    assert D.decoded_count(0, 10, 16384) == 16384
+    assert D.decoded_count(2, 3, 100) == 50  # cos(pi / 3) * 100 = 50.000000000000014
+
+
+def test_guidance_zero_is_the_conditional_logits(micro_model):
+    gen = torch.Generator().manual_seed(31)
+    x = torch.randint(0, 17, (2, 3, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    with torch.no_grad():
+        cond = micro_model(x, P, causal_mask(3))[:, -1]
+        assert torch.equal(D.guided_logits(micro_model, x, P, 0.0), cond)
+
+
+def test_guidance_copy_is_a_separate_unconditional_pass(micro_model):
+    gen = torch.Generator().manual_seed(32)
+    x = torch.randint(0, 17, (2, 3, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    with torch.no_grad():
+        joint = micro_model(torch.cat([x, x[:, -1:]], 1), torch.cat([P, P[:, -1:]], 1), guidance_mask(3),
+                            torch.tensor([0, 1, 2, 2]))
+        cond = micro_model(x, P, causal_mask(3))[:, -1]
+        uncond = micro_model(x[:, -1:], P[:, -1:], identity_mask(1), torch.tensor([2]))[:, 0]
+        guided = D.guided_logits(micro_model, x, P, 2.0)
+    assert not torch.allclose(cond, uncond, atol=1e-3)  # the context matters to this model
+    assert torch.allclose(joint[:, 3], uncond, atol=1e-5, rtol=0)
+    assert torch.allclose(joint[:, 2], cond, atol=1e-5, rtol=0)
+    assert torch.allclose(guided, cond + 2.0 * (cond - uncond), atol=1e-4, rtol=0)
+
+
+def test_forecast_tokens_decodes_every_future_frame(micro_model):
+    gen = torch.Generator().manual_seed(33)
+    past = torch.randint(0, 16, (2, 2, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    a = D.forecast_tokens(micro_model, past, P, 1, steps=4, generator=torch.Generator().manual_seed(1))
+    b = D.forecast_tokens(micro_model, past, P, 1, steps=4, generator=torch.Generator().manual_seed(1))
+    assert a.shape == (2, 1, 8, 8) and torch.equal(a, b)
+    assert int(a.min()) >= 0 and int(a.max()) < 16
+
+
+# --------------------------------------------------------------------------- overfit
+def test_overfit_a_tiny_sequence():
+    """Algorithm 1 on one random 3-frame sequence: forecasting its last frame from the clean
+    past (all of it masked, argmax) goes from chance (1/16) to above 90 %."""
+    torch.manual_seed(0)
+    model = WorldModel(MICRO)
+    gen = torch.Generator().manual_seed(41)
+    x0 = torch.randint(0, 16, (1, 3, 8, 8), generator=gen)
+    P = _random_poses(1, 3, gen)
+    opt = D.make_optimizer(model, MICRO)
+
+    def forecast_accuracy() -> float:
+        inp = x0.clone()
+        inp[:, 2] = model.mask_token
+        with torch.no_grad():
+            pred = model(inp, P, causal_mask(3))[:, 2].argmax(-1)
+        return float((pred == x0[:, 2]).float().mean())
+
+    before = forecast_accuracy()
+    assert before < 0.25
+    for step in range(60):
+        for g in opt.param_groups:
+            g["lr"] = D.lr_at(MICRO, step)
+        loss, _ = D.training_loss(model, x0.expand(2, -1, -1, -1), P.expand(2, -1, -1, -1), 2, generator=gen)
+        opt.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(model.parameters(), MICRO.grad_clip)
+        opt.step()
+        if step % 10 == 9 and forecast_accuracy() > 0.9:
+            break
+    assert forecast_accuracy() > 0.9
