@@ -161,6 +161,43 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
     click.echo(paths["tex"].read_text().splitlines()[0].lstrip("% "))
 
 
+@cli.command()
+@click.argument("experiment", type=click.Path(dir_okay=False))
+@click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (overrides the file's limit).")
+@click.option("--jobs", "-j", type=click.IntRange(min=0), default=None, help="Worker processes (overrides the file's jobs).")
+@click.option("--threads", type=click.IntRange(min=1), default=None, help="Thread budget of the sweep (as for run).")
+@click.option("--force", is_flag=True, help="Recompute cells that are already complete.")
+@click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
+@click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
+@click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells; run nothing.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet):
+    """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
+    (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
+    from pcfbench.sweep import cell_label, load_experiment, plan, run_sweep
+
+    plugins = get_plugins()
+    warn_failed(plugins)
+    exp = load_experiment(experiment, plugins)
+    reports_path = config.reports_dir(reports)
+    store_path = config.store_dir(store, reports_path)
+    if dry_run:
+        cells = plan(exp, limit=limit, plugins=plugins, progress=not quiet)
+        for i, spec in enumerate(cells, 1):
+            click.echo(f"cell {i}/{len(cells)}: {cell_label(spec)} -> {store_path / spec.relpath()}")
+        click.echo(f"tables: {', '.join(str(reports_path / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
+        return
+    result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
+                       progress=not quiet, plugins=plugins, echo=click.echo)
+    failed = sum(r.failed for r in result.results)
+    for text in result.summaries:
+        click.echo(text)
+    for path in result.paths.values():
+        click.echo(str(path))
+    if failed:
+        click.echo(f"pcfbench: {failed} sample(s) failed; their tracebacks are in the cells' rows", err=True)
+
+
 @cli.command(name="ls")
 @click.argument("what", type=click.Choice(["methods", "datasets", "metrics", "settings"]))
 @click.option("--json", "as_json", is_flag=True)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import pandas as pd
@@ -107,25 +108,30 @@ def _check_versions(versions: dict[str, dict[str, list[str]]]) -> None:
 
 
 def collect(store_root: Path, resampling: stats.Resampling | None = None,
-            reference: str | None = None) -> Leaderboard:
+            reference: str | None = None, cells: Iterable[Path] | None = None,
+            reference_options_hash: str | None = None) -> Leaderboard:
     """Read and analyse every complete cell under ``store_root``.
 
     ``reference``: the method every cell is compared with; None means ``copy-last`` where a
     group has it. A reference named explicitly must be a method of the store.
+    ``reference_options_hash``: with ``reference``, only its cell of these options is the
+    reference (a sweep's reference row). ``cells``: only these cell folders (a sweep's grid).
     """
     from threadpoolctl import threadpool_limits
 
     # The products are small (resamples x units x metrics): BLAS threads only add overhead.
     with threadpool_limits(1):
-        return _collect(Path(store_root), resampling or stats.Resampling(), reference)
+        return _collect(Path(store_root), resampling or stats.Resampling(), reference,
+                        None if cells is None else {Path(c).resolve() for c in cells}, reference_options_hash)
 
 
-def _collect(store_root: Path, resampling: stats.Resampling, reference: str | None) -> Leaderboard:
+def _collect(store_root: Path, resampling: stats.Resampling, reference: str | None,
+             cells: set[Path] | None = None, reference_options_hash: str | None = None) -> Leaderboard:
     rows, step_rows, sums, notes = [], [], [], []
     versions = {False: {}, True: {}}
     units: dict[str, str] = {}
     for cell_dir, meta in iter_cells(store_root):
-        if meta.get("status") != "complete":
+        if meta.get("status") != "complete" or (cells is not None and cell_dir.resolve() not in cells):
             continue
         spec = spec_from_meta(meta)
         partial = bool(meta.get("partial"))
@@ -183,7 +189,8 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             limit = f" (limit={int(r['limit'])})" if r["partial"] else ""
             notes.append(f"{r['dataset']} / {r['split']} / {r['setting']}{limit} {r['variant']}: {r['ci_units']} "
                          f"resampling unit(s) ({resampling.unit}), too few for an interval")
-    comparisons = _compare_groups(table, sums, reference, resampling, notes) if len(table) else pd.DataFrame()
+    comparisons = (_compare_groups(table, sums, reference, resampling, notes, reference_options_hash)
+                   if len(table) else pd.DataFrame())
     if len(table):
         table["partial"] = table["partial"].astype(bool)
         table = table.sort_values(GROUP_KEYS + ["variant"], na_position="first").reset_index(drop=True)
@@ -195,13 +202,15 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
 
 
 def _compare_groups(table: pd.DataFrame, sums: list, reference: str, resampling: stats.Resampling,
-                    notes: list[str]) -> pd.DataFrame:
+                    notes: list[str], reference_options_hash: str | None = None) -> pd.DataFrame:
     """Fill ``m_rel``/``m_p`` of ``table`` in place; the long comparison table."""
     table["is_reference"] = False
     out = []
     keyed = table.assign(_limit=table["limit"].fillna(-1))
     for key, g in keyed.groupby(BLOCK_KEYS + ["_limit"], sort=True):
         refs = g[g["method"] == reference].sort_values("variant", key=lambda s: s.str.len())
+        if reference_options_hash is not None:
+            refs = refs[refs["options_hash"] == reference_options_hash]
         if not len(refs):
             notes.append(f"{' / '.join(map(str, key[:4]))}: no {reference!r} cell to compare with")
             continue

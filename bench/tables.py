@@ -152,6 +152,9 @@ class Table:
     notes: list[str]
     ci: str = "pm"
     alpha: float = 0.05  # a change with p >= alpha is a tie
+    heading: str = "pcfbench leaderboard"  # "pcfbench ablation" for a sweep's table
+    #: printed where a table has no complete cells ("" prints nothing)
+    empty_note: str = "No complete cells in the store yet: run `pcfbench run` first."
 
 
 def _title(r: pd.Series, horizon_s: float | None) -> str:
@@ -165,7 +168,8 @@ def _title(r: pd.Series, horizon_s: float | None) -> str:
     return t
 
 
-def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | None) -> list[Group]:
+def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | None,
+            order: list[str] | None = None) -> list[Group]:
     out = []
     if not len(df):
         return out
@@ -173,7 +177,9 @@ def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | No
     df = df.copy()
     df["limit"] = df["limit"].fillna(-1) if "limit" in df else -1
     for _, g in df.groupby(keys, sort=True, dropna=False):
-        if rank is not None:
+        if order is not None:  # a sweep's rows in the experiment's order
+            g = g.assign(_row=g["variant"].map({v: i for i, v in enumerate(order)})).sort_values("_row").drop(columns="_row")
+        elif rank is not None:
             sign = 1.0 if rank.better == "lower" else -1.0
             score = (sign * g[rank.metric]).fillna(math.inf) if rank.metric in g else pd.Series(0.0, index=g.index)
             g = g.assign(_score=score).sort_values(["_score", "variant"]).drop(columns="_score")
@@ -192,8 +198,12 @@ def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | No
     return out
 
 
-def build(lb, preset: Preset, ci: str = "pm") -> Table:
-    """The display model of leaderboard ``lb`` (``pcfbench.report.Leaderboard``) in ``preset``."""
+def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
+          heading: str = "pcfbench leaderboard") -> Table:
+    """The display model of leaderboard ``lb`` (``pcfbench.report.Leaderboard``) in ``preset``.
+
+    ``order``: variant labels; rows follow it (a sweep's ablation table) instead of being
+    ranked. ``heading`` starts the Markdown and HTML titles."""
     if ci not in CI_STYLES:
         raise unknown_name("interval style", ci, CI_STYLES)
     notes = []
@@ -210,15 +220,15 @@ def build(lb, preset: Preset, ci: str = "pm") -> Table:
     rank = next((c for c in columns if c.metric == rank_name), columns[0] if columns else None)
     legend = [
         "↓: lower is better, ↑: higher is better; the best value of each column of a group is in bold",
-        f"rows ranked by {rank.label}" if rank else "rows in name order",
+        "rows in the experiment's order" if order is not None else f"rows ranked by {rank.label}" if rank else "rows in name order",
         f"values are flat means over (sample, future sweep); {'±: half the width of' if ci == 'pm' else '[lo, hi]:' if ci == 'interval' else 'the CSV has'} "
         f"the {lb.resampling.describe()}",
         f"(+x %): relative change against the reference {lb.reference!r} on the samples both scored; "
         f"†: not significantly different from it (paired bootstrap, p >= {1 - lb.resampling.confidence:g})",
         "-: no sweep could be scored",
     ]
-    return Table(preset, columns, _groups(lb.table, columns, rank), _groups(lb.partial, columns, rank),
-                 legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence)
+    return Table(preset, columns, _groups(lb.table, columns, rank, order), _groups(lb.partial, columns, rank, order),
+                 legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence, heading)
 
 
 # -- formatting ------------------------------------------------------------------------
@@ -318,11 +328,11 @@ def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
 
 
 def markdown(t: Table, heading: str = "#") -> str:
-    lines = [f"{heading} pcfbench leaderboard: {t.preset.title}", ""]
+    lines = [f"{heading} {t.heading}: {t.preset.title}", ""]
     lines += [f"- {x}" for x in t.legend] + [""]
     lines += [f"> note: {n}" for n in t.notes] + ([""] if t.notes else [])
-    if not t.groups:
-        lines += ["No complete cells in the store yet: run `pcfbench run` first.", ""]
+    if not t.groups and t.empty_note:
+        lines += [t.empty_note, ""]
     lines += _md_groups(t, t.groups, heading + "#")
     if t.partial:
         lines += [f"{heading}# PARTIAL runs (--limit): the first N samples only, not comparable with the tables above", ""]
@@ -464,7 +474,7 @@ def latex(t: Table) -> tuple[str, str]:
                    f"more than the A4 landscape text width of {A4_TEXTHEIGHT_PT:.0f} pt")
     caption = tex_text(t.preset.title) + ". " + tex_text("; ".join(t.legend[:4]))
     lines = [
-        f"% pcfbench leaderboard, preset {t.preset.name}: {fit}",
+        f"% {t.heading}, preset {t.preset.name}: {fit}",
         r"% needs \usepackage{booktabs,graphicx,rotating}",
         rf"\begin{{{env}}}" + ("[p]" if env == "sidewaystable" else "[t]"),
         r"\centering" + size + r"\setlength{\tabcolsep}{4pt}",
@@ -522,18 +532,19 @@ def html_table(t: Table, groups: list[Group], caption: str) -> str:
 
 
 def html_page(t: Table) -> str:
-    parts = [f"<h1>pcfbench leaderboard: {_html.escape(t.preset.title)}</h1>", "<ul>"]
+    parts = [f"<h1>{_html.escape(t.heading)}: {_html.escape(t.preset.title)}</h1>", "<ul>"]
     parts += [f"<li>{_html.escape(x)}</li>" for x in t.legend] + ["</ul>"]
     parts += [f"<p class='note'>note: {_html.escape(n)}</p>" for n in t.notes]
     if t.groups:
         parts.append(html_table(t, t.groups, t.preset.title))
-    else:
-        parts.append("<p>No complete cells in the store yet: run <code>pcfbench run</code> first.</p>")
+    elif t.empty_note:
+        note = _html.escape(t.empty_note).split("`")  # `code` spans as <code>
+        parts.append("<p>" + "".join(f"<code>{x}</code>" if i % 2 else x for i, x in enumerate(note)) + "</p>")
     if t.partial:
         parts.append("<div class='partial'><h2>PARTIAL runs (--limit): the first N samples only, "
                      "not comparable with the table above</h2>")
         parts.append(html_table(t, t.partial, "partial runs") + "</div>")
     return ("<!doctype html><html><head><meta charset='utf-8'>"
-            f"<title>pcfbench leaderboard: {_html.escape(t.preset.title)}</title>"
+            f"<title>{_html.escape(t.heading)}: {_html.escape(t.preset.title)}</title>"
             f"<style>body{{font-family:sans-serif}}{HTML_STYLE}</style></head><body>\n"
             + "\n".join(parts) + "\n</body></html>\n")

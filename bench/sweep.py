@@ -1,0 +1,535 @@
+"""Sweeps: an experiment file (TOML) names a grid of cells; ``run_sweep`` runs it resumably
+and writes its ablation tables.
+
+The experiment file is data (read with ``tomllib``, nothing in it is executed); its format is
+documented in docs/experiments.md. :func:`load_experiment` checks every key, method, option
+(against the method's typed ``Options`` through ``pcfbench.method.resolve_method``), seed,
+setting, split, policy, metric, dataset and table before anything runs: a bad file is one
+``PcfbenchError`` naming the file and the key, and nothing is written.
+
+The grid is method variant x dataset x split x setting. Each cell runs through
+``pcfbench.runner.run_cell`` into the results store like any ``pcfbench run`` cell (same
+paths, same identity), so a finished cell is reused, an interrupted one resumed, and
+``pcfbench report`` sees them too. The ablation table (one row per variant in the
+experiment's order, the preset's columns, the relative change against the experiment's
+reference row, as in Copilot4D's Tables 3 and 4) is computed by ``pcfbench.report.collect``
+over the sweep's cells only and rendered by ``pcfbench.tables`` as Markdown, CSV, LaTeX and
+HTML under ``<reports>/sweeps/``. Each file is written whole (a temporary file renamed into
+place) after every cell is complete.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import pandas as pd
+
+from pcfbench import config
+from pcfbench.errors import PcfbenchError, UnknownNameError, unknown_name
+from pcfbench.method import MethodSpec, resolve_method
+from pcfbench.plugins import Plugins, get_plugins
+from pcfbench.report import method_label
+from pcfbench.store import CellSpec, atomic_write_bytes
+
+__all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "load_experiment", "plan", "run_sweep", "ablation_tables"]
+
+#: top-level keys of an experiment file, and those of its [[methods]] and [[tables]] entries
+EXPERIMENT_KEYS = ("name", "description", "methods", "datasets", "settings", "splits", "policy", "metrics",
+                   "seeds", "train_on", "limit", "jobs", "tables")
+METHOD_KEYS = ("name", "options", "grid", "variants", "seeds")
+TABLE_KEYS = ("preset", "reference", "stem", "title", "ci")
+#: the reference row of a table when the file names none, if the grid has it
+DEFAULT_REFERENCE = "copy-last"
+SWEEPS_DIR = "sweeps"
+_STEM = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One row of the grid's methods: a resolved method spec and its row label."""
+
+    method: MethodSpec
+    label: str
+    where: str  # the key that made it, e.g. "methods[1].grid"
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.method.name, self.method.options_hash)
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """One ablation table: the preset's columns, the reference row, the output stem."""
+
+    preset: str
+    reference: Variant
+    stem: str
+    title: str
+    ci: str = "pm"
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A validated experiment file. ``datasets`` holds (name, root or None: configured or
+    the adapter's default); empty ``settings``/``splits`` mean each dataset's defaults."""
+
+    path: Path
+    name: str
+    description: str
+    variants: tuple[Variant, ...]
+    datasets: tuple[tuple[str, str | None], ...]
+    settings: tuple[str, ...]
+    splits: tuple[str, ...]
+    policy: str
+    metrics: tuple[str, ...]
+    train_on: tuple[str, ...]
+    limit: int | None
+    jobs: int
+    tables: tuple[TableSpec, ...]
+
+
+class _Reader:
+    """Prefixes every error with the file and the key at fault (keeping its type)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def error(self, key: str, message: str, cls: type[PcfbenchError] = PcfbenchError) -> PcfbenchError:
+        return cls(f"experiment {self.path}: {key}: {message}")
+
+    def wrap(self, key: str, exc: PcfbenchError) -> PcfbenchError:
+        cls = UnknownNameError if isinstance(exc, UnknownNameError) else PcfbenchError
+        return self.error(key, str(exc), cls)
+
+    def keys(self, table: dict, allowed: tuple[str, ...], where: str) -> None:
+        for k in table:
+            if k not in allowed:
+                raise self.wrap(f"{where}{k}" if where else k, unknown_name("key", k, allowed))
+
+    def strings(self, value: Any, key: str, allow_scalar: bool = True) -> tuple[str, ...]:
+        if allow_scalar and isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list) or not value or not all(isinstance(v, str) and v for v in value):
+            raise self.error(key, f"expected a non-empty list of strings, got {value!r}")
+        dupes = sorted({v for v in value if value.count(v) > 1})
+        if dupes:
+            raise self.error(key, f"{', '.join(map(repr, dupes))} given twice")
+        return tuple(value)
+
+
+def _option_text(value: Any, key: str, reader: _Reader) -> str:
+    """A TOML option value as the string a method spec would carry, so that the method's
+    typed parser converts it exactly as on the command line (an integer 1 for a float option
+    is the float 1.0, and hashes the same as ``NAME:key=1``)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return value
+    raise reader.error(key, f"an option value must be a string, number or boolean, got {value!r}")
+
+
+def _variants_of(entry: Any, index: int, seeds: Any, plugins: Plugins, reader: _Reader) -> list[Variant]:
+    where = f"methods[{index}]"
+    if not isinstance(entry, dict):
+        raise reader.error(where, f"expected a table {{name = ..., grid = {{...}}}}, got {entry!r}")
+    reader.keys(entry, METHOD_KEYS, f"{where}.")
+    name = entry.get("name")
+    if not isinstance(name, str) or not name:
+        raise reader.error(f"{where}.name", f"expected a method name, got {name!r}")
+    try:
+        cls = plugins.methods.get(name)
+    except PcfbenchError as exc:
+        raise reader.wrap(f"{where}.name", exc) from None
+    if "grid" in entry and "variants" in entry:
+        raise reader.error(where, "give grid (a product of option lists) or variants (explicit option sets), not both")
+    base = entry.get("options", {})
+    if not isinstance(base, dict):
+        raise reader.error(f"{where}.options", f"expected a table of option = value, got {base!r}")
+    option_sets: list[tuple[str, dict[str, Any]]] = []
+    if "grid" in entry:
+        grid = entry["grid"]
+        if not isinstance(grid, dict) or not grid:
+            raise reader.error(f"{where}.grid", f"expected a table of option = [values], got {grid!r}")
+        axes = []
+        for k, values in grid.items():
+            values = values if isinstance(values, list) else [values]
+            if not values:
+                raise reader.error(f"{where}.grid.{k}", "an empty list of values")
+            axes.append([(k, v) for v in values])
+        for combo in itertools.product(*axes):
+            option_sets.append((f"{where}.grid", dict(combo)))
+    elif "variants" in entry:
+        variants = entry["variants"]
+        if not isinstance(variants, list) or not variants or not all(isinstance(v, dict) for v in variants):
+            raise reader.error(f"{where}.variants", f"expected a non-empty list of option tables, got {variants!r}")
+        option_sets = [(f"{where}.variants[{i}]", dict(v)) for i, v in enumerate(variants)]
+    else:
+        option_sets = [(where, {})]
+    seeds = entry.get("seeds", seeds)
+    seed_key = f"{where}.seeds" if "seeds" in entry else "seeds"
+    if seeds is not None:
+        if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
+            raise reader.error(seed_key, f"expected a non-empty list of integers, got {seeds!r}")
+        fields = [f.name for f in dataclasses.fields(cls.Options)]
+        if "seed" not in fields:
+            raise reader.error(seed_key, f"method {name} has no 'seed' option to pass the seeds to (its options: "
+                               f"{', '.join(fields) or 'none'})")
+    out = []
+    for key, opts in option_sets:
+        merged = dict(base)
+        for k in opts:
+            if k in merged:
+                raise reader.error(f"{key}.{k}", f"option {k!r} is also fixed in {where}.options")
+        merged.update(opts)
+        if seeds is not None and "seed" in merged:
+            raise reader.error(f"{key}.seed", f"give the seed in {seed_key} or as an option, not both")
+        for seed in seeds if seeds is not None else [None]:
+            raw = {k: _option_text(v, f"{key}.{k}", reader) for k, v in merged.items()}
+            if seed is not None:
+                raw["seed"] = str(seed)
+            try:
+                spec = resolve_method((name, raw), plugins)
+            except PcfbenchError as exc:
+                raise reader.wrap(key, exc) from None
+            out.append(Variant(spec, method_label(name, raw), key))
+    return out
+
+
+def _datasets(value: Any, reader: _Reader, plugins: Plugins) -> tuple[tuple[str, str | None], ...]:
+    items = reader.strings(value, "datasets")
+    out = []
+    for item in items:
+        name, sep, root = item.partition("=")
+        try:
+            plugins.datasets.get(name)
+        except PcfbenchError as exc:
+            raise reader.wrap("datasets", exc) from None
+        if sep and not root:
+            raise reader.error("datasets", f"{item!r}: empty root (use NAME=ROOT)")
+        if sep:
+            path, _, query = root.partition("?")
+            p = Path(path).expanduser()
+            if not p.is_absolute():
+                p = reader.path.parent / p  # relative to the experiment file
+            if not p.exists():
+                raise reader.error("datasets", f"{item!r}: root {p} does not exist")
+            root = str(p.resolve()) + (f"?{query}" if query else "")
+        if name in [n for n, _ in out]:
+            raise reader.error("datasets", f"dataset {name!r} given twice")
+        out.append((name, root if sep else None))
+    return tuple(out)
+
+
+def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experiment:
+    """Read and validate experiment file ``path``; every problem is one error naming the
+    file and the key (``PcfbenchError``, ``UnknownNameError`` with a did-you-mean)."""
+    from pcfbench import tables as tables_mod
+    from pcfbench.protocol import SAMPLE_POLICIES, check_compatible, get_setting
+
+    path = Path(path)
+    plugins = plugins or get_plugins()
+    reader = _Reader(path)
+    if not path.is_file():
+        raise PcfbenchError(f"experiment file {path} does not exist")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise PcfbenchError(f"experiment {path} is not valid TOML: {exc}") from None
+    reader.keys(doc, EXPERIMENT_KEYS, "")
+    name = doc.get("name", path.stem)
+    description = doc.get("description", "")
+    if not isinstance(name, str) or not name or not isinstance(description, str):
+        raise reader.error("name" if not isinstance(name, str) or not name else "description", "expected a string")
+
+    methods = doc.get("methods")
+    if not isinstance(methods, list) or not methods:
+        raise reader.error("methods", "expected at least one [[methods]] table (name = \"METHOD\", grid = {...})")
+    variants: list[Variant] = []
+    for i, entry in enumerate(methods):
+        variants += _variants_of(entry, i, doc.get("seeds"), plugins, reader)
+    seen: dict[tuple[str, str], Variant] = {}
+    for v in variants:
+        if v.key in seen:
+            raise reader.error(v.where, f"{v.label} and {seen[v.key].label} ({seen[v.key].where}) are the same "
+                               f"options (hash {v.method.options_hash}): one cell, listed twice")
+        seen[v.key] = v
+
+    if "datasets" not in doc:
+        embedded = [n for n in plugins.datasets.names() if getattr(plugins.datasets.get(n), "embedded", False)]
+        if not embedded:
+            raise reader.error("datasets", "not given and no embedded dataset is registered")
+        datasets = tuple((n, None) for n in embedded)
+    else:
+        datasets = _datasets(doc["datasets"], reader, plugins)
+
+    settings = reader.strings(doc["settings"], "settings") if "settings" in doc else ()
+    for s in settings:
+        try:
+            setting = get_setting(s, plugins)
+        except PcfbenchError as exc:
+            raise reader.wrap("settings", exc) from None
+        for ds, _ in datasets:
+            try:
+                check_compatible(setting, plugins.datasets.get(ds))
+            except PcfbenchError as exc:
+                raise reader.wrap("settings", exc) from None
+    for ds, _ in datasets:
+        if not settings and not plugins.datasets.get(ds).default_settings:
+            raise reader.error("settings", f"dataset {ds!r} declares no default settings: list them")
+    splits = reader.strings(doc["splits"], "splits") if "splits" in doc else ()
+
+    policy = doc.get("policy", "full-context")
+    if policy not in SAMPLE_POLICIES:
+        raise reader.wrap("policy", unknown_name("sample policy", str(policy), SAMPLE_POLICIES))
+    if "metrics" in doc:
+        metrics = reader.strings(doc["metrics"], "metrics")
+        for m in metrics:
+            try:
+                plugins.metrics.get(m)
+            except PcfbenchError as exc:
+                raise reader.wrap("metrics", exc) from None
+    else:
+        from pcfbench.runner import default_metrics
+
+        metrics = default_metrics(plugins)
+
+    train_on = _train_on(doc, variants, reader, plugins)
+
+    limit = doc.get("limit")
+    if limit is not None and (not isinstance(limit, int) or isinstance(limit, bool) or limit < 1):
+        raise reader.error("limit", f"expected a positive integer (the first N samples), got {limit!r}")
+    jobs = doc.get("jobs", 0)
+    if not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 0:
+        raise reader.error("jobs", f"expected an integer >= 0 (0: one worker per CPU for large cells), got {jobs!r}")
+
+    presets = tables_mod.load_presets()
+    raw_tables = doc.get("tables", [{}])
+    if not isinstance(raw_tables, list) or not raw_tables:
+        raise reader.error("tables", "expected one or more [[tables]] (preset, reference, stem)")
+    specs = []
+    for i, t in enumerate(raw_tables):
+        where = f"tables[{i}]"
+        if not isinstance(t, dict):
+            raise reader.error(where, f"expected a table (preset, reference, stem), got {t!r}")
+        reader.keys(t, TABLE_KEYS, f"{where}.")
+        preset = t.get("preset", "paper")
+        if not isinstance(preset, str):
+            raise reader.error(f"{where}.preset", f"expected a preset name, got {preset!r}")
+        try:
+            tables_mod.get_preset(preset, presets)
+        except PcfbenchError as exc:
+            raise reader.wrap(f"{where}.preset", exc) from None
+        reference = _reference(t.get("reference"), variants, f"{where}.reference", reader, plugins)
+        stem = t.get("stem", path.stem if len(raw_tables) == 1 else f"{path.stem}-{preset}")
+        if not isinstance(stem, str) or not _STEM.match(stem):
+            raise reader.error(f"{where}.stem", f"expected a file name (letters, digits, '.', '_', '-'), got {stem!r}")
+        title = t.get("title", name)
+        ci = t.get("ci", "pm")
+        if not isinstance(title, str):
+            raise reader.error(f"{where}.title", f"expected a string, got {title!r}")
+        if ci not in tables_mod.CI_STYLES:
+            raise reader.wrap(f"{where}.ci", unknown_name("interval style", str(ci), tables_mod.CI_STYLES))
+        if stem in [s.stem for s in specs]:
+            raise reader.error(f"{where}.stem", f"{stem!r} is already the stem of another table")
+        specs.append(TableSpec(preset, reference, stem, title, ci))
+    return Experiment(path, name, description, tuple(variants), datasets, settings, splits, policy, tuple(metrics),
+                      train_on, limit, jobs, tuple(specs))
+
+
+def _reference(value: Any, variants: list[Variant], key: str, reader: _Reader, plugins: Plugins) -> Variant:
+    """The variant ``value`` (a method spec ``NAME[:key=value,...]``) names: the row every
+    change is relative to. Default: copy-last where the grid has it, else the first row."""
+    if value is None:
+        return next((v for v in variants if v.method.name == DEFAULT_REFERENCE), variants[0])
+    if not isinstance(value, str):
+        raise reader.error(key, f"expected a method spec NAME[:key=value,...], got {value!r}")
+    try:
+        spec = resolve_method(value, plugins)
+    except PcfbenchError as exc:
+        raise reader.wrap(key, exc) from None
+    for v in variants:
+        if v.key == (spec.name, spec.options_hash):
+            return v
+    raise reader.wrap(key, unknown_name("reference row", value, [v.label for v in variants],
+                                        "the reference must be one of the experiment's variants"))
+
+
+def _train_on(doc: dict, variants: list[Variant], reader: _Reader, plugins: Plugins) -> tuple[str, ...]:
+    """``train_on``: the training datasets of trained methods (checked names). Evaluating a
+    checkpoint trained on another dataset needs the runner to know the training data; until
+    it does, a trained-method axis is refused here rather than run as if untrained."""
+    if "train_on" not in doc:
+        return ()
+    items = reader.strings(doc["train_on"], "train_on")
+    for item in items:
+        try:
+            plugins.datasets.get(item.partition("=")[0])
+        except PcfbenchError as exc:
+            raise reader.wrap("train_on", exc) from None
+    untrained = [v.label for v in variants if getattr(v.method.cls, "ready", True) and not _is_trained(v.method.cls)]
+    if untrained:
+        raise reader.error("train_on", f"applies to trained methods only; {', '.join(untrained)} do(es) not train "
+                           "(list trained methods only, or drop train_on)")
+    if "train_on" not in {f.name for f in dataclasses.fields(CellSpec)}:
+        raise reader.error("train_on", "not yet supported: the runner cannot evaluate a checkpoint trained on another "
+                           "dataset yet (issue 13, items 1-4); the file is otherwise valid")
+    return items
+
+
+def _is_trained(cls: type) -> bool:
+    try:
+        from pcfbench.training import TrainedMethod
+    except ImportError:
+        return False
+    return issubclass(cls, TrainedMethod)
+
+
+# -- running -------------------------------------------------------------------------------
+@dataclass
+class SweepResult:
+    """The cells of the grid (in run order), what each run did, and the files written."""
+
+    cells: list[CellSpec]
+    results: list[Any]
+    paths: dict[str, Path]
+    summaries: list[str]
+
+
+def cell_label(spec: CellSpec) -> str:
+    """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the row and the cell."""
+    return spec.label.replace(spec.method, method_label(spec.method, spec.options), 1)
+
+
+def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None = None,
+         progress: bool = True) -> list[CellSpec]:
+    """The grid's cells: dataset x split x setting x variant, in the file's order. Resolves
+    the roots (an embedded dataset prepares its data now), checks every split and that every
+    (dataset, split, setting) has samples, before any cell runs."""
+    from pcfbench.protocol import SampleBuilder, get_setting
+
+    plugins = plugins or get_plugins()
+    reader = _Reader(exp.path)
+    limit = limit if limit is not None else exp.limit
+    cells = []
+    for name, root in exp.datasets:
+        cls = plugins.datasets.get(name)
+        try:
+            root = config.resolve_root(name, cls, {name: root} if root else {}, progress)
+            adapter = config.open_adapter(name, cls, root)
+        except PcfbenchError as exc:
+            raise reader.wrap("datasets", exc) from None
+        splits = exp.splits or (cls.default_split,)
+        for split in splits:
+            if split not in adapter.splits():
+                raise reader.wrap("splits", unknown_name(f"split of dataset {name}", split, adapter.splits()))
+        for split, setting in itertools.product(splits, exp.settings or cls.default_settings):
+            try:
+                keys = SampleBuilder(adapter, get_setting(setting, plugins), exp.policy).sample_keys(split)
+            except PcfbenchError as exc:
+                raise reader.wrap("datasets", exc) from None
+            if not keys:
+                raise reader.error("settings", f"{name}:{split} (root {root}) has no samples for setting {setting} "
+                                   f"({exp.policy})")
+            for v in exp.variants:
+                m = v.method
+                cells.append(CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, exp.policy,
+                                      limit, exp.metrics))
+    return cells
+
+
+def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None = None, jobs: int | None = None,
+              threads: int | None = None, force: bool = False, progress: bool = True,
+              plugins: Plugins | None = None, echo: Callable[[str], None] = print) -> SweepResult:
+    """Run (or resume) every cell of ``exp`` through ``run_cell``, then write its ablation
+    tables to ``reports/sweeps/``. Complete cells are reused without calling the method;
+    ``force`` recomputes them. ``limit``/``jobs`` override the file's."""
+    from tqdm import tqdm
+
+    from pcfbench.runner import _progress_disabled, run_cell
+
+    plugins = plugins or get_plugins()
+    cells = plan(exp, limit=limit, plugins=plugins, progress=progress)
+    jobs = exp.jobs if jobs is None else jobs
+    results = []
+    bar = tqdm(total=len(cells), desc=f"sweep {exp.name}", unit="cell", position=0, leave=True,
+               disable=_progress_disabled() if progress else True, dynamic_ncols=True)
+    try:
+        for i, spec in enumerate(cells, 1):
+            line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
+            tqdm.write(line) if not bar.disable else echo(line)
+            r = run_cell(spec, store, jobs=jobs, force=force, progress=progress, plugins=plugins, threads=threads)
+            results.append(r)
+            done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
+                f"{r.processed} sample(s) now, {r.failed} failed, {r.seconds:.1f} s"
+            msg = f"cell {i}/{len(cells)}: {done} ({r.samples} samples) -> {r.path}"
+            tqdm.write(msg) if not bar.disable else echo(msg)
+            bar.update(1)
+    finally:
+        bar.close()
+    paths, summaries = ablation_tables(exp, store, reports, [r.path for r in results])
+    return SweepResult(cells, results, paths, summaries)
+
+
+# -- the ablation table --------------------------------------------------------------------
+def ablation_tables(exp: Experiment, store: Path, reports: Path,
+                    cell_dirs: list[Path]) -> tuple[dict[str, Path], list[str]]:
+    """Render every table of ``exp`` from the cells ``cell_dirs`` (the sweep's) and write
+    ``reports/sweeps/<stem>.{md,csv,tex,html}``; returns the paths (``"<stem>.<ext>"``) and
+    each table as terminal text.
+    Everything is rendered in memory first, then each file is written atomically."""
+    from pcfbench import report, tables
+
+    presets = tables.load_presets()
+    labels = {v.key: v.label for v in exp.variants}
+    order = [v.label for v in exp.variants]
+    contents: dict[str, str] = {}
+    summaries = []
+    for t in exp.tables:
+        lb = report.collect(store, reference=t.reference.method.name, cells=cell_dirs,
+                            reference_options_hash=t.reference.method.options_hash)
+        for df in (lb.table, lb.partial):
+            if len(df):  # rows labelled by the experiment (a reused cell keeps the label of its first run)
+                df["variant"] = [labels[(m, h)] for m, h in zip(df["method"], df["options_hash"])]
+        lb.reference = t.reference.label
+        preset = dataclasses.replace(tables.get_preset(t.preset, presets), name=t.stem,
+                                     title=f"{t.title} (Copilot4D Tables 3-4 layout, columns of preset {t.preset})")
+        table = tables.build(lb, preset, t.ci, order=order, heading="pcfbench ablation")
+        table.empty_note = "" if table.partial else "No complete cell of the sweep."
+        tex, _fit = tables.latex(table)
+        contents[f"{t.stem}.md"] = tables.markdown(table)
+        contents[f"{t.stem}.tex"] = tex
+        contents[f"{t.stem}.html"] = tables.html_page(table)
+        contents[f"{t.stem}.csv"] = _csv(lb, order).to_csv(index=False)
+        summaries.append(f"{table.heading}: {preset.title}\n{tables.text(table)}")
+    out = Path(reports) / SWEEPS_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, text in contents.items():
+        atomic_write_bytes(out / name, text.encode())
+        paths[name] = out / name
+    return paths, summaries
+
+
+def _csv(lb, order: list[str]) -> pd.DataFrame:
+    """The report's CSV columns for the sweep's rows (complete and partial), with ``limit``,
+    in the experiment's row order within each (dataset, split, setting, limit) block."""
+    from pcfbench.report import _csv_frame
+
+    frames = [df for df in (lb.table, lb.partial) if len(df)]
+    if not frames:
+        return _csv_frame(lb, lb.table).assign(limit=None)
+    df = pd.concat(frames, ignore_index=True)
+    rank = {label: i for i, label in enumerate(order)}
+    df = df.assign(_row=df["variant"].map(rank), _limit=df["limit"].fillna(-1))
+    df = df.sort_values(["dataset", "split", "setting", "policy", "_limit", "_row"]).reset_index(drop=True)
+    out = _csv_frame(lb, df)
+    out.insert(4, "limit", df["limit"].astype("Int64"))
+    return out
