@@ -39,6 +39,11 @@ _EXPORTS: dict[str, str | None] = {
     # methods
     "Method": "pcfbench.method",
     "NoOptions": "pcfbench.method",
+    # methods that learn: the contract and their checkpoints
+    "TrainedMethod": "pcfbench.training",
+    "TrainSource": "pcfbench.training",
+    "TrainingRun": "pcfbench.training",
+    "Checkpoint": "pcfbench.training",
     # typed options of methods and adapters (a help text per field)
     "option": "pcfbench.options",
     # the thread budget a method or metric may use (Method.execution)
@@ -89,5 +94,6 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench.method import Method, NoOptions
     from pcfbench.execution import ExecutionContext
     from pcfbench.options import option
+    from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
     from pcfbench.metrics.base import Metric, SweepContext
     from pcfbench.protocol import Protocol, SamplePolicy, Setting, active_protocol

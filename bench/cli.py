@@ -39,7 +39,9 @@ def cli() -> None:
 
 def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     """The methods of ``--method`` (resolved now: an unknown name or option fails before any
-    work), else every registered method that is ready to run, with its default options."""
+    work), else every registered method that is ready to run, with its default options: a
+    trained method is ready when its checkpoint for its default training data exists."""
+    from pcfbench.training import find_checkpoint, is_trained, open_training_data
     from pcfbench.method import resolve_method
 
     if requested:
@@ -51,8 +53,17 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
         except PcfbenchError as exc:
             click.echo(f"pcfbench: warning: skipping {exc}", err=True)
             continue
-        if getattr(method.cls, "ready", True):
-            out.append(method)
+        if is_trained(method.cls):
+            try:
+                source = open_training_data(method.cls.default_train_on, plugins=plugins, progress=False)
+                if find_checkpoint(method, source.train_on) is None:
+                    click.echo(f"pcfbench: note: {name} is not trained on {source.train_on.label} yet "
+                               f"(`pcfbench train {name} --dataset {source.train_on.dataset}`); left out", err=True)
+                    continue
+            except PcfbenchError as exc:
+                click.echo(f"pcfbench: warning: skipping {name}: {exc}", err=True)
+                continue
+        out.append(method)
     return out
 
 
@@ -83,7 +94,15 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
 @click.option("--no-report", is_flag=True, help="Do not regenerate the leaderboard afterwards.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet):
+@click.option("--train-on", "train_on", default=None, metavar="NAME[=ROOT]",
+              help="Trained methods: the checkpoint trained on this dataset (default: each method's own default).")
+@click.option("--train-split", default="train", show_default=True, help="Trained methods: the split it was trained on.")
+@click.option("--checkpoint", type=click.Path(exists=True), default=None,
+              help="Trained methods: evaluate this checkpoint (folder, manifest.json or weights file).")
+@click.option("--allow-train-split", is_flag=True,
+              help="Score a trained method on the very data it was trained on (marked in cell.json and the leaderboard).")
+def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
+        train_on, train_split, checkpoint, allow_train_split):
     """Run (or resume) every cell of method x dataset x split x setting."""
     from pcfbench.report import write_reports
     from pcfbench.runner import default_metrics, run_cell
@@ -94,6 +113,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     for s in settings:
         get_setting(s)
     method_specs = _selected_methods(plugins, methods)
+    checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, not quiet)
     metric_names = tuple(metrics) or default_metrics(plugins)
     for m in metric_names:
         plugins.metrics.get(m)
@@ -108,11 +128,12 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         for split, setting, method in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
             cells.append(
                 CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, policy, limit,
-                         metric_names)
+                         metric_names, **checkpoints.get(method.name, {}))
             )
     failures = 0
     for spec in cells:
-        result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads)
+        result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads,
+                          allow_train_split=allow_train_split)
         if result.processed == 0 and result.done_before == result.samples:
             click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
         else:
@@ -130,6 +151,47 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         click.echo(f"leaderboard: {paths['md']}")
     if failures:
         click.echo(f"pcfbench: {failures} sample(s) failed; their tracebacks are in the cells' rows", err=True)
+
+
+def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress) -> dict[str, dict]:
+    """Per trained method of the run, the CellSpec fields of its checkpoint (one error for a
+    missing, altered or mismatched one before any work)."""
+    from pcfbench.training import checkpoint_for, is_trained
+
+    trained = [m for m in method_specs if is_trained(m.cls)]
+    if checkpoint and len(trained) != 1:
+        raise PcfbenchError(f"--checkpoint {checkpoint}: the run must have exactly one trained method "
+                            f"(it has {len(trained)}: {', '.join(m.name for m in trained) or 'none'})")
+    out = {}
+    for m in trained:
+        ck = checkpoint_for(m, checkpoint=checkpoint, train_on=train_on, split=train_split, plugins=plugins,
+                            progress=progress)
+        out[m.name] = {"checkpoint": str(ck.dir.resolve()), "checkpoint_sha256": ck.sha256, "train_on": ck.train_on_label}
+    return out
+
+
+@cli.command()
+@click.argument("method_spec", metavar="METHOD[:k=v,...]")
+@click.option("--dataset", "-d", "dataset", required=True, metavar="NAME[=ROOT]", help="Training data.")
+@click.option("--split", default="train", show_default=True)
+@click.option("--max-minutes", type=click.FloatRange(min=0), default=None,
+              help="Stop (with a checkpoint) after this much training time; rerun to continue.")
+@click.option("--fresh", is_flag=True, help="Start over instead of resuming the checkpoint.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
+def train(method_spec, dataset, split, max_minutes, fresh, quiet):
+    """Train (or resume) a trained method; its checkpoint goes to the cache, keyed by method,
+    version, options and training data."""
+    from pcfbench.method import resolve_method
+    from pcfbench.training import train as train_method
+
+    plugins = get_plugins()
+    warn_failed(plugins)
+    spec = resolve_method(method_spec, plugins)
+    ck = train_method(spec, dataset, split=split, max_minutes=max_minutes, fresh=fresh, progress=not quiet,
+                      plugins=plugins, log=click.echo)
+    state = "complete" if ck.manifest.get("complete") else "not finished: rerun the same command to continue"
+    click.echo(f"{spec.name}: {ck.steps} steps on {ck.train_on_label} in {ck.manifest['wall_s']:.0f} s ({state})")
+    click.echo(f"checkpoint: {ck.manifest_path} (weights sha256 {ck.sha256[:16]})")
 
 
 @cli.command()

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 from abc import ABC, abstractmethod
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 from pcfbench.data import Forecast, Sample
@@ -30,15 +29,13 @@ class Method(ABC):
 
     Subclasses set ``name``, ``version`` (bump it when outputs change) and ``Options`` (a
     frozen dataclass whose fields are declared with ``pcfbench.option(default, help=...)``;
-    unknown keys are rejected) and implement ``forecast``. Learned methods also override
-    ``fit``, ``save`` and ``load``.
+    unknown keys are rejected) and implement ``forecast``. A method that learns subclasses
+    ``pcfbench.TrainedMethod`` (``pcfbench.training``) instead.
     """
 
     name: ClassVar[str]
     version: ClassVar[str] = "1"
     Options: ClassVar[type] = NoOptions
-    #: False for a method that needs a trained checkpoint before it can run on a dataset.
-    ready: ClassVar[bool] = True
 
     def __init__(self, options: Any = None) -> None:
         """``options``: an instance of ``Options`` (default: its defaults); from a spec's
@@ -66,9 +63,6 @@ class Method(ABC):
     @abstractmethod
     def forecast(self, sample: Sample) -> Forecast:
         """Predict every future sweep of ``sample`` (points in the reference frame and/or depths)."""
-
-    def fit(self, dataset: Any, split: str, out_dir: Path) -> None:
-        raise PcfbenchError(f"method {self.name!r} does not train")
 
 
 def parse_method_spec(text: str) -> tuple[str, dict[str, str]]:

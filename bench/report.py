@@ -74,6 +74,15 @@ def method_label(method: str, options: dict) -> str:
     return f"{method} (" + ", ".join(f"{k}={v}" for k, v in sorted(options.items())) + ")"
 
 
+def trained_label(spec, meta: dict) -> str:
+    """A trained method's row names its training data and checkpoint (two checkpoints side by
+    side stay two rows), and says so when it was scored on that very data."""
+    if not spec.train_on:
+        return ""
+    mark = ", ON ITS TRAINING DATA" if meta.get("evaluated_on_training_data") else ""
+    return f" [trained on {spec.train_on}, ck {str(spec.checkpoint_sha256)[:8]}{mark}]"
+
+
 def _step_seconds(setting: str, steps: np.ndarray, notes: list[str]) -> np.ndarray:
     from pcfbench.protocol import get_setting
 
@@ -144,7 +153,10 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             "dataset": spec.dataset, "split": spec.split, "setting": spec.setting, "policy": spec.policy,
             "method": spec.method, "method_version": meta.get("method_version"),
             "samples": meta.get("counts", {}).get("ok", 0), "failed": meta.get("counts", {}).get("failed", 0),
-            "sweeps": len(ok), "variant": method_label(spec.method, spec.options), "options_hash": spec.options_hash,
+            "sweeps": len(ok), "variant": method_label(spec.method, spec.options) + trained_label(spec, meta),
+            "options_hash": spec.options_hash, "train_on": spec.train_on or "",
+            "checkpoint_sha256": spec.checkpoint_sha256 or "",
+            "on_training_data": bool(meta.get("evaluated_on_training_data", False)),
             "limit": spec.limit if partial else None, "horizon_s": _horizon(spec.setting),
         }
         for k, v in sorted(spec.options.items()):
@@ -251,7 +263,8 @@ def _csv_frame(lb: Leaderboard, df: pd.DataFrame) -> pd.DataFrame:
     metric_cols = []
     for m in lb.metric_columns:
         metric_cols += [m, f"{m}_lo", f"{m}_hi", f"{m}_rel", f"{m}_p"]
-    keep = CSV_LEAD + ["variant", "options_hash"] + option_cols + ["horizon_s", "ci_units", "is_reference"] + metric_cols
+    keep = (CSV_LEAD + ["variant", "options_hash", "train_on", "checkpoint_sha256", "on_training_data"] + option_cols
+            + ["horizon_s", "ci_units", "is_reference"] + metric_cols)
     if not len(df):
         return pd.DataFrame(columns=keep)
     return df.reindex(columns=keep)

@@ -46,6 +46,11 @@ class CellSpec:
     policy: str = "full-context"
     limit: int | None = None
     metrics: tuple[str, ...] = ()
+    #: A trained method's checkpoint (``pcfbench.training``): its folder, the sha256 of its
+    #: weights (a cell per checkpoint: the folder name carries it) and its training data.
+    checkpoint: str | None = None
+    checkpoint_sha256: str | None = None
+    train_on: str | None = None
 
     @property
     def partial(self) -> bool:
@@ -54,11 +59,14 @@ class CellSpec:
     @property
     def label(self) -> str:
         extra = f" limit={self.limit}" if self.limit is not None else ""
-        return f"{self.method} | {self.dataset}:{self.split} | {self.setting}{extra}"
+        trained = f" [trained on {self.train_on}]" if self.train_on else ""
+        return f"{self.method}{trained} | {self.dataset}:{self.split} | {self.setting}{extra}"
 
     def relpath(self) -> Path:
         setting = self.setting if self.policy == "full-context" else f"{self.setting}.{self.policy}"
         leaf = f"{self.method}.{self.options_hash}"
+        if self.checkpoint_sha256:
+            leaf += f".ck{self.checkpoint_sha256[:12]}"
         if self.limit is not None:
             leaf += f".limit{self.limit}"
         return Path(self.dataset) / setting / self.split / leaf

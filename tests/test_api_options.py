@@ -25,6 +25,7 @@ GOLDEN_DEFAULT_HASHES = {
     "raycast-zbuffer": "ec2657268669",
     "raycast-voxel": "763a55d0fdf6",
     "raycast-freespace": "151fcdf81cab",
+    "copilot4d-token-copy": "16ac8cfeea92",  # new with the trained-method contract (issue 13)
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {

@@ -31,8 +31,11 @@ def tokenize_sweep(model: Tokenizer, points: np.ndarray) -> torch.Tensor:
 @torch.no_grad()
 def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, skipping: bool = True,
                  samples: int | None = None, chunk: int = 16384, generator: torch.Generator | None = None,
-                 far_bound: bool = True, threshold: float = 0.5, noise: bool = True) -> np.ndarray:
-    """Expected depth (equation 4) along unit rays from the sensor for one (T, T) token map.
+                 far_bound: bool = True, threshold: float = 0.5, noise: bool = True,
+                 origin: np.ndarray | None = None) -> np.ndarray:
+    """Expected depth (equation 4) along unit rays for one (T, T) token map, from the sensor
+    of the tokenized sweep or from ``origin`` (3,), a point in that sensor's frame (the rays'
+    directions in the same frame).
     With ``skipping``, ray points are sampled only inside coarse voxels predicted non-empty
     (Logistic noise, threshold, max-pool; figure 8); otherwise uniformly over the grid box.
     With ``far_bound``, the transmittance left after the last sample puts its share of the
@@ -49,6 +52,8 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     for s in range(0, len(dirs), chunk):
         d = torch.from_numpy(dirs[s: s + chunk]).float().to(dev)
         o = torch.zeros_like(d)
+        if origin is not None:
+            o += torch.as_tensor(origin, dtype=torch.float32, device=dev)
         b = torch.zeros(len(d), dtype=torch.long, device=dev)
         h = sample_along_rays(cfg, o, d, b, mask, n, jitter=False)
         depth, w = render_depth(model.decoder, nfg, cfg, o, d, b, h)

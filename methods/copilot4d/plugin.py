@@ -1,161 +1,116 @@
-"""CLI of the Copilot4D tokenizer: ``pcfbench train tokenizer``, ``pcfbench tokenize`` and
-``pcfbench tokenizer-report``. Registered as the ``builtin-copilot4d`` entry point."""
+"""Copilot4D as a plugin (the ``builtin-copilot4d`` entry point): the token-copy baseline
+``copilot4d-token-copy`` (a trained method: ``pcfbench train copilot4d-token-copy --dataset
+NAME``), and the tokenizer's commands ``pcfbench tokenize`` (cache BEV token maps for the
+world model) and ``pcfbench tokenizer-report`` (Table 7's reconstruction numbers), which take
+the trained checkpoint the way ``pcfbench run`` does (``--train-on`` or ``--checkpoint``)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import click
 
 from pcfbench.hookspecs import hookimpl
 
-
-def _dataset(spec: str):
-    from pcfbench.config import parse_dataset_args
-    from pcfbench.methods.copilot4d.data import open_dataset
-
-    names, roots = parse_dataset_args((spec,))
-    return open_dataset(names[0], roots.get(names[0]))
+TOKENIZER = "copilot4d-token-copy"
 
 
-def _progress() -> bool:
-    return not os.environ.get("PCFBENCH_NO_PROGRESS")
+@hookimpl
+def register_methods(register):  # noqa: ANN001
+    register(TOKENIZER, "pcfbench.methods.copilot4d.token_copy:TokenCopy",
+             "Copilot4D tokenizer decoding the t=0 sweep's tokens from every future pose (trained)")
 
 
-def _checkpoint(config: str, dataset_name: str, checkpoint: str | None) -> Path:
+def _tokenizer(method: str, train_on: str | None, train_split: str, checkpoint: str | None):
+    """The trained tokenizer of ``method`` (a ``copilot4d-token-copy[:opts]`` spec) and its checkpoint."""
     from pcfbench.errors import PcfbenchError
-    from pcfbench.methods.copilot4d.train import checkpoint_dir
+    from pcfbench.method import resolve_method
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy
+    from pcfbench.training import checkpoint_for
 
-    path = Path(checkpoint) if checkpoint else checkpoint_dir(config, dataset_name) / "last.pt"
-    if not path.is_file():
-        raise PcfbenchError(f"no tokenizer checkpoint at {path}: run `pcfbench train tokenizer --config {config} "
-                            f"--dataset {dataset_name}` first")
-    return path
-
-
-def _skip_setting(model, adapter, ckpt: Path, step: int) -> dict:
-    """The spatial-skipping threshold calibrated on training sweeps (cached next to the checkpoint)."""
-    import json
-
-    from pcfbench.methods.copilot4d.data import SweepSource
-    from pcfbench.methods.copilot4d.evaluate import calibrate_skipping
-
-    path = ckpt.with_name(ckpt.stem + "-skipping.json")
-    if path.is_file():
-        cached = json.loads(path.read_text())
-        if cached.get("step") == step:
-            return cached
-    setting = calibrate_skipping(model, SweepSource(adapter, "train"))
-    setting["step"] = step
-    path.write_text(json.dumps(setting, indent=1))
-    click.echo(f"spatial skipping calibrated on train sweeps: threshold {setting['threshold']}, noise {setting['noise']}")
-    return setting
+    spec = resolve_method(method)
+    if not issubclass(spec.cls, TokenCopy):
+        raise PcfbenchError(f"--method {method!r}: expected {TOKENIZER}[:options] (a Copilot4D tokenizer)")
+    ck = checkpoint_for(spec, checkpoint=checkpoint, train_on=train_on, split=train_split)
+    m = spec.create()
+    m.load(ck)
+    return m.model, ck
 
 
-def _report(model, adapter, split: str, max_sweeps: int, reports: str | None, meta: dict, skip: dict | None = None) -> Path:
-    from pcfbench.config import reports_dir
-    from pcfbench.methods.copilot4d.data import SweepSource
-    from pcfbench.methods.copilot4d.evaluate import evaluate_reconstruction, write_report
+def _tokenizer_options(f):
+    f = click.option("--checkpoint", type=click.Path(exists=True), default=None,
+                     help="Checkpoint folder or file (default: the one trained on --train-on).")(f)
+    f = click.option("--train-split", default="train", show_default=True)(f)
+    f = click.option("--train-on", default=None, metavar="NAME[=ROOT]",
+                     help="The tokenizer trained on this dataset (default: synthetic-town).")(f)
+    f = click.option("--method", "method", default=TOKENIZER, show_default=True, metavar="NAME[:k=v,...]",
+                     help="Which tokenizer: its method spec, e.g. copilot4d-token-copy:config=paper.")(f)
+    return f
 
-    result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=max_sweeps, skip=skip)
-    md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
-                         f"tokenizer-{model.cfg.name}-{adapter.name}-{split}")
-    s = result.get("calibrated", result["skipping"])
-    click.echo(f"reconstruction ({split}, {result['sweeps']} sweeps): L1 median {s['l1_median']:.3f} m, "
-               f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
-               f"codebook usage {result['codebook_usage']:.1%}")
-    click.echo(f"wrote {md}")
-    return md
+
+def _open(spec: str):
+    from pcfbench.training import open_training_data
+
+    # any split: open_training_data checks it exists; the adapter is what we need
+    return open_training_data(spec, _any_split(spec)).adapter
+
+
+def _any_split(spec: str) -> str:
+    from pcfbench import config
+    from pcfbench.plugins import get_plugins
+
+    names, _ = config.parse_dataset_args((spec,))
+    return get_plugins().datasets.get(names[0]).default_split
 
 
 @hookimpl
 def register_commands(cli):  # noqa: ANN001
-    train_group = cli.commands.get("train")
-    if train_group is None:
-        @cli.group("train")
-        def train_group() -> None:
-            """Train learned components (tokenizers, world models)."""
-
-    @train_group.command("tokenizer")
-    @click.option("--config", "config_name", default="tiny", show_default=True, help="tiny or paper")
-    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of a registered dataset")
-    @click.option("--split", default="train", show_default=True)
-    @click.option("--steps", type=int, default=None, help="total steps (default: the config's max_steps)")
-    @click.option("--max-minutes", type=float, default=None, help="stop (with a checkpoint) after this much time")
-    @click.option("--fresh", is_flag=True, help="ignore an existing checkpoint instead of resuming")
-    @click.option("--eval-split", default="val", show_default=True, help="split of the reconstruction report ('' to skip)")
-    @click.option("--eval-sweeps", type=int, default=40, show_default=True)
-    @click.option("--reports", default=None, help="reports folder (default ./reports)")
-    @click.option("--seed", type=int, default=0)
-    @click.option("--threads", type=int, default=1, show_default=True,
-                  help="CPU threads (1 is fastest per CPU-second on a shared machine)")
-    def train_tokenizer(config_name, dataset_spec, split, steps, max_minutes, fresh, eval_split, eval_sweeps, reports, seed,
-                        threads):
-        """Train the Copilot4D tokenizer (VQ-VAE with depth rendering); resumes from its checkpoint."""
-        import torch
-
-        from pcfbench.config import reports_dir
-        from pcfbench.methods.copilot4d.config import get_config
-        from pcfbench.methods.copilot4d.data import SweepSource
-        from pcfbench.methods.copilot4d.train import checkpoint_dir, count_parameters, default_device, train, write_curve
-
-        cfg = get_config(config_name)
-        adapter = _dataset(dataset_spec)
-        source = SweepSource(adapter, split)
-        ckpt = checkpoint_dir(cfg.name, adapter.name) / "last.pt"
-        device = default_device()
-        click.echo(f"tokenizer {cfg.name}: {len(source)} {split} sweeps of {adapter.name}, device {device}, "
-                   f"checkpoint {ckpt}")
-        out = train(cfg, source, ckpt, steps=steps, max_minutes=max_minutes, resume=not fresh, device=device,
-                    seed=seed, progress=_progress(), threads=threads, log=click.echo)
-        stem = f"tokenizer-{cfg.name}-{adapter.name}"
-        if out["history"]:
-            csv_path, png = write_curve(out["history"], reports_dir(reports) / "copilot4d", f"{stem}-curve",
-                                         cfg.codebook_size)
-            click.echo(f"wrote {csv_path} and {png}")
-        if eval_split:
-            meta = {"config": cfg.name, "codebook_size": cfg.codebook_size, "tokens": f"{cfg.bev_tokens}x{cfg.bev_tokens}",
-                    "parameters": count_parameters(out["model"]), "steps": out["step"],
-                    "training_time_s": round(out["elapsed_s"], 1),
-                    "training_cpu_s": round(out["cpu_s"], 1), "device": str(device),
-                    "torch_threads": torch.get_num_threads(), "checkpoint": str(ckpt)}
-            skip = _skip_setting(out["model"], adapter, ckpt, out["step"])
-            _report(out["model"], adapter, eval_split, eval_sweeps, reports, meta, skip)
-
     @cli.command("tokenize")
-    @click.option("--config", "config_name", default="tiny", show_default=True)
-    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT")
+    @_tokenizer_options
+    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the sweeps to tokenize")
     @click.option("--split", default="train", show_default=True)
-    @click.option("--checkpoint", default=None, help="tokenizer checkpoint (default: the trained one in the cache)")
-    @click.option("--out", "out_dir", default=None, help="default: <cache>/copilot4d/tokens/<dataset>-<config>/<split>")
-    def tokenize(config_name, dataset_spec, split, checkpoint, out_dir):
+    @click.option("--out", "out_dir", default=None,
+                  help="default: <cache>/copilot4d/tokens/<dataset>-<tokenizer sha256[:12]>/<split>")
+    def tokenize(method, train_on, train_split, checkpoint, dataset_spec, split, out_dir):
         """Cache the BEV token maps of a dataset split for the world model."""
         from pcfbench.config import cache_dir
         from pcfbench.methods.copilot4d.evaluate import tokenize_split
-        from pcfbench.methods.copilot4d.train import load_tokenizer
 
-        adapter = _dataset(dataset_spec)
-        model, _ = load_tokenizer(_checkpoint(config_name, adapter.name, checkpoint))
-        out = Path(out_dir) if out_dir else cache_dir() / "copilot4d" / "tokens" / f"{adapter.name}-{config_name}" / split
+        model, ck = _tokenizer(method, train_on, train_split, checkpoint)
+        adapter = _open(dataset_spec)
+        out = Path(out_dir) if out_dir else cache_dir() / "copilot4d" / "tokens" / f"{adapter.name}-{ck.sha256[:12]}" / split
         tokenize_split(model, adapter, split, out, log=click.echo)
 
     @cli.command("tokenizer-report")
-    @click.option("--config", "config_name", default="tiny", show_default=True)
-    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT")
+    @_tokenizer_options
+    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the sweeps to reconstruct")
     @click.option("--split", default="val", show_default=True)
-    @click.option("--checkpoint", default=None)
     @click.option("--sweeps", type=int, default=40, show_default=True)
     @click.option("--reports", default=None)
-    def tokenizer_report(config_name, dataset_spec, split, checkpoint, sweeps, reports):
-        """Table-7-style reconstruction numbers (NFCD, L1 median/mean, CD) of a trained tokenizer."""
-        from pcfbench.methods.copilot4d.train import count_parameters, load_tokenizer
+    def tokenizer_report(method, train_on, train_split, checkpoint, dataset_spec, split, sweeps, reports):
+        """Table-7-style reconstruction numbers (NFCD, L1 median/mean, CD) of a trained tokenizer,
+        scored by the registered metrics."""
+        from pcfbench.config import reports_dir
+        from pcfbench.methods.copilot4d.data import SweepSource
+        from pcfbench.methods.copilot4d.evaluate import calibrate_skipping, evaluate_reconstruction, write_report
+        from pcfbench.methods.copilot4d.train import count_parameters
 
-        adapter = _dataset(dataset_spec)
-        path = _checkpoint(config_name, adapter.name, checkpoint)
-        model, ck = load_tokenizer(path)
+        model, ck = _tokenizer(method, train_on, train_split, checkpoint)
+        adapter = _open(dataset_spec)
+        train_adapter = _open(ck.train_on["dataset"] + (f"={ck.train_on['root']}" if ck.train_on.get("root") else ""))
+        skip = calibrate_skipping(model, SweepSource(train_adapter, ck.train_on["split"]))
+        click.echo(f"spatial skipping calibrated on {ck.train_on_label} sweeps: threshold {skip['threshold']}, "
+                   f"noise {skip['noise']}")
+        result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=sweeps, skip=skip)
         meta = {"config": model.cfg.name, "codebook_size": model.cfg.codebook_size,
                 "tokens": f"{model.cfg.bev_tokens}x{model.cfg.bev_tokens}", "parameters": count_parameters(model),
-                "steps": ck["step"], "training_time_s": round(ck.get("elapsed_s", 0.0), 1),
-                "training_cpu_s": round(ck.get("cpu_s", 0.0), 1), "checkpoint": str(path)}
-        _report(model, adapter, split, sweeps, reports, meta, _skip_setting(model, adapter, path, ck["step"]))
+                "trained_on": ck.train_on_label, "steps": ck.steps, "training_time_s": ck.manifest.get("wall_s"),
+                "training_cpu_s": ck.manifest.get("cpu_s"), "device": ck.manifest.get("device"),
+                "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256}
+        md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
+                             f"tokenizer-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}")
+        s = result.get("calibrated", result["skipping"])
+        click.echo(f"reconstruction ({split}, {result['sweeps']} sweeps): L1 median {s['l1_median']:.3f} m, "
+                   f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
+                   f"codebook usage {result['codebook_usage']:.1%}")
+        click.echo(f"wrote {md}")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
-import os
 import time
 from pathlib import Path
 
@@ -82,43 +81,35 @@ def compute_losses(model: Tokenizer, batch: Batch, cfg: TokenizerConfig) -> dict
     return {"loss": loss, "l1": l1, "conc": conc, "bce": bce, "vq": l_vq.float(), "codes": codes}
 
 
-def checkpoint_dir(cfg_name: str, dataset: str) -> Path:
-    from pcfbench.config import cache_dir
-
-    return cache_dir() / "copilot4d" / f"tokenizer-{cfg_name}-{dataset}"
-
-
-def save_checkpoint(path: Path, model, opt, step: int, cfg: TokenizerConfig, history: list[dict], rng, elapsed: float,
-                    cpu: float = 0.0) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save({
-        "model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "config": cfg.to_dict(),
-        "history": history, "numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
-        "elapsed_s": elapsed, "cpu_s": cpu,
-    }, tmp)
-    os.replace(tmp, path)
+def config_from_dict(d: dict) -> TokenizerConfig:
+    """The ``TokenizerConfig`` a checkpoint manifest records (lists back to tuples)."""
+    return TokenizerConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
-def load_tokenizer(path: Path, device: torch.device | None = None) -> tuple[Tokenizer, dict]:
-    """A trained tokenizer from a checkpoint (config from the checkpoint itself)."""
-    ck = torch.load(path, map_location="cpu", weights_only=False)
-    d = dict(ck["config"])
-    for k, v in d.items():
-        if isinstance(v, list):
-            d[k] = tuple(v)
-    cfg = TokenizerConfig(**d)
-    model = Tokenizer(cfg)
-    model.load_state_dict(ck["model"])
-    model.to(device or default_device()).eval()
-    return model, ck
+def load_tokenizer(checkpoint, device: torch.device | None = None) -> Tokenizer:
+    """The trained tokenizer of a verified ``pcfbench.training.Checkpoint`` (its network sizes
+    from the manifest's ``config.tokenizer``; weights loaded with ``weights_only=True``)."""
+    from pcfbench.errors import PcfbenchError
+
+    tok = checkpoint.manifest.get("config", {}).get("tokenizer")
+    if not isinstance(tok, dict):
+        raise PcfbenchError(f"checkpoint {checkpoint.manifest_path} records no tokenizer configuration (config.tokenizer)")
+    model = Tokenizer(config_from_dict(tok))
+    try:
+        model.load_state_dict(checkpoint.load_weights())
+    except RuntimeError as exc:
+        raise PcfbenchError(f"checkpoint {checkpoint.weights_path} does not fit the tokenizer it records: "
+                            f"{str(exc).splitlines()[0]}") from None
+    return model.to(device or default_device()).eval()
 
 
-def train(cfg: TokenizerConfig, source: SweepSource, ckpt: Path, *, steps: int | None = None,
-          max_minutes: float | None = None, resume: bool = True, device: torch.device | None = None,
-          seed: int = 0, progress: bool = True, threads: int | None = None, log=print) -> dict:
-    """Train (or resume) until ``steps`` (default ``cfg.max_steps``) or ``max_minutes`` of
-    training time in this call. Returns the final checkpoint dictionary's summary."""
+def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None = None,
+          device: torch.device | None = None, seed: int = 0, threads: int | None = None, log=print) -> dict:
+    """Train (or resume) until ``steps`` (default ``cfg.max_steps``) or until ``run`` (a
+    ``pcfbench.training.TrainingRun``) says the time budget is spent. ``run.resume()`` gives
+    the last checkpoint (weights, optimiser, both RNGs, the curve so far), so a resumed run
+    draws the same batches and continues the same curve; ``run.save`` is called every
+    ``cfg.checkpoint_every`` steps and at the end. Returns the model, step, curve and times."""
     device = device or default_device()
     steps = steps or cfg.max_steps
     if threads and device.type == "cpu":
@@ -128,27 +119,30 @@ def train(cfg: TokenizerConfig, source: SweepSource, ckpt: Path, *, steps: int |
     opt = make_optimizer(model, cfg)
     rng = np.random.default_rng(seed)
     step, history, elapsed, cpu = 0, [], 0.0, 0.0
-    if resume and ckpt.is_file():
-        ck = torch.load(ckpt, map_location="cpu", weights_only=False)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        step, history, elapsed = ck["step"], ck["history"], ck.get("elapsed_s", 0.0)
-        cpu = ck.get("cpu_s", 0.0)
-        rng.bit_generator.state = ck["numpy_rng"]
-        torch.set_rng_state(ck["torch_rng"])
-        log(f"resumed from {ckpt} at step {step}")
+    resumed = run.resume()
+    if resumed is not None:
+        st = resumed["state"]
+        model.load_state_dict(resumed["weights"])
+        opt.load_state_dict(st["optimizer"])
+        step, history, elapsed, cpu = resumed["step"], list(st["history"]), float(st["elapsed_s"]), float(st["cpu_s"])
+        rng.bit_generator.state = st["numpy_rng"]
+        torch.set_rng_state(st["torch_rng"])
     model.train()
     codebook_params = {id(model.vq.codebook)}
-    t_start = time.monotonic()
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    manifest_config = {"tokenizer": cfg.to_dict(), "parameters": count_parameters(model), "steps_target": steps,
+                       "seed": seed}
 
-        bar = tqdm(total=steps, initial=step, desc=f"tokenizer[{cfg.name}]", dynamic_ncols=True)
-    window: list[dict] = []
+    def save(complete: bool) -> None:
+        state = {"optimizer": opt.state_dict(), "history": history, "numpy_rng": rng.bit_generator.state,
+                 "torch_rng": torch.get_rng_state(), "elapsed_s": elapsed, "cpu_s": cpu, "window": window}
+        run.save(step, model.state_dict(), state, config=manifest_config, complete=complete)
+
+    window: list[dict] = list(resumed["state"].get("window", [])) if resumed is not None else []
+    run.start(steps, step)
+    saved = step if resumed is not None else -1
     while step < steps:
-        if max_minutes is not None and (time.monotonic() - t_start) > 60 * max_minutes:
-            log(f"time budget of {max_minutes} min reached at step {step}")
+        if run.should_stop():
+            log(f"time budget reached at step {step}")
             break
         t0, c0 = time.monotonic(), time.process_time()
         for g in opt.param_groups:
@@ -181,15 +175,12 @@ def train(cfg: TokenizerConfig, source: SweepSource, ckpt: Path, *, steps: int |
             avg["step"], avg["elapsed_s"], avg["cpu_s"] = step, elapsed, cpu
             history.append(avg)
             window = []
-            if bar is not None:
-                bar.set_postfix(loss=f"{avg['loss']:.3f}", l1=f"{avg['l1']:.2f}", codes=f"{alive:.0%}")
-        if bar is not None:
-            bar.update(1)
+        run.update(1, loss=rec["loss"], l1=rec["l1"], codes=alive)
         if step % cfg.checkpoint_every == 0 or step == steps:
-            save_checkpoint(ckpt, model, opt, step, cfg, history, rng, elapsed, cpu)
-    if bar is not None:
-        bar.close()
-    save_checkpoint(ckpt, model, opt, step, cfg, history, rng, elapsed, cpu)
+            save(step >= steps)
+            saved = step
+    if saved != step:
+        save(step >= steps)
     return {"model": model, "step": step, "history": history, "elapsed_s": elapsed, "cpu_s": cpu}
 
 

@@ -1,0 +1,507 @@
+"""Trained methods: the contract, checkpoints with identity, and the one training driver.
+
+A method that learns subclasses :class:`TrainedMethod` and implements ``fit`` (train on a
+:class:`TrainSource`, saving through the :class:`TrainingRun` it is handed, resuming from
+what that run gives back) and ``load`` (take the weights of a verified :class:`Checkpoint`).
+``pcfbench train METHOD[:opts] --dataset NAME[=ROOT]`` drives any of them (:func:`train`).
+
+A checkpoint is a folder keyed by method, version, options hash and training data (dataset,
+split, a hash of the dataset's file fingerprint and root options) under
+``<cache>/checkpoints``::
+
+    manifest.json            what it is: method, version, options, train_on, steps, wall and
+                             CPU time, device, git commit, the sha256 of each file below
+    weights-<step>.pt        the model's tensors (loads with torch.load(weights_only=True))
+    state-<step>.pt          optimiser and RNG state to resume from (weights_only too)
+
+The manifest is replaced atomically after both files it names are written, so a run killed
+at any moment (SIGKILL included) leaves a consistent checkpoint: the last one saved.
+:meth:`Checkpoint.open` refuses a checkpoint whose files do not match their sha256
+(truncated, tampered) and :meth:`Checkpoint.check_method` one made by another method,
+version or option set: one error naming the file either way.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import io
+import json
+import os
+import time
+from abc import abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import Method, MethodSpec, options_dict
+
+if TYPE_CHECKING:  # pragma: no cover
+    from pcfbench.plugins import Plugins
+
+__all__ = [
+    "Checkpoint", "CheckpointError", "TrainOn", "TrainSource", "TrainedMethod", "TrainingRun", "checkpoint_dir",
+    "checkpoint_for", "find_checkpoint", "is_trained", "missing_checkpoint_message", "open_training_data", "train",
+]
+
+FORMAT = 1
+MANIFEST = "manifest.json"
+DEFAULT_SPLIT = "train"
+
+
+class CheckpointError(PcfbenchError):
+    """A checkpoint that is missing, unreadable, altered or made by something else."""
+
+
+# -- training data ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TrainOn:
+    """The training data of a checkpoint: dataset name, split, the split's file fingerprint
+    (``adapter.fingerprint(split).digest``), the adapter's root options and the root used."""
+
+    dataset: str
+    split: str
+    fingerprint: str
+    dataset_options: Mapping[str, Any] = field(default_factory=dict)
+    root: str | None = None
+
+    @property
+    def label(self) -> str:
+        return f"{self.dataset}:{self.split}"
+
+    @property
+    def key(self) -> str:
+        """What names the checkpoint folder: the root path itself is left out (the same files
+        elsewhere are the same data), its fingerprint and options are in."""
+        blob = json.dumps([self.dataset, self.split, self.fingerprint, dict(self.dataset_options)], sort_keys=True,
+                          default=str)
+        return f"{self.dataset}.{self.split}.{hashlib.sha256(blob.encode()).hexdigest()[:12]}"
+
+    def to_meta(self) -> dict[str, Any]:
+        return {"dataset": self.dataset, "split": self.split, "fingerprint": self.fingerprint,
+                "dataset_options": json.loads(json.dumps(dict(self.dataset_options), default=str)), "root": self.root}
+
+
+@dataclass
+class TrainSource:
+    """What ``fit`` trains on: an opened dataset adapter and the split (``train_on`` names both)."""
+
+    adapter: Any
+    split: str
+    train_on: TrainOn
+
+
+def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugins | None = None,
+                       progress: bool = True) -> TrainSource:
+    """``NAME`` or ``NAME=ROOT`` (root options ``ROOT?key=value`` allowed) opened for training:
+    the root from the argument, the config, or the adapter's default (embedded datasets are
+    generated). An unknown name or a split without sequences is one clear error."""
+    from pcfbench import config
+    from pcfbench.dataset import options_identity
+    from pcfbench.plugins import get_plugins
+
+    plugins = plugins or get_plugins()
+    names, roots = config.parse_dataset_args((dataset,))
+    if len(names) != 1:
+        raise PcfbenchError(f"--dataset {dataset!r}: expected one NAME[=ROOT]")
+    name = names[0]
+    cls = plugins.datasets.get(name)
+    root = config.resolve_root(name, cls, roots, progress)
+    adapter = config.open_adapter(name, cls, root)
+    if split not in adapter.splits():
+        from pcfbench.errors import unknown_name
+
+        raise unknown_name(f"split of dataset {name}", split, adapter.splits())
+    if not adapter.sequence_names(split):
+        raise PcfbenchError(f"dataset {name!r} has no sequences in split {split!r} under {root}")
+    fp = adapter.fingerprint(split).digest
+    opts = options_identity(adapter, config.split_root_options(root)[1])
+    return TrainSource(adapter, split, TrainOn(name, split, fp, opts, None if root is None else str(root)))
+
+
+# -- checkpoints --------------------------------------------------------------------------------
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def checkpoint_dir(spec: MethodSpec, train_on: TrainOn) -> Path:
+    """``<cache>/checkpoints/<method>/v<version>/<options hash>/<dataset>.<split>.<data key>``."""
+    from pcfbench.config import cache_dir
+
+    return cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / spec.options_hash / train_on.key
+
+
+@dataclass
+class Checkpoint:
+    """A verified checkpoint folder: its manifest, and the sha256 of its weights."""
+
+    dir: Path
+    manifest: dict[str, Any]
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.dir / MANIFEST
+
+    @property
+    def weights_path(self) -> Path:
+        return self.dir / self.manifest["weights"]
+
+    @property
+    def sha256(self) -> str:
+        return self.manifest["weights_sha256"]
+
+    @property
+    def steps(self) -> int:
+        return int(self.manifest["steps"])
+
+    @property
+    def train_on(self) -> dict[str, Any]:
+        return self.manifest["train_on"]
+
+    @property
+    def train_on_label(self) -> str:
+        return f"{self.train_on['dataset']}:{self.train_on['split']}"
+
+    @classmethod
+    def open(cls, path: str | Path) -> "Checkpoint":
+        """The checkpoint at ``path`` (its folder, its manifest.json or its weights file),
+        its files checked against the manifest's sha256."""
+        path = Path(path)
+        folder = path if path.is_dir() else path.parent
+        manifest_path = folder / MANIFEST
+        if not manifest_path.is_file():
+            raise CheckpointError(f"no checkpoint at {path}: {manifest_path} does not exist")
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise CheckpointError(f"checkpoint manifest {manifest_path} is not valid JSON ({exc})") from None
+        missing = [k for k in ("format", "method", "method_version", "options_hash", "train_on", "steps", "weights",
+                               "weights_sha256") if k not in (manifest if isinstance(manifest, dict) else {})]
+        if missing:
+            raise CheckpointError(f"checkpoint manifest {manifest_path} lacks {', '.join(missing)}")
+        if manifest["format"] != FORMAT:
+            raise CheckpointError(f"checkpoint manifest {manifest_path} has format {manifest['format']!r}, "
+                                  f"this pcfbench reads format {FORMAT}")
+        ck = cls(folder, manifest)
+        if path.is_file() and path.name != MANIFEST and path.name != manifest["weights"]:
+            raise CheckpointError(f"{path} is not the weights file of the checkpoint in {folder} "
+                                  f"(its manifest names {manifest['weights']})")
+        ck._read_verified(manifest["weights"], manifest["weights_sha256"])
+        return ck
+
+    def _read_verified(self, name: str, sha: str) -> bytes:
+        p = self.dir / name
+        if not p.is_file():
+            raise CheckpointError(f"checkpoint file {p} is missing (named by {self.manifest_path})")
+        data = p.read_bytes()
+        if _sha256(data) != sha:
+            raise CheckpointError(f"checkpoint file {p} does not match the sha256 in {self.manifest_path} "
+                                  f"({len(data):,} bytes, sha256 {_sha256(data)[:16]}..., expected {sha[:16]}...): "
+                                  "it was truncated or altered; retrain it with --fresh")
+        return data
+
+    def check_method(self, spec: MethodSpec) -> None:
+        """Refuse a checkpoint of another method, version or option set than ``spec``."""
+        m = self.manifest
+        want = {"method": spec.name, "method_version": str(spec.cls.version), "options_hash": spec.options_hash}
+        have = {"method": m.get("method"), "method_version": str(m.get("method_version")), "options_hash": m.get("options_hash")}
+        if want != have:
+            diff = ", ".join(f"{k} {have[k]!r} (wanted {want[k]!r})" for k in want if want[k] != have[k])
+            opts = ",".join(f"{k}={v}" for k, v in sorted((m.get("options") or {}).items()))
+            raise CheckpointError(f"checkpoint {self.manifest_path} was made by another method or configuration: {diff}; "
+                                  f"it belongs to {m.get('method')}{':' + opts if opts else ''}")
+
+    def load_weights(self, map_location: Any = "cpu") -> dict[str, Any]:
+        """The weights, read once, checked against their sha256 and unpickled with
+        ``torch.load(weights_only=True)`` (tensors and plain containers only)."""
+        return self._load(self.manifest["weights"], self.sha256, map_location)
+
+    def load_state(self, map_location: Any = "cpu") -> dict[str, Any]:
+        """The optimiser and RNG state saved beside the weights (to resume training)."""
+        if not self.manifest.get("state"):
+            raise CheckpointError(f"checkpoint {self.manifest_path} holds no training state to resume from")
+        return self._load(self.manifest["state"], self.manifest["state_sha256"], map_location)
+
+    def _load(self, name: str, sha: str, map_location: Any) -> dict[str, Any]:
+        import pickle
+
+        import torch
+
+        data = self._read_verified(name, sha)
+        try:
+            return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
+        except (pickle.UnpicklingError, RuntimeError, EOFError) as exc:
+            raise CheckpointError(f"checkpoint file {self.dir / name} does not load with weights_only=True: "
+                                  f"{str(exc).splitlines()[0]}") from None
+
+
+def find_checkpoint(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
+    """The checkpoint of ``spec`` trained on ``train_on``, verified; None when there is none."""
+    folder = checkpoint_dir(spec, train_on)
+    if not (folder / MANIFEST).is_file():
+        return None
+    ck = Checkpoint.open(folder)
+    ck.check_method(spec)
+    return ck
+
+
+def is_trained(cls: type) -> bool:
+    return isinstance(cls, type) and issubclass(cls, TrainedMethod)
+
+
+def estimate_training(spec: MethodSpec) -> str:
+    """How long a full training of ``spec`` takes on this machine: from the manifests of
+    earlier trainings of the same method and options (wall seconds per step times the
+    method's ``training_steps``), else the figure the method states."""
+    from pcfbench.config import cache_dir
+
+    steps = spec.create().training_steps()
+    rates = []
+    for mf in (cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / spec.options_hash).glob(f"*/{MANIFEST}"):
+        try:
+            m = json.loads(mf.read_text())
+            if m.get("steps"):
+                rates.append(float(m["wall_s"]) / int(m["steps"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    if rates and steps:
+        minutes = max(rates) * steps / 60
+        return f"about {minutes:.0f} min on this machine ({steps} steps at {max(rates):.2f} s/step, measured by earlier trainings)"
+    return spec.cls.training_time or "an unknown time (no earlier training of it on this machine)"
+
+
+def missing_checkpoint_message(spec: MethodSpec, train_on: TrainOn) -> str:
+    opts = ",".join(f"{k}={v}" for k, v in sorted(spec.raw.items()))
+    method = spec.name + (f":{opts}" if opts else "")
+    data = train_on.dataset + (f"={train_on.root}" if train_on.root and train_on.dataset not in _embedded() else "")
+    split = "" if train_on.split == DEFAULT_SPLIT else f" --split {train_on.split}"
+    return (f"no checkpoint of {method} trained on {train_on.label} (looked in {checkpoint_dir(spec, train_on)}): "
+            f"train it with `pcfbench train {method} --dataset {data}{split}`, which takes {estimate_training(spec)}")
+
+
+def _embedded() -> set[str]:
+    from pcfbench.plugins import get_plugins
+
+    reg = get_plugins().datasets
+    out = set()
+    for n in reg.names():
+        try:
+            if getattr(reg.get(n), "embedded", False):
+                out.add(n)
+        except PcfbenchError:
+            continue
+    return out
+
+
+def checkpoint_for(spec: MethodSpec, *, checkpoint: str | Path | None = None, train_on: str | None = None,
+                   split: str = DEFAULT_SPLIT, plugins: Plugins | None = None, progress: bool = True) -> Checkpoint:
+    """The checkpoint a run of ``spec`` evaluates: the file ``checkpoint`` (verified, and of
+    this method and options), else the one trained on ``train_on`` (default: the method's
+    ``default_train_on``) and ``split``; a missing one is one error saying how to train it."""
+    if checkpoint is not None:
+        ck = Checkpoint.open(checkpoint)
+        ck.check_method(spec)
+        return ck
+    source = open_training_data(train_on or spec.cls.default_train_on, split, plugins, progress)
+    ck = find_checkpoint(spec, source.train_on)
+    if ck is None:
+        raise CheckpointError(missing_checkpoint_message(spec, source.train_on))
+    return ck
+
+
+# -- the training run handed to fit ---------------------------------------------------------------
+class TrainingRun:
+    """What ``fit`` gets as ``progress``: where to save, what to resume from, when to stop
+    (the ``--max-minutes`` budget) and a progress bar.
+
+    ``fit`` calls :meth:`resume` once (None, or the last saved ``{"step", "weights", "state"}``),
+    :meth:`start` with its total steps, :meth:`update` after each step, :meth:`save` every so
+    often and at the end, and stops early when :meth:`should_stop` says so.
+    """
+
+    def __init__(self, spec: MethodSpec, train_on: TrainOn, out_dir: Path, *, max_minutes: float | None = None,
+                 fresh: bool = False, progress: bool = True, device: str = "cpu", log=print) -> None:
+        self.spec = spec
+        self.train_on = train_on
+        self.out_dir = Path(out_dir)
+        self.max_minutes = max_minutes
+        self.fresh = fresh
+        self.show = progress
+        self.device = device
+        self.log = log
+        self._t0 = time.monotonic()
+        self._c0 = time.process_time()
+        self._base_wall = 0.0
+        self._base_cpu = 0.0
+        self._created = time.time()
+        self._bar = None
+        self.saved_steps: int | None = None
+
+    # resume -----------------------------------------------------------------------------------
+    def resume(self) -> dict[str, Any] | None:
+        """The last checkpoint's step, weights and state, or None (nothing saved, or ``--fresh``)."""
+        if self.fresh or not (self.out_dir / MANIFEST).is_file():
+            return None
+        ck = Checkpoint.open(self.out_dir)
+        ck.check_method(self.spec)
+        if ck.manifest["train_on"].get("fingerprint") != self.train_on.fingerprint:
+            raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on other data than {self.train_on.label} "
+                                  "has now; rerun with --fresh")
+        self._base_wall = float(ck.manifest.get("wall_s", 0.0))
+        self._base_cpu = float(ck.manifest.get("cpu_s", 0.0))
+        self._created = ck.manifest.get("created", self._created)
+        self.saved_steps = ck.steps
+        self.log(f"resuming {ck.dir} at step {ck.steps}")
+        return {"step": ck.steps, "weights": ck.load_weights(), "state": ck.load_state()}
+
+    # budget and progress -------------------------------------------------------------------------
+    def elapsed_s(self) -> float:
+        return time.monotonic() - self._t0
+
+    def should_stop(self) -> bool:
+        return self.max_minutes is not None and self.elapsed_s() > 60 * self.max_minutes
+
+    def start(self, total: int, initial: int = 0) -> None:
+        if self.show and not os.environ.get("PCFBENCH_NO_PROGRESS"):
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, initial=initial, desc=f"train {self.spec.name}", unit="step", dynamic_ncols=True)
+
+    def update(self, steps: int = 1, **metrics: float) -> None:
+        if self._bar is not None:
+            if metrics:
+                self._bar.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()}, refresh=False)
+            self._bar.update(steps)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    # save -----------------------------------------------------------------------------------------
+    def save(self, step: int, weights: Mapping[str, Any], state: Mapping[str, Any] | None = None, *,
+             config: Mapping[str, Any] | None = None, complete: bool = False) -> Checkpoint:
+        """Write ``weights`` (tensors) and ``state`` (to resume: optimiser, RNG, curve) for
+        ``step``, then the manifest naming them; older files go. Both must load with
+        ``torch.load(weights_only=True)``. ``config``: what the method adds to the manifest
+        (e.g. its network sizes)."""
+        import torch
+
+        from pcfbench.runner import git_commit
+        from pcfbench.store import atomic_write_bytes, atomic_write_json
+
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        files = {}
+        for kind, obj in (("weights", dict(weights)), ("state", None if state is None else dict(state))):
+            if obj is None:
+                continue
+            buf = io.BytesIO()
+            torch.save(obj, buf)
+            data = buf.getvalue()
+            name = f"{kind}-{step:08d}.pt"
+            atomic_write_bytes(self.out_dir / name, data)
+            files[kind] = (name, _sha256(data))
+        manifest = {
+            "format": FORMAT,
+            "method": self.spec.name,
+            "method_version": str(self.spec.cls.version),
+            "options": options_dict(self.spec.options),
+            "options_hash": self.spec.options_hash,
+            "config": dict(config or {}),
+            "train_on": self.train_on.to_meta(),
+            "steps": int(step),
+            "complete": bool(complete),
+            "wall_s": round(self._base_wall + self.elapsed_s(), 3),
+            "cpu_s": round(self._base_cpu + time.process_time() - self._c0, 3),
+            "device": self.device,
+            "torch": torch.__version__,
+            "git_commit": git_commit(),
+            "weights": files["weights"][0],
+            "weights_sha256": files["weights"][1],
+            "state": files["state"][0] if "state" in files else None,
+            "state_sha256": files["state"][1] if "state" in files else None,
+            "created": self._created,
+            "updated": time.time(),
+        }
+        atomic_write_json(self.out_dir / MANIFEST, manifest)
+        keep = {name for name, _ in files.values()}
+        for old in list(self.out_dir.glob("weights-*.pt")) + list(self.out_dir.glob("state-*.pt")):
+            if old.name not in keep:
+                old.unlink(missing_ok=True)
+        self.saved_steps = step
+        return Checkpoint(self.out_dir, manifest)
+
+
+# -- the contract -------------------------------------------------------------------------------
+class TrainedMethod(Method):
+    """A method that learns. Subclasses implement ``fit`` and ``load`` besides ``forecast``.
+
+    A trained method runs only with a checkpoint: ``pcfbench run`` evaluates the one trained
+    on ``--train-on`` (default ``default_train_on``, split ``train``) or the file given with
+    ``--checkpoint``, and the default run includes the method only when that checkpoint
+    exists. Its cells carry the checkpoint's sha256 and training data.
+    """
+
+    #: The training data of the default run (an embedded dataset, so it exists everywhere).
+    default_train_on: ClassVar[str] = "synthetic-town"
+    #: How long a full training takes, stated for the missing-checkpoint message when no
+    #: earlier training on this machine measured it.
+    training_time: ClassVar[str] = ""
+
+    checkpoint: Checkpoint | None = None
+
+    @abstractmethod
+    def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
+        """Train on ``train_source``, saving through ``progress.save`` periodically and at the
+        end; start from ``progress.resume()`` when it returns a state (continuing the same
+        curve: same data order, same random draws); stop early when ``progress.should_stop()``."""
+
+    @abstractmethod
+    def load(self, checkpoint: Checkpoint) -> None:
+        """Take the weights of ``checkpoint`` (already verified and of this method and options)."""
+
+    def training_steps(self) -> int | None:
+        """Steps of a full training with these options (for the time estimate), if known."""
+        return None
+
+
+# -- the driver -------------------------------------------------------------------------------------
+def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_minutes: float | None = None,
+          fresh: bool = False, progress: bool = True, plugins: Plugins | None = None, log=print) -> Checkpoint:
+    """Train (or resume) ``spec`` on ``dataset`` (``NAME[=ROOT]``) ``split``; returns the checkpoint."""
+    if not is_trained(spec.cls):
+        raise PcfbenchError(f"method {spec.name!r} does not train (it is not a pcfbench.TrainedMethod)")
+    source = open_training_data(dataset, split, plugins, progress)
+    out = checkpoint_dir(spec, source.train_on)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / ".lock", "w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise PcfbenchError(f"checkpoint {out} is being trained by another pcfbench process") from None
+        if fresh:
+            for old in [*out.glob("*.pt"), out / MANIFEST]:
+                old.unlink(missing_ok=True)
+        device = "cuda" if _cuda() else "cpu"
+        run = TrainingRun(spec, source.train_on, out, max_minutes=max_minutes, fresh=fresh, progress=progress,
+                          device=device, log=log)
+        method = spec.create()
+        try:
+            method.fit(source, out, run)
+        finally:
+            run.close()
+    if run.saved_steps is None:
+        raise PcfbenchError(f"method {spec.name!r} finished fit without saving a checkpoint in {out}")
+    ck = Checkpoint.open(out)
+    ck.check_method(spec)
+    return ck
+
+
+def _cuda() -> bool:
+    import sys
+
+    torch = sys.modules.get("torch")
+    if torch is None:
+        import torch
+    return bool(torch.cuda.is_available())

@@ -1,0 +1,100 @@
+"""The token-copy baseline: the Copilot4D tokenizer as a trained method.
+
+``fit`` trains the tokenizer (``train.train``, resumable through ``pcfbench train``).
+``forecast`` tokenizes the last past sweep (t=0) in its sensor frame and renders those very
+tokens with the decoder from each future sensor origin along that future sweep's query rays
+(expected depth, equation 4, with spatial skipping): a world that does not change, seen
+through the tokenizer. It isolates what a world model adds on top of the tokenizer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pcfbench.data import Forecast, Sample
+from pcfbench.errors import PcfbenchError
+from pcfbench.options import option
+from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
+
+
+@dataclass(frozen=True)
+class TokenCopyOptions:
+    config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale) or paper (A.2.1 sizes)")
+    steps: int = option(0, help="training steps (0: the configuration's max_steps)")
+    seed: int = option(0, help="training seed (initialisation, batches, rays)")
+    threshold: float = option(0.5, help="spatial skipping: coarse-voxel probability threshold at inference")
+
+
+class TokenCopy(TrainedMethod):
+    """Copilot4D's tokenizer decoding the t=0 sweep's tokens at every future pose."""
+
+    name = "copilot4d-token-copy"
+    version = "1"
+    Options = TokenCopyOptions
+    # Measured on the 2-core development machine, otherwise idle (tiny config, 1 thread,
+    # synthetic-town train): 2400 steps in 993 s wall, 966 s CPU. A loaded machine is slower.
+    training_time = "about 17 min for the tiny configuration on an idle 2-core CPU (0.41 s/step x 2400 steps)"
+
+    def __init__(self, options: TokenCopyOptions | None = None) -> None:
+        super().__init__(options)
+        from pcfbench.methods.copilot4d.config import get_config
+
+        self.cfg = get_config(self.options.config)
+        self.model = None
+
+    def training_steps(self) -> int:
+        return self.options.steps or self.cfg.max_steps
+
+    def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
+        import torch
+
+        from pcfbench.methods.copilot4d.data import SweepSource
+        from pcfbench.methods.copilot4d.train import default_device, train, write_curve
+
+        device = default_device()
+        if device.type == "cpu":  # one thread: the most steps per CPU-second (a second one adds little here)
+            torch.set_num_threads(1)
+        source = SweepSource(train_source.adapter, train_source.split)
+        progress.log(f"tokenizer {self.cfg.name}: {len(source)} {train_source.split} sweeps of "
+                     f"{train_source.adapter.name}, device {device}, checkpoint {out_dir}")
+        out = train(self.cfg, source, progress, steps=self.training_steps(), device=device, seed=self.options.seed,
+                    log=progress.log)
+        if out["history"]:
+            csv_path, png = write_curve(out["history"], Path(out_dir), "curve", self.cfg.codebook_size)
+            progress.log(f"training curve: {csv_path} and {png}")
+
+    def load(self, checkpoint: Checkpoint) -> None:
+        from pcfbench.methods.copilot4d.train import config_from_dict, load_tokenizer
+
+        recorded = config_from_dict(checkpoint.manifest.get("config", {}).get("tokenizer", {}))
+        if recorded != self.cfg:
+            raise PcfbenchError(f"checkpoint {checkpoint.manifest_path} was trained with another '{self.cfg.name}' "
+                                "tokenizer configuration than this pcfbench defines; retrain it with --fresh")
+        self.model = load_tokenizer(checkpoint)
+
+    def forecast(self, sample: Sample) -> Forecast:
+        import torch
+
+        from pcfbench.methods.copilot4d.evaluate import render_codes, tokenize_sweep
+
+        if self.model is None:
+            raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
+        T_ref_s0 = sample.past_T_ref_sensor[-1]
+        T_s0_ref = np.linalg.inv(T_ref_s0)
+        R, t = T_s0_ref[:3, :3], T_s0_ref[:3, 3]
+        points_s0 = (sample.past_points_ref[-1].astype(np.float64) @ R.T + t).astype(np.float32)
+        codes = tokenize_sweep(self.model, points_s0)
+        # Spatial skipping draws Logistic noise: seeded by the sample, so a forecast is reproducible.
+        seed = int.from_bytes(hashlib.sha256(sample.sample_id.encode()).digest()[:8], "little")
+        gen = torch.Generator().manual_seed(seed)
+        depths = []
+        for q in sample.queries:
+            origin = R @ q.origin_ref + t
+            dirs = (q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)
+            depths.append(render_codes(self.model, codes, dirs, origin=origin, generator=gen,
+                                       threshold=self.options.threshold))
+        return Forecast.from_depths(sample, depths)
