@@ -336,6 +336,7 @@ class TrainingRun:
         self._base_cpu = 0.0
         self._created = time.time()
         self._bar = None
+        self._steps = 0
         self.saved_steps: int | None = None
 
     # resume -----------------------------------------------------------------------------------
@@ -360,7 +361,8 @@ class TrainingRun:
         return time.monotonic() - self._t0
 
     def should_stop(self) -> bool:
-        return self.max_minutes is not None and self.elapsed_s() > 60 * self.max_minutes
+        """True once the time budget is spent (each call trains at least one step)."""
+        return self.max_minutes is not None and self._steps > 0 and self.elapsed_s() > 60 * self.max_minutes
 
     def start(self, total: int, initial: int = 0) -> None:
         if self.show and not os.environ.get("PCFBENCH_NO_PROGRESS"):
@@ -369,6 +371,7 @@ class TrainingRun:
             self._bar = tqdm(total=total, initial=initial, desc=f"train {self.spec.name}", unit="step", dynamic_ncols=True)
 
     def update(self, steps: int = 1, **metrics: float) -> None:
+        self._steps += steps
         if self._bar is not None:
             if metrics:
                 self._bar.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()}, refresh=False)

@@ -1,0 +1,323 @@
+"""The trained-method contract on a toy trained method: fit, checkpoint, resume after SIGKILL,
+the manifest and hash refusals, weights_only loading, cells keyed by checkpoint, the train-split
+refusal, the missing-checkpoint message, the CLI (train, run --checkpoint / --train-on)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import types
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pcfbench
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import resolve_method
+from pcfbench.training import Checkpoint, CheckpointError, checkpoint_for, open_training_data, train
+
+HERE = Path(__file__).resolve().parent
+
+
+@dataclass(frozen=True)
+class ToyOptions:
+    lr: float = pcfbench.option(0.1, help="step size")
+    steps: int = pcfbench.option(12, help="training steps")
+    save_every: int = pcfbench.option(3, help="checkpoint every this many steps")
+
+
+class ToyTrained(pcfbench.TrainedMethod):
+    """Learns one number, the median range of the training sweeps, by SGD on random sweeps
+    with a little torch noise (so both RNGs matter for the curve); forecasts it as every depth."""
+
+    name = "toy-trained"
+    Options = ToyOptions
+    default_train_on = "kitti"
+    training_time = "about 1 s (toy)"
+
+    def training_steps(self) -> int:
+        return self.options.steps
+
+    def fit(self, train_source, out_dir, progress):
+        import torch
+
+        adapter = train_source.adapter
+        ranges = [float(np.median(np.linalg.norm(adapter.sequence(n).load_points(i), axis=1)))
+                  for n in adapter.sequence_names(train_source.split) for i in range(len(adapter.sequence(n)))]
+        w, step, history = torch.zeros(1, dtype=torch.float64), 0, []
+        rng = np.random.default_rng(0)
+        torch.manual_seed(0)
+        resumed = progress.resume()
+        if resumed is not None:
+            w, step, history = resumed["weights"]["w"], resumed["step"], list(resumed["state"]["history"])
+            rng.bit_generator.state = resumed["state"]["numpy_rng"]
+            torch.set_rng_state(resumed["state"]["torch_rng"])
+        total = self.options.steps
+        progress.start(total, step)
+        sleep = float(os.environ.get("TOY_STEP_SLEEP", "0"))
+        while step < total and not progress.should_stop():
+            target = ranges[int(rng.integers(len(ranges)))] + 0.01 * float(torch.randn(1))
+            history.append({"step": step + 1, "loss": float((w - target) ** 2), "w": float(w)})
+            w = w - self.options.lr * 2 * (w - target)
+            step += 1
+            progress.update(1, loss=history[-1]["loss"])
+            if step % self.options.save_every == 0 or step == total or progress.should_stop():
+                progress.save(step, {"w": w}, {"history": history, "numpy_rng": rng.bit_generator.state,
+                                               "torch_rng": torch.get_rng_state()}, complete=step == total)
+            time.sleep(sleep)
+
+    def load(self, checkpoint):
+        self.w = float(checkpoint.load_weights()["w"])
+
+    def forecast(self, sample):
+        return pcfbench.Forecast.from_depths(sample, [np.full(len(q), self.w) for q in sample.queries])
+
+
+def toy_plugins():
+    from pcfbench.hookspecs import hookimpl
+    from pcfbench.plugins import load_plugins
+
+    module = types.ModuleType("pcfb_toy_trained")
+
+    @hookimpl
+    def register_methods(register):
+        register("toy-trained", ToyTrained, "a toy trained method")
+
+    module.register_methods = register_methods
+    plugins = load_plugins()
+    plugins.add_plugin(module, "toy-trained")
+    return plugins
+
+
+@pytest.fixture
+def env(tmp_path, monkeypatch):
+    from conftest import write_tiny_kitti
+
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("00", "01", "08"), num_sweeps=24)
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PCFBENCH_NO_PROGRESS", "1")
+    plugins = toy_plugins()
+    return types.SimpleNamespace(root=root, plugins=plugins, tmp=tmp_path, data=f"kitti={root}")
+
+
+def _train(env, spec="toy-trained", **kw):
+    kw.setdefault("progress", False)
+    return train(resolve_method(spec, env.plugins), env.data, plugins=env.plugins, log=lambda *a: None, **kw)
+
+
+def test_fit_writes_a_checkpoint_with_identity(env):
+    import torch
+
+    ck = _train(env)
+    spec = resolve_method("toy-trained", env.plugins)
+    train_on = open_training_data(env.data, "train", env.plugins, False).train_on
+    assert ck.dir == Path(os.environ["PCFBENCH_CACHE"]) / "checkpoints" / "toy-trained" / "v1" / spec.options_hash / train_on.key
+    m = json.loads((ck.dir / "manifest.json").read_text())
+    assert m["method"] == "toy-trained" and m["options"] == {"lr": 0.1, "steps": 12, "save_every": 3}
+    assert m["steps"] == 12 and m["complete"] is True and m["device"] in ("cpu", "cuda")
+    assert m["train_on"]["dataset"] == "kitti" and m["train_on"]["split"] == "train"
+    assert m["train_on"]["fingerprint"] == train_on.fingerprint
+    assert m["wall_s"] >= 0 and m["cpu_s"] >= 0 and m["git_commit"] and m["torch"] == torch.__version__
+    import hashlib
+
+    assert hashlib.sha256((ck.dir / m["weights"]).read_bytes()).hexdigest() == m["weights_sha256"] == ck.sha256
+    assert sorted(p.name for p in ck.dir.glob("*.pt")) == ["state-00000012.pt", "weights-00000012.pt"]  # old ones gone
+    # the learned number is the SGD iterate of the recorded curve
+    h = ck.load_state()["history"]
+    assert [r["step"] for r in h] == list(range(1, 13))
+    w = h[-1]["w"]
+    assert float(ck.load_weights()["w"]) != pytest.approx(0.0) and np.isfinite(w)
+    # a second call resumes a complete checkpoint and does nothing more
+    again = _train(env)
+    assert again.sha256 == ck.sha256 and again.steps == 12
+
+
+def test_sigkill_mid_training_then_resume_continues_the_same_curve(env, tmp_path, monkeypatch):
+    spec = "toy-trained:steps=30"
+    straight = _train(env, spec)  # uninterrupted reference, in its own cache
+    reference = straight.load_state()["history"]
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache-killed"))
+    script = (f"import sys; sys.path.insert(0, {str(HERE)!r}); from test_training import toy_plugins; "
+              "from pcfbench.method import resolve_method; from pcfbench.training import train; "
+              f"p = toy_plugins(); train(resolve_method({spec!r}, p), {env.data!r}, plugins=p, progress=False)")
+    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "TOY_STEP_SLEEP": "0.2"},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    manifest = None
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline:
+            found = list((tmp_path / "cache-killed").rglob("manifest.json"))
+            if found and json.loads(found[0].read_text())["steps"] >= 9:
+                manifest = found[0]
+                break
+            assert proc.poll() is None, proc.stderr.read().decode()
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert manifest is not None, "the training subprocess saved no checkpoint in time"
+    killed_at = json.loads(manifest.read_text())["steps"]
+    assert 9 <= killed_at < 30  # killed mid-run
+    resumed = _train(env, spec)
+    assert resumed.steps == 30 and resumed.manifest["complete"]
+    curve = resumed.load_state()["history"]
+    assert [r["step"] for r in curve] == list(range(1, 31))
+    assert [r["loss"] for r in curve] == [r["loss"] for r in reference]  # exactly: same data order and noise
+    assert float(resumed.load_weights()["w"]) == float(straight.load_weights()["w"])
+
+
+def test_max_minutes_stops_with_a_checkpoint_and_fresh_starts_over(env):
+    ck = _train(env, max_minutes=0)
+    assert ck.steps == 1 and not ck.manifest["complete"]  # the budget is checked before each further step
+    assert _train(env).steps == 12
+    assert _train(env, max_minutes=0, fresh=True).steps == 1
+
+
+def test_truncated_tampered_and_foreign_checkpoints_are_refused(env):
+    ck = _train(env)
+    weights = ck.weights_path
+    good = weights.read_bytes()
+    weights.write_bytes(good[: len(good) // 2])
+    with pytest.raises(CheckpointError, match=rf"{weights}.*does not match the sha256.*truncated or altered"):
+        Checkpoint.open(ck.dir)
+    weights.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    with pytest.raises(CheckpointError, match=rf"{weights}.*does not match the sha256"):
+        Checkpoint.open(weights)
+    weights.write_bytes(good)
+    assert Checkpoint.open(ck.dir / "manifest.json").sha256 == ck.sha256
+    other = resolve_method("toy-trained:lr=0.2", env.plugins)
+    with pytest.raises(CheckpointError, match=r"manifest.json was made by another method or configuration: "
+                                              r"options_hash .*toy-trained:lr=0.1"):
+        Checkpoint.open(ck.dir).check_method(other)
+    with pytest.raises(CheckpointError, match="made by another method"):
+        checkpoint_for(resolve_method("copy-last", env.plugins), checkpoint=ck.dir)
+    manifest = ck.dir / "manifest.json"
+    text = manifest.read_text()
+    manifest.write_text(text[:40])
+    with pytest.raises(CheckpointError, match=rf"{manifest} is not valid JSON"):
+        Checkpoint.open(ck.dir)
+    manifest.write_text(text)
+    with pytest.raises(CheckpointError, match=r"no checkpoint at .*manifest.json does not exist"):
+        Checkpoint.open(env.tmp)
+
+
+def test_weights_load_with_weights_only(env):
+    """A weights file holding an arbitrary object (whose sha256 the manifest matches) is
+    refused by torch.load(weights_only=True) instead of being unpickled."""
+    import hashlib
+    import io
+
+    import torch
+
+    ck = _train(env)
+    buf = io.BytesIO()
+    torch.save({"w": torch.zeros(1), "evil": ToyOptions()}, buf)
+    ck.weights_path.write_bytes(buf.getvalue())
+    m = json.loads(ck.manifest_path.read_text())
+    m["weights_sha256"] = hashlib.sha256(buf.getvalue()).hexdigest()
+    ck.manifest_path.write_text(json.dumps(m))
+    with pytest.raises(CheckpointError, match=rf"{ck.weights_path} does not load with weights_only=True"):
+        Checkpoint.open(ck.dir).load_weights()
+
+
+def test_missing_checkpoint_says_how_to_train_it(env):
+    with pytest.raises(CheckpointError) as err:
+        checkpoint_for(resolve_method("toy-trained:lr=0.5", env.plugins), train_on=env.data, plugins=env.plugins,
+                       progress=False)
+    msg = str(err.value)
+    assert "no checkpoint of toy-trained:lr=0.5 trained on kitti:train" in msg
+    assert f"`pcfbench train toy-trained:lr=0.5 --dataset kitti={env.root}`" in msg
+    assert msg.endswith("which takes about 1 s (toy)")
+    # once a training of the same method and options ran here, its measured rate is quoted
+    _train(env, "toy-trained:lr=0.5", max_minutes=0)
+    other = open_training_data(env.data, "test", env.plugins, False).train_on
+    from pcfbench.training import missing_checkpoint_message
+
+    msg = missing_checkpoint_message(resolve_method("toy-trained:lr=0.5", env.plugins), other)
+    assert "on this machine (12 steps at" in msg and "--split test" in msg
+
+
+def _cell(env, ck, split="test", **kw):
+    from pcfbench.runner import run_cell
+    from pcfbench.store import CellSpec
+
+    spec = resolve_method("toy-trained", env.plugins)
+    cell = CellSpec("toy-trained", {}, spec.options_hash, "kitti", str(env.root), split, "kitti-1s", limit=2,
+                    metrics=("chamfer", "l1_mean"), checkpoint=str(ck.dir), checkpoint_sha256=ck.sha256,
+                    train_on=ck.train_on_label)
+    return run_cell(cell, env.tmp / "store", progress=False, plugins=env.plugins, **kw)
+
+
+def test_cells_know_their_checkpoint_and_a_changed_one_is_a_new_cell(env):
+    first = _train(env, max_minutes=0)
+    a = _cell(env, first)
+    meta_a = json.loads((a.path / "cell.json").read_text())
+    assert meta_a["checkpoint_sha256"] == first.sha256 and meta_a["train_on"]["dataset"] == "kitti"
+    assert meta_a["train_on"]["split"] == "train" and meta_a["evaluated_on_training_data"] is False
+    assert meta_a["spec"]["train_on"] == "kitti:train"
+    second = _train(env)  # resumed to the end: other weights
+    assert second.sha256 != first.sha256
+    b = _cell(env, second)
+    assert b.path != a.path and b.processed == 2 and first.sha256[:12] in a.path.name
+    assert json.loads((a.path / "cell.json").read_text())["checkpoint_sha256"] == first.sha256  # kept side by side
+    # a cell whose checkpoint file changed under it is refused, never scored with other weights
+    from pcfbench.store import CellSpec
+
+    with pytest.raises(PcfbenchError, match="changed since cell"):
+        from pcfbench.runner import resolve
+
+        resolve(CellSpec("toy-trained", {}, resolve_method("toy-trained", env.plugins).options_hash, "kitti",
+                         str(env.root), "test", "kitti-1s", checkpoint=str(second.dir), checkpoint_sha256=first.sha256,
+                         train_on="kitti:train"), env.plugins)
+    from pcfbench.report import collect
+
+    board = collect(env.tmp / "store")
+    labels = sorted(board.partial["variant"])
+    assert labels == sorted(f"toy-trained [trained on kitti:train, ck {c.sha256[:8]}]" for c in (first, second))
+    assert set(board.partial["train_on"]) == {"kitti:train"}
+
+
+def test_evaluating_on_the_training_split_is_refused_unless_allowed(env):
+    ck = _train(env)
+    with pytest.raises(PcfbenchError, match=r"was trained on this very data \(kitti:train.*--allow-train-split"):
+        _cell(env, ck, split="train")
+    r = _cell(env, ck, split="train", allow_train_split=True)
+    assert json.loads((r.path / "cell.json").read_text())["evaluated_on_training_data"] is True
+    from pcfbench.report import collect
+
+    assert list(collect(env.tmp / "store").partial["variant"]) == [
+        f"toy-trained [trained on kitti:train, ck {ck.sha256[:8]}, ON ITS TRAINING DATA]"]
+
+
+def test_cli_train_and_run_with_checkpoint_and_train_on(env, monkeypatch):
+    from click.testing import CliRunner
+
+    from pcfbench.cli import build_cli
+
+    monkeypatch.setattr("pcfbench.cli.get_plugins", lambda: env.plugins)
+    cli = build_cli()
+    runner = CliRunner()
+    store, reports = str(env.tmp / "store"), str(env.tmp / "reports")
+    base = ["run", "-m", "toy-trained", "-d", env.data, "-s", "kitti-1s", "--limit", "1", "-q", "--store", store,
+            "--reports", reports, "--metric", "chamfer"]
+    r = runner.invoke(cli, base + ["--train-on", env.data])
+    assert r.exit_code == 2 and "pcfbench train toy-trained --dataset kitti=" in r.output
+    r = runner.invoke(cli, ["train", "toy-trained", "--dataset", env.data, "-q"])
+    assert r.exit_code == 0, r.output
+    assert "toy-trained: 12 steps on kitti:train" in r.output and "(complete)" in r.output
+    r = runner.invoke(cli, base + ["--train-on", env.data])
+    assert r.exit_code == 0, r.output
+    assert "toy-trained [trained on kitti:train] | kitti:test | kitti-1s limit=1: 1 samples" in r.output
+    ck = next((env.tmp / "cache").rglob("manifest.json"))
+    r = runner.invoke(cli, base + ["--checkpoint", str(ck)])
+    assert r.exit_code == 0 and "complete, nothing to do" in r.output, r.output  # the same checkpoint: the same cell
+    r = runner.invoke(cli, base + ["--checkpoint", str(ck), "-m", "copy-last", "--split", "train"])
+    assert r.exit_code == 2 and "was trained on this very data" in r.output
+    r = runner.invoke(cli, ["train", "copy-last", "--dataset", env.data])
+    assert r.exit_code == 2 and "does not train" in r.output
