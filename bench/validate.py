@@ -72,3 +72,58 @@ def validate_sweep(sweep: Sweep, where: str | None = None) -> Sweep:
     if not is_se3(sweep.T_world_sensor, atol=1e-4):
         raise DataError(f"{where}: pose is not a finite rigid 4x4 transform")
     return sweep if pts is sweep.points_sensor else Sweep(pts, sweep.T_world_sensor, sweep.timestamp_ns, sweep.intensity, sweep.source)
+
+
+#: A gap between consecutive sweeps longer than this many nominal periods means at least one
+#: sweep is missing: the sequence is refused (``check_sweep_times``).
+GAP_PERIODS = 1.5
+#: The median sweep period may differ from the nominal ``1 / rate_hz`` by this fraction.
+RATE_TOLERANCE = 0.25
+
+
+def check_sweep_times(timestamps_ns: np.ndarray, rate_hz: float, where: str) -> None:
+    """Refuse sweep timestamps that would put a sample's sweeps at the wrong times.
+
+    ``where`` names the file or sequence. Raises one ``DataError`` when the timestamps do not
+    strictly increase, when the median period is not within ``RATE_TOLERANCE`` of
+    ``1 / rate_hz`` (a 1 Hz ``times.txt`` read as a 10 Hz dataset), or when two consecutive
+    sweeps are more than ``GAP_PERIODS`` periods apart (a sweep missing: every later sweep
+    would be taken one step too early). A sequence with a gap is refused, never split: its
+    sample ids would otherwise depend on where the gaps fall. Fewer than two sweeps pass.
+    """
+    ts = np.asarray(timestamps_ns, dtype=np.int64)
+    if ts.size < 2:
+        return
+    dt = np.diff(ts)
+    if np.any(dt <= 0):
+        i = int(np.argmax(dt <= 0)) + 1
+        raise DataError(f"{where}: sweep {i} has timestamp {ts[i]} ns, not after sweep {i - 1}'s {ts[i - 1]} ns "
+                        "(expected strictly increasing timestamps)")
+    period = 1.0 / float(rate_hz)
+    median = float(np.median(dt)) / 1e9
+    if abs(median / period - 1.0) > RATE_TOLERANCE:
+        raise DataError(f"{where}: sweeps are {median:.4g} s apart ({1.0 / median:.3g} Hz), but the dataset is read at "
+                        f"{rate_hz:g} Hz (expected a median period within {RATE_TOLERANCE:.0%} of {period:.4g} s)")
+    gaps = np.flatnonzero(dt > GAP_PERIODS * period * 1e9)
+    if gaps.size:
+        i = int(gaps[0])
+        more = f" (and {gaps.size - 1} more gap(s))" if gaps.size > 1 else ""
+        raise DataError(f"{where}: {dt[i] / 1e9:.4g} s between sweep {i} ({ts[i]} ns) and sweep {i + 1} ({ts[i + 1]} ns), "
+                        f"more than {GAP_PERIODS:g} periods at {rate_hz:g} Hz: a sweep is missing{more}. The sequence is "
+                        "refused rather than read with its later sweeps shifted in time; restore the sweep, or cut the "
+                        "sequence at the gap")
+
+
+def check_rigid(T: np.ndarray, where: str, atol: float = 1e-3) -> np.ndarray:
+    """``T`` when it is a finite rigid 4x4 transform (rotation orthonormal within ``atol``,
+    determinant +1, last row 0 0 0 1), else one ``DataError`` naming ``where`` and what is off
+    (a scaled or sheared calibration would move every point silently)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise DataError(f"{where}: expected a finite 4x4 transform, got shape {T.shape}")
+    if not is_se3(T, atol=atol):
+        R = T[:3, :3]
+        scales = np.linalg.svd(R, compute_uv=False)
+        raise DataError(f"{where}: not a rigid transform (rotation singular values {', '.join(f'{s:.6g}' for s in scales)}, "
+                        f"determinant {np.linalg.det(R):.6g}; expected 1, 1, 1 and +1 within {atol:g})")
+    return T

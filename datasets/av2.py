@@ -7,6 +7,10 @@ this adapter's sensor frame is the ego frame and ``T_world_sensor`` is the log's
 must be present (it is checked; the up_lidar mounting is reported by ``datasets check``).
 Both the Sensor dataset (with annotations and cameras) and the LiDAR dataset share this layout.
 pyarrow only; no av2 dependency.
+
+A log with a sweep missing (two sweeps more than 1.5 periods apart at 10 Hz) is refused with
+one ``DataError`` naming the log and the gap, never read with its later sweeps shifted in time
+(``pcfbench.validate.check_sweep_times``).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
 from pcfbench.errors import DataError
 from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from pcfbench.roi import EgoBox
+from pcfbench.validate import check_sweep_times
 from pcfbench.datasets.layout import SequenceData
 
 SPLITS = ("train", "val", "test")
@@ -133,6 +138,7 @@ class Argoverse2(DatasetAdapter):
                 raise DataError(f"Argoverse 2 sweep {p}: file name must be the timestamp in nanoseconds (<ts_ns>.feather)")
             stamps.append(int(p.stem))
         ts = np.asarray(sorted(stamps), dtype=np.int64)
+        check_sweep_times(ts, self.rate_hz, f"Argoverse 2 log {lidar} (sweep file names are timestamps in ns)")
         read_feather(log / "calibration" / "egovehicle_SE3_sensor.feather", {"sensor_name": "str", **{c: "float" for c in POSE_COLUMNS}}, "calibration file")
         pose_path = log / "city_SE3_egovehicle.feather"
         table = read_feather(pose_path, {"timestamp_ns": "int", **{c: "float" for c in POSE_COLUMNS}}, "pose file")

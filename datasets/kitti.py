@@ -3,6 +3,12 @@
 Poses come from ``poses/NN.txt`` (the odometry ground truth, left-camera frame) or from
 SemanticKITTI's ``sequences/NN/poses.txt``; both are converted to LiDAR-frame poses
 ``T_world_velo = inv(Tr) @ P @ Tr`` where ``Tr`` (calib.txt) is ``T_cam0_velo``.
+
+A sequence of a split is read whole or refused with one ``DataError`` naming the file: a
+sequence folder without poses, velodyne/ missing sweeps (inside or at the end: ``times.txt``
+and the poses have one line per sweep), an empty ``.bin``, a ``Tr`` that is not rigid, or
+``times.txt`` whose sweeps are not 10 Hz apart or have a gap (``pcfbench.validate.check_sweep_times``:
+a sequence with a missing sweep is refused, not split).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import numpy as np
 from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.errors import DataError
 from pcfbench.roi import EgoBox
+from pcfbench.validate import check_rigid, check_sweep_times
 
 SPLITS = {
     "train": ("00", "01", "02", "03", "04", "05"),
@@ -86,6 +93,9 @@ def read_bin(path: Path) -> np.ndarray:
         raise DataError(f"KITTI sweep {path} is missing") from None
     if size % 16:
         raise DataError(f"KITTI sweep {path} has {size:,} bytes, not a multiple of 16 (x, y, z, reflectance float32)")
+    if size == 0:
+        raise DataError(f"KITTI sweep {path} is empty (0 bytes): a cut-short or placeholder file, not a sweep "
+                        "(expected x, y, z, reflectance float32 per point)")
     return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
 
 
@@ -113,15 +123,22 @@ class KittiOdometry(DatasetAdapter):
                 return p
         return None
 
+    def _require_poses(self, name: str) -> Path:
+        path = self._poses_path(name)
+        if path is None:
+            raise DataError(f"KITTI sequence {name}: poses file missing (looked for {self.root / 'poses' / f'{name}.txt'} "
+                            f"and {self._seq_dir(name) / 'poses.txt'}); a sequence of the split is never left out")
+        return path
+
     def sequence_names(self, split: str) -> list[str]:
         if split not in SPLITS:
             raise DataError(f"KITTI has no split {split!r} (known: {', '.join(SPLITS)})")
         if not (self.root / "sequences").is_dir():
             raise DataError(f"KITTI root {self.root} has no sequences/ folder (expected sequences/NN/velodyne/*.bin)")
-        return [s for s in SPLITS[split] if self._seq_dir(s).is_dir() and self._poses_path(s) is not None]
+        return [s for s in SPLITS[split] if self._seq_dir(s).is_dir()]
 
     def sequence(self, name: str) -> Sequence:
-        return _open_sequence(str(self.root), name)
+        return _open_sequence(str(self.root), name, self.rate_hz)
 
     def load_points(self, sequence: str, index: int) -> np.ndarray:
         path = self._seq_dir(sequence) / "velodyne" / f"{index:06d}.bin"
@@ -133,12 +150,12 @@ class KittiOdometry(DatasetAdapter):
         for name in self.sequence_names(split):
             seq_dir = self._seq_dir(name)
             files.extend(sorted((seq_dir / "velodyne").glob("*.bin")))
-            files += [seq_dir / "calib.txt", seq_dir / "times.txt", self._poses_path(name)]
+            files += [seq_dir / "calib.txt", seq_dir / "times.txt", self._require_poses(name)]
         return files
 
 
 
-def _open_sequence(root: str, name: str) -> Sequence:
+def _open_sequence(root: str, name: str, rate_hz: float = 10.0) -> Sequence:
     adapter = KittiOdometry(root)
     seq_dir = adapter._seq_dir(name)
     velo = seq_dir / "velodyne"
@@ -149,24 +166,33 @@ def _open_sequence(root: str, name: str) -> Sequence:
     if len(indices) != n:
         missing = sorted(set(range(n)) - set(indices))[:5]
         raise DataError(f"KITTI sequence {velo} is missing sweep(s) {', '.join(f'{i:06d}.bin' for i in missing)}")
-    poses_path = adapter._poses_path(name)
-    if poses_path is None:
-        raise DataError(f"KITTI sequence {name}: no poses (looked for poses/{name}.txt and sequences/{name}/poses.txt)")
+    poses_path = adapter._require_poses(name)
     P = read_poses(poses_path)
-    if len(P) < n:
-        raise DataError(f"KITTI poses file {poses_path} has {len(P)} poses for {n} sweeps in {velo}")
-    calib = read_calib(seq_dir / "calib.txt")
+    _check_count(f"KITTI poses file {poses_path}", "poses", len(P), n, velo)
+    calib_path = seq_dir / "calib.txt"
+    calib = read_calib(calib_path)
     Tr = np.eye(4)
     Tr[:3, :] = calib["Tr"]
+    check_rigid(Tr, f"KITTI calib file {calib_path} Tr (velodyne -> camera 0)")
     T_world_velo = np.linalg.inv(Tr) @ P[:n] @ Tr
-    times = read_times(seq_dir / "times.txt")
-    if len(times) < n:
-        raise DataError(f"KITTI times file {seq_dir / 'times.txt'} has {len(times)} lines for {n} sweeps")
-    times = times[:n]
+    times_path = seq_dir / "times.txt"
+    times = read_times(times_path)
+    _check_count(f"KITTI times file {times_path}", "timestamps", len(times), n, velo)
     if n > 1 and np.any(np.diff(times) <= 0):
         bad = int(np.argmax(np.diff(times) <= 0)) + 1
-        raise DataError(f"KITTI times file {seq_dir / 'times.txt'}: timestamps not increasing at line {bad + 1}")
+        raise DataError(f"KITTI times file {times_path}: timestamps not increasing at line {bad + 1}")
+    check_sweep_times(times, rate_hz, f"KITTI times file {times_path}")
     return Sequence(name=name, T_world_sensor=T_world_velo, timestamps_ns=times, loader=adapter.load_points)
+
+
+def _check_count(where: str, what: str, have: int, n: int, velo: Path) -> None:
+    """One line per sweep: more lines than sweeps means sweeps missing at the end of velodyne/."""
+    if have < n:
+        raise DataError(f"{where} has {have} {what} for {n} sweeps in {velo} (expected one per sweep)")
+    if have > n:
+        first = f"{n:06d}.bin"
+        raise DataError(f"{where} has {have} {what} but {velo} has {n} sweeps: sweep(s) {first} .. {have - 1:06d}.bin "
+                        "missing (expected one sweep per line)")
 
 
 # --- writer -------------------------------------------------------------------------------

@@ -14,6 +14,12 @@ TF tree), ``sensor_frame`` (default: the cloud's frame_id), ``rate_hz`` (default
 snapped to 2 or 10 Hz within 2 %; a lower rate that divides the recorded one keeps every
 k-th sweep), ``ego_box`` (``xmin,xmax,ymin,ymax`` metres in the sensor frame) and
 ``tf_tolerance_ms`` (how far outside a dynamic link's samples a cloud may be; default 60).
+
+Refused with one ``DataError`` naming the file: two clouds logged at the same time (a cloud is
+loaded by its log time), a cloud frame that is its own world frame (no transforms to it, or
+the cloud frame is the root of the TF tree: every pose would be the identity), and a sweep
+missing (two clouds more than 1.5 periods of the recorded rate apart,
+``pcfbench.validate.check_sweep_times``): such a recording is refused, not split.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from pcfbench.options import option
 from pcfbench.roi import EgoBox
+from pcfbench.validate import check_sweep_times
 
 assert hasattr(mcap, "reader"), "pcfbench.datasets.mcap must import the mcap library"
 
@@ -404,16 +411,32 @@ class McapRecording(DatasetAdapter):
             native = 1e9 / float(np.median(np.diff(stamps_all)))
             if abs(native / self.stride - self.rate_hz) > 0.02 * self.rate_hz:
                 raise DataError(f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz, but this dataset runs at {self.rate_hz:g} Hz (every {self.stride} sweep(s), from its first recording): one rate per dataset, or open the file alone")
+        logged: dict[int, int] = {}
+        for k, (_stamp, log_time, _frame) in enumerate(rec.clouds):
+            if log_time in logged:
+                raise DataError(f"MCAP file {rec.path} topic {rec.topic}: clouds {logged[log_time]} and {k} have the same "
+                                f"log time {log_time} ns (a cloud is read by its log time; expected one cloud per log time)")
+            logged[log_time] = k
         clouds = rec.clouds[:: self.stride]
         stamps = np.array([c[0] for c in clouds], np.int64)
         bad = np.flatnonzero(np.diff(stamps) <= 0)
         if bad.size:
             i = int(bad[0]) + 1
             raise DataError(f"MCAP file {rec.path} topic {rec.topic}: cloud {i} has timestamp {stamps[i]} ns, not after the previous cloud's {stamps[i - 1]} ns (expected increasing header stamps)")
+        if len(stamps_all) > 1:
+            native = 1e9 / float(np.median(np.diff(stamps_all)))
+            check_sweep_times(stamps_all, native, f"MCAP file {rec.path} topic {rec.topic} (header stamps)")
         poses = []
         for stamp, _log, frame in clouds:
             frame = self.sensor_frame or frame
             world = self.world_frame or rec.root_of(frame)
+            if world == frame:
+                raise DataError(
+                    f"MCAP file {rec.path} topic {rec.topic} cloud at {stamp} ns: the cloud frame {frame!r} is its own world "
+                    f"frame ({'it is the root of the TF tree' if frame in rec.frames() else 'no transform mentions it'}; "
+                    f"frames known: {', '.join(sorted(rec.frames())) or 'none'}): every pose would be the identity. "
+                    "Expected /tf (or foxglove.FrameTransform) from a world frame down to the cloud frame; "
+                    "pick them with world_frame=... and sensor_frame=...")
             poses.append(rec.lookup(world, frame, int(stamp), self.tf_tolerance_ns))
         log_times = [c[1] for c in clouds]
         path, topic, schema_name = rec.path, rec.topic, rec.schema_name

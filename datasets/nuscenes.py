@@ -55,6 +55,9 @@ def read_pcd_bin(path: Path) -> np.ndarray:
             f"nuScenes point file {path} has {size:,} bytes, not a multiple of 20 "
             "(x, y, z, intensity, ring float32): truncated?"
         )
+    if size == 0:
+        raise DataError(f"nuScenes point file {path} is empty (0 bytes): a cut-short or placeholder file, not a sweep "
+                        "(expected x, y, z, intensity, ring float32 per point)")
     return np.fromfile(path, dtype=np.float32).reshape(-1, POINT_COLUMNS)
 
 

@@ -90,7 +90,15 @@ def test_convert_nuscenes_to_kitti_places_val_scene_in_kitti_val(tmp_path):
     res = CliRunner().invoke(build_cli(), ["convert", "--from", f"nuscenes={src_root}", "--to", f"kitti={tmp_path / 'kitti'}"])
     assert res.exit_code == 0, res.output
     assert "scene-0003 -> 06" in res.output
-    dst = KittiOdometry(tmp_path / "kitti")
+    from pcfbench.errors import DataError
+
+    with pytest.raises(DataError, match=r"sweeps are 0.5 s apart \(2 Hz\), but the dataset is read at 10 Hz"):
+        KittiOdometry(tmp_path / "kitti").sequence("06")  # nuScenes' 2 Hz keyframes are not 10 Hz KITTI
+
+    class Kitti2Hz(KittiOdometry):
+        rate_hz = 2.0
+
+    dst = Kitti2Hz(tmp_path / "kitti")
     assert dst.sequence_names("val") == ["06"]
     src, seq = NuScenes(src_root).sequence("scene-0003"), dst.sequence("06")
     np.testing.assert_allclose(np.diff(seq.timestamps_ns), np.diff(src.timestamps_ns), atol=1e3)  # KITTI keeps ~us

@@ -65,7 +65,7 @@ class SyntheticKitti(KittiOdometry):
             ensure_domain(self.domain, splits=(split,), root=self.root)
         if not (self.root / "sequences").is_dir():
             raise DataError(f"{self.name} root {self.root} has no sequences/ folder (expected the KITTI layout)")
-        return [s for s in self._splits[split] if self._seq_dir(s).is_dir() and self._poses_path(s) is not None]
+        return [s for s in self._splits[split] if self._seq_dir(s).is_dir()]  # one without poses is an error
 
     def check(self):
         report = super().check()
