@@ -249,7 +249,36 @@ def test_overfit_one_sweep_drives_depth_error_down(toy_sweeps):
     assert last < 0.35 * first, (first, last)
 
 
-def test_resume_continues_exactly(tmp_path, toy_sweeps):
+class _Run:
+    """The ``TrainingRun`` surface train() uses, saving in memory (pcfbench.training tests the real one)."""
+
+    def __init__(self, saved=None, stop_after=None):
+        self.saved, self.stop_after, self.done = saved, stop_after, 0
+        self.log = lambda *a: None
+
+    def resume(self):
+        return self.saved
+
+    def start(self, total, initial=0):
+        pass
+
+    def update(self, steps=1, **metrics):
+        self.done += steps
+
+    def should_stop(self):
+        return self.stop_after is not None and self.done >= self.stop_after
+
+    def save(self, step, weights, state, *, config=None, complete=False):
+        import copy
+        import io
+
+        buf = io.BytesIO()  # through torch.save / weights_only load, as the real checkpoint goes
+        torch.save({"weights": weights, "state": state}, buf)
+        d = torch.load(io.BytesIO(buf.getvalue()), weights_only=True)
+        self.saved = {"step": step, "weights": d["weights"], "state": copy.deepcopy(d["state"])}
+
+
+def test_resume_continues_exactly(toy_sweeps):
     class Source:
         split = "train"
 
@@ -260,9 +289,12 @@ def test_resume_continues_exactly(tmp_path, toy_sweeps):
             return toy_sweeps[k]
 
     cfg = MICRO.with_overrides(rays_per_step=128)
-    straight = train(cfg, Source(), tmp_path / "a.pt", steps=4, progress=False, device=torch.device("cpu"), log=lambda *_: None)
-    train(cfg, Source(), tmp_path / "b.pt", steps=2, progress=False, device=torch.device("cpu"), log=lambda *_: None)
-    resumed = train(cfg, Source(), tmp_path / "b.pt", steps=4, progress=False, device=torch.device("cpu"), log=lambda *_: None)
+    kw = {"steps": 4, "device": torch.device("cpu"), "log": lambda *_: None}
+    straight = train(cfg, Source(), _Run(), **kw)
+    first = _Run(stop_after=2)
+    out = train(cfg, Source(), first, **kw)
+    assert out["step"] == 2 and first.saved["step"] == 2
+    resumed = train(cfg, Source(), _Run(saved=first.saved), **kw)
     assert resumed["step"] == 4 and len(resumed["history"]) == 4
     assert [r["loss"] for r in resumed["history"]] == pytest.approx([r["loss"] for r in straight["history"]], rel=1e-5)
     for (ka, a), (kb, b) in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().items()):
@@ -311,3 +343,47 @@ def test_calibrate_and_evaluate_reconstruction(toy_sweeps):
     r0 = np.linalg.norm(pts, axis=1)
     e = sweep_errors(pts, pts / r0[:, None], r0)
     assert e["l1_median"] == pytest.approx(0.0, abs=1e-9) and e["chamfer"] == pytest.approx(0.0, abs=1e-9)
+
+
+def _sample(points_s0, T_ref_s0, origin_s0, dirs_s0, sample_id="toy/000001"):
+    """One past sweep and one future query, given in the t=0 sensor frame and placed in a
+    reference frame by ``T_ref_s0``."""
+    from pcfbench.data import RayQuery, Sample
+
+    R, t = T_ref_s0[:3, :3], T_ref_s0[:3, 3]
+    T_fut = T_ref_s0.copy()
+    T_fut[:3, 3] = R @ origin_s0 + t
+    q = RayQuery((R @ origin_s0 + t).astype(np.float64), (dirs_s0 @ R.T).astype(np.float32))
+    return Sample(sample_id, "toy", "toy", 1, ((points_s0.astype(np.float64) @ R.T + t).astype(np.float32),),
+                  T_ref_s0[None], np.array([0]), T_fut[None], np.array([100_000_000]), (q,))
+
+
+def test_token_copy_renders_the_t0_tokens_from_the_future_origin(toy_sweeps):
+    """The forecast does not depend on the reference frame, and equals rendering the t=0
+    sweep's tokens along the query rays from the future origin in the t=0 sensor frame."""
+    from pcfbench.methods.copilot4d.evaluate import render_codes, tokenize_sweep
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy
+
+    torch.manual_seed(0)
+    method = TokenCopy()
+    method.model = Tokenizer(MICRO).eval()
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(300, 3))
+    dirs[:, 2] *= 0.1
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origin = np.array([2.0, -1.0, 0.1])
+    pts = toy_sweeps[0]
+    a = method.forecast(_sample(pts, np.eye(4), origin, dirs)).depths[0]
+    c, s = np.cos(0.7), np.sin(0.7)
+    G = np.array([[c, -s, 0, 40.0], [s, c, 0, -12.0], [0, 0, 1, 1.5], [0, 0, 0, 1]])
+    b = method.forecast(_sample(pts, G, origin, dirs)).depths[0]
+    assert a.shape == (300,) and np.all(np.isfinite(a)) and np.all(a > 0)
+    np.testing.assert_allclose(b, a, atol=2e-3)
+    import hashlib
+
+    seed = int.from_bytes(hashlib.sha256(b"toy/000001").digest()[:8], "little")
+    ref = render_codes(method.model, tokenize_sweep(method.model, pts), dirs.astype(np.float32), origin=origin,
+                       generator=torch.Generator().manual_seed(seed))
+    np.testing.assert_allclose(a, ref, atol=1e-6)
+    # the same sample twice: the same forecast (spatial skipping's noise is seeded by the sample)
+    np.testing.assert_array_equal(method.forecast(_sample(pts, np.eye(4), origin, dirs)).depths[0], a)
