@@ -322,7 +322,7 @@ def test_sampling_on_a_toy_model(revise):
     context = target[None, None].clone()
     trace: list[torch.Tensor] = []
     out = D.sample_frame(model, context, _eye_poses(1, 2), steps=K, guidance=2.0, revise=revise,
-                         generator=torch.Generator().manual_seed(0), trace=trace)
+                         generator=torch.Generator().manual_seed(0), cache=False, trace=trace)
     assert len(trace) == K and len(model.calls) == K
     # one pass per step, context + frame + its unconditional copy under the guidance mask
     assert all(T == 3 and m == guidance_mask(2).tolist() for T, m in model.calls)
@@ -377,6 +377,25 @@ def test_guidance_copy_is_a_separate_unconditional_pass(micro_model):
     assert torch.allclose(joint[:, 3], uncond, atol=1e-5, rtol=0)
     assert torch.allclose(joint[:, 2], cond, atol=1e-5, rtol=0)
     assert torch.allclose(guided, cond + 2.0 * (cond - uncond), atol=1e-4, rtol=0)
+
+
+def test_cached_context_gives_the_same_logits_and_samples(micro_model):
+    gen = torch.Generator().manual_seed(34)
+    x = torch.randint(0, 17, (2, 3, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    with torch.no_grad():
+        _, kv = micro_model(x[:, :2], P[:, :2], causal_mask(2), return_kv=True)
+        assert kv.frames == 2 and kv.batch == 2 and len(kv.kv) == 5  # one temporal block per group
+        for w in (0.0, 2.0):
+            full = D.guided_logits(micro_model, x, P, w)
+            cached = D.guided_logits(micro_model, x[:, 2:], P[:, 2:], w, past_kv=kv)
+            assert torch.allclose(full, cached, atol=1e-5, rtol=0)
+        with pytest.raises(ValueError, match=r"temporal mask has shape \(1, 1\); expected \(1, 3\)"):
+            micro_model(x[:, 2:], P[:, 2:], causal_mask(1), past_kv=kv)
+    ctx = x[:, :2].clamp(max=15)
+    a = D.sample_frame(micro_model, ctx, P, steps=5, generator=torch.Generator().manual_seed(2), cache=True)
+    b = D.sample_frame(micro_model, ctx, P, steps=5, generator=torch.Generator().manual_seed(2), cache=False)
+    assert torch.equal(a, b)
 
 
 def test_forecast_tokens_decodes_every_future_frame(micro_model):

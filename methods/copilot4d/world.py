@@ -14,6 +14,12 @@ sweep k's sensor frame into the reference frame, as in :class:`pcfbench.data.Sam
 (``past_T_ref_sensor`` then ``future_T_ref_sensor``). The reference frame's own pose is the
 identity.
 
+Past frames can be cached: under a causal mask a frame's features never depend on later
+frames, so a pass over the context with ``return_kv=True`` yields, for every temporal block,
+the keys and values of those frames, and later passes over new frames only (``past_kv``)
+attend to them unchanged (Figure 10: "for all past timesteps, we only need cached keys and
+values from the temporal blocks").
+
 The network holds no device or dtype of its own beyond its parameters: inputs decide, so it
 runs on CUDA under ``torch.autocast("cuda", dtype=torch.bfloat16)`` unchanged.
 """
@@ -51,15 +57,18 @@ def guidance_mask(T: int, device=None) -> torch.Tensor:
     return m
 
 
-def check_temporal_mask(mask: torch.Tensor, B: int, T: int) -> torch.Tensor:
-    """Validate a temporal mask and return it as (B or 1, T, T) bool."""
+def check_temporal_mask(mask: torch.Tensor, B: int, T: int, past: int = 0) -> torch.Tensor:
+    """Validate a temporal mask and return it as (B or 1, T, past + T) bool: rows are the T
+    input frames, columns the ``past`` cached frames then the T input frames."""
     if mask.dtype != torch.bool:
         raise ValueError(f"temporal mask must be bool (True = may attend), got {mask.dtype}")
+    given = tuple(mask.shape)
     if mask.dim() == 2:
         mask = mask.unsqueeze(0)
-    if mask.dim() != 3 or mask.shape[-2:] != (T, T) or mask.shape[0] not in (1, B):
-        raise ValueError(f"temporal mask has shape {tuple(mask.shape)}; expected ({T}, {T}) or ({B}, {T}, {T})")
-    if not bool(mask.diagonal(dim1=-2, dim2=-1).all()):
+    S = past + T
+    if mask.dim() != 3 or mask.shape[-2:] != (T, S) or mask.shape[0] not in (1, B):
+        raise ValueError(f"temporal mask has shape {given}; expected ({T}, {S}) or ({B}, {T}, {S})")
+    if not bool(mask[..., past:].diagonal(dim1=-2, dim2=-1).all()):
         raise ValueError("temporal mask must let every frame attend to itself (its diagonal must be True)")
     return mask
 
@@ -81,16 +90,20 @@ class TemporalBlock(nn.Module):
         self.fc1 = nn.Linear(dim, hidden, bias=False)
         self.fc2 = nn.Linear(hidden, dim, bias=False)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """x (B, T, H, W, C); mask (B or 1, T, T) bool."""
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, kv: "_KV | None" = None) -> torch.Tensor:
+        """x (B, T, H, W, C); mask (B or 1, T, past + T) bool; kv supplies the cached keys
+        and values of the past frames and/or collects those of all frames."""
         B, T, H, W, C = x.shape
         h = self.heads
         y = self.norm1(x).permute(0, 2, 3, 1, 4).reshape(B * H * W, T, C)
         q, k, v = self.attn.qkv(y).view(B * H * W, T, 3, h, C // h).permute(2, 0, 3, 1, 4)
+        if kv is not None:
+            k, v = kv.extend(k, v)
+        S = k.shape[-2]
         if mask.shape[0] == 1:
-            attn_mask = mask  # (1, T, T) broadcasts over sequences and heads
+            attn_mask = mask  # (1, T, S) broadcasts over sequences and heads
         else:
-            attn_mask = mask[:, None].expand(B, H * W, T, T).reshape(B * H * W, 1, T, T)
+            attn_mask = mask[:, None].expand(B, H * W, T, S).reshape(B * H * W, 1, T, S)
         y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
         y = self.attn.proj(y.transpose(1, 2).reshape(B * H * W, T, C))
         x = x + y.view(B, H, W, T, C).permute(0, 3, 1, 2, 4)
@@ -112,12 +125,12 @@ class Group(nn.Module):
         self.spatial = nn.ModuleList(_spatial_block(dim, heads, window, i % 2 == 1, mlp_ratio) for i in range(n_spatial))
         self.temporal = TemporalBlock(dim, heads, mlp_ratio)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, kv: "_KV | None" = None) -> torch.Tensor:
         B, T, H, W, C = x.shape
         y = x.reshape(B * T, H, W, C)
         for blk in self.spatial:
             y = blk(y)
-        return self.temporal(y.view(B, T, H, W, C), mask)
+        return self.temporal(y.view(B, T, H, W, C), mask, kv)
 
 
 class Stage(nn.Module):
@@ -125,10 +138,28 @@ class Stage(nn.Module):
         super().__init__()
         self.groups = nn.ModuleList(Group(dim, heads, window, n_spatial, mlp_ratio) for _ in range(n_groups))
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, kv: "_KV | None" = None) -> torch.Tensor:
         for g in self.groups:
-            x = g(x, mask)
+            x = g(x, mask, kv)
         return x
+
+
+class _KV:
+    """Keys and values of the temporal blocks, in the order the blocks run: ``past`` (a list
+    from an earlier pass, or None) is prepended to each block's own; with ``collect`` the
+    concatenation is kept, for a later pass to extend."""
+
+    def __init__(self, past: list | None, collect: bool) -> None:
+        self.past, self.collect, self.out, self.i = past, collect, [], 0
+
+    def extend(self, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.past is not None:
+            pk, pv = self.past[self.i]
+            k, v = torch.cat([pk, k], dim=-2), torch.cat([pv, v], dim=-2)
+        self.i += 1
+        if self.collect:
+            self.out.append((k, v))
+        return k, v
 
 
 class LevelMerging(nn.Module):
@@ -208,7 +239,15 @@ class WorldModel(nn.Module):
         return self.action[level](poses)[:, :, None, None, :]  # (B, T, 1, 1, C)
 
     def forward(self, tokens: torch.Tensor, T_ref_sensor: torch.Tensor, temporal_mask: torch.Tensor,
-                frame_index: torch.Tensor | None = None) -> torch.Tensor:
+                frame_index: torch.Tensor | None = None, past_kv: "PastKV | None" = None,
+                return_kv: bool = False):
+        """Logits (B, T, H, W, |V|); with ``return_kv`` also the :class:`PastKV` of the
+        ``past_kv`` frames and these T frames (meaningful when these frames attend causally).
+
+        With ``past_kv`` (P cached frames), ``tokens``, ``T_ref_sensor`` and ``frame_index``
+        describe the T new frames only and ``temporal_mask`` is (T, P + T) or (B, T, P + T).
+        ``frame_index`` defaults to P .. P + T - 1.
+        """
         cfg = self.cfg
         if tokens.dim() != 4 or tokens.shape[-2:] != (cfg.token_grid, cfg.token_grid):
             raise ValueError(f"tokens have shape {tuple(tokens.shape)}; expected (B, T, {cfg.token_grid}, {cfg.token_grid})")
@@ -217,9 +256,12 @@ class WorldModel(nn.Module):
         B, T = tokens.shape[:2]
         if T_ref_sensor.shape != (B, T, 4, 4):
             raise ValueError(f"T_ref_sensor has shape {tuple(T_ref_sensor.shape)}; expected ({B}, {T}, 4, 4)")
-        mask = check_temporal_mask(temporal_mask.to(tokens.device), B, T)
+        P = 0 if past_kv is None else past_kv.frames
+        if past_kv is not None and past_kv.batch != B:
+            raise ValueError(f"past_kv holds {past_kv.batch} sequences; tokens hold {B}")
+        mask = check_temporal_mask(temporal_mask.to(tokens.device), B, T, P)
         if frame_index is None:
-            frame_index = torch.arange(T, device=tokens.device)
+            frame_index = torch.arange(P, P + T, device=tokens.device)
         if frame_index.shape != (T,) or int(frame_index.min()) < 0 or int(frame_index.max()) >= cfg.n_frames:
             raise ValueError(f"frame_index {frame_index.tolist()} must hold {T} positions in 0..{cfg.n_frames - 1}")
         lo, hi = int(tokens.min()), int(tokens.max())
@@ -229,22 +271,34 @@ class WorldModel(nn.Module):
         poses = T_ref_sensor.reshape(B, T, 16).to(self.embed.weight.dtype)
         x = self.embed_proj(self.embed(tokens))  # (B, T, H, W, C1)
         x = x + self.pos_embed + self.time_embed[frame_index][None, :, None, None, :] + self._action(0, poses)
-        x1 = self.down1(x, mask)
+        kv = None if past_kv is None and not return_kv else _KV(None if past_kv is None else past_kv.kv, return_kv)
+        x1 = self.down1(x, mask, kv)
         x = self._merge(self.merge12, x1) + self._action(1, poses)
-        x2 = self.down2(x, mask)
+        x2 = self.down2(x, mask, kv)
         x = self._merge(self.merge23, x2) + self._action(2, poses)
-        x = self.down3(x, mask)
+        x = self.down3(x, mask, kv)
         x = x2 + self.up32(x, x2)
-        x = self.up2(x, mask)
+        x = self.up2(x, mask, kv)
         x = x1 + self.up21(x, x1)
-        x = self.up1(x, mask)
-        return F.linear(self.out_norm(x), self.embed.weight[: cfg.codebook_size])
+        x = self.up1(x, mask, kv)
+        logits = F.linear(self.out_norm(x), self.embed.weight[: cfg.codebook_size])
+        if return_kv:
+            return logits, PastKV(kv.out, P + T, B)
+        return logits
 
     @staticmethod
     def _merge(layer: PatchMerging, x: torch.Tensor) -> torch.Tensor:
         B, T, H, W, C = x.shape
         y = layer(x.reshape(B * T, H, W, C))
         return y.view(B, T, *y.shape[1:])
+
+
+class PastKV:
+    """Cached keys and values of ``frames`` frames for ``batch`` sequences: one (k, v) pair of
+    (batch * H_l * W_l, heads, frames, head_dim) per temporal block, in the order they run."""
+
+    def __init__(self, kv: list, frames: int, batch: int) -> None:
+        self.kv, self.frames, self.batch = kv, frames, batch
 
 
 def count_parameters(model: nn.Module) -> int:
