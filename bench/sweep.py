@@ -41,7 +41,7 @@ __all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "load_experiment
 
 #: top-level keys of an experiment file, and those of its [[methods]] and [[tables]] entries
 EXPERIMENT_KEYS = ("name", "description", "methods", "datasets", "settings", "splits", "policy", "metrics",
-                   "seeds", "train_on", "limit", "jobs", "tables")
+                   "seeds", "train_on", "train_split", "limit", "jobs", "tables")
 METHOD_KEYS = ("name", "options", "grid", "variants", "seeds")
 TABLE_KEYS = ("preset", "reference", "stem", "title", "ci")
 #: the reference row of a table when the file names none, if the grid has it
@@ -89,6 +89,7 @@ class Experiment:
     policy: str
     metrics: tuple[str, ...]
     train_on: tuple[str, ...]
+    train_split: str
     limit: int | None
     jobs: int
     tables: tuple[TableSpec, ...]
@@ -302,6 +303,9 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
         metrics = default_metrics(plugins)
 
     train_on = _train_on(doc, variants, reader, plugins)
+    train_split = doc.get("train_split", "train")
+    if not isinstance(train_split, str) or not train_split:
+        raise reader.error("train_split", f"expected a split name, got {train_split!r}")
 
     limit = doc.get("limit")
     if limit is not None and (not isinstance(limit, int) or isinstance(limit, bool) or limit < 1):
@@ -341,7 +345,7 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
             raise reader.error(f"{where}.stem", f"{stem!r} is already the stem of another table")
         specs.append(TableSpec(preset, reference, stem, title, ci))
     return Experiment(path, name, description, tuple(variants), datasets, settings, splits, policy, tuple(metrics),
-                      train_on, limit, jobs, tuple(specs))
+                      train_on, train_split, limit, jobs, tuple(specs))
 
 
 def _reference(value: Any, variants: list[Variant], key: str, reader: _Reader, plugins: Plugins) -> Variant:
@@ -363,9 +367,9 @@ def _reference(value: Any, variants: list[Variant], key: str, reader: _Reader, p
 
 
 def _train_on(doc: dict, variants: list[Variant], reader: _Reader, plugins: Plugins) -> tuple[str, ...]:
-    """``train_on``: the training datasets of trained methods (checked names). Evaluating a
-    checkpoint trained on another dataset needs the runner to know the training data; until
-    it does, a trained-method axis is refused here rather than run as if untrained."""
+    """``train_on``: the training data (``NAME`` or ``NAME=ROOT``) of the grid's trained
+    methods, an axis of their cells; methods that do not train run once. Without the trained-
+    method support of ``pcfbench.training`` in the runner, it is refused rather than ignored."""
     if "train_on" not in doc:
         return ()
     items = reader.strings(doc["train_on"], "train_on")
@@ -374,22 +378,47 @@ def _train_on(doc: dict, variants: list[Variant], reader: _Reader, plugins: Plug
             plugins.datasets.get(item.partition("=")[0])
         except PcfbenchError as exc:
             raise reader.wrap("train_on", exc) from None
-    untrained = [v.label for v in variants if getattr(v.method.cls, "ready", True) and not _is_trained(v.method.cls)]
-    if untrained:
-        raise reader.error("train_on", f"applies to trained methods only; {', '.join(untrained)} do(es) not train "
-                           "(list trained methods only, or drop train_on)")
-    if "train_on" not in {f.name for f in dataclasses.fields(CellSpec)}:
-        raise reader.error("train_on", "not yet supported: the runner cannot evaluate a checkpoint trained on another "
-                           "dataset yet (issue 13, items 1-4); the file is otherwise valid")
+    if not _training_supported():
+        raise reader.error("train_on", "not yet supported: this pcfbench cannot evaluate a trained method's checkpoint "
+                           "(issue 13, items 1-4); the rest of the file is valid")
+    if not any(_is_trained(v.method.cls) for v in variants):
+        raise reader.error("train_on", f"applies to trained methods, and none of {', '.join(v.label for v in variants)} "
+                           "trains (drop train_on, or add a trained method)")
     return items
 
 
-def _is_trained(cls: type) -> bool:
+def _training_supported() -> bool:
     try:
-        from pcfbench.training import TrainedMethod
+        import pcfbench.training  # noqa: F401
     except ImportError:
         return False
-    return issubclass(cls, TrainedMethod)
+    return "checkpoint_sha256" in {f.name for f in dataclasses.fields(CellSpec)}
+
+
+def _is_trained(cls: type) -> bool:
+    if not _training_supported():
+        return False
+    from pcfbench.training import is_trained
+
+    return is_trained(cls)
+
+
+def _checkpoints(exp: Experiment, v: Variant, plugins: Plugins, progress: bool) -> list[dict[str, Any]]:
+    """The CellSpec fields of each checkpoint a variant is evaluated with: one per ``train_on``
+    for a trained method (default: its own default training data), none for the others. A
+    missing or altered checkpoint is one error naming the key (and how to train it)."""
+    if not _is_trained(v.method.cls):
+        return [{}]
+    from pcfbench.training import checkpoint_for
+
+    out = []
+    for t in exp.train_on or (None,):
+        try:
+            ck = checkpoint_for(v.method, train_on=t, split=exp.train_split, plugins=plugins, progress=progress)
+        except PcfbenchError as exc:
+            raise _Reader(exp.path).wrap("train_on" if t else v.where, exc) from None
+        out.append({"checkpoint": str(ck.dir.resolve()), "checkpoint_sha256": ck.sha256, "train_on": ck.train_on_label})
+    return out
 
 
 # -- running -------------------------------------------------------------------------------
@@ -401,6 +430,20 @@ class SweepResult:
     results: list[Any]
     paths: dict[str, Path]
     summaries: list[str]
+
+
+def row_label(spec: CellSpec) -> str:
+    """The ablation row of a cell: ``raycast-voxel (voxel=0.4)``, a trained method's with its
+    training data and checkpoint (``[trained on synthetic-town:train, ck 0123abcd]``)."""
+    label = method_label(spec.method, spec.options)
+    train_on = getattr(spec, "train_on", None)
+    if train_on:
+        label += f" [trained on {train_on}, ck {str(spec.checkpoint_sha256)[:8]}]"
+    return label
+
+
+def _row_key(method: str, options_hash: str, checkpoint_sha256: Any) -> tuple[str, str, str]:
+    return (method, options_hash, checkpoint_sha256 if isinstance(checkpoint_sha256, str) else "")
 
 
 def cell_label(spec: CellSpec) -> str:
@@ -419,6 +462,7 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
     reader = _Reader(exp.path)
     limit = limit if limit is not None else exp.limit
     cells = []
+    checkpoints: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for name, root in exp.datasets:
         cls = plugins.datasets.get(name)
         try:
@@ -440,8 +484,9 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
                                    f"({exp.policy})")
             for v in exp.variants:
                 m = v.method
-                cells.append(CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, exp.policy,
-                                      limit, exp.metrics))
+                for ck in checkpoints.setdefault(v.key, _checkpoints(exp, v, plugins, progress)):
+                    cells.append(CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, exp.policy,
+                                          limit, exp.metrics, **ck))
     return cells
 
 
@@ -474,22 +519,22 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
             bar.update(1)
     finally:
         bar.close()
-    paths, summaries = ablation_tables(exp, store, reports, [r.path for r in results])
+    paths, summaries = ablation_tables(exp, store, reports, cells, [r.path for r in results])
     return SweepResult(cells, results, paths, summaries)
 
 
 # -- the ablation table --------------------------------------------------------------------
-def ablation_tables(exp: Experiment, store: Path, reports: Path,
+def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[CellSpec],
                     cell_dirs: list[Path]) -> tuple[dict[str, Path], list[str]]:
-    """Render every table of ``exp`` from the cells ``cell_dirs`` (the sweep's) and write
+    """Render every table of ``exp`` from the sweep's ``cells`` (in the store at ``cell_dirs``) and write
     ``reports/sweeps/<stem>.{md,csv,tex,html}``; returns the paths (``"<stem>.<ext>"``) and
     each table as terminal text.
     Everything is rendered in memory first, then each file is written atomically."""
     from pcfbench import report, tables
 
     presets = tables.load_presets()
-    labels = {v.key: v.label for v in exp.variants}
-    order = [v.label for v in exp.variants]
+    labels = {_row_key(c.method, c.options_hash, getattr(c, "checkpoint_sha256", None)): row_label(c) for c in cells}
+    order = list(dict.fromkeys(labels.values()))
     contents: dict[str, str] = {}
     summaries = []
     for t in exp.tables:
@@ -497,7 +542,8 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path,
                             reference_options_hash=t.reference.method.options_hash)
         for df in (lb.table, lb.partial):
             if len(df):  # rows labelled by the experiment (a reused cell keeps the label of its first run)
-                df["variant"] = [labels[(m, h)] for m, h in zip(df["method"], df["options_hash"])]
+                cks = df["checkpoint_sha256"] if "checkpoint_sha256" in df else [""] * len(df)
+                df["variant"] = [labels[_row_key(m, h, c)] for m, h, c in zip(df["method"], df["options_hash"], cks)]
         lb.reference = t.reference.label
         preset = dataclasses.replace(tables.get_preset(t.preset, presets), name=t.stem,
                                      title=f"{t.title} (Copilot4D Tables 3-4 layout, columns of preset {t.preset})")
