@@ -4,7 +4,10 @@
 metric (the point estimate; skipped sweeps are counted, never averaged), its bootstrap
 interval over samples, and, per (dataset, split, setting, policy[, limit]) group, a paired
 comparison of every cell with the group's reference method on the samples both scored
-(``pcfbench.stats``). Partial cells (``--limit``) are kept apart in their own tables. A
+(``pcfbench.stats``). Partial cells (``--limit``) are kept apart in their own tables. A cell
+whose samples did not all score (a failed sample, or rows missing for some of the sample ids
+its cell.json was created with: :func:`coverage`) is never ranked: it is listed apart with its
+coverage ("80/84") in the notes, the summary and ``leaderboard_incomplete.csv``. A
 column never mixes metric versions. :func:`write_reports` renders the tables of
 ``pcfbench.tables``' presets as Markdown, CSV, LaTeX and HTML.
 """
@@ -65,6 +68,47 @@ class Leaderboard:
     resampling: stats.Resampling = field(default_factory=stats.Resampling)
     reference: str = DEFAULT_REFERENCE
     notes: list[str] = field(default_factory=list)
+    #: cells whose samples did not all score (failed, or rows missing): never ranked; one row
+    #: each with ``coverage`` ("80/84"), ``expected`` and ``missing`` (sample ids without rows)
+    incomplete: pd.DataFrame = field(default_factory=pd.DataFrame)
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """How many of a cell's samples scored, from its rows checked against its cell.json.
+
+    ``expected``: the samples the cell was created for (``samples`` in cell.json); ``ok`` /
+    ``failed``: sample ids whose rows say so; ``missing``: expected samples without rows (a
+    chunk deleted), also when the ids present do not hash to the cell's ``sample_ids_hash``.
+    A cell is complete only when every expected sample scored."""
+
+    expected: int
+    ok: int
+    failed: int
+    missing: int
+
+    @property
+    def complete(self) -> bool:
+        return self.ok == self.expected and not self.failed and not self.missing
+
+    @property
+    def text(self) -> str:
+        return f"{self.ok}/{self.expected}"
+
+
+def coverage(meta: dict, rows: pd.DataFrame) -> Coverage:
+    """The :class:`Coverage` of a cell from its ``cell.json`` and its rows (``Cell.read_rows``)."""
+    from pcfbench.protocol import ids_hash
+
+    status = rows.groupby("sample_id")["status"].first() if len(rows) else pd.Series(dtype=object)
+    ok = int((status == "ok").sum())
+    failed = int((status == "failed").sum())
+    expected = int(meta.get("samples") or meta.get("counts", {}).get("samples") or len(status))
+    missing = max(expected - len(status), 0)
+    want = meta.get("sample_ids_hash")
+    if not missing and want and ids_hash([str(i) for i in status.index]) != want:
+        missing = max(expected - ok - failed, 1)  # ids other than the cell's own: some are missing
+    return Coverage(expected, ok, failed, missing)
 
 
 def method_label(method: str, options: dict) -> str:
@@ -147,12 +191,14 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
         # in sample order: every mean below adds in one order, whatever the chunk order
         df = stats.in_sample_order(Cell(store_root, spec).read_rows())
         ok = df[df["status"] == "ok"] if len(df) else df
+        cov = coverage(meta, df)  # from the rows: a deleted chunk cannot claim its samples
         metric_versions = meta.get("metric_versions", {})
         units.update(meta.get("metric_units", {}))
         base = {
             "dataset": spec.dataset, "split": spec.split, "setting": spec.setting, "policy": spec.policy,
             "method": spec.method, "method_version": meta.get("method_version"),
-            "samples": meta.get("counts", {}).get("ok", 0), "failed": meta.get("counts", {}).get("failed", 0),
+            "samples": cov.ok, "failed": cov.failed, "expected": cov.expected, "missing": cov.missing,
+            "coverage": cov.text, "incomplete": not cov.complete,
             "sweeps": len(ok), "variant": method_label(spec.method, spec.options) + trained_label(spec, meta),
             "options_hash": spec.options_hash, "train_on": spec.train_on or "",
             "checkpoint_sha256": spec.checkpoint_sha256 or "",
@@ -175,7 +221,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             row[f"{name}__skipped"] = int((~np.isfinite(values)).sum())
         rows.append(row)
         sums.append(ss)
-        if len(ok):
+        if len(ok) and cov.complete:  # an incomplete cell's per-horizon means are not published
             groups = list(ok.groupby("step"))
             seconds = _step_seconds(spec.setting, np.array([s for s, _ in groups]), notes)
             for (step, g), t in zip(groups, seconds):
@@ -196,6 +242,15 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
     if len(table) and reference is not None and reference not in set(table["method"]):
         raise unknown_name("reference method", reference, set(table["method"]), "the store has no cell of it")
     reference = reference or DEFAULT_REFERENCE
+    incomplete = pd.DataFrame()
+    if len(table):
+        incomplete = table[table["incomplete"]].sort_values(GROUP_KEYS + ["variant"], na_position="first")
+        table = table[~table["incomplete"]].copy()
+        for _, r in incomplete.iterrows():
+            limit = f" (limit={int(r['limit'])})" if r["partial"] else ""
+            notes.append(f"{r['dataset']} / {r['split']} / {r['setting']}{limit} {r['variant']}: INCOMPLETE, "
+                         f"{r['coverage']} samples scored ({r['failed']} failed, {r['missing']} without rows): "
+                         "not ranked (leaderboard_incomplete.csv)")
     for _, r in table.iterrows():
         if r["ci_units"] < stats.MIN_UNITS:
             limit = f" (limit={int(r['limit'])})" if r["partial"] else ""
@@ -210,7 +265,8 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
     else:
         complete, partial_t = table, table
     return Leaderboard(complete.reset_index(drop=True), pd.DataFrame(step_rows), metric_cols, units,
-                       partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)))
+                       partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)),
+                       incomplete=incomplete.reset_index(drop=True))
 
 
 def _compare_groups(table: pd.DataFrame, sums: list, reference: str, resampling: stats.Resampling,
@@ -302,8 +358,16 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
         paths[key] = out_dir / name
         steps = lb.by_step[lb.by_step["partial"] == keep] if len(lb.by_step) else lb.by_step
         steps.drop(columns="partial", errors="ignore").to_csv(paths[key], index=False)
+    paths["incomplete_csv"] = out_dir / "leaderboard_incomplete.csv"
+    incomplete = _csv_frame(lb, lb.incomplete)
+    incomplete.insert(CSV_LEAD.index("samples"), "coverage", lb.incomplete["coverage"] if len(lb.incomplete) else [])
+    incomplete.insert(CSV_LEAD.index("failed") + 2, "missing", lb.incomplete["missing"] if len(lb.incomplete) else [])
+    incomplete.to_csv(paths["incomplete_csv"], index=False)
     paths["comparisons"] = out_dir / "leaderboard_comparisons.csv"
     lb.comparisons.to_csv(paths["comparisons"], index=False)
+    from pcfbench.transfer import write_transfer  # trained cells: the zero-shot table (Copilot4D Table 5)
+
+    paths.update(write_transfer(lb, out_dir))
     (out_dir / "tables").mkdir(exist_ok=True)
     for name, preset in presets.items():
         render(preset, out_dir / "tables" / name, f"tables/{name}")
@@ -315,4 +379,11 @@ def summary(store_root: Path, options: ReportOptions | None = None, leaderboard:
     options = options or ReportOptions()
     preset = tables.get_preset(options.preset, tables.load_presets(options.tables_file))
     lb = leaderboard or collect(store_root, options.resampling, options.reference)
-    return tables.text(tables.build(lb, preset, options.ci))
+    out = tables.text(tables.build(lb, preset, options.ci))
+    if len(lb.incomplete):
+        lines = [f"INCOMPLETE cells, not ranked ({len(lb.incomplete)}): samples scored / expected"]
+        for _, r in lb.incomplete.iterrows():
+            lines.append(f"  {r['dataset']} / {r['split']} / {r['setting']}  {r['variant']}: {r['coverage']} "
+                         f"({r['failed']} failed, {r['missing']} without rows)")
+        out = (out + "\n\n" if out else "") + "\n".join(lines)
+    return out

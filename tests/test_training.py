@@ -321,3 +321,37 @@ def test_cli_train_and_run_with_checkpoint_and_train_on(env, monkeypatch):
     assert r.exit_code == 2 and "was trained on this very data" in r.output
     r = runner.invoke(cli, ["train", "copy-last", "--dataset", env.data])
     assert r.exit_code == 2 and "does not train" in r.output
+
+
+def test_transfer_table_layout(env):
+    """A trained cell on other data than its training data gets a Table-5 block: the trained row
+    and the untrained baselines of the same block, the paper's columns, the leaderboard's values."""
+    from pcfbench.report import collect, write_reports
+    from pcfbench.runner import run_cell
+    from pcfbench.store import CellSpec
+
+    ck = _train(env)
+    _cell(env, ck)
+    copy = resolve_method("copy-last", env.plugins)
+    run_cell(CellSpec("copy-last", {}, copy.options_hash, "kitti", str(env.root), "test", "kitti-1s", limit=2,
+                      metrics=("chamfer", "l1_mean")), env.tmp / "store", progress=False, plugins=env.plugins)
+    paths = write_reports(env.tmp / "store", env.tmp / "reports")
+    md = paths["transfer_md"].read_text().splitlines()
+    i = md.index("## [kitti → kitti] 1s Prediction (test split, kitti-1s, PARTIAL: first 2 samples)")
+    assert md[i + 2] == "| Method | Trained on | L1 Mean ↓ (m) | Chamfer (full) ↓ (m²) | n |"
+    board = collect(env.tmp / "store").partial.set_index("method")
+    assert md[i + 4] == (f"| copy-last | - | {board.loc['copy-last', 'l1_mean']:.3f} | "
+                         f"{board.loc['copy-last', 'chamfer']:.3f} | 2 |")
+    assert md[i + 5] == (f"| toy-trained | kitti:train (ck {ck.sha256[:8]}) | {board.loc['toy-trained', 'l1_mean']:.3f} | "
+                         f"{board.loc['toy-trained', 'chamfer']:.3f} | 2 |")
+    import pandas as pd
+
+    csv = pd.read_csv(paths["transfer_csv"])
+    assert list(csv["method_label"]) == ["copy-last", "toy-trained"] and csv["train_on"].fillna("").tolist() == ["", "kitti:train"]
+    # without trained cells there is no transfer table
+    import shutil
+
+    shutil.rmtree(env.tmp / "store" / "kitti" / "kitti-1s" / "test" / next(
+        p.name for p in (env.tmp / "store" / "kitti" / "kitti-1s" / "test").iterdir() if p.name.startswith("toy-trained")))
+    assert "transfer_md" not in write_reports(env.tmp / "store", env.tmp / "reports")
+    assert not (env.tmp / "reports" / "transfer.md").exists()
