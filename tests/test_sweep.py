@@ -388,3 +388,53 @@ def test_the_docs_describe_every_key():
     for key in EXPERIMENT_KEYS + METHOD_KEYS + TABLE_KEYS:
         assert f"`{key}`" in doc, key
     assert "pcfbench sweep" in (REPO / "README.md").read_text()
+
+
+# -- trained methods: train_on -----------------------------------------------------------------
+def test_train_on_evaluates_each_checkpoint_and_says_how_to_train_a_missing_one(tmp_path, monkeypatch):
+    from conftest import write_tiny_kitti
+    from test_training import toy_plugins
+
+    from pcfbench.training import train
+
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("00", "01", "08"), num_sweeps=24)
+    plugins = toy_plugins()
+    path = _write(tmp_path, f"""
+datasets = ["kitti={root}"]
+settings = ["kitti-1s"]
+metrics = ["l1_median"]
+train_on = ["kitti={root}"]
+
+[[methods]]
+name = "copy-last"
+
+[[methods]]
+name = "toy-trained"
+grid = {{ lr = [0.1, 0.2] }}
+""")
+    exp = load_experiment(path, plugins)
+    with pytest.raises(PcfbenchError) as err:  # no checkpoint yet: before any cell runs
+        plan(exp, plugins=plugins, progress=False)
+    assert str(err.value).startswith(f"experiment {path}: train_on: no checkpoint of toy-trained:lr=0.1 trained on kitti:train")
+    assert "pcfbench train toy-trained:lr=0.1 --dataset kitti=" in str(err.value)
+    assert not (tmp_path / "store").exists()
+    cks = {lr: train(resolve_method(f"toy-trained:lr={lr}", plugins), f"kitti={root}", plugins=plugins,
+                     progress=False, log=lambda *a: None) for lr in ("0.1", "0.2")}
+    res = run_sweep(load_experiment(path, plugins), tmp_path / "store", tmp_path / "r", progress=False,
+                    plugins=plugins, echo=lambda s: None)
+    trained = [c for c in res.cells if c.method == "toy-trained"]
+    assert [c.checkpoint_sha256 for c in trained] == [cks["0.1"].sha256, cks["0.2"].sha256]
+    for spec in trained:
+        meta = json.loads((Cell(tmp_path / "store", spec).dir / "cell.json").read_text())
+        assert meta["checkpoint_sha256"] == spec.checkpoint_sha256 and meta["train_on"]["split"] == "train"
+    csv = pd.read_csv(res.paths["exp.csv"])
+    assert list(csv["variant"]) == ["copy-last"] + [
+        f"toy-trained (lr={lr}) [trained on kitti:train, ck {cks[lr].sha256[:8]}]" for lr in ("0.1", "0.2")]
+    assert list(csv["is_reference"]) == [True, False, False] and csv["l1_median_rel"].iloc[1:].notna().all()
+
+
+def test_train_on_needs_a_trained_method(tmp_path):
+    path = _write(tmp_path, "train_on = ['synthetic-suburb']\n[[methods]]\nname = 'raycast-voxel'")
+    with pytest.raises(PcfbenchError, match="train_on: applies to trained methods, and none of raycast-voxel trains"):
+        load_experiment(path)
