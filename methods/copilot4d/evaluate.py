@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcfbench.metrics.chamfer import chamfer_value
-from pcfbench.roi import ROI, Box, clamp_ranges_to_box
+from pcfbench.roi import Box
 from pcfbench.methods.copilot4d.data import SweepSource, in_box, make_batch
 from pcfbench.methods.copilot4d.model import Tokenizer
 from pcfbench.methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
@@ -63,29 +62,32 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     return out
 
 
+#: Table 7's columns, each scored by the registered metric of that name (pcfbench.metrics).
+TABLE7_METRICS = ("chamfer_nf", "l1_median", "l1_mean", "chamfer")
+
+
 def sweep_errors(gt_points: np.ndarray, dirs: np.ndarray, pred_depth: np.ndarray, grid: Box | None = None) -> dict[str, float]:
-    """Table-7 numbers of one sweep (sensor frame is the reference frame): NFCD within the ROI,
-    L1 median and mean of depth along the ground-truth rays clamped to the ROI, and CD. With
-    ``grid`` (the tokenizer's box), also the L1 median over the rays whose return lies inside it."""
-    origin = np.zeros(3)
-    gt_range = np.linalg.norm(gt_points, axis=1)
-    pred_points = dirs * pred_depth[:, None]
-    start, g_end, kept = clamp_ranges_to_box(origin, dirs, gt_range, ROI)
-    _, p_end, _ = clamp_ranges_to_box(origin, dirs, pred_depth, ROI)
-    keep = kept & ((g_end - start) > 0.01)
-    err = np.abs(g_end - p_end)[keep]
+    """Table-7 numbers of one sweep reconstructed along its own rays, scored by the registered
+    metrics (``TABLE7_METRICS``) on a ``SweepContext`` whose reference frame is the sensor
+    frame: NFCD within the ROI, L1 median and mean of depth along the ground-truth rays
+    clamped to the ROI (the protocol's minimum range), and CD. With ``grid`` (the tokenizer's
+    box), also the L1 median over the kept rays whose return lies inside it."""
+    from pcfbench.data import RayQuery
+    from pcfbench.metrics.base import SweepContext
+    from pcfbench.plugins import get_plugins
+
+    registry = get_plugins().metrics
+    ctx = SweepContext(gt_points=np.asarray(gt_points, dtype=np.float32),
+                       query=RayQuery(np.zeros(3), np.asarray(dirs, dtype=np.float32)),
+                       pred_points=None, pred_depths=np.asarray(pred_depth, dtype=np.float64))
     out = {}
     if grid is not None:
-        inside = grid.contains(gt_points) & keep
-        e = np.abs(g_end - p_end)[inside]
-        out["l1_median_in_grid"] = float(np.median(e)) if e.size else float("nan")
-        out["rays_in_grid"] = float(inside.sum() / max(keep.sum(), 1))
-    return out | {
-        "chamfer_nf": chamfer_value(ROI.crop(pred_points), ROI.crop(gt_points)),
-        "l1_median": float(np.median(err)) if err.size else float("nan"),
-        "l1_mean": float(err.mean()) if err.size else float("nan"),
-        "chamfer": chamfer_value(pred_points, gt_points),
-    }
+        err, _ = ctx.ray_errors(np.asarray(pred_depth, dtype=np.float64))
+        kept = ctx.ray_kept
+        inside = grid.contains(np.asarray(gt_points))[kept]
+        out["l1_median_in_grid"] = float(np.median(err[inside])) if inside.any() else float("nan")
+        out["rays_in_grid"] = float(inside.sum() / max(kept.sum(), 1))
+    return out | {name: float(registry.get(name)(ctx)) for name in TABLE7_METRICS}
 
 
 SKIP_CANDIDATES = [(t, n) for t in (0.5, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01) for n in (True, False)]
