@@ -101,12 +101,17 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
               help="Trained methods: evaluate this checkpoint (folder, manifest.json or weights file).")
 @click.option("--allow-train-split", is_flag=True,
               help="Score a trained method on the very data it was trained on (marked in cell.json and the leaderboard).")
+@click.option("--keep-going", is_flag=True,
+              help="Exit 0 even when samples failed (their cells are reported incomplete and not ranked either way).")
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
-        train_on, train_split, checkpoint, allow_train_split):
-    """Run (or resume) every cell of method x dataset x split x setting."""
+        train_on, train_split, checkpoint, allow_train_split, keep_going):
+    """Run (or resume) every cell of method x dataset x split x setting.
+
+    Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
+    cell); ``--keep-going`` exits 0. A cell with failed samples is never ranked."""
     from pcfbench.report import write_reports
     from pcfbench.runner import default_metrics, run_cell
-    from pcfbench.store import CellSpec
+    from pcfbench.store import Cell, CellSpec
 
     plugins = get_plugins()
     warn_failed(plugins)
@@ -130,7 +135,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
                 CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, policy, limit,
                          metric_names, **checkpoints.get(method.name, {}))
             )
-    failures = 0
+    failures = failed_cells = 0
     for spec in cells:
         result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads,
                           allow_train_split=allow_train_split)
@@ -141,7 +146,10 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
                 f"{spec.label}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
                 f"in {result.seconds:.1f} s -> {result.path}"
             )
-        failures += result.failed
+        # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
+        cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
+        failures += cell_failed
+        failed_cells += cell_failed > 0
     if not no_report:
         from pcfbench.report import collect, summary
 
@@ -150,7 +158,10 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         click.echo(summary(store_path, leaderboard=board))
         click.echo(f"leaderboard: {paths['md']}")
     if failures:
-        click.echo(f"pcfbench: {failures} sample(s) failed; their tracebacks are in the cells' rows", err=True)
+        click.echo(f"pcfbench: {failures} sample(s) failed in {failed_cells} cell(s), which are incomplete and not "
+                   "ranked; their tracebacks are in the cells' rows", err=True)
+        if not keep_going:
+            sys.exit(1)
 
 
 def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress) -> dict[str, dict]:
