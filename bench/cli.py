@@ -311,7 +311,8 @@ def ls_cmd(what, as_json, with_options):
         elif not r["options"]:
             click.echo("    (no options)")
         for o in r["options"]:
-            click.echo(f"    {o['name']:<{widths[0]}}  {o['type']:<{widths[1]}}  {o['default']!r:<{widths[2]}}  {o['help']}")
+            valid = f" (valid: {o['range']})" if o.get("range") else ""
+            click.echo(f"    {o['name']:<{widths[0]}}  {o['type']:<{widths[1]}}  {o['default']!r:<{widths[2]}}  {o['help']}{valid}")
 
 
 def _options_of(registry, name: str) -> tuple[list[dict], str | None]:
@@ -324,7 +325,7 @@ def _options_of(registry, name: str) -> tuple[list[dict], str | None]:
         fields = describe_options(cls.Options, f"{registry.kind} {name}")
     except PcfbenchError as exc:
         return [], str(exc)
-    return [{"name": f.name, "type": f.type, "default": f.default, "help": f.help} for f in fields], None
+    return [{"name": f.name, "type": f.type, "default": f.default, "help": f.help, "range": f.range} for f in fields], None
 
 
 @cli.command()

@@ -94,3 +94,10 @@ def test_run_refuses_voxel_nan_before_any_work(tmp_path):
                                    "--store", str(store), "--no-report", "-q"])
     assert res.exit_code == 2 and "method raycast-voxel option voxel must be a finite number, got nan" in res.output
     assert "Traceback" not in res.output and not store.exists()
+
+
+def test_ls_options_prints_the_ranges():
+    res = CliRunner().invoke(cli, ["ls", "methods", "--options"])
+    assert res.exit_code == 0, res.output
+    line = next(x for x in res.output.splitlines() if x.split()[:1] == ["voxel"])
+    assert line.rstrip().endswith("voxel edge of the occupancy grid, metres (valid: > 0, <= 10)")
