@@ -41,7 +41,7 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     """The methods of ``--method`` (resolved now: an unknown name or option fails before any
     work), else every registered method that is ready to run, with its default options: a
     trained method is ready when its checkpoint for its default training data exists."""
-    from pcfbench.training import find_checkpoint, is_trained, open_training_data
+    from pcfbench.training import find_checkpoint, is_trained, may_have_checkpoint, open_training_data
     from pcfbench.method import resolve_method
 
     if requested:
@@ -54,11 +54,12 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
             click.echo(f"pcfbench: warning: skipping {exc}", err=True)
             continue
         if is_trained(method.cls):
+            data = method.cls.default_train_on
             try:
-                source = open_training_data(method.cls.default_train_on, plugins=plugins, progress=False)
-                if find_checkpoint(method, source.train_on) is None:
-                    click.echo(f"pcfbench: note: {name} is not trained on {source.train_on.label} yet "
-                               f"(`pcfbench train {name} --dataset {source.train_on.dataset}`); left out", err=True)
+                if not may_have_checkpoint(method, data) or find_checkpoint(
+                        method, open_training_data(data, plugins=plugins, progress=False).train_on) is None:
+                    click.echo(f"pcfbench: note: {name} is not trained on {data}:train yet "
+                               f"(`pcfbench train {name} --dataset {data}`); left out", err=True)
                     continue
             except PcfbenchError as exc:
                 click.echo(f"pcfbench: warning: skipping {name}: {exc}", err=True)

@@ -127,9 +127,7 @@ def _sha256(data: bytes) -> str:
 
 def checkpoint_dir(spec: MethodSpec, train_on: TrainOn) -> Path:
     """``<cache>/checkpoints/<method>/v<version>/<options hash>/<dataset>.<split>.<data key>``."""
-    from pcfbench.config import cache_dir
-
-    return cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / spec.options_hash / train_on.key
+    return checkpoint_dir_base(spec) / train_on.key
 
 
 @dataclass
@@ -246,6 +244,20 @@ def find_checkpoint(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
     return ck
 
 
+def may_have_checkpoint(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> bool:
+    """Whether any checkpoint of ``spec`` trained on ``dataset``/``split`` exists, without
+    opening the data (so a default run does not prepare training data for an untrained method)."""
+    folder = checkpoint_dir_base(spec)
+    return any(folder.glob(f"{dataset}.{split}.*/{MANIFEST}"))
+
+
+def checkpoint_dir_base(spec: MethodSpec) -> Path:
+    """``<cache>/checkpoints/<method>/v<version>/<options hash>``: the checkpoints of ``spec``."""
+    from pcfbench.config import cache_dir
+
+    return cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / spec.options_hash
+
+
 def is_trained(cls: type) -> bool:
     return isinstance(cls, type) and issubclass(cls, TrainedMethod)
 
@@ -254,11 +266,9 @@ def estimate_training(spec: MethodSpec) -> str:
     """How long a full training of ``spec`` takes on this machine: from the manifests of
     earlier trainings of the same method and options (wall seconds per step times the
     method's ``training_steps``), else the figure the method states."""
-    from pcfbench.config import cache_dir
-
     steps = spec.create().training_steps()
     rates = []
-    for mf in (cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / spec.options_hash).glob(f"*/{MANIFEST}"):
+    for mf in checkpoint_dir_base(spec).glob(f"*/{MANIFEST}"):
         try:
             m = json.loads(mf.read_text())
             if m.get("steps"):

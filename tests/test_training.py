@@ -355,3 +355,14 @@ def test_transfer_table_layout(env):
         p.name for p in (env.tmp / "store" / "kitti" / "kitti-1s" / "test").iterdir() if p.name.startswith("toy-trained")))
     assert "transfer_md" not in write_reports(env.tmp / "store", env.tmp / "reports")
     assert not (env.tmp / "reports" / "transfer.md").exists()
+
+
+def test_default_run_includes_a_trained_method_only_with_its_checkpoint(env, monkeypatch, capsys):
+    from pcfbench.cli import _selected_methods
+
+    monkeypatch.setenv("PCFBENCH_DATASET_KITTI", str(env.root))  # the toy's default_train_on is kitti
+    names = [m.name for m in _selected_methods(env.plugins, ())]
+    assert "toy-trained" not in names and "copy-last" in names
+    assert "toy-trained is not trained on kitti:train yet (`pcfbench train toy-trained --dataset kitti`)" in capsys.readouterr().err
+    _train(env)
+    assert "toy-trained" in [m.name for m in _selected_methods(env.plugins, ())]
