@@ -8,6 +8,9 @@ A cell's folder is named by its :class:`CellSpec`; what its rows were computed w
 dataset and metric versions, sample ids, protocol version, setting, policy, ROI, dataset
 options, the dataset files' fingerprint) is its identity in ``cell.json``. A rerun whose
 identity differs stops with one error (:func:`check_identity`) instead of adding rows.
+A trained method's cell also records its checkpoint's sha256 and training data
+(``pcfbench.training``), and its folder name carries the sha256, so each checkpoint has its
+own cell.
 """
 
 from __future__ import annotations
