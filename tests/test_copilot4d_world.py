@@ -108,6 +108,18 @@ def test_temporal_masks_act_on_the_network(micro_model):
     assert torch.allclose(causal_x[:, :2], causal_z[:, :2], atol=1e-6)
 
 
+def test_one_mask_per_sequence(micro_model):
+    gen = torch.Generator().manual_seed(6)
+    x = torch.randint(0, 17, (2, 3, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    with torch.no_grad():
+        both = micro_model(x, P, torch.stack([causal_mask(3), identity_mask(3)]))
+        first = micro_model(x[:1], P[:1], causal_mask(3))
+        second = micro_model(x[1:], P[1:], identity_mask(3))
+    assert torch.allclose(both[:1], first, atol=1e-5, rtol=0)
+    assert torch.allclose(both[1:], second, atol=1e-5, rtol=0)
+
+
 def test_bad_masks_and_inputs_are_refused(micro_model):
     x = torch.zeros(1, 3, 8, 8, dtype=torch.long)
     P = _eye_poses(1, 3)
@@ -235,6 +247,8 @@ def test_maskgit_variant_has_no_noise_and_scores_masked_tokens_only():
     bad[5, 1, 2, 3] = 16
     with pytest.raises(ValueError, match=r"clean token codes span 0..16; expected 0..15"):
         D.corrupt(bad, n_past=2, codebook_size=16)
+    with pytest.raises(ValueError, match=r"objective must be \(200,\) indices"):
+        D.corrupt(x0, n_past=2, codebook_size=16, objective=torch.full((200,), 3))
     with pytest.raises(UnknownNameError, match="did you mean 'maskgit'"):
         D.get_variant("maskgti")
 

@@ -137,6 +137,8 @@ def corrupt(x0: torch.Tensor, n_past: int, codebook_size: int, variant: Variant 
         probs = torch.tensor(OBJECTIVE_PROBS, dtype=torch.float64, device=dev)
         objective = torch.searchsorted(probs.cumsum(0), rand(B, dtype=torch.float64), right=True).clamp_(max=2)
     objective = objective.to(dev)
+    if objective.shape != (B,) or int(objective.min()) < 0 or int(objective.max()) > 2:
+        raise ValueError(f"objective must be ({B},) indices into {OBJECTIVES}, got {objective.tolist()}")
     denoised = torch.ones(B, T, dtype=torch.bool, device=dev)
     denoised[objective == 0, :n_past] = False
 
