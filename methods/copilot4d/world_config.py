@@ -93,8 +93,8 @@ PAPER = WorldModelConfig(
 )
 
 # CPU scale: the tiny tokenizer's grid and codebook, the paper's block layout at an eighth to a
-# fifth of its widths (still 32 dimensions per head) and a batch of one sequence: about 0.5 s
-# per training step on a 2-core CPU, so 4000 steps fit in about 35 minutes.
+# fifth of its widths (still 32 dimensions per head) and a batch of one sequence: about 0.35 s
+# per training step (10 frames) on an idle 2-core CPU, so 4000 steps take about 25 minutes.
 TINY = WorldModelConfig(
     name="tiny",
     codebook_size=TINY_TOKENIZER.codebook_size, token_grid=TINY_TOKENIZER.bev_tokens,
