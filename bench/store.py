@@ -11,6 +11,12 @@ identity differs stops with one error (:func:`check_identity`) instead of adding
 A trained method's cell also records its checkpoint's sha256 and training data
 (``pcfbench.training``), and its folder name carries the sha256, so each checkpoint has its
 own cell.
+
+Rows come in chunks of two names in ``rows/``: ``chunk-NNNNNN.parquet``, numbered in the order
+the local executor flushes them, and ``shard-START-STOP.parquet``, the rows of the samples
+``START <= i < STOP`` of the cell's sample list computed by one task of a distributed executor
+(``pcfbench.ray_executor``). A shard is named by its samples, not by who wrote it, so a task
+that runs twice (a retry) replaces its file instead of adding one.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import fcntl
 import json
 import os
 import shutil
+import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -75,8 +82,12 @@ class CellSpec:
         return Path(self.dataset) / setting / self.split / leaf
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+def atomic_write_bytes(path: Path, data: bytes, unique: bool = False) -> None:
+    """Write ``path`` whole or not at all: a temporary file beside it, then a rename.
+    ``unique``: name the temporary file by a random id too (writers on several machines of
+    one shared filesystem may have the same process id)."""
+    tag = f"{os.getpid()}.{uuid.uuid4().hex}" if unique else str(os.getpid())
+    tmp = path.with_name(f".{path.name}.{tag}.tmp")
     with open(tmp, "wb") as fh:
         fh.write(data)
         fh.flush()
@@ -137,20 +148,18 @@ class Cell:
 
     # -- rows ---------------------------------------------------------------------------
     def chunk_paths(self) -> list[Path]:
+        """Every chunk of rows: the numbered ones in order, then the shards in sample order."""
         d = self.dir / ROWS_DIR
-        return sorted(d.glob("chunk-*.parquet")) if d.is_dir() else []
+        return sorted(d.glob("chunk-*.parquet")) + sorted(d.glob("shard-*.parquet")) if d.is_dir() else []
 
     def append_rows(self, rows: list[dict[str, Any]]) -> Path:
         """Write one chunk atomically; its sample ids are then done for good."""
         d = self.dir / ROWS_DIR
         d.mkdir(parents=True, exist_ok=True)
-        existing = self.chunk_paths()
+        existing = sorted(d.glob("chunk-*.parquet"))
         index = int(existing[-1].stem.split("-")[1]) + 1 if existing else 0
         path = d / f"chunk-{index:06d}.parquet"
-        table = pa.Table.from_pandas(pd.DataFrame(rows), preserve_index=False)
-        sink = pa.BufferOutputStream()
-        pq.write_table(table, sink, compression="zstd")
-        atomic_write_bytes(path, sink.getvalue().to_pybytes())
+        atomic_write_bytes(path, rows_to_parquet(rows))
         return path
 
     def read_rows(self) -> pd.DataFrame:
@@ -166,6 +175,29 @@ class Cell:
         for p in self.chunk_paths():
             ids.update(pq.read_table(p, columns=["sample_id"]).column("sample_id").to_pylist())
         return ids
+
+
+def shard_name(start: int, stop: int) -> str:
+    """The chunk file of the samples ``start <= i < stop`` of a cell's sample list."""
+    return f"shard-{start:06d}-{stop:06d}.parquet"
+
+
+def rows_to_parquet(rows: list[dict[str, Any]]) -> bytes:
+    table = pa.Table.from_pandas(pd.DataFrame(rows), preserve_index=False)
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink, compression="zstd")
+    return sink.getvalue().to_pybytes()
+
+
+def write_shard(cell_dir: Path, start: int, stop: int, rows: list[dict[str, Any]]) -> Path:
+    """Publish one shard's rows as one chunk, atomically and without the cell's lock (a task
+    of a distributed run, on any machine that sees the store): a second write of the same
+    shard replaces the first, so a retried task never duplicates rows."""
+    d = Path(cell_dir) / ROWS_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    path = d / shard_name(start, stop)
+    atomic_write_bytes(path, rows_to_parquet(rows), unique=True)
+    return path
 
 
 def iter_cells(root: Path) -> Iterator[tuple[Path, dict[str, Any]]]:
