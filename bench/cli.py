@@ -77,6 +77,44 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
     return [(name, config.resolve_root(name, plugins.datasets.get(name), cli_roots, progress)) for name in names]
 
 
+def executor_options(command):
+    """The options that choose where samples are computed: this machine's processes or Ray."""
+    options = [
+        click.option("--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+                     help="local: this process or a pool of --jobs processes; ray: shards of samples as Ray tasks "
+                          "(docs/cluster.md)."),
+        click.option("--address", default=None, metavar="auto|HOST:PORT",
+                     help="Ray: the cluster to run on (default: start Ray on this machine)."),
+        click.option("--shard-samples", type=click.IntRange(min=1), default=16, show_default=True,
+                     help="Ray: samples per task (and per chunk of rows in the store)."),
+        click.option("--cpus-per-task", type=click.IntRange(min=1), default=1, show_default=True,
+                     help="Ray: CPUs reserved for each task, its thread budget."),
+        click.option("--gpus-per-task", type=click.FloatRange(min=0), default=0.0, show_default=True,
+                     help="Ray: GPUs reserved for each task of a trained method's cell."),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads):
+    """The Ray executor for ``--executor ray`` (None: the local one); options of the other
+    executor are refused rather than ignored."""
+    if executor == "local":
+        given = [name for name, value, default in (("--address", address, None), ("--shard-samples", shard_samples, 16),
+                 ("--cpus-per-task", cpus_per_task, 1), ("--gpus-per-task", gpus_per_task, 0.0)) if value != default]
+        if given:
+            raise PcfbenchError(f"{', '.join(given)} apply to --executor ray only")
+        return None
+    if jobs or threads:
+        raise PcfbenchError("--jobs and --threads are the local executor's: with --executor ray, Ray runs as many "
+                            "tasks at once as the cluster has CPUs for (--cpus-per-task each)")
+    from pcfbench.ray_executor import RayExecutor
+
+    return RayExecutor(address=address, shard_samples=shard_samples, cpus_per_task=cpus_per_task,
+                       gpus_per_task=gpus_per_task)
+
+
 @cli.command()
 @click.option("--dataset", "-d", "datasets", multiple=True, metavar="NAME[=ROOT]", help="Dataset (repeatable).")
 @click.option("--setting", "-s", "settings", multiple=True, help="Setting, e.g. kitti-1s (repeatable).")
@@ -104,8 +142,10 @@ def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> li
               help="Score a trained method on the very data it was trained on (marked in cell.json and the leaderboard).")
 @click.option("--keep-going", is_flag=True,
               help="Exit 0 even when samples failed (their cells are reported incomplete and not ranked either way).")
+@executor_options
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
-        train_on, train_split, checkpoint, allow_train_split, keep_going):
+        train_on, train_split, checkpoint, allow_train_split, keep_going, executor, address, shard_samples, cpus_per_task,
+        gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
 
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
@@ -116,6 +156,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
     plugins = get_plugins()
     warn_failed(plugins)
+    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads)
     for s in settings:
         get_setting(s)
     method_specs = _selected_methods(plugins, methods)
@@ -139,7 +180,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     failures = failed_cells = 0
     for spec in cells:
         result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads,
-                          allow_train_split=allow_train_split)
+                          allow_train_split=allow_train_split, executor=ray_executor)
         if result.processed == 0 and result.done_before == result.samples:
             click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
         else:
@@ -245,7 +286,9 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
 @click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells; run nothing.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet):
+@executor_options
+def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, executor, address, shard_samples,
+          cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
     from pcfbench.sweep import cell_label, load_experiment, plan, run_sweep
@@ -253,6 +296,7 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
     plugins = get_plugins()
     warn_failed(plugins)
     exp = load_experiment(experiment, plugins)
+    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     if dry_run:
@@ -262,7 +306,7 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
         click.echo(f"tables: {', '.join(str(reports_path / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
         return
     result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
-                       progress=not quiet, plugins=plugins, echo=click.echo)
+                       progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor)
     failed = sum(r.failed for r in result.results)
     for text in result.summaries:
         click.echo(text)

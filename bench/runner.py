@@ -197,6 +197,7 @@ def run_cell(
     plugins: Plugins | None = None,
     threads: int | None = None,
     allow_train_split: bool = False,
+    executor: Any = None,
 ) -> CellResult:
     """Run (or resume) one cell. Returns at once if the cell is already complete.
 
@@ -207,6 +208,8 @@ def run_cell(
     starting it, else runs serially. ``threads``: the run's thread budget (default: every CPU
     this process may use); a serial run keeps all of it, each of N workers gets
     ``max(1, threads // N)`` (``pcfbench.execution``). The rows do not depend on it.
+    ``executor`` (``pcfbench.ray_executor.RayExecutor``) computes the samples elsewhere instead:
+    its tasks write the rows to the store themselves, a shard of samples per chunk.
     """
     execution = ExecutionContext() if threads is None else ExecutionContext(threads)
     start = time.perf_counter()
@@ -278,7 +281,9 @@ def run_cell(
             jobs = (os.cpu_count() or 1) if len(todo) >= AUTO_POOL_MIN_SAMPLES else 1
         failed = 0
         try:
-            for rows in _execute(res, spec, todo, jobs, execution):
+            if executor is not None:  # its tasks write the rows, a shard at a time; nothing to buffer here
+                failed = executor.run(spec, cell, keys, done, bar.update)
+            for rows in () if executor is not None else _execute(res, spec, todo, jobs, execution):
                 buffer.extend(rows)
                 buffered_samples += 1
                 failed += rows[0]["status"] == "failed"

@@ -1,0 +1,209 @@
+"""Runs a cell's samples as Ray tasks, one task per shard, against a store every node sees.
+
+``pcfbench run/sweep --executor ray`` hands each cell to :class:`RayExecutor` through
+``pcfbench.runner.run_cell``, which keeps everything else of a cell on the driver: its identity
+check, ``cell.json``, what is already done, completion. The executor cuts the cell's sample
+list into shards of ``shard_samples`` consecutive samples (fixed by the list, not by what is
+left to do) and submits one Ray task per shard that has samples left. A task computes them
+and publishes their rows itself as one chunk, ``rows/shard-START-STOP.parquet``
+(``pcfbench.store.write_shard``: a temporary file renamed into place), so:
+
+- a finished shard is never recomputed: a rerun of a killed driver finds its rows;
+- a task that Ray retries after its worker died (``max_retries``) replaces the same file, so
+  its rows are never there twice;
+- the rows travel from the worker to the store, not through the driver.
+
+A worker process keeps the last cell it resolved (the dataset adapter, the metrics, the
+method, a trained method with its checkpoint loaded), so a worker loads a checkpoint once
+for all the shards of a cell it runs, not once per sample or per shard. Trained methods'
+tasks ask Ray for ``gpus_per_task`` GPUs. Ray is imported only when an executor starts:
+``import pcfbench`` never imports it. docs/cluster.md tells how to run it on a cluster.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from pcfbench.errors import PcfbenchError
+
+#: Samples per task unless told otherwise: enough that a task's overhead (a few ms) is
+#: small against its samples (~0.1-1 s each), few enough to share a cell over many workers.
+SHARD_SAMPLES = 16
+
+
+def shards(n: int, size: int) -> list[tuple[int, int]]:
+    """The ``[start, stop)`` ranges that cut a list of ``n`` samples into shards of ``size``."""
+    if size < 1:
+        raise PcfbenchError(f"a shard must hold at least 1 sample, not {size}")
+    return [(a, min(a + size, n)) for a in range(0, n, size)]
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise PcfbenchError("--executor ray needs Ray, which is not installed: pip install 'pcfbench[ray]'") from None
+    return ray
+
+
+@dataclass
+class RayExecutor:
+    """Computes cells' samples as Ray tasks (see the module docstring).
+
+    ``address``: a running cluster (``auto``: the one this machine belongs to, or
+    ``HOST:PORT``); None starts a Ray on this machine only, of ``num_cpus`` CPUs (default:
+    all). ``cpus_per_task``: the CPUs Ray reserves for a task, and its thread budget.
+    ``gpus_per_task``: GPUs reserved for each task of a trained method's cell (0: none).
+    ``max_retries``: how often Ray reruns a task whose worker process died.
+    """
+
+    address: str | None = None
+    shard_samples: int = SHARD_SAMPLES
+    cpus_per_task: int = 1
+    gpus_per_task: float = 0.0
+    max_retries: int = 3
+    num_cpus: int | None = None
+    #: per shard run (this process's calls): samples, seconds in the task, worker pid, whether it resolved the cell
+    log: list[dict[str, Any]] = field(default_factory=list)
+    _task: Any = field(default=None, repr=False)
+    _started: bool = field(default=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.shard_samples < 1 or self.cpus_per_task < 1 or self.gpus_per_task < 0 or self.max_retries < 0:
+            raise PcfbenchError(f"Ray executor: shard_samples and cpus_per_task must be >= 1, gpus_per_task and "
+                                f"max_retries >= 0 (got {self.shard_samples}, {self.cpus_per_task}, "
+                                f"{self.gpus_per_task}, {self.max_retries})")
+
+    def start(self) -> None:
+        """Connect to the cluster (or start a local Ray) once; later calls do nothing."""
+        if self._task is not None:
+            return
+        ray = _import_ray()
+        if not ray.is_initialized():
+            kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
+            if self.address is None and self.num_cpus is not None:
+                kwargs["num_cpus"] = self.num_cpus
+            try:
+                ray.init(address=self.address, **kwargs)
+            except ConnectionError as exc:
+                raise PcfbenchError(f"--address {self.address}: no Ray cluster there ({exc}); start one with "
+                                    "`ray start --head` (docs/cluster.md)") from None
+            self._started = True
+        # max_calls=0: a worker process runs any number of tasks (Ray's default for GPU tasks
+        # is one), so that it keeps the cell it resolved, a trained method's weights included.
+        self._task = ray.remote(max_calls=0, retry_exceptions=False)(_run_shard)
+
+    def shutdown(self) -> None:
+        if self._started:
+            _import_ray().shutdown()
+        self._task, self._started = None, False
+
+    def __enter__(self) -> "RayExecutor":
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def run(self, spec: Any, cell: Any, keys: list[tuple[str, int]], done: set[str],
+            progress: Callable[[int], Any] = lambda n: None) -> int:
+        """Compute every sample of ``keys`` (the cell's whole list) not in ``done`` as shard
+        tasks; each writes its rows to ``cell.dir``. Returns how many samples failed.
+        Bad data in a task stops the run with its error; so does a shard whose worker died
+        more than ``max_retries`` times."""
+        from pcfbench.plugins import get_plugins
+        from pcfbench.training import is_trained
+
+        self.start()
+        ray = _import_ray()
+        ids = [f"{s}/{i:06d}" for s, i in keys]
+        trained = is_trained(get_plugins().methods.get(spec.method))
+        task = self._task.options(num_cpus=self.cpus_per_task, num_gpus=self.gpus_per_task if trained else 0,
+                                  max_retries=self.max_retries)
+        spec_ref = ray.put(spec)
+        pending: dict[Any, tuple[int, int]] = {}
+        for start, stop in shards(len(keys), self.shard_samples):
+            todo = [keys[i] for i in range(start, stop) if ids[i] not in done]
+            if todo:
+                pending[task.remote(spec_ref, str(cell.dir), start, stop, todo, self.cpus_per_task)] = (start, stop)
+        failed = 0
+        try:
+            while pending:
+                ready, _ = ray.wait(list(pending), num_returns=1)
+                for ref in ready:
+                    start, stop = pending.pop(ref)
+                    result = self._result(ray, ref, spec, cell, start, stop)
+                    self.log.append(result)
+                    failed += result["failed"]
+                    progress(result["samples"])
+        finally:
+            for ref in pending:  # interrupted or stopped by an error: what is left is not wanted now
+                ray.cancel(ref, force=True)
+        return failed
+
+    def _result(self, ray, ref, spec, cell, start: int, stop: int) -> dict[str, Any]:
+        try:
+            return ray.get(ref)
+        except ray.exceptions.RayTaskError as exc:
+            cause = getattr(exc, "cause", None)
+            if isinstance(cause, PcfbenchError):
+                raise cause from None
+            raise PcfbenchError(f"cell {cell.dir}: the task of samples {start}-{stop - 1} raised "
+                                f"{type(cause).__name__ if cause else 'an error'}: {cause or exc}") from None
+        except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError, ray.exceptions.ObjectLostError) as exc:
+            raise PcfbenchError(f"cell {cell.dir}: the task of samples {start}-{stop - 1} lost its worker more than "
+                                f"{self.max_retries} time(s) ({type(exc).__name__}); the finished shards are kept: "
+                                "rerun to resume") from None
+
+
+# -- in the worker process --------------------------------------------------------------------
+_CACHED: tuple[str, Any] | None = None
+
+
+def _resolved(spec: Any, threads: int) -> tuple[Any, bool]:
+    """This worker's resolved cell (built on its first shard of the cell, then kept; one cell
+    at a time, so a worker holds one method's weights). Returns it and whether it was built now."""
+    global _CACHED
+    from pcfbench.execution import ExecutionContext, apply
+    from pcfbench.runner import resolve
+    from pcfbench.store import spec_to_meta
+
+    key = json.dumps([spec_to_meta(spec), threads], sort_keys=True, default=str)
+    if _CACHED is not None and _CACHED[0] == key:
+        return _CACHED[1], False
+    _CACHED = None  # let go of the previous cell's method before loading the next
+    execution = ExecutionContext(threads)
+    apply(execution)  # before the method is built, so that what it imports starts within the budget
+    res = resolve(spec)
+    res.bind(execution)
+    _CACHED = (key, res)
+    return res, True
+
+
+def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, keys: list[tuple[str, int]],
+               threads: int) -> dict[str, Any]:
+    """One task: the rows of ``keys`` (the samples of shard [start, stop) not done yet),
+    published as the shard's chunk. A data error propagates (it stops the run)."""
+    from pcfbench.runner import process_sample
+    from pcfbench.store import write_shard
+
+    t0 = time.perf_counter()
+    res, built = _resolved(spec, threads)
+    t1 = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    failed = 0
+    for key in keys:
+        sample_rows = process_sample(res, key)
+        failed += sample_rows[0]["status"] == "failed"
+        rows.extend(sample_rows)
+    t2 = time.perf_counter()
+    write_shard(Path(cell_dir), start, stop, rows)
+    return {"start": start, "stop": stop, "samples": len(keys), "failed": failed, "pid": os.getpid(),
+            "resolved": built, "t_resolve": t1 - t0, "t_samples": t2 - t1, "t_write": time.perf_counter() - t2,
+            "t_task": time.perf_counter() - t0}
