@@ -16,6 +16,10 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.plugins import get_plugins, warn_failed
 from pcfbench.protocol import SAMPLE_POLICIES, all_settings, get_setting
 
+#: ``pcfbench run --timeout``: ten minutes per sample, far above any built-in method's CPU time
+#: per sample (seconds), so that only a hung or runaway method meets it.
+DEFAULT_TIMEOUT_S = 600.0
+
 if TYPE_CHECKING:  # pragma: no cover
     from pcfbench.method import MethodSpec
 
@@ -142,14 +146,17 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
               help="Score a trained method on the very data it was trained on (marked in cell.json and the leaderboard).")
 @click.option("--keep-going", is_flag=True,
               help="Exit 0 even when samples failed (their cells are reported incomplete and not ranked either way).")
+@click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
+              help="Per-sample time limit; a sample over it is recorded failed and the run goes on (0: no limit).")
 @executor_options
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
-        train_on, train_split, checkpoint, allow_train_split, keep_going, executor, address, shard_samples, cpus_per_task,
+        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, executor, address, shard_samples, cpus_per_task,
         gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
 
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
-    cell); ``--keep-going`` exits 0. A cell with failed samples is never ranked."""
+    cell); ``--keep-going`` exits 0. A cell with failed samples is never ranked. Samples run
+    in worker processes: one that crashes or exceeds ``--timeout`` is a failed sample."""
     from pcfbench.report import write_reports
     from pcfbench.runner import default_metrics, run_cell
     from pcfbench.store import Cell, CellSpec
@@ -180,7 +187,8 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     failures = failed_cells = 0
     for spec in cells:
         result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads,
-                          allow_train_split=allow_train_split, executor=ray_executor)
+                          allow_train_split=allow_train_split, executor=ray_executor, timeout=timeout or None,
+                          isolate=True)
         if result.processed == 0 and result.done_before == result.samples:
             click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
         else:

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import platform
 import subprocess
 import sys
 import time
 import traceback
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -152,27 +150,76 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     return rows
 
 
-# -- workers for the process pool ------------------------------------------------------------
+# -- workers (pcfbench.workers) ---------------------------------------------------------------
 _WORKER: Resolved | None = None
 
 
-def _worker_init(spec: CellSpec, execution: ExecutionContext) -> None:
+class _Chosen:
+    """A registry holding only what one cell uses, picklable so that a worker gets the very
+    classes the driver resolved (a plugin registered in the driver's process included). An
+    item that does not pickle (a metric with a lambda) travels by name and is looked up in
+    the worker's own plugins."""
+
+    def __init__(self, kind: str, items: dict[str, Any]) -> None:
+        import pickle  # only to test that an item travels; nothing here is ever unpickled
+
+        self.kind = kind
+        self.items: dict[str, Any] = {}
+        self.by_name: set[str] = set()
+        self.failed_plugins: dict[str, str] = {}
+        for name, obj in items.items():
+            try:
+                pickle.dumps(obj)
+                self.items[name] = obj
+            except Exception:  # noqa: BLE001 - any pickling failure: send the name instead
+                self.by_name.add(name)
+
+    def get(self, name: str) -> Any:
+        if name in self.items:
+            return self.items[name]
+        return getattr(get_plugins(), f"{self.kind}s").get(name)
+
+    def names(self) -> list[str]:
+        return sorted({*self.items, *self.by_name})
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.items or name in self.by_name
+
+
+class CellPlugins:
+    """What :func:`resolve` needs of the plugins for one cell (``_Chosen`` registries)."""
+
+    def __init__(self, spec: CellSpec, plugins: Plugins) -> None:
+        self.datasets = _Chosen("dataset", {spec.dataset: plugins.datasets.get(spec.dataset)})
+        self.methods = _Chosen("method", {spec.method: plugins.methods.get(spec.method)})
+        self.metrics = _Chosen("metric", {m: plugins.metrics.get(m) for m in spec.metrics})
+        settings = {spec.setting: plugins.settings.get(spec.setting)} if spec.setting in plugins.settings else {}
+        self.settings = _Chosen("setting", settings)
+
+
+def _worker_init(spec: CellSpec, execution: ExecutionContext, plugins: CellPlugins | None = None) -> None:
     """Pin this worker process to its share of the threads (before resolving, so that what
     the method imports starts within it), then resolve the cell and hand the share on."""
     global _WORKER
     apply_execution(execution)
-    _WORKER = resolve(spec)
+    _WORKER = resolve(spec, plugins)  # type: ignore[arg-type]
     _WORKER.bind(execution)
 
 
-def _worker_batch(keys: list[tuple[str, int]]) -> list[list[dict[str, Any]]]:
+def _worker_task(key: tuple[str, int]) -> list[dict[str, Any]]:
     assert _WORKER is not None
-    return [process_sample(_WORKER, k) for k in keys]
+    return process_sample(_WORKER, key)
 
 
-def _batches(keys: list[tuple[str, int]], size: int) -> Iterator[list[tuple[str, int]]]:
-    for i in range(0, len(keys), size):
-        yield keys[i : i + size]
+def _failure_row(key: tuple[str, int], kind: str, reason: str) -> list[dict[str, Any]]:
+    """The one failure row of a sample whose worker crashed or ran out of time."""
+    sequence, ref_index = key
+    sample_id = f"{sequence}/{ref_index:06d}"
+    error = ("SampleTimeout" if kind == "timeout" else "SampleCrash") + f": sample {sample_id}: {reason}"
+    note = ("the method (or a metric) hung or is too slow: raise the limit with --timeout SECONDS (0: none)"
+            if kind == "timeout" else "a native crash, os._exit() or the out-of-memory killer; no Python traceback")
+    return [{"sample_id": sample_id, "sequence": sequence, "ref_index": ref_index, "step": -1, "status": "failed",
+             "error": error, "traceback": f"{error}\n({note})", "t_load": float("nan")}]
 
 
 @dataclass
@@ -198,6 +245,8 @@ def run_cell(
     threads: int | None = None,
     allow_train_split: bool = False,
     executor: Any = None,
+    timeout: float | None = None,
+    isolate: bool | None = None,
 ) -> CellResult:
     """Run (or resume) one cell. Returns at once if the cell is already complete.
 
@@ -210,7 +259,16 @@ def run_cell(
     ``max(1, threads // N)`` (``pcfbench.execution``). The rows do not depend on it.
     ``executor`` (``pcfbench.ray_executor.RayExecutor``) computes the samples elsewhere instead:
     its tasks write the rows to the store themselves, a shard of samples per chunk.
+
+    ``isolate`` (default: when a ``timeout`` is given) runs even a serial cell's samples in a
+    worker process; a pool (``jobs`` > 1) always does. There a sample whose worker crashes
+    (a native crash, ``os._exit``) or runs past ``timeout`` seconds is recorded failed and
+    the cell goes on (``pcfbench.workers``). Unisolated, the method runs in this process.
     """
+    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0 and timeout == timeout):
+        raise PcfbenchError(f"the per-sample time limit must be a number of seconds > 0, not {timeout!r}")
+    if isolate is None:
+        isolate = timeout is not None
     execution = ExecutionContext() if threads is None else ExecutionContext(threads)
     start = time.perf_counter()
     res = resolve(spec, plugins)
@@ -283,7 +341,7 @@ def run_cell(
         try:
             if executor is not None:  # its tasks write the rows, a shard at a time; nothing to buffer here
                 failed = executor.run(spec, cell, keys, done, bar.update)
-            for rows in () if executor is not None else _execute(res, spec, todo, jobs, execution):
+            for rows in () if executor is not None else _execute(res, spec, todo, jobs, execution, timeout, isolate, plugins):
                 buffer.extend(rows)
                 buffered_samples += 1
                 failed += rows[0]["status"] == "failed"
@@ -351,34 +409,23 @@ def _median_timings(df) -> dict[str, float]:
 
 
 def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: int,
-             execution: ExecutionContext) -> Iterable[list[dict[str, Any]]]:
-    """Yield each sample's rows; serial within ``execution``, or over a process pool in
-    contiguous batches, each worker pinned to its share of ``execution``."""
-    if jobs <= 1 or len(keys) < 2:
+             execution: ExecutionContext, timeout: float | None = None, isolate: bool = False,
+             plugins: Plugins | None = None) -> Iterable[list[dict[str, Any]]]:
+    """Yield each sample's rows: in this process within ``execution`` (``isolate`` false,
+    serial), else from ``jobs`` supervised worker processes (``pcfbench.workers``), each
+    pinned to its share of ``execution``, where a sample whose worker crashes or runs past
+    ``timeout`` seconds is one failure row."""
+    if not isolate and (jobs <= 1 or len(keys) < 2):
         with applied(execution):
             res.bind(execution)
             for key in keys:
                 yield process_sample(res, key)
         return
-    batch = max(1, min(8, len(keys) // (jobs * 4) or 1))
-    # forkserver, not fork: metric and method libraries run threads (numba, OpenMP k-d trees,
-    # torch), and a child forked while one of them holds a lock deadlocks.
-    ctx = multiprocessing.get_context("forkserver")
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_worker_init,
-                             initargs=(spec, execution.share(jobs))) as pool:
-        pending = set()
-        it = _batches(keys, batch)
-        for b in it:
-            pending.add(pool.submit(_worker_batch, b))
-            if len(pending) >= jobs * 2:
-                break
-        while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                yield from fut.result()
-                nxt = next(it, None)
-                if nxt is not None:
-                    pending.add(pool.submit(_worker_batch, nxt))
+    from pcfbench.workers import run_supervised
+
+    jobs = max(1, min(jobs, len(keys)))
+    yield from run_supervised(keys, jobs, _worker_init, (spec, execution.share(jobs), CellPlugins(spec, plugins or get_plugins())),
+                              _worker_task, _failure_row, timeout)
 
 
 def default_metrics(plugins: Plugins) -> tuple[str, ...]:

@@ -1,0 +1,223 @@
+"""Supervised worker processes: one sample at a time each, with a time limit, crash isolation
+and no orphans.
+
+A method runs a sample in a worker process, never in the driver, so that what it does to its
+process cannot take the run down: a worker that dies (a native crash, ``os._exit``, the
+kernel's out-of-memory killer) or exceeds the per-sample time limit is killed and replaced,
+and only the sample it held is recorded failed (:func:`failure_row`). The driver hands out one
+sample per message, so it always knows which sample a dead worker held.
+
+Workers die with the driver, even one SIGKILLed: they start from the ``forkserver``, which
+exits when the driver does, and each worker asks the kernel for SIGKILL when its parent (the
+forkserver) exits (``PR_SET_PDEATHSIG``, Linux) and watches for it from a thread elsewhere.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from multiprocessing.connection import Connection
+from multiprocessing.connection import wait as wait_ready
+from typing import Any, Callable, Iterator
+
+from pcfbench.errors import PcfbenchError
+
+#: seconds a worker gets to finish its last sample and exit after the driver says stop
+STOP_GRACE_S = 5.0
+_PR_SET_PDEATHSIG = 1
+
+
+def _context() -> multiprocessing.context.BaseContext:
+    # forkserver, not fork: metric and method libraries run threads (numba, OpenMP k-d trees,
+    # torch), and a child forked while one of them holds a lock deadlocks. Preloading the
+    # runner makes each worker a cheap fork of a process that has imported it once.
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["pcfbench.runner"])
+    return ctx
+
+
+def _die_with_parent() -> None:
+    """SIGKILL this process when its parent exits; a watcher thread where prctl is missing
+    (and as a second line: it also catches a parent gone before prctl took effect)."""
+    parent = os.getppid()
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # pragma: no cover - no libc prctl
+            pass
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent:
+                os._exit(70)
+            time.sleep(0.5)
+
+    threading.Thread(target=watch, name="pcfbench-parent-watch", daemon=True).start()
+
+
+def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, task: Callable[[Any], Any]) -> None:
+    """A worker's life: set up (``init(*init_args)``), then answer one task per message until
+    told to stop (``None``) or the driver's end of the pipe closes."""
+    _die_with_parent()
+    try:
+        init(*init_args)
+    except BaseException as exc:  # noqa: BLE001 - every setup failure goes back to the driver
+        _send_error(conn, "init-error", exc)
+        return
+    conn.send(("ready", None))
+    while True:
+        try:
+            key = conn.recv()
+        except (EOFError, OSError):  # the driver is gone
+            return
+        if key is None:
+            return
+        try:
+            result = task(key)
+        except BaseException as exc:  # noqa: BLE001 - data errors stop the run: the driver raises them
+            _send_error(conn, "error", exc)
+            return
+        conn.send(("done", result))
+
+
+def _send_error(conn: Connection, kind: str, exc: BaseException) -> None:
+    try:
+        conn.send((kind, exc))
+    except Exception:  # an exception that does not pickle: its type and message
+        conn.send((kind, PcfbenchError(f"{type(exc).__name__}: {exc}")))
+
+
+def exit_description(code: int | None) -> str:
+    """``-11`` -> ``signal SIGSEGV``; ``3`` -> ``exit code 3``."""
+    if code is None:
+        return "an unknown status"
+    if code < 0:
+        try:
+            return f"signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+class _Worker:
+    def __init__(self, ctx, init, init_args, task) -> None:
+        self.conn, child = ctx.Pipe(duplex=True)
+        self.process = ctx.Process(target=_worker_main, args=(child, init, init_args, task), daemon=True,
+                                   name="pcfbench-worker")
+        try:
+            self.process.start()
+        finally:
+            child.close()
+        self.ready = False
+        self.key: Any = None
+        self.started = 0.0
+
+    def kill(self) -> None:
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join()
+        self.conn.close()
+
+
+def run_supervised(
+    keys: list[Any],
+    jobs: int,
+    init: Callable[..., None],
+    init_args: tuple,
+    task: Callable[[Any], Any],
+    on_failure: Callable[[Any, str, str], Any],
+    timeout: float | None = None,
+) -> Iterator[Any]:
+    """Yield ``task(key)`` for every key (in completion order) from ``jobs`` worker processes.
+
+    Each worker runs ``init(*init_args)`` once, then one key at a time. A key whose worker dies
+    or runs past ``timeout`` seconds yields ``on_failure(key, kind, message)`` (``kind``:
+    ``"crash"`` or ``"timeout"``) instead, and a new worker takes over the remaining keys. An
+    exception raised by ``init`` or ``task`` in a worker is raised here (the run stops), as
+    is a worker dying during ``init`` (it would die again in every replacement).
+
+    ``init``, ``init_args`` and ``task`` are sent to the workers (picklable, importable).
+    """
+    ctx = _context()
+    todo = deque(keys)
+    workers: list[_Worker] = []
+
+    def spawn() -> None:
+        workers.append(_Worker(ctx, init, init_args, task))
+
+    try:
+        for _ in range(max(1, min(jobs, len(todo)))):
+            spawn()
+        while workers:
+            for w in workers:
+                if w.ready and w.key is None and todo:
+                    w.key, w.started = todo.popleft(), time.monotonic()
+                    w.conn.send(w.key)
+            busy = [w for w in workers if w.key is not None]
+            wait_s = None
+            if timeout is not None and busy:
+                wait_s = max(0.0, min(w.started for w in busy) + timeout - time.monotonic())
+            ready = set(wait_ready([w.conn for w in workers] + [w.process.sentinel for w in workers], wait_s))
+            for w in list(workers):
+                message = None
+                if w.conn in ready or w.process.sentinel in ready:
+                    try:
+                        message = w.conn.recv() if w.conn.poll() else None
+                    except (EOFError, OSError):
+                        message = None
+                if message is not None:
+                    kind, value = message
+                    if kind in ("error", "init-error"):
+                        raise value
+                    if kind == "ready":
+                        w.ready = True
+                    else:
+                        key, w.key = w.key, None
+                        yield value
+                        if not todo:  # nothing left for it: let it go now
+                            w.conn.send(None)
+                    continue
+                if w.process.sentinel in ready or not w.process.is_alive():
+                    w.process.join()
+                    code = w.process.exitcode
+                    workers.remove(w)
+                    w.conn.close()
+                    if w.key is None and not w.ready:
+                        raise PcfbenchError(f"a worker process died with {exit_description(code)} while setting up "
+                                            "(resolving the method, dataset and metrics)")
+                    if w.key is not None:
+                        yield on_failure(w.key, "crash", f"its worker process died with {exit_description(code)}")
+                    if todo:
+                        spawn()
+                    continue
+                if timeout is not None and w.key is not None and time.monotonic() - w.started > timeout:
+                    workers.remove(w)
+                    w.kill()
+                    yield on_failure(w.key, "timeout", f"it ran longer than the per-sample time limit of {timeout:g} s")
+                    if todo:
+                        spawn()
+    finally:
+        _stop(workers)
+
+
+def _stop(workers: list[_Worker]) -> None:
+    """Ask idle workers to exit, then kill whatever is left (a worker busy on a sample whose
+    result nobody will read, after an error or an interrupt)."""
+    for w in workers:
+        if w.key is None:
+            try:
+                w.conn.send(None)
+            except (OSError, ValueError):
+                pass
+    deadline = time.monotonic() + STOP_GRACE_S
+    for w in workers:
+        if w.key is None:
+            w.process.join(max(0.0, deadline - time.monotonic()))
+        w.kill()

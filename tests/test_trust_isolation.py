@@ -1,0 +1,188 @@
+"""Issue 15: a method that hangs or kills its process costs one sample, not the run; workers
+die with a driver killed by SIGKILL."""
+
+import ctypes
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import options_hash
+from pcfbench.methods.copy_last import CopyLast
+from pcfbench.plugins import load_plugins
+from pcfbench.runner import run_cell
+from pcfbench.store import Cell, CellSpec
+
+METRICS = ("chamfer",)
+#: the tiny KITTI sequence's reference indices are 4, 6, ..., 14 (kitti-1s: 6 samples)
+BAD_INDEX = 8
+
+
+class Hangs(CopyLast):
+    name = "hangs"
+
+    def forecast(self, sample):
+        if sample.ref_index == BAD_INDEX:
+            while True:  # a busy loop: no signal-based limit inside the process would stop a native one either
+                time.sleep(0.05)
+        return super().forecast(sample)
+
+
+class Exits(CopyLast):
+    name = "exits"
+
+    def forecast(self, sample):
+        if sample.ref_index == BAD_INDEX:
+            os._exit(3)
+        return super().forecast(sample)
+
+
+class Segfaults(CopyLast):
+    name = "segfaults"
+
+    def forecast(self, sample):
+        if sample.ref_index == BAD_INDEX:
+            ctypes.string_at(0)  # reads address 0: SIGSEGV
+        return super().forecast(sample)
+
+
+class Slow(CopyLast):
+    name = "slow"
+
+    def forecast(self, sample):
+        time.sleep(30)
+        return super().forecast(sample)
+
+
+def plugins():
+    p = load_plugins()
+    for cls in (Hangs, Exits, Segfaults, Slow):
+        p.methods.add(cls.name, cls, "test")
+    return p
+
+
+def _spec(root, method):
+    return CellSpec(method, {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", None, METRICS)
+
+
+def _rows(store, root, method):
+    return Cell(store, _spec(root, method)).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
+
+
+@pytest.mark.parametrize("method, error", [
+    ("exits", "SampleCrash: sample 08/000008: its worker process died with exit code 3"),
+    ("segfaults", "SampleCrash: sample 08/000008: its worker process died with signal SIGSEGV"),
+])
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_crashing_sample_is_one_failure_and_the_cell_completes(tiny_kitti, tmp_path, method, error, jobs):
+    p = plugins()
+    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "ref", plugins=p, progress=False)
+    result = run_cell(_spec(tiny_kitti, method), tmp_path / "s", plugins=p, progress=False, jobs=jobs, isolate=True)
+    assert result.status == "complete" and result.samples == 6 and result.failed == 1
+    rows = _rows(tmp_path / "s", tiny_kitti, method)
+    failed = rows[rows.status == "failed"]
+    assert list(failed.sample_id) == ["08/000008"] and failed.error.iloc[0] == error
+    # every other sample scored exactly as copy-last scores it
+    ref = _rows(tmp_path / "ref", tiny_kitti, "copy-last")
+    ok = rows[rows.status == "ok"].reset_index(drop=True)
+    pd.testing.assert_frame_equal(ok[["sample_id", "step", "chamfer"]],
+                                  ref[ref.sample_id != "08/000008"].reset_index(drop=True)[["sample_id", "step", "chamfer"]])
+    meta = Cell(tmp_path / "s", _spec(tiny_kitti, method)).read_meta()
+    assert meta["status"] == "complete" and meta["counts"]["failed"] == 1
+
+
+def test_a_hanging_sample_times_out_and_the_cell_completes(tiny_kitti, store):
+    t0 = time.monotonic()
+    result = run_cell(_spec(tiny_kitti, "hangs"), store, plugins=plugins(), progress=False, timeout=2)
+    assert time.monotonic() - t0 < 60
+    assert result.failed == 1 and result.samples == 6
+    rows = _rows(store, tiny_kitti, "hangs")
+    failed = rows[rows.status == "failed"]
+    assert list(failed.sample_id) == ["08/000008"]
+    assert failed.error.iloc[0] == "SampleTimeout: sample 08/000008: it ran longer than the per-sample time limit of 2 s"
+    assert "--timeout" in failed.traceback.iloc[0]
+    assert (rows.status == "ok").sum() == 5 * 5
+
+
+def test_the_timeout_must_be_positive(tiny_kitti, store):
+    for bad in (0, -1, float("nan")):
+        with pytest.raises(PcfbenchError, match="per-sample time limit must be a number of seconds > 0"):
+            run_cell(_spec(tiny_kitti, "copy-last"), store, progress=False, timeout=bad)
+
+
+def test_isolated_rows_equal_in_process_rows(tiny_kitti, tmp_path):
+    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "a", progress=False)
+    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "b", progress=False, timeout=60)
+    cols = ["sample_id", "step", "status", "chamfer"]
+    pd.testing.assert_frame_equal(_rows(tmp_path / "a", tiny_kitti, "copy-last")[cols],
+                                  _rows(tmp_path / "b", tiny_kitti, "copy-last")[cols])
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = set(), [pid]
+    while todo:
+        for c in children.get(todo.pop(), ()):
+            out.add(c)
+            todo.append(c)
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_no_orphan_workers_after_the_driver_is_sigkilled(tiny_kitti, tmp_path):
+    script = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from test_trust_isolation import plugins, _spec
+        from pcfbench.runner import run_cell
+        run_cell(_spec({str(tiny_kitti)!r}, "slow"), {str(tmp_path / "store")!r}, plugins=plugins(), progress=False,
+                 jobs=2, timeout=600)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        workers: set[int] = set()
+        while time.monotonic() < deadline and proc.poll() is None:
+            kids = _descendants(proc.pid)
+            # forkserver, resource tracker and the two workers, all started
+            named = [Path(f"/proc/{k}/cmdline").read_bytes() for k in kids if _alive(k)]
+            if len(kids) >= 4 and sum(b"forkserver" in n for n in named) >= 1:
+                workers = kids
+                time.sleep(1.0)  # the workers are in their first sample
+                workers |= _descendants(proc.pid)
+                break
+            time.sleep(0.2)
+        assert workers, f"no workers started: {proc.poll()} {proc.stderr.read() if proc.poll() is not None else ''}"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and any(_alive(p) for p in workers):
+            time.sleep(0.2)
+        left = [p for p in workers if _alive(p)]
+        assert not left, f"orphans left alive: {left}"
+    finally:
+        for p in _descendants(proc.pid):
+            os.kill(p, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
