@@ -1,0 +1,282 @@
+"""The Ray executor (issue 18): the same rows as the local executor, a killed worker's shard
+retried without duplicating rows, a killed driver resumed without recomputing finished shards.
+
+The end-to-end tests run ``pcfbench`` in a subprocess, each starting a local Ray on this
+machine's CPUs (``ray.init`` with no address); a test method plugin, installed through a
+fake site folder on PYTHONPATH (which Ray's workers inherit), records each call in files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.ray_executor import shards
+from pcfbench.store import Cell, CellSpec, shard_name, write_shard
+from tests_helpers import write_kitti_tree
+
+pytest.importorskip("ray")
+
+PCFBENCH = str(Path(sys.executable).parent / "pcfbench")
+TIMINGS = ("t_load", "t_method", "t_metrics")
+KEY = ["sample_id", "step"]
+
+_PROBE = '''
+import os, signal, time
+from dataclasses import dataclass
+
+import pcfbench
+from pcfbench.methods.copy_last import CopyLast
+
+
+class RayProbe(CopyLast):
+    """copy-last that records each construction and call (a line per event in files under
+    marker_dir), sleeps ``delay`` s a sample, and kills its own worker process the first time
+    it sees sample ``kill`` (a marker file says it did)."""
+
+    name = "ray-probe"
+
+    @dataclass(frozen=True)
+    class Options:
+        marker_dir: str = pcfbench.option("", help="folder of the call records")
+        delay: float = pcfbench.option(0.0, help="seconds a sample")
+        kill: str = pcfbench.option("", help="sample id whose first call kills the worker")
+
+    def __init__(self, options=None):
+        super().__init__(options)
+        with open(os.path.join(self.options.marker_dir, "constructed"), "a") as f:
+            f.write(f"{os.getpid()}\\n")
+
+    def forecast(self, sample):
+        with open(os.path.join(self.options.marker_dir, "calls"), "a") as f:
+            f.write(f"{os.getpid()} {sample.sample_id}\\n")
+        killed = os.path.join(self.options.marker_dir, "killed")
+        if sample.sample_id == self.options.kill and not os.path.exists(killed):
+            open(killed, "w").close()
+            os.kill(os.getpid(), signal.SIGKILL)
+        time.sleep(self.options.delay)
+        return super().forecast(sample)
+
+
+@pcfbench.hookimpl
+def register_methods(register):
+    register("ray-probe", RayProbe, "copy-last recording its calls (tests/test_ray.py)")
+'''
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    site = tmp_path / "site"
+    (site / "ray_probe-0.dist-info").mkdir(parents=True)
+    (site / "ray_probe-0.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: ray-probe\nVersion: 0\n")
+    (site / "ray_probe-0.dist-info" / "entry_points.txt").write_text("[pcfbench]\nray-probe = ray_probe_plugin\n")
+    (site / "ray_probe_plugin.py").write_text(_PROBE)
+    path = [str(site)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(path), PCFBENCH_PLUGINS="ray-probe", PCFBENCH_NO_PROGRESS="1")
+
+
+def _rows(cell: Cell) -> pd.DataFrame:
+    """Every row of every chunk, as written (no deduplication), in (sample, step) order."""
+    paths = cell.chunk_paths()
+    assert paths, f"no rows in {cell.dir}"
+    return pd.concat([pd.read_parquet(p) for p in paths], ignore_index=True).sort_values(KEY).reset_index(drop=True)
+
+
+def _calls(markers: Path) -> list[str]:
+    path = markers / "calls"
+    return [line.split()[1] for line in path.read_text().splitlines()] if path.is_file() else []
+
+
+def _probe_cell(store: Path) -> Cell | None:
+    """The one ray-probe cell of ``store`` (None before the run made it)."""
+    dirs = sorted((store / "kitti" / "kitti-1s" / "test").glob("ray-probe.*"))
+    if not dirs:
+        return None
+    assert len(dirs) == 1, dirs
+    cell = Cell(store, CellSpec("ray-probe", {}, "", "kitti", None, "test", "kitti-1s"))
+    cell.dir = dirs[0]
+    return cell
+
+
+def _probe_args(root: Path, tmp_path: Path, markers: Path, limit: int, shard: int, **options) -> list[str]:
+    opts = ",".join([f"marker_dir={markers}"] + [f"{k}={v}" for k, v in options.items()])
+    return [PCFBENCH, "run", "--executor", "ray", "--shard-samples", str(shard), "--dataset", f"kitti={root}",
+            "--setting", "kitti-1s", "--method", f"ray-probe:{opts}", "--metric", "chamfer", "--metric", "l1_median",
+            "--limit", str(limit), "--store", str(tmp_path / "store"), "--reports", str(tmp_path / "reports"),
+            "--no-report", "--quiet"]
+
+
+# -- quick ------------------------------------------------------------------------------------
+def test_shards_cut_the_sample_list_into_fixed_ranges():
+    assert shards(10, 4) == [(0, 4), (4, 8), (8, 10)]
+    assert shards(4, 4) == [(0, 4)] and shards(0, 4) == [] and shards(3, 16) == [(0, 3)]
+    with pytest.raises(PcfbenchError, match="at least 1 sample"):
+        shards(10, 0)
+
+
+def test_a_shard_written_twice_is_one_chunk_and_its_rows_are_there_once(tmp_path):
+    spec = CellSpec("m", {}, "h", "d", None, "test", "s")
+    cell = Cell(tmp_path, spec)
+    rows = [{"sample_id": f"00/{i:06d}", "step": s, "status": "ok", "x": float(i * 10 + s)} for i in range(2) for s in range(3)]
+    cell.append_rows([{"sample_id": "00/000005", "step": 0, "status": "ok", "x": 50.0}])
+    first = write_shard(cell.dir, 0, 2, rows)
+    again = write_shard(cell.dir, 0, 2, rows)  # a retried task
+    assert first == again and first.name == shard_name(0, 2) == "shard-000000-000002.parquet"
+    assert [p.name for p in cell.chunk_paths()] == ["chunk-000000.parquet", "shard-000000-000002.parquet"]
+    assert not list(cell.dir.rglob("*.tmp"))
+    df = cell.read_rows()
+    assert len(df) == 7 and not df.duplicated(KEY).any()
+    assert cell.done_ids() == {"00/000000", "00/000001", "00/000005"}
+    cell.append_rows([{"sample_id": "00/000006", "step": 0, "status": "ok", "x": 60.0}])  # numbering ignores shards
+    assert (cell.dir / "rows" / "chunk-000001.parquet").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--address", "auto"], "--address apply to --executor ray only"),
+    (["--shard-samples", "4", "--gpus-per-task", "1"], "--shard-samples, --gpus-per-task apply to --executor ray only"),
+    (["--executor", "ray", "--jobs", "2"], "--jobs and --threads are the local executor's"),
+    (["--executor", "ray", "--threads", "2"], "--jobs and --threads are the local executor's"),
+])
+def test_options_of_the_other_executor_are_refused(tmp_path, args, message):
+    from pcfbench.cli import build_cli
+
+    res = CliRunner().invoke(build_cli(), ["run", "--method", "copy-last", "--store", str(tmp_path / "s"),
+                                           "--reports", str(tmp_path / "r"), *args])
+    assert res.exit_code == 2 and message in res.output, res.output
+    assert not (tmp_path / "s").exists()
+
+
+def test_importing_pcfbench_does_not_import_ray():
+    code = "import sys, pcfbench, pcfbench.cli, pcfbench.runner, pcfbench.sweep, pcfbench.ray_executor; print('ray' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stdout + out.stderr
+
+
+# -- end to end: a local Ray -------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def town(tmp_path_factory) -> Path:
+    """A small synthetic-town test split (one 56-sweep sequence, 240 azimuth steps)."""
+    from pcfbench.datasets.synthetic.domains import get_domain
+    from pcfbench.datasets.synthetic.generate import generate_domain
+
+    d = get_domain("synthetic-town")
+    sensor = dataclasses.replace(d.sensor, azimuth_steps=240, max_range_m=60.0)
+    dom = dataclasses.replace(d, sensor=sensor, splits={"train": (("00", 4),), "test": (("05", 56),)})
+    root = tmp_path_factory.mktemp("town")
+    generate_domain(dom, root, progress=False, splits=("test",))
+    return root
+
+
+@pytest.mark.slow
+def test_ray_sweep_gives_the_local_rows_bit_for_bit_and_the_same_table(town, tmp_path):
+    """copy-last and raycast-zbuffer on synthetic-town (kitti-1s, 5 samples, every metric):
+    the local executor and Ray (shards of 2: three tasks a cell) write the same rows, bit for
+    bit but for the timings, and the same ablation table."""
+    exp = tmp_path / "exp.toml"
+    exp.write_text(f'datasets = ["synthetic-town={town}"]\nsettings = ["kitti-1s"]\nlimit = 5\n\n'
+                   '[[methods]]\nname = "copy-last"\n\n[[methods]]\nname = "raycast-zbuffer"\n')
+    env = dict(os.environ, PCFBENCH_NO_PROGRESS="1")
+    for name, extra in (("local", ["--jobs", "1"]), ("ray", ["--executor", "ray", "--shard-samples", "2"])):
+        out = subprocess.run([PCFBENCH, "sweep", str(exp), "--store", str(tmp_path / name / "store"),
+                              "--reports", str(tmp_path / name / "reports"), "--quiet", *extra],
+                             capture_output=True, text=True, env=env, timeout=600)
+        assert out.returncode == 0, out.stdout + out.stderr
+    from pcfbench.store import iter_cells
+
+    local = {d.relative_to(tmp_path / "local" / "store"): d for d, _ in iter_cells(tmp_path / "local" / "store")}
+    ray = {d.relative_to(tmp_path / "ray" / "store"): d for d, _ in iter_cells(tmp_path / "ray" / "store")}
+    assert sorted(local) == sorted(ray) and len(local) == 2
+    for rel, d in ray.items():
+        assert sorted(p.name for p in (d / "rows").iterdir()) == [shard_name(0, 2), shard_name(2, 4), shard_name(4, 5)]
+        a = pd.concat([pd.read_parquet(p) for p in sorted((local[rel] / "rows").iterdir())]).sort_values(KEY)
+        b = pd.concat([pd.read_parquet(p) for p in sorted((d / "rows").iterdir())]).sort_values(KEY)
+        a, b = (x.drop(columns=list(TIMINGS)).reset_index(drop=True) for x in (a, b))
+        assert len(b) == 5 * 5 and set(b["status"]) == {"ok"}
+        pd.testing.assert_frame_equal(a, b, check_exact=True)
+        ma, mb = (json.loads((x / "cell.json").read_text()) for x in (local[rel], d))
+        assert mb["status"] == "complete" and ma["counts"] == mb["counts"] and ma["sample_ids_hash"] == mb["sample_ids_hash"]
+    assert (tmp_path / "local" / "reports" / "sweeps" / "exp.csv").read_bytes() == \
+        (tmp_path / "ray" / "reports" / "sweeps" / "exp.csv").read_bytes()
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_task_is_retried_and_every_row_is_there_once(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    victim = "08/000012"  # samples 08/000008-13: the second sample of the second shard
+    env = _env(tmp_path)
+    out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3, kill=victim), capture_output=True, text=True,
+                         env=env, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert (markers / "killed").is_file()  # the worker did die in the middle of its task
+    calls = _calls(markers)
+    assert calls.count(victim) == 2  # killed, then the retried task
+    cell = _probe_cell(tmp_path / "store")
+    rows = _rows(cell)
+    ids = [f"08/{i:06d}" for i in range(8, 14)]
+    assert not rows.duplicated(KEY).any()
+    assert sorted(set(rows["sample_id"])) == ids and len(rows) == 6 * 5 and set(rows["status"]) == {"ok"}
+    assert [p.name for p in cell.chunk_paths()] == [shard_name(0, 3), shard_name(3, 6)]
+    meta = json.loads((cell.dir / "cell.json").read_text())
+    assert meta["status"] == "complete" and meta["counts"]["ok"] == 6
+
+
+@pytest.mark.slow
+def test_a_killed_driver_resumes_without_recomputing_finished_shards(tmp_path):
+    """SIGKILL the driver once two shards have landed; the rerun computes only the shards
+    that had not, and each worker built the method once for all the shards it ran."""
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=28)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    env = _env(tmp_path)
+    args = _probe_args(root, tmp_path, markers, 10, 1, delay=0.5)
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    landed: dict[str, bytes] = {}
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and proc.poll() is None:
+            cell = _probe_cell(tmp_path / "store")
+            if cell is not None and len(cell.chunk_paths()) >= 2:
+                proc.send_signal(signal.SIGKILL)
+                landed = {p.name: p.read_bytes() for p in cell.chunk_paths()}
+                break
+            time.sleep(0.02)
+        proc.wait(timeout=60)
+    finally:
+        time.sleep(3)  # let Ray notice its driver died
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # whatever of this run's Ray is left
+        except ProcessLookupError:
+            pass
+    assert landed, f"the run ended before it could be killed: {proc.stderr.read()!r}"
+    assert len(landed) < 10
+    done = {sid for name in landed for sid in pd.read_parquet(cell.dir / "rows" / name)["sample_id"]}
+    first_calls = len(_calls(markers))
+    (markers / "constructed").unlink()
+
+    final = subprocess.run(args, capture_output=True, text=True, env=env, timeout=600)
+    assert final.returncode == 0, final.stdout + final.stderr
+    calls = _calls(markers)
+    assert all(calls.count(sid) == 1 for sid in done)  # never recomputed
+    assert not done & set(calls[first_calls:])
+    for name, data in landed.items():  # the first run's shards are left as they were
+        assert (cell.dir / "rows" / name).read_bytes() == data
+    rows = _rows(cell)
+    assert not rows.duplicated(KEY).any() and len(rows) == 10 * 5
+    assert sorted(set(rows["sample_id"])) == [f"08/{i:06d}" for i in range(8, 18)]
+    assert [p.name for p in cell.chunk_paths()] == [shard_name(i, i + 1) for i in range(10)]
+    assert json.loads((cell.dir / "cell.json").read_text())["status"] == "complete"
+    # the rerun's workers each built the method once, however many shards they ran
+    constructed = (markers / "constructed").read_text().split()
+    assert len(constructed) == len(set(constructed)) < 10 - len(landed)
