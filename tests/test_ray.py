@@ -26,8 +26,6 @@ from pcfbench.ray_executor import shards
 from pcfbench.store import Cell, CellSpec, shard_name, write_shard
 from tests_helpers import write_kitti_tree
 
-pytest.importorskip("ray")
-
 PCFBENCH = str(Path(sys.executable).parent / "pcfbench")
 TIMINGS = ("t_load", "t_method", "t_metrics")
 KEY = ["sample_id", "step"]
