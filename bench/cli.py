@@ -239,11 +239,13 @@ def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progr
               help="Stop (with a checkpoint) after this much training time; rerun to continue.")
 @click.option("--fresh", is_flag=True, help="Start over instead of resuming the checkpoint.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def train(method_spec, dataset, split, max_minutes, fresh, quiet):
+@click.option("--ship", is_flag=True, help="Then copy the complete checkpoint into the method's package (float16 "
+              "weights, docs/training.md#shipped-checkpoints).")
+def train(method_spec, dataset, split, max_minutes, fresh, quiet, ship):
     """Train (or resume) a trained method; its checkpoint goes to the cache, keyed by method,
     version, options and training data."""
     from pcfbench.method import resolve_method
-    from pcfbench.training import train as train_method
+    from pcfbench.training import open_training_data, ship as ship_checkpoint, train as train_method
 
     plugins = get_plugins()
     warn_failed(plugins)
@@ -253,6 +255,12 @@ def train(method_spec, dataset, split, max_minutes, fresh, quiet):
     state = "complete" if ck.manifest.get("complete") else "not finished: rerun the same command to continue"
     click.echo(f"{spec.name}: {ck.steps} steps on {ck.train_on_label} in {ck.manifest['wall_s']:.0f} s ({state})")
     click.echo(f"checkpoint: {ck.manifest_path} (weights sha256 {ck.sha256[:16]})")
+    if ship:
+        opts = ",".join(f"{k}={v}" for k, v in sorted(spec.raw.items()))
+        retrain = (f"pcfbench train {spec.name}{':' + opts if opts else ''} --dataset {dataset}"
+                   f"{'' if split == 'train' else ' --split ' + split} --fresh --ship")
+        ship_checkpoint(spec, ck, open_training_data(dataset, split, plugins, progress=False).train_on, retrain,
+                        log=click.echo)
 
 
 @cli.command()

@@ -19,6 +19,14 @@ at any moment (SIGKILL included) leaves a consistent checkpoint: the last one sa
 :meth:`Checkpoint.open` refuses a checkpoint whose files do not match their sha256
 (truncated, tampered) and :meth:`Checkpoint.check_method` one made by another method,
 version or option set: one error naming the file either way.
+
+Shipped checkpoints travel inside a method's package (package data), in
+``<package>/checkpoints/<method>/v<version>/<options hash>/<dataset>.<split>/``: the
+manifest of the trained checkpoint (weights in float16, no optimiser state) plus a
+``shipped`` record (the cache checkpoint's sha256, the training data's content sha256, the
+retrain command). :func:`find_checkpoint` falls back to one when the cache holds none for
+that training data and the local data has the same content; it is verified and loaded like
+any checkpoint (float16 tensors cast back to float32). :func:`ship` writes one.
 """
 
 from __future__ import annotations
@@ -42,7 +50,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "Checkpoint", "CheckpointError", "TrainOn", "TrainSource", "TrainedMethod", "TrainingRun", "checkpoint_dir",
-    "checkpoint_for", "find_checkpoint", "is_trained", "missing_checkpoint_message", "open_training_data", "train",
+    "checkpoint_for", "find_checkpoint", "find_shipped", "is_trained", "missing_checkpoint_message", "open_training_data", "ship", "shipped_dir",
+    "train",
 ]
 
 FORMAT = 1
@@ -65,6 +74,27 @@ class TrainOn:
     fingerprint: str
     dataset_options: Mapping[str, Any] = field(default_factory=dict)
     root: str | None = None
+    #: the split's data files (``adapter.data_files(split)``), for :meth:`content_sha256`;
+    #: not part of the identity (the fingerprint is)
+    files: tuple[str, ...] = field(default=(), compare=False, repr=False)
+
+    def content_sha256(self) -> str:
+        """sha256 over the split's files (relative path and sha256 of the bytes of each, in
+        sorted order): the same data anywhere, whatever its modification times. Computed on
+        demand (it reads every file); a shipped checkpoint matches local data by it."""
+        base = Path(self.root) if self.root else None
+        if base is not None and base.is_file():
+            base = base.parent
+        entries = []
+        for f in sorted(self.files):
+            p = Path(f)
+            h = hashlib.sha256()
+            with open(p, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 22), b""):
+                    h.update(chunk)
+            rel = p.as_posix() if base is None else Path(os.path.relpath(p, base)).as_posix()
+            entries.append([rel, h.hexdigest()])
+        return hashlib.sha256(json.dumps(entries).encode()).hexdigest()
 
     @property
     def label(self) -> str:
@@ -117,7 +147,8 @@ def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugin
         raise PcfbenchError(f"dataset {name!r} has no sequences in split {split!r} under {root}")
     fp = adapter.fingerprint(split).digest
     opts = options_identity(adapter, config.split_root_options(root)[1])
-    return TrainSource(adapter, split, TrainOn(name, split, fp, opts, None if root is None else str(root)))
+    files = tuple(str(f) for f in adapter.data_files(split))
+    return TrainSource(adapter, split, TrainOn(name, split, fp, opts, None if root is None else str(root), files))
 
 
 # -- checkpoints --------------------------------------------------------------------------------
@@ -210,10 +241,21 @@ class Checkpoint:
             raise CheckpointError(f"checkpoint {self.manifest_path} was made by another method or configuration: {diff}; "
                                   f"it belongs to {m.get('method')}{':' + opts if opts else ''}")
 
+    @property
+    def shipped(self) -> bool:
+        """Whether this is a checkpoint shipped inside a package (see :func:`ship`)."""
+        return bool(self.manifest.get("shipped"))
+
     def load_weights(self, map_location: Any = "cpu") -> dict[str, Any]:
         """The weights, read once, checked against their sha256 and unpickled with
-        ``torch.load(weights_only=True)`` (tensors and plain containers only)."""
-        return self._load(self.manifest["weights"], self.sha256, map_location)
+        ``torch.load(weights_only=True)`` (tensors and plain containers only). Weights stored
+        in float16 (``"weights_dtype": "float16"``, shipped checkpoints) come back float32."""
+        weights = self._load(self.manifest["weights"], self.sha256, map_location)
+        if self.manifest.get("weights_dtype") == "float16":
+            import torch
+
+            weights = {k: v.float() if torch.is_tensor(v) and v.dtype == torch.float16 else v for k, v in weights.items()}
+        return weights
 
     def load_state(self, map_location: Any = "cpu") -> dict[str, Any]:
         """The optimiser and RNG state saved beside the weights (to resume training)."""
@@ -235,20 +277,116 @@ class Checkpoint:
 
 
 def find_checkpoint(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
-    """The checkpoint of ``spec`` trained on ``train_on``, verified; None when there is none."""
+    """The checkpoint of ``spec`` trained on ``train_on``, verified: the one in the cache,
+    else the one shipped with the method's package for the same data (:func:`find_shipped`);
+    None when there is none."""
     folder = checkpoint_dir(spec, train_on)
     if not (folder / MANIFEST).is_file():
-        return None
+        return find_shipped(spec, train_on)
     ck = Checkpoint.open(folder)
     ck.check_method(spec)
     return ck
 
 
 def may_have_checkpoint(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> bool:
-    """Whether any checkpoint of ``spec`` trained on ``dataset``/``split`` exists, without
-    opening the data (so a default run does not prepare training data for an untrained method)."""
+    """Whether any checkpoint of ``spec`` trained on ``dataset``/``split`` exists (in the cache
+    or shipped), without opening the data (so a default run does not prepare training data
+    for an untrained method)."""
     folder = checkpoint_dir_base(spec)
-    return any(folder.glob(f"{dataset}.{split}.*/{MANIFEST}"))
+    if any(folder.glob(f"{dataset}.{split}.*/{MANIFEST}")):
+        return True
+    shipped = shipped_dir(spec, dataset, split)
+    return shipped is not None and (shipped / MANIFEST).is_file()
+
+
+# -- shipped checkpoints ------------------------------------------------------------------------
+#: The most all shipped checkpoints of one package may weigh together (bytes).
+SHIPPED_LIMIT_BYTES = 16 * 1024 * 1024
+
+
+def shipped_root(cls: type) -> Path | None:
+    """Where the shipped checkpoints of ``cls`` live: its ``shipped_checkpoints``, else
+    ``checkpoints/`` beside its module (package data of the method's package)."""
+    import sys
+
+    if getattr(cls, "shipped_checkpoints", None) is not None:
+        return Path(cls.shipped_checkpoints)
+    module = sys.modules.get(cls.__module__)
+    path = getattr(module, "__file__", None)
+    return None if path is None else Path(path).resolve().parent / "checkpoints"
+
+
+def shipped_dir(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> Path | None:
+    """``<shipped root>/<method>/v<version>/<options hash>/<dataset>.<split>``. The folder is
+    not keyed by the data's fingerprint (file times differ on every machine): the shipped
+    manifest holds the data's content sha256, checked by :func:`find_shipped`."""
+    root = shipped_root(spec.cls)
+    return None if root is None else root / spec.name / f"v{spec.cls.version}" / spec.options_hash / f"{dataset}.{split}"
+
+
+def find_shipped(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
+    """The checkpoint of ``spec`` shipped for ``train_on``'s data, verified like any other
+    (sha256 of its weights, method, version and options); None when none is shipped, or when
+    the local data differs from the data it was trained on (other options, other content)."""
+    folder = shipped_dir(spec, train_on.dataset, train_on.split)
+    if folder is None or not (folder / MANIFEST).is_file():
+        return None
+    ck = Checkpoint.open(folder)
+    ck.check_method(spec)
+    shipped = ck.manifest.get("shipped")
+    if not isinstance(shipped, dict) or "data_sha256" not in shipped:
+        raise CheckpointError(f"shipped checkpoint manifest {ck.manifest_path} lacks shipped.data_sha256")
+    recorded = ck.manifest["train_on"]
+    if dict(recorded.get("dataset_options") or {}) != json.loads(json.dumps(dict(train_on.dataset_options), default=str)):
+        return None
+    if recorded.get("fingerprint") != train_on.fingerprint and shipped["data_sha256"] != train_on.content_sha256():
+        return None
+    return ck
+
+
+def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: str, log=print) -> Checkpoint:
+    """Copy a complete ``checkpoint`` of ``spec`` into the method's package
+    (:func:`shipped_dir`): weights cast to float16, no optimiser state, a manifest that
+    keeps the trained one's record (config, training data and fingerprint, steps, wall and
+    CPU time, device, git commit) plus ``weights_dtype`` and ``shipped`` (the cache
+    checkpoint's sha256, the data's content sha256, ``retrain``: the command that rebuilds
+    it). Refused for an incomplete checkpoint, or when the package's shipped checkpoints
+    would weigh more than ``SHIPPED_LIMIT_BYTES``."""
+    import torch
+
+    from pcfbench.store import atomic_write_bytes, atomic_write_json
+
+    checkpoint.check_method(spec)
+    if not checkpoint.manifest.get("complete"):
+        raise CheckpointError(f"checkpoint {checkpoint.manifest_path} is not complete ({checkpoint.steps} steps): "
+                              "finish its training before shipping it")
+    folder = shipped_dir(spec, train_on.dataset, train_on.split)
+    if folder is None:
+        raise CheckpointError(f"method {spec.name!r} has no package folder to ship a checkpoint into")
+    weights = checkpoint.load_weights()
+    half = {k: v.half() if torch.is_tensor(v) and v.dtype == torch.float32 else v for k, v in weights.items()}
+    buf = io.BytesIO()
+    torch.save(half, buf)
+    data = buf.getvalue()
+    root = shipped_root(spec.cls)
+    others = sum(f.stat().st_size for f in root.rglob("*") if f.is_file() and folder not in f.parents) if root.is_dir() else 0
+    if others + len(data) > SHIPPED_LIMIT_BYTES:
+        raise CheckpointError(f"shipping {spec.name} ({len(data):,} bytes) into {root} would exceed "
+                              f"{SHIPPED_LIMIT_BYTES:,} bytes of shipped checkpoints ({others:,} there already)")
+    if folder.is_dir():
+        for old in folder.iterdir():
+            if old.is_file():
+                old.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    name = f"weights-{checkpoint.steps:08d}.fp16.pt"
+    atomic_write_bytes(folder / name, data)
+    manifest = {k: v for k, v in checkpoint.manifest.items() if k not in ("state", "state_sha256")}
+    manifest.update(weights=name, weights_sha256=_sha256(data), weights_dtype="float16", state=None, state_sha256=None)
+    manifest["shipped"] = {"from_weights_sha256": checkpoint.sha256, "data_sha256": train_on.content_sha256(),
+                           "retrain": retrain, "shipped": time.time()}
+    atomic_write_json(folder / MANIFEST, manifest)
+    log(f"shipped {spec.name} ({len(data):,} bytes of float16 weights) to {folder}")
+    return Checkpoint.open(folder)
 
 
 def checkpoint_dir_base(spec: MethodSpec) -> Path:
@@ -461,6 +599,9 @@ class TrainedMethod(Method):
     #: How long a full training takes, stated for the missing-checkpoint message when no
     #: earlier training on this machine measured it.
     training_time: ClassVar[str] = ""
+    #: The folder of the checkpoints it ships (pcfbench train --ship); None: ``checkpoints/``
+    #: beside the method's module, installed as package data.
+    shipped_checkpoints: ClassVar[str | Path | None] = None
 
     checkpoint: Checkpoint | None = None
 

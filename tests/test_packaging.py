@@ -137,6 +137,12 @@ def test_wheel_has_one_top_level_name_and_installs_beside_a_datasets_package(tmp
         top_txt = [n for n in names if n.endswith(".dist-info/top_level.txt")]
         for t in top_txt:
             assert zf.read(t).decode().split() == ["pcfbench"]
+        # every shipped checkpoint file is package data of the wheel (docs/training.md)
+        for folder, package in ((ROOT / f, p) for p, f in FOLDERS.items()):
+            for path in folder.rglob("checkpoints/**/*"):
+                if path.is_file() and "__pycache__" not in path.parts:
+                    rel = path.relative_to(folder).as_posix()
+                    assert f"{package.replace('.', '/')}/{rel}" in names, f"shipped {rel} missing from the wheel"
 
     # A fresh environment: the wheel and a distribution with a top-level ``datasets`` package,
     # both installed there; the project's dependencies come from this test's environment as a

@@ -1,0 +1,160 @@
+"""Shipped checkpoints: the mechanism on a toy trained method (float16 copy with a manifest,
+fallback from the cache, matching local data by content, refusals), and every checkpoint
+shipped inside pcfbench (manifest, sha256, size, the float16 round trip loads)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from pcfbench.method import resolve_method
+from pcfbench.training import (
+    SHIPPED_LIMIT_BYTES, Checkpoint, CheckpointError, TrainingRun, checkpoint_dir, checkpoint_for, find_checkpoint,
+    may_have_checkpoint, open_training_data, ship, shipped_dir,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = {"pcfbench": ROOT / "bench", "pcfbench.methods": ROOT / "methods", "pcfbench.datasets": ROOT / "datasets"}
+
+
+def shipped_manifests() -> list[Path]:
+    return sorted(p for base in PACKAGES.values() for p in base.rglob("checkpoints/**/manifest.json"))
+
+
+@pytest.fixture
+def toy(tmp_path, monkeypatch):
+    import types
+
+    from conftest import write_tiny_kitti
+    from test_training import ToyTrained, toy_plugins
+
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("00", "08"), num_sweeps=12)
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PCFBENCH_NO_PROGRESS", "1")
+    monkeypatch.setattr(ToyTrained, "shipped_checkpoints", tmp_path / "shipped")
+    plugins = toy_plugins()
+    data = f"kitti={root}"
+    spec = resolve_method("toy-trained", plugins)
+    source = open_training_data(data, "train", plugins, False)
+    return types.SimpleNamespace(root=root, plugins=plugins, data=data, spec=spec, source=source, tmp=tmp_path)
+
+
+def _save(toy, complete=True):
+    """A cache checkpoint with float32, float64 and integer tensors."""
+    import torch
+
+    run = TrainingRun(toy.spec, toy.source.train_on, checkpoint_dir(toy.spec, toy.source.train_on), progress=False)
+    weights = {"a": torch.linspace(-3, 3, 101, dtype=torch.float32), "w": torch.tensor([2.5], dtype=torch.float64),
+               "n": torch.arange(4)}
+    run.save(7, weights, {"history": []}, config={"size": 101}, complete=complete)
+    return Checkpoint.open(run.out_dir), weights
+
+
+def test_ship_writes_float16_weights_and_a_manifest_and_is_found_when_the_cache_has_none(toy):
+    import torch
+
+    ck, weights = _save(toy)
+    shipped = ship(toy.spec, ck, toy.source.train_on, "pcfbench train toy-trained --dataset kitti=ROOT --fresh --ship",
+                   log=lambda *a: None)
+    assert shipped.dir == shipped_dir(toy.spec, "kitti", "train") == (
+        toy.tmp / "shipped" / "toy-trained" / "v1" / toy.spec.options_hash / "kitti.train")
+    m = json.loads((shipped.dir / "manifest.json").read_text())
+    assert sorted(p.name for p in shipped.dir.iterdir()) == ["manifest.json", "weights-00000007.fp16.pt"]
+    assert m["weights_dtype"] == "float16" and m["state"] is None and m["steps"] == 7 and m["complete"]
+    assert m["config"] == {"size": 101} and m["train_on"] == ck.manifest["train_on"] and m["git_commit"] == ck.manifest["git_commit"]
+    assert m["shipped"]["from_weights_sha256"] == ck.sha256
+    assert m["shipped"]["data_sha256"] == toy.source.train_on.content_sha256()
+    assert m["shipped"]["retrain"].startswith("pcfbench train toy-trained")
+    assert hashlib.sha256((shipped.dir / m["weights"]).read_bytes()).hexdigest() == m["weights_sha256"]
+    raw = torch.load(shipped.weights_path, weights_only=True)
+    assert raw["a"].dtype == torch.float16 and raw["w"].dtype == torch.float64 and raw["n"].dtype == torch.int64
+    back = shipped.load_weights()  # float16 comes back float32; the rest as saved
+    assert back["a"].dtype == torch.float32 and torch.equal(back["a"], weights["a"].half().float())
+    assert float((back["a"] - weights["a"]).abs().max()) <= 3 * 2 ** -11  # float16's relative precision
+    assert torch.equal(back["w"], weights["w"]) and torch.equal(back["n"], weights["n"])
+    # the cache one wins while it exists ...
+    assert find_checkpoint(toy.spec, toy.source.train_on).dir == ck.dir
+    # ... and without it the shipped one is found, verified, by readiness and by the run's lookup
+    for f in ck.dir.iterdir():
+        f.unlink()
+    assert may_have_checkpoint(toy.spec, "kitti")
+    assert find_checkpoint(toy.spec, toy.source.train_on).sha256 == shipped.sha256
+    found = checkpoint_for(toy.spec, train_on=toy.data, plugins=toy.plugins, progress=False)
+    assert found.dir == shipped.dir and found.shipped and found.sha256 == m["weights_sha256"]
+
+
+def test_shipped_checkpoint_matches_local_data_by_content_not_file_times(toy):
+    ck, _ = _save(toy)
+    ship(toy.spec, ck, toy.source.train_on, "retrain", log=lambda *a: None)
+    for f in ck.dir.iterdir():
+        f.unlink()
+    first = sorted(toy.root.rglob("*.bin"))[0]
+    os.utime(first, ns=(1, 1))  # the same bytes, another time: another fingerprint, the same data
+    again = open_training_data(toy.data, "train", toy.plugins, False).train_on
+    assert again.fingerprint != toy.source.train_on.fingerprint
+    assert find_checkpoint(toy.spec, again) is not None
+    data = bytearray(first.read_bytes())
+    data[0] ^= 1  # other data: the shipped checkpoint is not for it
+    first.write_bytes(bytes(data))
+    other = open_training_data(toy.data, "train", toy.plugins, False).train_on
+    assert find_checkpoint(toy.spec, other) is None
+    assert not may_have_checkpoint(resolve_method("toy-trained:lr=0.2", toy.plugins), "kitti")
+    with pytest.raises(CheckpointError, match="no checkpoint of toy-trained trained on kitti:train"):
+        checkpoint_for(toy.spec, train_on=toy.data, plugins=toy.plugins, progress=False)
+
+
+def test_shipping_refuses_incomplete_tampered_and_oversized(toy):
+    import pcfbench.training as training
+
+    ck, _ = _save(toy, complete=False)
+    with pytest.raises(CheckpointError, match=r"manifest.json is not complete \(7 steps\)"):
+        ship(toy.spec, ck, toy.source.train_on, "retrain", log=lambda *a: None)
+    ck, _ = _save(toy)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(training, "SHIPPED_LIMIT_BYTES", 100)
+        with pytest.raises(CheckpointError, match="would exceed 100 bytes of shipped checkpoints"):
+            ship(toy.spec, ck, toy.source.train_on, "retrain", log=lambda *a: None)
+    assert not (toy.tmp / "shipped").exists()
+    shipped = ship(toy.spec, ck, toy.source.train_on, "retrain", log=lambda *a: None)
+    for f in ck.dir.iterdir():
+        f.unlink()
+    good = shipped.weights_path.read_bytes()
+    shipped.weights_path.write_bytes(good[:-1] + bytes([good[-1] ^ 1]))
+    with pytest.raises(CheckpointError, match=rf"{shipped.weights_path}.*does not match the sha256"):
+        find_checkpoint(toy.spec, toy.source.train_on)
+
+
+@pytest.mark.parametrize("manifest_path", shipped_manifests(), ids=lambda p: str(p.parent.relative_to(ROOT)))
+def test_every_shipped_checkpoint_verifies_and_loads(manifest_path):
+    """Each shipped checkpoint: its manifest's record, its sha256, the method and options it
+    names (a registered method with those options), float16 weights that load through the
+    method's own ``load`` (weights_only) as float32."""
+    import torch
+
+    from pcfbench.plugins import get_plugins
+
+    m = json.loads(manifest_path.read_text())
+    for key in ("config", "train_on", "steps", "wall_s", "cpu_s", "git_commit", "weights_sha256", "device", "torch"):
+        assert m.get(key) is not None, f"{manifest_path} lacks {key}"
+    assert m["complete"] and m["weights_dtype"] == "float16" and m["state"] is None
+    assert {"dataset", "split", "fingerprint"} <= set(m["train_on"])
+    assert {"from_weights_sha256", "data_sha256", "retrain"} <= set(m["shipped"])
+    assert m["shipped"]["retrain"].startswith(f"pcfbench train {m['method']}") and "--ship" in m["shipped"]["retrain"]
+    ck = Checkpoint.open(manifest_path.parent)  # sha256 of the weights
+    spec = resolve_method((m["method"], {k: str(v) for k, v in m["options"].items()}), get_plugins())
+    ck.check_method(spec)
+    assert manifest_path.parent == shipped_dir(spec, m["train_on"]["dataset"], m["train_on"]["split"])
+    raw = torch.load(ck.weights_path, weights_only=True)
+    assert any(v.dtype == torch.float16 for v in raw.values()) and not any(v.dtype == torch.float32 for v in raw.values())
+    assert all(v.dtype != torch.float16 for v in ck.load_weights().values())
+    method = spec.create()
+    method.load(ck)
+
+
+def test_shipped_checkpoints_stay_small():
+    files = [f for base in PACKAGES.values() for d in base.rglob("checkpoints") for f in d.rglob("*") if f.is_file()]
+    assert sum(f.stat().st_size for f in files) <= SHIPPED_LIMIT_BYTES
