@@ -48,6 +48,10 @@ class ReportOptions:
     reference: str | None = None  # None: DEFAULT_REFERENCE, and groups without it are only noted
     ci: str = "pm"
     resampling: stats.Resampling = field(default_factory=stats.Resampling)
+    #: write reports/figures/ (and embed them in leaderboard.html)
+    figures: bool = True
+    #: samples re-run per group for the error-vs-range and gallery figures (0: those are left out)
+    figure_samples: int = 2
 
 
 @dataclass
@@ -109,6 +113,33 @@ def coverage(meta: dict, rows: pd.DataFrame) -> Coverage:
     if not missing and want and ids_hash([str(i) for i in status.index]) != want:
         missing = max(expected - ok - failed, 1)  # ids other than the cell's own: some are missing
     return Coverage(expected, ok, failed, missing)
+
+
+#: the provenance of a cell, from its cell.json (:func:`provenance`), in the order the HTML shows it
+PROVENANCE_KEYS = ("harness_version", "protocol_version", "method_version", "metric_versions", "git_commit",
+                   "data_fingerprint", "checkpoint_sha256", "date")
+
+
+def provenance(meta: dict) -> dict[str, str]:
+    """What a cell's numbers were computed with: harness, protocol, method and metric versions,
+    git commit, dataset fingerprint, checkpoint sha256 (trained methods) and the date its
+    rows were last written (UTC), as strings ("" where cell.json lacks one)."""
+    import datetime
+
+    when = meta.get("updated") or meta.get("created")
+    date = (datetime.datetime.fromtimestamp(float(when), datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+            if isinstance(when, (int, float)) else "")
+    versions = meta.get("metric_versions") or {}
+    return {
+        "prov_harness_version": str(meta.get("harness_version") or ""),
+        "prov_protocol_version": str(meta.get("protocol_version") or ""),
+        "prov_method_version": str(meta.get("method_version") or ""),
+        "prov_metric_versions": ", ".join(f"{k} v{v}" for k, v in sorted(versions.items())),
+        "prov_git_commit": str(meta.get("git_commit") or ""),
+        "prov_data_fingerprint": str(meta.get("data_fingerprint") or ""),
+        "prov_checkpoint_sha256": str(meta.get("checkpoint_sha256") or (meta.get("spec") or {}).get("checkpoint_sha256") or ""),
+        "prov_date": date,
+    }
 
 
 def method_label(method: str, options: dict) -> str:
@@ -204,6 +235,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             "checkpoint_sha256": spec.checkpoint_sha256 or "",
             "on_training_data": bool(meta.get("evaluated_on_training_data", False)),
             "limit": spec.limit if partial else None, "horizon_s": _horizon(spec.setting),
+            "cell_dir": str(cell_dir.resolve()), **provenance(meta),
         }
         for k, v in sorted(spec.options.items()):
             base[f"option.{k}"] = v
@@ -327,51 +359,137 @@ def _csv_frame(lb: Leaderboard, df: pd.DataFrame) -> pd.DataFrame:
 
 
 def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None = None,
-                  leaderboard: Leaderboard | None = None) -> dict[str, Path]:
-    """Write the leaderboard (Markdown, CSV, LaTeX, HTML in the chosen preset), the per-horizon
-    and comparison CSVs and every preset's tables under ``tables/``; returns the paths.
+                  leaderboard: Leaderboard | None = None, plugins=None) -> dict[str, Path]:
+    """Write the leaderboard (Markdown, CSV, LaTeX in the chosen preset; ``leaderboard.html`` the
+    self-contained page with the figures), the per-horizon and comparison CSVs, every preset's
+    tables under ``tables/`` and the figures under ``figures/``; returns the final paths.
 
-    ``leaderboard``: the :func:`collect` result of the same store and options, if already made.
+    Published atomically: everything is written into a staging folder inside ``out_dir`` first,
+    then each file is renamed into place, so a report killed at any moment leaves every file
+    either old or new, never half written. ``leaderboard``: the :func:`collect` result of the
+    same store and options, if already made.
     """
+    import os
+    import shutil
+
     options = options or ReportOptions()
     presets = tables.load_presets(options.tables_file)
     main = tables.get_preset(options.preset, presets)
-    lb = leaderboard or collect(store_root, options.resampling, options.reference)
     out_dir = Path(out_dir)
+    check_reports_dir(out_dir)
+    lb = leaderboard or collect(store_root, options.resampling, options.reference)
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
+    _remove_stale_staging(out_dir)
+    stage = out_dir / f".report-{os.getpid()}.tmp"
+    shutil.rmtree(stage, ignore_errors=True)
+    stage.mkdir()
+    rel: dict[str, Path] = {}  # key -> path relative to out_dir
+    try:
+        def render(preset, stem: Path, key: str | None, page: bool = False) -> tables.Table:
+            t = tables.build(lb, preset, options.ci)
+            tex, _fit = tables.latex(t)  # the fit is the .tex file's first line
+            for ext, content in (("md", tables.markdown(t)), ("tex", tex), ("html", None if page else tables.html_page(t))):
+                if content is None:
+                    continue
+                (stage / stem).with_suffix(f".{ext}").write_text(content)
+                rel[f"{key}.{ext}" if key else ext] = stem.with_suffix(f".{ext}")
+            return t
 
-    def render(preset, stem: Path, key: str | None) -> None:
-        t = tables.build(lb, preset, options.ci)
-        tex, _fit = tables.latex(t)  # the fit is the .tex file's first line
-        for ext, content in (("md", tables.markdown(t)), ("tex", tex), ("html", tables.html_page(t))):
-            p = stem.with_suffix(f".{ext}")
-            p.write_text(content)
-            paths[f"{key}.{ext}" if key else ext] = p
+        main_table = render(main, Path("leaderboard"), None, page=True)
+        figures: dict[str, Path] = {}
+        if options.figures:
+            from pcfbench.figures import FIGURES_DIR, write_figures
 
-    render(main, out_dir / "leaderboard", None)
-    paths["csv"] = out_dir / "leaderboard.csv"
-    _csv_frame(lb, lb.table).to_csv(paths["csv"], index=False)
-    paths["partial_csv"] = out_dir / "leaderboard_partial.csv"
-    _csv_frame(lb, lb.partial).to_csv(paths["partial_csv"], index=False)
-    for key, name, keep in (("by_step", "leaderboard_by_step.csv", False), ("partial_by_step", "leaderboard_partial_by_step.csv", True)):
-        paths[key] = out_dir / name
-        steps = lb.by_step[lb.by_step["partial"] == keep] if len(lb.by_step) else lb.by_step
-        steps.drop(columns="partial", errors="ignore").to_csv(paths[key], index=False)
-    paths["incomplete_csv"] = out_dir / "leaderboard_incomplete.csv"
-    incomplete = _csv_frame(lb, lb.incomplete)
-    incomplete.insert(CSV_LEAD.index("samples"), "coverage", lb.incomplete["coverage"] if len(lb.incomplete) else [])
-    incomplete.insert(CSV_LEAD.index("failed") + 2, "missing", lb.incomplete["missing"] if len(lb.incomplete) else [])
-    incomplete.to_csv(paths["incomplete_csv"], index=False)
-    paths["comparisons"] = out_dir / "leaderboard_comparisons.csv"
-    lb.comparisons.to_csv(paths["comparisons"], index=False)
-    from pcfbench.transfer import write_transfer  # trained cells: the zero-shot table (Copilot4D Table 5)
+            figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR,
+                                    samples=options.figure_samples, plugins=plugins)
+            for name, p in figures.items():
+                rel[f"figures/{name}"] = p.relative_to(stage)
+        from pcfbench.htmlreport import page
 
-    paths.update(write_transfer(lb, out_dir))
-    (out_dir / "tables").mkdir(exist_ok=True)
-    for name, preset in presets.items():
-        render(preset, out_dir / "tables" / name, f"tables/{name}")
-    return paths
+        (stage / "leaderboard.html").write_text(page(main_table, lb, figures, generated=(
+            f"generated by pcfbench {__import__('pcfbench').__version__} from the store {store_root}; "
+            "each cell's date is in its provenance")))
+        rel["html"] = Path("leaderboard.html")
+        rel["csv"] = Path("leaderboard.csv")
+        _csv_frame(lb, lb.table).to_csv(stage / rel["csv"], index=False)
+        rel["partial_csv"] = Path("leaderboard_partial.csv")
+        _csv_frame(lb, lb.partial).to_csv(stage / rel["partial_csv"], index=False)
+        for key, name, keep in (("by_step", "leaderboard_by_step.csv", False), ("partial_by_step", "leaderboard_partial_by_step.csv", True)):
+            rel[key] = Path(name)
+            steps = lb.by_step[lb.by_step["partial"] == keep] if len(lb.by_step) else lb.by_step
+            steps.drop(columns="partial", errors="ignore").to_csv(stage / name, index=False)
+        rel["incomplete_csv"] = Path("leaderboard_incomplete.csv")
+        incomplete = _csv_frame(lb, lb.incomplete)
+        incomplete.insert(CSV_LEAD.index("samples"), "coverage", lb.incomplete["coverage"] if len(lb.incomplete) else [])
+        incomplete.insert(CSV_LEAD.index("failed") + 2, "missing", lb.incomplete["missing"] if len(lb.incomplete) else [])
+        incomplete.to_csv(stage / rel["incomplete_csv"], index=False)
+        rel["comparisons"] = Path("leaderboard_comparisons.csv")
+        lb.comparisons.to_csv(stage / rel["comparisons"], index=False)
+        from pcfbench.transfer import write_transfer  # trained cells: the zero-shot table (Copilot4D Table 5)
+
+        for key, p in write_transfer(lb, stage).items():
+            rel[key] = Path(p).relative_to(stage)
+        (stage / "tables").mkdir(exist_ok=True)
+        for name, preset in presets.items():
+            render(preset, Path("tables") / name, f"tables/{name}")
+        publish(stage, out_dir, [rel[k] for k in rel])
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    if "transfer_md" not in rel:  # no trained cells (any more): no transfer table
+        for name in ("transfer.md", "transfer.csv"):
+            (out_dir / name).unlink(missing_ok=True)
+    if options.figures:
+        _remove_old_figures(out_dir, {p.name for k, p in rel.items() if k.startswith("figures/")})
+    return {k: out_dir / p for k, p in rel.items()}
+
+
+def check_reports_dir(out_dir: Path) -> None:
+    """One clear error when the reports folder is an existing file (or lies below one)."""
+    for p in [Path(out_dir), *Path(out_dir).parents]:
+        if p.exists() and not p.is_dir():
+            raise PcfbenchError(f"the reports folder {out_dir} cannot be created: {p} is a file, not a folder "
+                                "(give --reports / $PCFBENCH_REPORTS a folder)")
+        if p.exists():
+            return
+
+
+def publish(stage: Path, out_dir: Path, files: list[Path]) -> None:
+    """Rename each of ``files`` (relative paths) from ``stage`` into ``out_dir`` (same file
+    system: each rename is atomic); leaderboard.* last, so a reader who sees the new
+    leaderboard sees the new tables and figures too."""
+    import os
+
+    for f in sorted(files, key=lambda f: (f.parts[0] == f.name and f.name.startswith("leaderboard."), str(f))):
+        dest = out_dir / f
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(stage / f, dest)
+
+
+def _remove_stale_staging(out_dir: Path) -> None:
+    """Staging folders of reports that were killed (their process is gone)."""
+    import os
+    import shutil
+
+    for d in out_dir.glob(".report-*.tmp"):
+        try:
+            pid = int(d.name.split("-")[1].split(".")[0])
+            os.kill(pid, 0)
+            if pid == os.getpid():
+                raise ProcessLookupError
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(d, ignore_errors=True)
+        except PermissionError:
+            pass
+
+
+def _remove_old_figures(out_dir: Path, keep: set[str]) -> None:
+    """Leaderboard figures of groups that are gone (a sweep's ablation figures stay)."""
+    d = out_dir / "figures"
+    if not d.is_dir():
+        return
+    for p in d.iterdir():
+        if p.name.startswith(("horizon-", "range-", "gallery-")) and p.name not in keep:
+            p.unlink(missing_ok=True)
 
 
 def summary(store_root: Path, options: ReportOptions | None = None, leaderboard: Leaderboard | None = None) -> str:

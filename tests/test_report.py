@@ -235,8 +235,10 @@ def test_html_keeps_method_names_on_one_line(board):
     _, _, paths = board
     page = paths["html"].read_text()
     assert "white-space:nowrap" in page
-    assert "<td class='method'>shifted (dx=0.5)</td>" in page
-    assert "<strong>" in page and "95% CI [" in page and "<th>Chamfer (ROI) ↓ (m²)</th>" in page
+    assert "<td class='method' data-v='shifted (dx=0.5)'>shifted (dx=0.5) <a href='#cell-" in page
+    assert "<strong>" in page and "95% CI [" in page and "'>Chamfer (ROI) ↓ (m²)</th>" in page
+    simple = (paths["html"].parent / "tables" / "paper.html").read_text()  # the per-preset pages stay plain tables
+    assert "<td class='method'>shifted (dx=0.5)</td>" in simple and "<th>Chamfer (ROI) ↓ (m²)</th>" in simple
 
 
 def test_every_preset_is_written_and_reports_are_deterministic(board, tmp_path):

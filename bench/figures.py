@@ -1,0 +1,510 @@
+"""Figures of a leaderboard (matplotlib, Agg), each written as PNG and SVG under ``reports/figures/``.
+
+- ``horizon-<group>``: each preset column against the forecast time in seconds, one line per
+  method variant, the band its 95 % bootstrap interval (the per-step rows of
+  ``pcfbench.report.collect``, resampling samples).
+- ``range-<group>``: L1 and AbsRel against the ground-truth range, per 10 m bin. The store keeps
+  per-sweep means only, so these come from a few **re-run samples** (``figure_samples`` per
+  group, chosen below): their forecasts are computed again and every kept ray's error is
+  binned by its ground-truth range, pooled over the samples' future sweeps. The errors are
+  those of ``SweepContext.ray_errors_wrapped``, the very errors ``l1_mean``/``absrel_mean``
+  average, so a bin's count-weighted mean over one sweep is that sweep's stored value; a
+  method whose re-run does not reproduce its stored rows is named on the figure.
+- ``gallery-<group>``: bird's-eye views of the same samples: the past sweeps, the ground truth
+  at the horizon and each variant's forecast of it, its points coloured by their distance to
+  the nearest ground-truth point (m).
+- ``ablation-<stem>``: a sweep's metric against an option's value (``pcfbench.sweep``).
+
+Chosen samples: per group, the reference cell's (else the first cell's) samples ranked by
+their mean of the group's ranking metric; the median one and the worst one (for
+``figure_samples=2``), evenly spaced ranks for more.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pcfbench.errors import PcfbenchError
+
+FIGURES_DIR = "figures"
+FORMATS = ("png", "svg")
+RANGE_BIN_M = 10.0
+_RC = {"svg.hashsalt": "pcfbench", "font.size": 9, "axes.grid": True, "grid.alpha": 0.3}
+
+
+def _unit_scale(unit: str) -> tuple[float, str]:
+    if unit == "fraction":
+        return 100.0, "%"
+    base, sep, power = unit.partition("^")
+    return 1.0, (f"{base}$^{{{power}}}$" if sep else unit)
+
+
+def _slug(*parts: Any) -> str:
+    text = "_".join(str(p) for p in parts if p not in (None, ""))
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", text).strip("-")
+
+
+def _new_figure(w: float, h: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(w, h), layout="constrained")
+
+
+def save(fig, out_dir: Path, stem: str) -> dict[str, Path]:
+    """Write ``fig`` as ``stem.png`` and ``stem.svg``, each through a temporary file renamed
+    into place (no date in the metadata: same data, same bytes)."""
+    import matplotlib
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    with matplotlib.rc_context(_RC):
+        for ext in FORMATS:
+            p = out_dir / f"{stem}.{ext}"
+            tmp = out_dir / f".{stem}.{ext}.{os.getpid()}.tmp"
+            meta = {"Date": None} if ext == "svg" else {"Software": None}
+            fig.savefig(tmp, format=ext, dpi=110, metadata=meta)
+            os.replace(tmp, p)  # whole or not at all
+            paths[f"{stem}.{ext}"] = p
+    return paths
+
+
+def _group_title(r: pd.Series) -> str:
+    t = f"{r['dataset']} / {r['split']} / {r['setting']}"
+    return t if r["policy"] == "full-context" else f"{t} ({r['policy']})"
+
+
+def _group_stem(kind: str, r: pd.Series) -> str:
+    policy = "" if r["policy"] == "full-context" else r["policy"]
+    return f"{kind}-" + _slug(r["dataset"], r["split"], r["setting"], policy)
+
+
+# -- error vs forecast time ------------------------------------------------------------------
+def horizon_figure(steps: pd.DataFrame, columns: list, title: str):
+    """One panel per column (``tables.ShownColumn``): mean per future sweep against its time
+    (s) for each variant, with the interval as a band."""
+    with _rc():
+        n = len(columns)
+        ncols = min(3, n)
+        nrows = math.ceil(n / ncols)
+        fig = _new_figure(4.2 * ncols, 3.2 * nrows + 0.4)
+        axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+        for ax, col in zip(axes, columns):
+            k, unit = _unit_scale(col.unit)
+            for variant, g in steps.groupby("variant", sort=False):
+                g = g.sort_values("time_s")
+                t = g["time_s"].to_numpy(float)
+                y = k * g[col.metric].to_numpy(float) if col.metric in g else np.full(len(g), np.nan)
+                (line,) = ax.plot(t, y, marker="o", ms=3, label=variant)
+                lo, hi = g.get(f"{col.metric}_lo"), g.get(f"{col.metric}_hi")
+                if lo is not None and hi is not None:
+                    ax.fill_between(t, k * lo.to_numpy(float), k * hi.to_numpy(float), color=line.get_color(),
+                                    alpha=0.18, linewidth=0)
+            arrow = "lower is better" if col.better == "lower" else "higher is better"
+            ax.set_title(f"{col.label} ({arrow})")
+            ax.set_xlabel("forecast time after t=0 (s)")
+            ax.set_ylabel(f"{col.label} ({unit})" if unit else col.label)
+        for ax in axes[n:]:
+            ax.set_visible(False)
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
+        fig.suptitle(f"{title}: error per future sweep, band = 95 % bootstrap interval over samples")
+    return fig
+
+
+def _rc():
+    import matplotlib
+
+    return matplotlib.rc_context(_RC)
+
+
+# -- re-run samples: per-ray and per-point errors -----------------------------------------------
+@dataclass
+class SweepErrors:
+    """One re-run future sweep of one variant: what the figures need, reference frame."""
+
+    step: int
+    ray_range_m: np.ndarray  # (R,) ground-truth range of each kept ray
+    ray_l1_m: np.ndarray  # (R,) its L1 error (m)
+    ray_absrel: np.ndarray  # (R,) its AbsRel error (fraction)
+    pred_points: np.ndarray  # (K, 3) float32
+    pred_error_m: np.ndarray  # (K,) distance of each forecast point to the nearest ground-truth point
+    gt_points: np.ndarray  # (M, 3) float32
+
+
+@dataclass
+class Rerun:
+    """The chosen samples of a group re-run for every variant: ``errors[variant][sample_id]``
+    is the list of its future sweeps' :class:`SweepErrors`; ``samples`` the (Sample,
+    GroundTruth) pairs; ``mismatch`` the variants whose re-run differs from their stored rows."""
+
+    sample_ids: list[str]
+    samples: dict[str, tuple[Any, Any]] = field(default_factory=dict)
+    errors: dict[str, dict[str, list[SweepErrors]]] = field(default_factory=dict)
+    mismatch: list[str] = field(default_factory=list)
+    #: variants that could not be re-run, with why (their plugin is gone, their method raised)
+    skipped: dict[str, str] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def sweep_errors(step: int, gt: np.ndarray, query, pred_points, pred_depths) -> SweepErrors:
+    """The per-ray and per-point errors of one future sweep, through ``SweepContext`` (the
+    metrics' own definitions)."""
+    from pcfbench.metrics.base import SweepContext
+
+    ctx = SweepContext(gt_points=gt, query=query, pred_points=pred_points, pred_depths=pred_depths)
+    empty = np.zeros(0)
+    if gt.shape[0] == 0 or ctx.pred_points.shape[0] == 0:
+        return SweepErrors(step, empty, empty, empty, ctx.pred_points, np.full(ctx.pred_points.shape[0], np.nan), gt)
+    l1, absrel = ctx.ray_errors_wrapped
+    pred_err = np.sqrt(ctx.nn_pred_to_gt[0])
+    return SweepErrors(step, ctx.gt_ranges[ctx.ray_kept], l1, absrel, ctx.pred_points, pred_err, gt)
+
+
+def choose_samples(rows: pd.DataFrame, metric: str | None, n: int) -> list[str]:
+    """``n`` sample ids of a cell's ok rows: ranked by their mean of ``metric``; the median and
+    the worst for n = 2, else evenly spaced ranks from the best to the worst."""
+    ok = rows[rows["status"] == "ok"]
+    if not len(ok) or n < 1:
+        return []
+    if metric is not None and metric in ok:
+        score = ok.groupby("sample_id")[metric].mean().fillna(np.inf)
+    else:
+        score = ok.groupby("sample_id")["step"].count() * 0.0
+    order = score.sort_values(kind="stable").index.tolist()
+    if n == 1 or len(order) == 1:
+        return [order[len(order) // 2]]
+    if n == 2:
+        picks = [len(order) // 2, len(order) - 1]
+    else:
+        picks = np.linspace(0, len(order) - 1, n).round().astype(int).tolist()
+    return list(dict.fromkeys(order[i] for i in picks))
+
+
+def rerun(store_root: Path, cells: pd.DataFrame, sample_ids: list[str], plugins=None) -> Rerun:
+    """Forecast ``sample_ids`` again with every cell of ``cells`` (rows of the leaderboard with
+    their ``cell_dir``) and compute their errors."""
+    import time
+
+    from pcfbench.errors import DataError
+    from pcfbench.runner import resolve
+    from pcfbench.store import Cell, spec_from_meta
+    from pcfbench.validate import validate_forecast
+
+    t0 = time.perf_counter()
+    out = Rerun(list(sample_ids))
+    builder = None
+    for _, row in cells.iterrows():
+        cell_dir = Path(row["cell_dir"])
+        spec = spec_from_meta(Cell(store_root, _spec_stub(cell_dir)).read_meta() or {})
+        try:
+            res = resolve(spec, plugins)
+        except PcfbenchError as exc:  # a plugin gone, a checkpoint moved: the tables stand, the figure says so
+            out.skipped[row["variant"]] = str(exc).splitlines()[0]
+            continue
+        if builder is None:
+            builder = res.builder
+            for sid in sample_ids:
+                seq, _, idx = sid.rpartition("/")
+                out.samples[sid] = builder.build(seq, int(idx))
+        stored = Cell(store_root, spec).read_rows()
+        per_sample: dict[str, list[SweepErrors]] = {}
+        differs = False
+        for sid, (sample, truth) in out.samples.items():
+            try:
+                fc = validate_forecast(sample, res.method.forecast(sample.for_method()))
+            except DataError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - as the runner: a method failing is recorded, not fatal
+                out.skipped[row["variant"]] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+                break
+            sweeps = []
+            for k, q in enumerate(sample.queries):
+                e = sweep_errors(k, truth.future_points_ref[k], q,
+                                 fc.points_ref[k] if fc.points_ref is not None else None,
+                                 fc.depths[k] if fc.depths is not None else None)
+                sweeps.append(e)
+                want = stored[(stored["sample_id"] == sid) & (stored["step"] == k)]
+                if "l1_mean" in want and len(want) and e.ray_l1_m.size:
+                    differs |= not math.isclose(float(want["l1_mean"].iloc[0]), float(np.mean(e.ray_l1_m)),
+                                                rel_tol=1e-6, abs_tol=1e-9)
+            per_sample[sid] = sweeps
+        if row["variant"] in out.skipped:
+            continue
+        out.errors[row["variant"]] = per_sample
+        if differs:
+            out.mismatch.append(row["variant"])
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def _spec_stub(cell_dir: Path):
+    """A stand-in spec whose ``relpath`` is the cell folder (to open a ``Cell`` by its folder)."""
+
+    class _At:
+        def relpath(self) -> Path:
+            return cell_dir
+
+    return _At()
+
+
+# -- error vs range --------------------------------------------------------------------------
+def range_profile(sweeps: list[SweepErrors], bin_m: float = RANGE_BIN_M) -> pd.DataFrame:
+    """Per range bin [lo, hi) m: kept rays, their mean L1 (m) and mean AbsRel (fraction),
+    pooled over ``sweeps``."""
+    rng = np.concatenate([s.ray_range_m for s in sweeps]) if sweeps else np.zeros(0)
+    l1 = np.concatenate([s.ray_l1_m for s in sweeps]) if sweeps else np.zeros(0)
+    ar = np.concatenate([s.ray_absrel for s in sweeps]) if sweeps else np.zeros(0)
+    if not rng.size:
+        return pd.DataFrame(columns=["lo_m", "hi_m", "rays", "l1_mean", "absrel_mean"])
+    b = np.floor(rng / bin_m).astype(int)
+    rows = []
+    for k in np.unique(b):
+        m = b == k
+        rows.append({"lo_m": k * bin_m, "hi_m": (k + 1) * bin_m, "rays": int(m.sum()),
+                     "l1_mean": float(l1[m].mean()), "absrel_mean": float(ar[m].mean())})
+    return pd.DataFrame(rows)
+
+
+def range_figure(run: Rerun, title: str):
+    with _rc():
+        fig = _new_figure(9.5, 3.6)
+        ax_l1, ax_ar = fig.subplots(1, 2)
+        for variant, per_sample in run.errors.items():
+            prof = range_profile([s for sweeps in per_sample.values() for s in sweeps])
+            if not len(prof):
+                continue
+            mid = (prof["lo_m"] + prof["hi_m"]) / 2
+            ax_l1.plot(mid, prof["l1_mean"], marker="o", ms=3, label=variant)
+            ax_ar.plot(mid, 100 * prof["absrel_mean"], marker="o", ms=3, label=variant)
+        for ax, what in ((ax_l1, "L1 mean (m)"), (ax_ar, "AbsRel mean (%)")):
+            ax.set_xlabel(f"ground-truth range, {RANGE_BIN_M:g} m bins (m)")
+            ax.set_ylabel(what)
+        ax_l1.set_title("L1 error by range (lower is better)")
+        ax_ar.set_title("AbsRel error by range (lower is better)")
+        handles, labels = ax_l1.get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
+        note = f"{len(run.sample_ids)} re-run sample(s), every future sweep pooled"
+        if run.mismatch:
+            note += f"; re-run differs from the store for {', '.join(run.mismatch)}"
+        if run.skipped:
+            note += f"; not re-run: {', '.join(run.skipped)}"
+        fig.suptitle(f"{title}: error vs range ({note})")
+    return fig
+
+
+# -- BEV gallery -----------------------------------------------------------------------------
+def bev_grid(points: np.ndarray, values: np.ndarray | None, extent_m: float, pixels: int) -> np.ndarray:
+    """A bird's-eye raster of ``points`` over [-extent, extent]^2 m, ``pixels`` square cells,
+    row 0 at the top (+y): per cell the mean of ``values`` of its points (NaN where empty), or
+    with ``values`` None the number of points in it."""
+    xy = np.asarray(points, np.float64)[:, :2]
+    cell = 2 * extent_m / pixels
+    ij = np.floor((xy + extent_m) / cell).astype(np.int64)
+    inside = (ij >= 0).all(1) & (ij < pixels).all(1)
+    flat = (pixels - 1 - ij[inside, 1]) * pixels + ij[inside, 0]
+    count = np.bincount(flat, minlength=pixels * pixels).astype(np.float64)
+    if values is None:
+        return count.reshape(pixels, pixels)
+    total = np.bincount(flat, weights=np.asarray(values, np.float64)[inside], minlength=pixels * pixels)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (total / count).reshape(pixels, pixels)
+
+
+def gallery_figure(run: Rerun, title: str, horizon_label: str, extent_m: float = 50.0, pixels: int = 250):
+    """Rows: the chosen samples. Columns: past, ground truth at the last future sweep, each
+    variant's forecast of it coloured by distance to the nearest ground-truth point (m).
+
+    Drawn as rasters (:func:`bev_grid`, 0.4 m cells by default: the mean error of the points in
+    a cell), which keeps the figure quick to render and small whatever the point count."""
+    import matplotlib
+
+    variants = list(run.errors)
+    ncols = 2 + len(variants)
+    nrows = max(1, len(run.sample_ids))
+    errs = [e.pred_error_m[np.isfinite(e.pred_error_m)] for v in variants for sweeps in run.errors[v].values()
+            for e in sweeps[-1:]]
+    pooled = np.concatenate(errs) if errs else np.zeros(0)
+    vmax = max(float(np.percentile(pooled, 95)) if pooled.size else 1.0, 0.05)
+    box = (-extent_m, extent_m, -extent_m, extent_m)
+    viridis = matplotlib.colormaps["viridis"].with_extremes(bad="white")
+    greys = matplotlib.colormaps["Greys"].with_extremes(under="white")
+    with _rc():
+        fig = _new_figure(2.6 * ncols + 0.9, 2.7 * nrows + 0.6)
+        axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True, sharey=True)
+        mappable = None
+        for i, sid in enumerate(run.sample_ids):
+            sample, truth = run.samples[sid]
+            row = axes[i]
+            past = sample.past_points_ref
+            # older sweeps lighter: each cell shows its most recent sweep's shade
+            age = np.zeros((pixels, pixels))
+            for j, pts in enumerate(past):
+                hit = bev_grid(pts, None, extent_m, pixels) > 0
+                age[hit] = (j + 1) / len(past)
+            row[0].imshow(age, extent=box, cmap=greys, vmin=1e-9, vmax=1.0, interpolation="nearest")
+            row[0].set_title(f"{sid}\npast, t <= 0 (dark: t=0)", fontsize=8)
+            occ = bev_grid(truth.future_points_ref[-1], None, extent_m, pixels) > 0
+            row[1].imshow(occ.astype(float), extent=box, cmap=greys, vmin=1e-9, vmax=1.0, interpolation="nearest")
+            row[1].set_title(f"ground truth, {horizon_label}", fontsize=8)
+            for j, v in enumerate(variants):
+                e = run.errors[v][sid][-1]
+                grid = bev_grid(e.pred_points, e.pred_error_m, extent_m, pixels)
+                mappable = row[2 + j].imshow(grid, extent=box, cmap=viridis, vmin=0.0, vmax=vmax, interpolation="nearest")
+                row[2 + j].set_title(f"{v}\nforecast, {horizon_label}", fontsize=8)
+            for ax in row:
+                ax.plot([0], [0], marker="^", color="r", ms=4)
+                ax.set_xlim(-extent_m, extent_m)
+                ax.set_ylim(-extent_m, extent_m)
+                if i == nrows - 1:
+                    ax.set_xlabel("x, reference frame (m)")
+            row[0].set_ylabel("y, reference frame (m)")
+        if mappable is not None:
+            fig.colorbar(mappable, ax=axes.ravel().tolist(), shrink=0.6,
+                         label="forecast point to nearest ground-truth point (m)")
+        fig.suptitle(f"{title}: bird's-eye view, {2 * extent_m / pixels:g} m cells (red triangle: sensor at t=0)")
+    return fig
+
+
+# -- sweeps: metric vs option value ------------------------------------------------------------
+def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) -> dict[str, Path]:
+    """For each option that varies among one method's variants of a sweep: each column's
+    value (with its interval as error bars) against the option's value, a line per
+    (dataset, split, setting) group and per combination of the method's other options."""
+    df = lb.table if len(lb.table) else lb.partial
+    paths: dict[str, Path] = {}
+    if not len(df):
+        return paths
+    option_cols = [c for c in df.columns if c.startswith("option.")]
+    for method, g in df.groupby("method", sort=True):
+        for opt in option_cols:
+            values = g[opt].dropna()
+            if values.nunique() < 2:
+                continue
+            others = [c for c in option_cols if c != opt and g[c].notna().any()]
+            fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins))
+            paths.update(save(fig, out_dir, "ablation-" + _slug(stem, method, opt.removeprefix("option."))))
+    return paths
+
+
+def _numeric(values: pd.Series) -> np.ndarray | None:
+    try:
+        return np.array([float(v) for v in values])
+    except (TypeError, ValueError):
+        return None
+
+
+def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list, method: str,
+                     units: dict[str, str]):
+    name = opt.removeprefix("option.")
+    with _rc():
+        n = len(columns)
+        ncols = min(3, n)
+        nrows = math.ceil(n / ncols)
+        fig = _new_figure(4.2 * ncols, 3.2 * nrows + 0.4)
+        axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+        categories = sorted(g[opt].astype(str).unique())
+        keys = ["dataset", "split", "setting"] + others
+        for ax, col in zip(axes, columns):
+            k, unit = _unit_scale(col.unit)
+            for key, line in g.groupby(keys, sort=True, dropna=False):
+                x = _numeric(line[opt])
+                if x is None or _numeric(g[opt]) is None:
+                    x = np.array([categories.index(str(v)) for v in line[opt]], float)
+                order = np.argsort(x, kind="stable")
+                y = k * line[col.metric].to_numpy(float)[order] if col.metric in line else np.full(len(x), np.nan)
+                lo = k * line.get(f"{col.metric}_lo", pd.Series(np.nan, index=line.index)).to_numpy(float)[order]
+                hi = k * line.get(f"{col.metric}_hi", pd.Series(np.nan, index=line.index)).to_numpy(float)[order]
+                yerr = np.vstack([np.where(np.isfinite(lo), y - lo, 0), np.where(np.isfinite(hi), hi - y, 0)])
+                label = " / ".join(str(v) for v in key[2:3]) + "".join(
+                    f", {o.removeprefix('option.')}={v}" for o, v in zip(others, key[3:]) if not pd.isna(v))
+                ax.errorbar(x[order], y, yerr=yerr, marker="o", ms=3, capsize=3, label=label)
+            if _numeric(g[opt]) is None:
+                ax.set_xticks(range(len(categories)), categories)
+            arrow = "lower is better" if col.better == "lower" else "higher is better"
+            ax.set_title(f"{col.label} ({arrow})")
+            ax.set_xlabel(f"{method} option {name}" + (f" ({units[name]})" if units.get(name) else ""))
+            ax.set_ylabel(f"{col.label} ({unit})" if unit else col.label)
+        for ax in axes[n:]:
+            ax.set_visible(False)
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
+        fig.suptitle(f"ablation: {method} {name}; error bars = 95 % bootstrap interval over samples")
+    return fig
+
+
+_UNIT_WORDS = {"metres": "m", "meters": "m", "seconds": "s", "degrees": "deg"}
+_UNITS = {"m", "s", "deg", "rad", "Hz", "%", "m/s", "m^2", "cm", "mm", "ms", *_UNIT_WORDS}
+
+
+def _method_units(method: str, plugins=None) -> dict[str, str]:
+    """``{option: unit}`` of a method's options, from the trailing ``(unit)`` of each option's
+    help text (``"voxel edge (m)"``); empty when the method does not load."""
+    from pcfbench.options import describe_options
+    from pcfbench.plugins import get_plugins
+
+    out: dict[str, str] = {}
+    try:
+        cls = (plugins or get_plugins()).methods.get(method)
+        fields = describe_options(cls.Options, f"method {method}")
+    except (PcfbenchError, AttributeError):
+        return out
+    for f in fields:
+        help_text = (f.help or "").strip()
+        m = re.search(r"\(([^()]{1,12})\)$", help_text) or re.search(r", (metres|meters|seconds|degrees)$", help_text)
+        if m and m.group(1) in _UNITS:
+            out[f.name] = _UNIT_WORDS.get(m.group(1), m.group(1))
+    return out
+
+
+# -- everything for a leaderboard --------------------------------------------------------------
+def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 2, plugins=None) -> dict[str, Path]:
+    """Every figure of leaderboard ``lb`` (complete cells) in the layout of ``table``
+    (``tables.Table``: its columns) under ``out_dir``; ``samples`` re-run samples per group
+    for the range and gallery figures (0: none). Returns the paths."""
+    from pcfbench.protocol import get_setting
+
+    out_dir = Path(out_dir)
+    paths: dict[str, Path] = {}
+    if not len(lb.table):
+        return paths
+    columns = table.columns
+    steps = lb.by_step[~lb.by_step["partial"].astype(bool)] if len(lb.by_step) else lb.by_step
+    rank = table.preset.rank_by or (columns[0].metric if columns else None)
+    for _, g in lb.table.groupby(["dataset", "split", "setting", "policy"], sort=True):
+        first = g.iloc[0]
+        title = _group_title(first)
+        gs = steps
+        for k in ("dataset", "split", "setting", "policy"):
+            gs = gs[gs[k] == first[k]] if len(gs) else gs
+        gs = gs[gs["variant"].isin(set(g["variant"]))] if len(gs) else gs
+        if len(gs) and columns:
+            paths.update(save(horizon_figure(gs, columns, title), out_dir, _group_stem("horizon", first)))
+        if samples <= 0:
+            continue
+        ref = g[g["is_reference"]] if "is_reference" in g else g.iloc[0:0]
+        base = ref.iloc[0] if len(ref) else g.iloc[0]
+        from pcfbench.store import Cell
+
+        rows = Cell(store_root, _spec_stub(Path(base["cell_dir"]))).read_rows()
+        ids = choose_samples(rows, rank, samples)
+        if not ids:
+            continue
+        run = rerun(store_root, g, ids, plugins)
+        if not run.errors:  # no variant could be re-run
+            continue
+        try:
+            s = get_setting(first["setting"])
+            horizon = f"t = +{s.step_seconds(s.future - 1):g} s"
+        except PcfbenchError:
+            horizon = "last future sweep"
+        paths.update(save(range_figure(run, title), out_dir, _group_stem("range", first)))
+        paths.update(save(gallery_figure(run, title, horizon), out_dir, _group_stem("gallery", first)))
+    return paths

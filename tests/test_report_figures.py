@@ -1,0 +1,237 @@
+"""The report's figures (error vs forecast time, vs range, BEV gallery, sweep ablations), the
+self-contained HTML page, and the atomic publish of the reports folder."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import pcfbench
+from conftest import write_tiny_kitti
+from pcfbench import figures, tables
+from pcfbench.data import Forecast
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import Method, options_hash, parse_options
+from pcfbench.plugins import load_plugins
+from pcfbench.report import ReportOptions, collect, write_reports
+from pcfbench.runner import run_cell
+from pcfbench.store import Cell, CellSpec
+
+METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
+
+
+class Shifted(Method):
+    """The last past sweep moved by ``dx`` metres along x."""
+
+    name = "shifted"
+
+    @dataclasses.dataclass(frozen=True)
+    class Options:
+        dx: float = pcfbench.option(0.0, help="shift along x (m)")
+
+    def forecast(self, sample):
+        last = sample.past_points_ref[-1] + np.array([self.options.dx, 0, 0], dtype=np.float32)
+        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
+
+
+def _plugins():
+    plugins = load_plugins()
+    if "shifted" not in plugins.methods:
+        plugins.methods.add("shifted", Shifted, "test")
+    return plugins
+
+
+def _spec(root, method="copy-last", raw=None):
+    opts = parse_options(_plugins().methods.get(method).Options, raw or {}, method)
+    return CellSpec(method, dict(raw or {}), options_hash(opts), "kitti", str(root), "test", "kitti-1s",
+                    "full-context", None, METRICS)
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """A store of copy-last and shifted by 0.5 m and 1.5 m, and its reports."""
+    tmp = tmp_path_factory.mktemp("figs")
+    root = write_tiny_kitti(tmp / "kitti")
+    store = tmp / "store"
+    for method, raw in [("copy-last", None), ("shifted", {"dx": "0.5"}), ("shifted", {"dx": "1.5"})]:
+        run_cell(_spec(root, method, raw), store, plugins=_plugins(), progress=False)
+    out = tmp / "rep"
+    paths = write_reports(store, out, plugins=_plugins())
+    return store, out, paths
+
+
+def test_every_kind_of_figure_is_written_as_png_and_svg_with_labelled_axes(made):
+    import matplotlib.image
+
+    _, out, paths = made
+    for kind in ("horizon", "range", "gallery"):
+        stem = f"{kind}-kitti_test_kitti-1s"
+        png, svg = out / "figures" / f"{stem}.png", out / "figures" / f"{stem}.svg"
+        assert paths[f"figures/{stem}.png"] == png and paths[f"figures/{stem}.svg"] == svg
+        assert matplotlib.image.imread(png).shape[0] > 200
+        text = svg.read_text()
+        assert text.startswith("<?xml") and "</svg>" in text
+    # every axis says its unit (SVG text is kept as text: svg.fonttype 'path' stores glyphs, so check the figure objects)
+    lb = collect(made[0])
+    t = tables.build(lb, tables.get_preset("paper", tables.load_presets()))
+    fig = figures.horizon_figure(lb.by_step, t.columns, "x")
+    for ax in fig.axes:
+        if ax.get_visible():
+            assert ax.get_xlabel() == "forecast time after t=0 (s)"
+            assert ax.get_ylabel().endswith(("(m)", "(%)", "(m$^{2}$)")), ax.get_ylabel()
+
+
+def test_horizon_lines_and_bands_are_the_per_step_means_and_intervals(made):
+    store = made[0]
+    lb = collect(store)
+    t = tables.build(lb, tables.get_preset("paper", tables.load_presets()))
+    fig = figures.horizon_figure(lb.by_step, t.columns, "x")
+    ax = fig.axes[[c.metric for c in t.columns].index("l1_mean")]
+    steps = lb.by_step[lb.by_step["variant"] == "shifted (dx=1.5)"].sort_values("time_s")
+    line = next(ln for ln in ax.lines if ln.get_label() == "shifted (dx=1.5)")
+    np.testing.assert_array_equal(line.get_xdata(), [0.2, 0.4, 0.6, 0.8, 1.0])
+    np.testing.assert_array_equal(line.get_ydata(), steps["l1_mean"].to_numpy())
+    # the band: the collection drawn with the line spans [lo, hi] of each step
+    band = ax.collections[[ln.get_label() for ln in ax.lines].index("shifted (dx=1.5)")]
+    ys = band.get_paths()[0].vertices[:, 1]
+    assert ys.min() == pytest.approx(steps["l1_mean_lo"].min()) and ys.max() == pytest.approx(steps["l1_mean_hi"].max())
+
+
+def test_range_bins_pool_exactly_the_errors_the_stored_l1_and_absrel_average(made):
+    """A bin's count-weighted mean over one re-run sweep gives back that sweep's stored l1_mean
+    and absrel_mean; bins are [10 k, 10 (k+1)) m of the ground-truth range."""
+    store = made[0]
+    lb = collect(store)
+    cells = lb.table[lb.table["variant"] == "shifted (dx=0.5)"]
+    rows = Cell(store, _stub(cells.iloc[0]["cell_dir"])).read_rows()
+    sid = rows["sample_id"].iloc[0]
+    run = figures.rerun(store, cells, [sid], _plugins())
+    assert run.mismatch == []
+    for sweep in run.errors["shifted (dx=0.5)"][sid]:
+        prof = figures.range_profile([sweep])
+        stored = rows[(rows.sample_id == sid) & (rows.step == sweep.step)].iloc[0]
+        n = prof["rays"].to_numpy()
+        assert (prof["hi_m"] - prof["lo_m"] == 10).all() and n.sum() == sweep.ray_l1_m.size
+        assert np.sum(prof["l1_mean"] * n) / n.sum() == pytest.approx(stored["l1_mean"], rel=1e-12)
+        assert np.sum(prof["absrel_mean"] * n) / n.sum() == pytest.approx(stored["absrel_mean"], rel=1e-12)
+        lo = prof["lo_m"].to_numpy()
+        for k in range(len(prof)):
+            inside = (sweep.ray_range_m >= lo[k]) & (sweep.ray_range_m < lo[k] + 10)
+            assert inside.sum() == n[k]
+
+
+def test_per_point_error_is_the_distance_to_the_nearest_ground_truth_point():
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(-20, 20, (300, 3)).astype(np.float32)
+    pred = rng.uniform(-20, 20, (200, 3)).astype(np.float32)
+    from pcfbench.data import RayQuery
+
+    dirs = gt / np.linalg.norm(gt, axis=1, keepdims=True)
+    e = figures.sweep_errors(0, gt, RayQuery(np.zeros(3), dirs.astype(np.float32)), pred, None)
+    brute = np.sqrt(((pred[:, None, :].astype(np.float64) - gt[None].astype(np.float64)) ** 2).sum(-1)).min(1)
+    np.testing.assert_allclose(e.pred_error_m, brute, rtol=1e-6, atol=1e-6)
+
+
+def test_bev_grid_cells_hold_the_mean_error_of_their_points():
+    pts = np.array([[0.1, 0.1, 0], [0.9, 0.2, 5], [-1.5, 1.5, 0], [9.0, 0, 0], [1.2, -1.9, 0]], np.float32)
+    err = np.array([1.0, 3.0, 7.0, 100.0, 4.0])
+    g = figures.bev_grid(pts, err, 2.0, 2)  # 2 m cells over [-2, 2]^2; row 0 is +y
+    np.testing.assert_array_equal(g, [[7.0, 2.0], [np.nan, 4.0]])  # (9, 0) is outside
+    np.testing.assert_array_equal(figures.bev_grid(pts, None, 2.0, 2), [[1, 2], [0, 1]])
+
+
+def test_chosen_samples_are_the_median_and_the_worst():
+    rows = pd.DataFrame({"sample_id": list("abcde") * 2, "step": [0] * 5 + [1] * 5, "status": "ok",
+                         "chamfer_nf": [5, 1, 3, 9, 2, 5, 1, 3, 9, 2]})
+    assert figures.choose_samples(rows, "chamfer_nf", 2) == ["c", "d"]  # ranked b e c a d
+    assert figures.choose_samples(rows, "chamfer_nf", 3) == ["b", "c", "d"]
+    assert figures.choose_samples(rows, "chamfer_nf", 1) == ["c"]
+
+
+def test_gallery_colours_each_forecast_by_its_per_point_error(made):
+    store = made[0]
+    lb = collect(store)
+    g = lb.table
+    sid = Cell(store, _stub(g.iloc[0]["cell_dir"])).read_rows()["sample_id"].iloc[0]
+    run = figures.rerun(store, g, [sid], _plugins())
+    fig = figures.gallery_figure(run, "t", "t = +1 s")
+    panels = [ax for ax in fig.axes if ax.get_title().endswith("forecast, t = +1 s")]
+    assert len(panels) == 3
+    for ax in panels:
+        variant = ax.get_title().split("\n")[0]
+        e = run.errors[variant][sid][-1]
+        shown = np.ma.filled(ax.images[0].get_array().astype(float), np.nan)
+        np.testing.assert_array_equal(shown, figures.bev_grid(e.pred_points, e.pred_error_m, 50.0, 250))
+        assert ax.get_xlabel() == "x, reference frame (m)"
+    assert any(ax.get_ylabel() == "forecast point to nearest ground-truth point (m)" for ax in fig.axes)
+
+
+def test_ablation_figure_plots_the_metric_against_the_option_value(made, tmp_path):
+    store = made[0]
+    lb = collect(store)
+    t = tables.build(lb, tables.get_preset("roi", tables.load_presets()))
+    paths = figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins())
+    assert set(paths) == {"ablation-exp_shifted_dx.png", "ablation-exp_shifted_dx.svg"}
+    g = lb.table[lb.table["method"] == "shifted"].sort_values("option.dx")
+    fig = figures._ablation_figure(g, "option.dx", [], t.columns, "shifted", {"dx": "m"})
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "shifted option dx (m)"
+    line = ax.lines[0]
+    np.testing.assert_array_equal(line.get_xdata(), [0.5, 1.5])
+    np.testing.assert_array_equal(line.get_ydata(), g[t.columns[0].metric].to_numpy())
+    units = figures._method_units("raycast-voxel")  # "voxel edge of the occupancy grid, metres"
+    assert units["voxel"] == "m" and "cone_factor" not in units  # "(0: thin rays)" is no unit
+
+
+def test_html_page_is_self_contained_with_figures_sortable_rows_and_provenance(made):
+    _, out, paths = made
+    page = paths["html"].read_text()
+    assert "http://" not in page and "https://" not in page and "<link" not in page and "src='http" not in page
+    assert page.count("<img") == 3 and page.count("src='data:image/png;base64,") == 3
+    assert page.count("<tr class='cell'") == 3 and "table class='pcf sortable'" in page
+    for key in ("harness", "protocol", "git commit", "dataset fingerprint", "checkpoint sha256", "date"):
+        assert f"<th>{key}</th>" in page
+    assert page.count("<tr id='cell-") == 3
+    assert pcfbench.__version__ in page
+
+
+def test_report_publishes_atomically_and_refuses_a_file_as_folder(made, tmp_path, monkeypatch):
+    store = made[0]
+    out = tmp_path / "rep"
+    write_reports(store, out, ReportOptions(figures=False))
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    # killed half way through the rendering: nothing in place changed, the staging folder is dropped
+    import pcfbench.htmlreport as hr
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(hr, "page", boom)
+    with pytest.raises(KeyboardInterrupt):
+        write_reports(store, out, ReportOptions(figures=False, ci="interval"))
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert not list(out.glob(".report-*"))
+    monkeypatch.undo()
+    # a staging folder left by a killed process (a pid that is gone) is removed by the next report
+    stale = out / ".report-999999999.tmp"
+    stale.mkdir()
+    (stale / "leaderboard.md").write_text("half")
+    write_reports(store, out, ReportOptions(figures=False))
+    assert not stale.exists()
+    # a file where the folder should be: one error naming it
+    f = tmp_path / "afile"
+    f.write_text("x")
+    with pytest.raises(PcfbenchError, match=r"afile is a file, not a folder"):
+        write_reports(store, f, ReportOptions(figures=False))
+    with pytest.raises(PcfbenchError, match=r"afile is a file, not a folder"):
+        write_reports(store, f / "sub", ReportOptions(figures=False))
+    assert f.read_text() == "x"
+
+
+def _stub(cell_dir):
+    return figures._spec_stub(Path(cell_dir))
