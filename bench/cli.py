@@ -159,7 +159,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     in worker processes: one that crashes or exceeds ``--timeout`` is a failed sample."""
     from pcfbench.report import write_reports
     from pcfbench.runner import default_metrics, run_cell
-    from pcfbench.store import Cell, CellSpec
+    from pcfbench.store import Cell, CellLocked, CellSpec
 
     plugins = get_plugins()
     warn_failed(plugins)
@@ -185,10 +185,21 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
                          metric_names, **checkpoints.get(method.name, {}))
             )
     failures = failed_cells = 0
-    for spec in cells:
-        result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins, threads=threads,
-                          allow_train_split=allow_train_split, executor=ray_executor, timeout=timeout or None,
-                          isolate=True)
+    # A cell that another run is computing (it holds the cell's lock) goes last and is then
+    # waited for: its rows are the other run's, computed once (docs/trust.md).
+    queue = [(spec, False) for spec in cells]
+    while queue:
+        spec, wait = queue.pop(0)
+        if wait:
+            click.echo(f"{spec.label}: waiting for the other pcfbench process computing it", err=True)
+        try:
+            result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins,
+                              threads=threads, allow_train_split=allow_train_split, executor=ray_executor,
+                              timeout=timeout or None, isolate=True, wait=wait)
+        except CellLocked:
+            click.echo(f"{spec.label}: another pcfbench process is computing it; doing the other cells first", err=True)
+            queue.append((spec, True))
+            continue
         if result.processed == 0 and result.done_before == result.samples:
             click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
         else:

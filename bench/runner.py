@@ -247,6 +247,7 @@ def run_cell(
     executor: Any = None,
     timeout: float | None = None,
     isolate: bool | None = None,
+    wait: bool = True,
 ) -> CellResult:
     """Run (or resume) one cell. Returns at once if the cell is already complete.
 
@@ -264,6 +265,9 @@ def run_cell(
     worker process; a pool (``jobs`` > 1) always does. There a sample whose worker crashes
     (a native crash, ``os._exit``) or runs past ``timeout`` seconds is recorded failed and
     the cell goes on (``pcfbench.workers``). Unisolated, the method runs in this process.
+
+    A cell another process is computing (it holds the cell's lock) is waited for (``wait``),
+    or refused at once with ``pcfbench.store.CellLocked``.
     """
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0 and timeout == timeout):
         raise PcfbenchError(f"the per-sample time limit must be a number of seconds > 0, not {timeout!r}")
@@ -283,12 +287,11 @@ def run_cell(
     ids = [f"{s}/{i:06d}" for s, i in keys]
     id_hash = ids_hash(ids)
     fingerprint = res.builder.adapter.fingerprint(spec.split)
-    cell = Cell(store_root, spec)
+    cell = Cell(store_root, spec, wait=wait)
     with cell:
-        meta = cell.read_meta()
-        if force and meta is not None:
+        if force:  # whatever is there, a cut-short cell.json or a damaged chunk included
             cell.clear()
-            meta = None
+        meta = cell.read_meta()
         identity = {
             "method_version": res.method.version,
             "dataset_version": res.builder.adapter.version,

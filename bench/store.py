@@ -21,6 +21,7 @@ that runs twice (a retry) replaces its file instead of adding one.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
@@ -37,6 +38,8 @@ import pyarrow.parquet as pq
 from pcfbench.errors import PcfbenchError
 
 CELL_FILE = "cell.json"
+#: what every cell.json names (its CellSpec) and what every chunk of rows has
+SPEC_KEYS = ("method", "options", "options_hash", "dataset", "split", "setting")
 ROWS_DIR = "rows"
 #: Columns every row has besides the metric values.
 KEY_COLUMNS = ("sample_id", "step", "status")
@@ -88,11 +91,80 @@ def atomic_write_bytes(path: Path, data: bytes, unique: bool = False) -> None:
     one shared filesystem may have the same process id)."""
     tag = f"{os.getpid()}.{uuid.uuid4().hex}" if unique else str(os.getpid())
     tmp = path.with_name(f".{path.name}.{tag}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise write_error(path, exc) from None
+
+
+def write_error(path: Path, exc: OSError) -> PcfbenchError:
+    """One line for a failed write into the store: which file, why, and what to do."""
+    why = exc.strerror or str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return PcfbenchError(f"cannot write {path}: no space left on the device ({why}); free some space or pass "
+                             "another --store ($PCFBENCH_STORE), then rerun: the run resumes from the rows already written")
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return PcfbenchError(f"cannot write {path}: the results store is not writable ({why}); pass a writable "
+                             "--store ($PCFBENCH_STORE), or make it writable")
+    return PcfbenchError(f"cannot write {path}: {why}")
+
+
+def _mkdir(d: Path) -> None:
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise write_error(d, exc) from None
+
+
+class CellLocked(PcfbenchError):
+    """Another process holds the cell's lock (it is computing the cell)."""
+
+
+def _read_chunk(path: Path, columns: list[str] | None = None) -> pa.Table:
+    """One chunk of rows; a damaged or foreign file is one error naming it and the fix."""
+    fix = ("delete that file and rerun the cell (only its samples are recomputed), or rerun it with --force")
+    try:
+        table = pq.read_table(path, columns=columns)
+    except (pa.ArrowException, OSError) as exc:
+        raise PcfbenchError(f"rows file {path} is damaged or cut short ({exc}); {fix}") from None
+    missing = [c for c in (columns or KEY_COLUMNS) if c not in table.column_names]
+    if missing:
+        raise PcfbenchError(f"rows file {path} has no column {', '.join(missing)}: it is not a pcfbench chunk; {fix}")
+    return table
+
+
+def check_meta(path: Path, meta: Any) -> dict[str, Any]:
+    """``meta`` (read from the cell.json ``path``) if it has what every cell.json has, else
+    one error naming the file: a cut-short or edited cell.json must not drop its cell unseen."""
+    spec = meta.get("spec") if isinstance(meta, dict) else None
+    missing = [k for k in SPEC_KEYS if not isinstance(spec, dict) or k not in spec]
+    if not isinstance(meta, dict) or missing or not isinstance(meta.get("status"), str):
+        what = "not a JSON object" if not isinstance(meta, dict) else (
+            f"spec without {', '.join(missing)}" if missing else "no status")
+        raise PcfbenchError(f"{path} is not a complete cell.json ({what}): delete the folder {path.parent} "
+                            "or rerun its cell with --force")
+    return meta
+
+
+def read_cell_json(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise PcfbenchError(f"cannot read {path}: {exc.strerror or exc}") from None
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise PcfbenchError(f"{path} is not valid JSON ({exc}; {len(text)} bytes, cut short?): delete the folder "
+                            f"{path.parent} or rerun its cell with --force") from None
+    return check_meta(path, meta)
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
@@ -102,20 +174,25 @@ def atomic_write_json(path: Path, obj: Any) -> None:
 class Cell:
     """One cell's folder. Use as a context manager to hold its lock while writing."""
 
-    def __init__(self, root: Path, spec: CellSpec) -> None:
+    def __init__(self, root: Path, spec: CellSpec, wait: bool = False) -> None:
         self.spec = spec
         self.dir = Path(root) / spec.relpath()
+        #: when another process holds the lock: wait for it (True) or raise CellLocked
+        self.wait = wait
         self._lock_fh = None
 
     # -- locking ------------------------------------------------------------------------
     def __enter__(self) -> "Cell":
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self._lock_fh = open(self.dir / ".lock", "w")
         try:
-            fcntl.flock(self._lock_fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            self.dir.mkdir(parents=True, exist_ok=True)
+            self._lock_fh = open(self.dir / ".lock", "w")
+        except OSError as exc:
+            raise write_error(self.dir / ".lock", exc) from None
+        try:
+            fcntl.flock(self._lock_fh, fcntl.LOCK_EX if self.wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             self._lock_fh.close()
-            raise PcfbenchError(f"cell {self.dir} is being written by another pcfbench process") from None
+            raise CellLocked(f"cell {self.dir} is being computed by another pcfbench process") from None
         for stale in self.dir.rglob(".*.tmp"):
             stale.unlink(missing_ok=True)  # left by a killed writer; never read
         return self
@@ -131,13 +208,10 @@ class Cell:
         path = self.dir / CELL_FILE
         if not path.is_file():
             return None
-        try:
-            return json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise PcfbenchError(f"{path} is not valid JSON ({exc}); delete the cell or rerun with --force") from None
+        return read_cell_json(path)
 
     def write_meta(self, meta: dict[str, Any]) -> None:
-        self.dir.mkdir(parents=True, exist_ok=True)
+        _mkdir(self.dir)
         atomic_write_json(self.dir / CELL_FILE, meta)
 
     def clear(self) -> None:
@@ -155,7 +229,7 @@ class Cell:
     def append_rows(self, rows: list[dict[str, Any]]) -> Path:
         """Write one chunk atomically; its sample ids are then done for good."""
         d = self.dir / ROWS_DIR
-        d.mkdir(parents=True, exist_ok=True)
+        _mkdir(d)
         existing = sorted(d.glob("chunk-*.parquet"))
         index = int(existing[-1].stem.split("-")[1]) + 1 if existing else 0
         path = d / f"chunk-{index:06d}.parquet"
@@ -167,13 +241,13 @@ class Cell:
         paths = self.chunk_paths()
         if not paths:
             return pd.DataFrame(columns=list(KEY_COLUMNS))
-        df = pd.concat([pq.read_table(p).to_pandas() for p in paths], ignore_index=True)
+        df = pd.concat([_read_chunk(p).to_pandas() for p in paths], ignore_index=True)
         return df.drop_duplicates(subset=["sample_id", "step"], keep="first").reset_index(drop=True)
 
     def done_ids(self) -> set[str]:
         ids: set[str] = set()
         for p in self.chunk_paths():
-            ids.update(pq.read_table(p, columns=["sample_id"]).column("sample_id").to_pylist())
+            ids.update(_read_chunk(p, ["sample_id"]).column("sample_id").to_pylist())
         return ids
 
 
@@ -206,10 +280,7 @@ def iter_cells(root: Path) -> Iterator[tuple[Path, dict[str, Any]]]:
     if not root.is_dir():
         return
     for meta_path in sorted(root.rglob(CELL_FILE)):
-        try:
-            yield meta_path.parent, json.loads(meta_path.read_text())
-        except json.JSONDecodeError:
-            continue
+        yield meta_path.parent, read_cell_json(meta_path)
 
 
 #: Identity fields of cells written since the protocol became versioned data. A cell.json

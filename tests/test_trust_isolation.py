@@ -76,11 +76,10 @@ def _rows(store, root, method):
     return Cell(store, _spec(root, method)).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
 
 
-@pytest.mark.parametrize("method, error", [
-    ("exits", "SampleCrash: sample 08/000008: its worker process died with exit code 3"),
-    ("segfaults", "SampleCrash: sample 08/000008: its worker process died with signal SIGSEGV"),
+@pytest.mark.parametrize("method, jobs, error", [
+    ("exits", 1, "SampleCrash: sample 08/000008: its worker process died with exit code 3"),
+    ("segfaults", 2, "SampleCrash: sample 08/000008: its worker process died with signal SIGSEGV"),
 ])
-@pytest.mark.parametrize("jobs", [1, 2])
 def test_a_crashing_sample_is_one_failure_and_the_cell_completes(tiny_kitti, tmp_path, method, error, jobs):
     p = plugins()
     run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "ref", plugins=p, progress=False)
