@@ -529,8 +529,9 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
 def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[CellSpec],
                     cell_dirs: list[Path]) -> tuple[dict[str, Path], list[str]]:
     """Render every table of ``exp`` from the sweep's ``cells`` (in the store at ``cell_dirs``) and write
-    ``reports/sweeps/<stem>.{md,csv,tex,html}``; returns the paths (``"<stem>.<ext>"``) and
-    each table as terminal text.
+    ``reports/sweeps/<stem>.{md,csv,tex,html}`` and its ablation figures (metric vs option
+    value, ``reports/figures/ablation-<stem>_*``); returns the paths (``"<stem>.<ext>"``,
+    ``"figures/<name>"``) and each table as terminal text.
     Everything is rendered in memory first, then each file is written atomically."""
     from pcfbench import report, tables
 
@@ -539,6 +540,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
     order = list(dict.fromkeys(labels.values()))
     contents: dict[str, str] = {}
     summaries = []
+    figure_paths: dict[str, Path] = {}
     for t in exp.tables:
         lb = report.collect(store, reference=t.reference.method.name, cells=cell_dirs,
                             reference_options_hash=t.reference.method.options_hash)
@@ -557,12 +559,16 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
         contents[f"{t.stem}.html"] = tables.html_page(table)
         contents[f"{t.stem}.csv"] = _csv(lb, order).to_csv(index=False)
         summaries.append(f"{table.heading}: {preset.title}\n{tables.text(table)}")
+        from pcfbench.figures import FIGURES_DIR, ablation_figures  # metric vs option value
+
+        figure_paths.update(ablation_figures(lb, table.columns, Path(reports) / FIGURES_DIR, t.stem))
     out = Path(reports) / SWEEPS_DIR
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
     for name, text in contents.items():
         atomic_write_bytes(out / name, text.encode())
         paths[name] = out / name
+    paths.update({f"figures/{k}": p for k, p in figure_paths.items()})
     return paths, summaries
 
 
