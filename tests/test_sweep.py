@@ -84,6 +84,9 @@ def test_example_experiment_writes_the_ablation_table_and_a_rerun_does_no_work(t
     tex = (out / "raycast-voxel-size.tex").read_text()
     assert r"\label{tab:pcfbench-raycast-voxel-size}" in tex and tex.isascii()
     assert "<h1>pcfbench ablation: Ray casting: voxel size" in (out / "raycast-voxel-size.html").read_text()
+    # the ablation figure: each column against the voxel size (m), a line per setting
+    assert sorted(p.name for p in (reports / "figures").iterdir()) == [
+        f"ablation-raycast-voxel-size_raycast-voxel_voxel.{e}" for e in ("png", "svg")]
 
     # the numbers: flat means of each cell's rows, and the change against copy-last's row
     cells = plan(load_experiment(RAYCAST), limit=2)
