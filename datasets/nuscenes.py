@@ -77,6 +77,16 @@ def _pose(record: dict, table_path: Path) -> np.ndarray:
     return T
 
 
+def _timestamp_us(sd: dict, path: Path, scene: str) -> int:
+    """A sample_data record's ``timestamp``: whole microseconds (a JSON integer), else one
+    error naming the record's token."""
+    ts = sd.get("timestamp")
+    if isinstance(ts, bool) or not isinstance(ts, int) or ts < 0:
+        raise DataError(f"nuScenes table {path}: sample_data {sd.get('token')} (scene {scene}) has timestamp {ts!r}, "
+                        "not a non-negative integer number of microseconds")
+    return ts
+
+
 @dataclass(frozen=True)
 class NuScenesOptions:
     """Root options of ``nuscenes`` (``ROOT?version=v1.0-mini``)."""
@@ -206,7 +216,7 @@ class NuScenes(DatasetAdapter):
             if ego is None:
                 raise DataError(f"nuScenes table {self._path('ego_pose')} has no token {sd.get('ego_pose_token')} (ego pose of sample_data {sd['token']})")
             poses.append(_pose(ego, self._path("ego_pose")) @ _pose(cs, self._path("calibrated_sensor")))
-            stamps.append(int(sd["timestamp"]) * 1000)
+            stamps.append(_timestamp_us(sd, self._path("sample_data"), name) * 1000)
             files.append(self.root / sd["filename"])
         ts = np.asarray(stamps, dtype=np.int64)
         bad = np.flatnonzero(np.diff(ts) <= 0)

@@ -4,6 +4,7 @@ project's own writers, then broken the way the issue found it broken."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -165,6 +166,43 @@ def test_nuscenes_zero_length_pcd_bin_is_an_error(tmp_path):
         read_pcd_bin(files[2])
     code, out = _check(root, "nuscenes")
     assert code == 1 and "is empty (0 bytes)" in out
+
+
+@pytest.mark.parametrize("bad", ["1531000000500000", 1531000000500000.5, None, True, -5])
+def test_nuscenes_timestamp_that_is_not_an_integer_is_an_error_naming_the_token(tmp_path, bad):
+    pts, poses, times = toy_world_sweeps(6, beams=8, azimuths=90, rate_hz=2.0)
+    seq = SequenceData.from_arrays("scene-0003", "val", pts, poses,
+                                   1_531_000_000_000_000_000 + np.round(times * 1e9).astype(np.int64))
+    root = tmp_path / "nu"
+    write_nuscenes(root, [seq], version="v1.0-trainval")
+    table = root / "v1.0-trainval" / "sample_data.json"
+    records = json.loads(table.read_text())
+    records[2]["timestamp"] = bad
+    table.write_text(json.dumps(records))
+    token = records[2]["token"]
+    with pytest.raises(DataError, match=rf"^nuScenes table {re.escape(str(table))}: sample_data {token} \(scene "
+                                        rf"scene-0003\) has timestamp {re.escape(repr(bad))}, not a non-negative integer"):
+        NuScenes(root).sequence("scene-0003")
+    code, out = _check(root, "nuscenes")
+    assert code == 1 and f"sample_data {token} (scene scene-0003) has timestamp" in out
+
+
+def test_nuscenes_timestamps_out_of_order_are_an_error_naming_the_token(tmp_path):
+    pts, poses, times = toy_world_sweeps(6, beams=8, azimuths=90, rate_hz=2.0)
+    seq = SequenceData.from_arrays("scene-0003", "val", pts, poses,
+                                   1_531_000_000_000_000_000 + np.round(times * 1e9).astype(np.int64))
+    root = tmp_path / "nu"
+    write_nuscenes(root, [seq], version="v1.0-trainval")
+    table = root / "v1.0-trainval" / "sample_data.json"
+    records = json.loads(table.read_text())
+    records[3]["timestamp"] = records[1]["timestamp"]  # keyframe 3 goes back in time
+    table.write_text(json.dumps(records))
+    sample = records[3]["sample_token"]
+    with pytest.raises(DataError, match=rf"scene scene-0003 keyframe {sample} has timestamp \d+ us, not after the "
+                                        r"previous keyframe's \d+ us"):
+        NuScenes(root).sequence("scene-0003")
+    code, out = _check(root, "nuscenes")
+    assert code == 1 and f"keyframe {sample} has timestamp" in out
 
 
 # -- Argoverse 2 -----------------------------------------------------------------------------
