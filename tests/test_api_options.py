@@ -26,6 +26,8 @@ GOLDEN_DEFAULT_HASHES = {
     "raycast-voxel": "763a55d0fdf6",
     "raycast-freespace": "151fcdf81cab",
     "copilot4d-token-copy": "16ac8cfeea92",  # new with the trained-method contract (issue 13)
+    "copilot4d": "52667c34e222",  # new with the world model (issue 14)
+    "copilot4d-maskgit": "52667c34e222",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {

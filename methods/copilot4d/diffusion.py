@@ -241,7 +241,7 @@ def _gumbel(shape, generator, device) -> torch.Tensor:
 def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Tensor, *,
                  steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                  revise: bool = True, generator: torch.Generator | None = None,
-                 cache: bool = True, trace: list | None = None) -> torch.Tensor:
+                 cache: bool = True, trace: list | None = None, first_position: int = 0) -> torch.Tensor:
     """Algorithm 2: decode the frame after ``context`` (B, Tc, H, W) clean codes, given the
     poses ``T_ref_sensor`` (B, Tc + 1, 4, 4) of the context frames and of the new frame.
 
@@ -252,7 +252,9 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
     the new x~0 (re-sampled), without it (MaskGIT) they keep their value. Returns (B, H, W)
     codes; ``trace``, if a list, receives x_k (B, H, W) after each step.
 
-    The context frames take temporal positions 0 .. Tc-1. With ``cache`` they run through the
+    The context frames take temporal positions ``first_position`` .. ``first_position`` + Tc - 1
+    and the new frame the next one (a context shorter than training's keeps the new frame at
+    the position it had in training). With ``cache`` they run through the
     network once and each step passes only the new frame (and its unconditional copy),
     attending to their cached temporal keys and values: the same logits, ~(Tc + 2) / 2 times
     less work per step.
@@ -265,15 +267,17 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
                          "the context frames' poses and the new frame's")
     dev, N, mask_id = context.device, H * W, model.mask_token
     x = torch.full((B, N), mask_id, dtype=torch.long, device=dev)
+    positions = torch.arange(first_position, first_position + Tc + 1, device=dev)
     past_kv = None
     if cache:
-        _, past_kv = model(context, T_ref_sensor[:, :Tc], causal_mask(Tc, dev), return_kv=True)
+        _, past_kv = model(context, T_ref_sensor[:, :Tc], causal_mask(Tc, dev), positions[:Tc], return_kv=True)
     for k in range(steps - 1, -1, -1):
         if cache:
-            logits = guided_logits(model, x.view(B, 1, H, W), T_ref_sensor[:, Tc:], guidance, past_kv=past_kv)
+            logits = guided_logits(model, x.view(B, 1, H, W), T_ref_sensor[:, Tc:], guidance, positions[Tc:],
+                                   past_kv=past_kv)
         else:
             seq = torch.cat([context, x.view(B, 1, H, W)], 1)
-            logits = guided_logits(model, seq, T_ref_sensor, guidance)
+            logits = guided_logits(model, seq, T_ref_sensor, guidance, positions)
         logits = logits.reshape(B, N, -1)
         top_val, top_idx = logits.topk(min(top_k, logits.shape[-1]), dim=-1)
         pick = (top_val + _gumbel(top_val.shape, generator, dev)).argmax(-1, keepdim=True)

@@ -1,6 +1,7 @@
 """Copilot4D as a plugin (the ``builtin-copilot4d`` entry point): the token-copy baseline
 ``copilot4d-token-copy`` (a trained method: ``pcfbench train copilot4d-token-copy --dataset
-NAME``), and the tokenizer's commands ``pcfbench tokenize`` (cache BEV token maps for the
+NAME``), the world model ``copilot4d`` and its MaskGIT variant ``copilot4d-maskgit``
+(trained methods on top of that tokenizer's checkpoint), and the tokenizer's commands ``pcfbench tokenize`` (cache BEV token maps for the
 world model) and ``pcfbench tokenizer-report`` (Table 7's reconstruction numbers), which take
 the trained checkpoint the way ``pcfbench run`` does (``--train-on`` or ``--checkpoint``)."""
 
@@ -19,6 +20,10 @@ TOKENIZER = "copilot4d-token-copy"
 def register_methods(register):  # noqa: ANN001
     register(TOKENIZER, "pcfbench.methods.copilot4d.token_copy:TokenCopy",
              "Copilot4D tokenizer decoding the t=0 sweep's tokens from every future pose (trained)")
+    register("copilot4d", "pcfbench.methods.copilot4d.forecaster:Copilot4D",
+             "Copilot4D world model: tokenizer + discrete diffusion with guidance, autoregressive (trained)")
+    register("copilot4d-maskgit", "pcfbench.methods.copilot4d.forecaster:Copilot4DMaskGIT",
+             "Copilot4D world model trained and sampled as MaskGIT (Table 4's ablation; trained)")
 
 
 def _tokenizer(method: str, train_on: str | None, train_split: str, checkpoint: str | None):

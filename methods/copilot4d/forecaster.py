@@ -1,0 +1,486 @@
+"""The Copilot4D world model as two trained methods: ``copilot4d`` (absorbing-uniform discrete
+diffusion, Algorithms 1 and 2) and ``copilot4d-maskgit`` (the same network and tokenizer
+trained and sampled as MaskGIT). One class; the :class:`~.diffusion.Variant` is the only
+difference.
+
+**The common frame.** Every sweep of a window is tokenized in the sensor frame of its t=0
+sweep (the last past frame, the harness's reference sweep): past and future token maps of one
+window share that frame, so a static world has the same tokens in every frame and the world
+model only has to learn what moves. The actions are each frame's 4x4 sensor pose in that
+same t=0 sensor frame (``inv(T_ref_s0) @ T_ref_sensor_k``; identity at t=0). A predicted
+future token map is decoded by the tokenizer and rendered along the future sweep's query rays
+from the future sensor origin expressed in the t=0 sensor frame (expected depth with spatial
+skipping, :func:`~.evaluate.render_codes`, as the token-copy baseline renders the t=0 tokens).
+
+**Training** (``fit``): the ``copilot4d-token-copy`` checkpoint of the same configuration
+trained on the same data tokenizes every training window once (cached under
+``<cache>/copilot4d/world-windows/<tokenizer sha256[:16]>/...``); the world model then trains
+with Algorithm 1 (mixture of objectives) through the :class:`~pcfbench.training.TrainingRun`
+(periodic checkpoints, exact resume). The checkpoint holds the world model's weights and the
+tokenizer's (prefixes ``world.`` and ``tokenizer.``) and its manifest records the tokenizer's
+checkpoint sha256 and a digest of its tensors, which ``load`` checks.
+
+**Forecast**: Algorithm 2 one future frame at a time (``sampling_steps`` K, guidance weight
+``cfg_weight``), seeded by the sample id and ``seed``, so a forecast is reproducible.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pcfbench.data import Forecast, Sample
+from pcfbench.errors import PcfbenchError
+from pcfbench.options import option
+from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
+
+TOKENIZER_METHOD = "copilot4d-token-copy"
+#: options that change only how a trained checkpoint forecasts, never its weights
+INFERENCE_OPTIONS = ("cfg_weight", "sampling_steps", "seed", "threshold")
+CHECKPOINT_EVERY = 100
+LOG_EVERY = 10
+
+
+@dataclass(frozen=True)
+class WorldOptions:
+    config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale) or paper (A.2.2 sizes)")
+    cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
+                               min=0)
+    sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
+    seed: int = option(0, help="sampler seed, combined with the sample id (training uses seed 0)")
+    threshold: float = option(0.5, help="spatial skipping: coarse-voxel probability threshold when rendering",
+                              gt=0, lt=1)
+    steps: int = option(0, help="training steps (0: the configuration's max_steps)", min=0)
+    tokenizer_steps: int = option(0, help="the copilot4d-token-copy checkpoint used: its steps option "
+                                          "(0: its default)", min=0)
+    strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames, one "
+                                                   "stride drawn per window (kitti-1s uses 2, kitti-3s 6)", min=1)
+    anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
+
+
+def sample_seed(sample_id: str, seed: int) -> int:
+    return int.from_bytes(hashlib.sha256(f"{sample_id}#{seed}".encode()).digest()[:8], "little")
+
+
+def tensor_digest(state: dict) -> str:
+    """sha256 over the names, shapes and values of a state dict's tensors, floating-point ones
+    rounded to float16 (so the fp16 copy of float32 weights has the digest of the original)."""
+    import torch
+
+    h = hashlib.sha256()
+    for k in sorted(state):
+        t = state[k].detach().cpu()
+        if t.is_floating_point():
+            t = t.half().float()
+        h.update(f"{k}|{tuple(t.shape)}|{t.dtype}|".encode())
+        h.update(t.contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def relative_poses(T_ref_s0: np.ndarray, T_ref_sensor: np.ndarray) -> np.ndarray:
+    """Poses (..., 4, 4) of ``T_ref_sensor`` in the sensor frame of ``T_ref_s0``."""
+    return np.linalg.inv(T_ref_s0) @ T_ref_sensor
+
+
+def transform(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    return (points.astype(np.float64) @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- training windows
+def window_cache_dir(tokenizer_sha: str, train_on_key: str) -> Path:
+    from pcfbench.config import cache_dir
+
+    return cache_dir() / "copilot4d" / "world-windows" / tokenizer_sha[:16] / train_on_key
+
+
+def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, strides: tuple[int, ...],
+                  anchor_every: int, cache: Path | None, log=print) -> dict[str, np.ndarray]:
+    """Token maps of every training window: ``tokens`` (A, T, H, W) int16, ``poses`` (A, T, 4, 4)
+    float32 (each frame's sensor pose in the window's t=0 sensor frame), ``stride`` (A,).
+
+    A window of stride s anchored at sweep i holds sweeps i + (j - n_past + 1) s, j = 0..T-1,
+    each tokenized after moving its points (ego returns removed, sensor frame) into sweep i's
+    sensor frame. Cached per (sequence, stride, anchor spacing) under ``cache``."""
+    from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
+
+    T = n_past + n_future
+    toks, poses, strides_out = [], [], []
+    for name in adapter.sequence_names(split):
+        seq = None
+        for s in strides:
+            path = None if cache is None else cache / f"P{n_past}F{n_future}-s{s}-every{anchor_every}" / f"{name}.npz"
+            if path is not None and path.is_file():
+                with np.load(path, allow_pickle=False) as z:
+                    t, p = z["tokens"], z["poses"]
+            else:
+                seq = seq or adapter.sequence(name)
+                n = len(seq)
+                anchors = list(range((n_past - 1) * s, n - n_future * s, anchor_every))
+                t = np.zeros((len(anchors), T, tokenizer.cfg.bev_tokens, tokenizer.cfg.bev_tokens), np.int16)
+                p = np.zeros((len(anchors), T, 4, 4), np.float32)
+                clouds: dict[int, np.ndarray] = {}
+                t0 = time.monotonic()
+                for a, i in enumerate(anchors):
+                    T_s0_world = np.linalg.inv(seq.T_world_sensor[i])
+                    for j in range(T):
+                        k = i + (j - n_past + 1) * s
+                        if k not in clouds:
+                            clouds[k] = adapter.ego_box.remove(seq.load_points(k))
+                        T_s0_k = T_s0_world @ seq.T_world_sensor[k]
+                        p[a, j] = T_s0_k
+                        t[a, j] = tokenize_sweep(tokenizer, transform(clouds[k], T_s0_k)).cpu().numpy()
+                    for k in [k for k in clouds if k < i + (1 - n_past) * s + anchor_every]:
+                        del clouds[k]
+                log(f"{name} stride {s}: {len(anchors)} windows tokenized in {time.monotonic() - t0:.0f} s")
+                if path is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_name(path.name + ".tmp.npz")
+                    np.savez_compressed(tmp, tokens=t, poses=p)
+                    tmp.replace(path)
+            toks.append(t)
+            poses.append(p)
+            strides_out.append(np.full(len(t), s, np.int64))
+    out = {"tokens": np.concatenate(toks), "poses": np.concatenate(poses), "stride": np.concatenate(strides_out)}
+    if not len(out["tokens"]):
+        raise PcfbenchError(f"dataset {adapter.name!r} split {split!r}: no sequence is long enough for a window of "
+                            f"{n_past} past and {n_future} future sweeps at strides {list(strides)}")
+    return out
+
+
+# --------------------------------------------------------------------------- training loop
+def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, steps: int, seed: int = 0,
+                manifest_config: dict, extra_weights: dict | None = None, resumed: dict | None = None,
+                log=print) -> dict:
+    """Algorithm 1 on ``windows`` until ``steps`` or until ``run`` says stop; checkpoints every
+    ``CHECKPOINT_EVERY`` steps through ``run.save`` (weights ``world.*`` plus ``extra_weights``);
+    ``resumed`` (what ``run.resume()`` gave) restores weights, optimiser, both RNGs and the
+    curve, so a resumed run continues the same curve. Returns the step reached and the curve."""
+    import torch
+
+    from pcfbench.methods.copilot4d import diffusion as D
+
+    torch.manual_seed(seed)
+    opt = D.make_optimizer(model, cfg)
+    rng = np.random.default_rng(seed)
+    gen = torch.Generator().manual_seed(seed + 1)
+    step, history, window, elapsed, cpu = 0, [], [], 0.0, 0.0
+    if resumed is not None:
+        st = resumed["state"]
+        model.load_state_dict({k[len("world."):]: v for k, v in resumed["weights"].items() if k.startswith("world.")})
+        opt.load_state_dict(st["optimizer"])
+        step, history, window = resumed["step"], list(st["history"]), list(st["window"])
+        elapsed, cpu = float(st["elapsed_s"]), float(st["cpu_s"])
+        rng.bit_generator.state = json.loads(st["numpy_rng"])
+        gen.set_state(st["torch_gen"])
+    model.train()
+    tokens = torch.from_numpy(windows["tokens"].astype(np.int64))
+    poses = torch.from_numpy(windows["poses"].astype(np.float32))
+
+    def save(complete: bool) -> None:
+        weights = {f"world.{k}": v for k, v in model.state_dict().items()} | dict(extra_weights or {})
+        state = {"optimizer": opt.state_dict(), "history": history, "window": window,
+                 "numpy_rng": json.dumps(rng.bit_generator.state), "torch_gen": gen.get_state(),
+                 "elapsed_s": elapsed, "cpu_s": cpu}
+        run.save(step, weights, state, config=manifest_config, complete=complete)
+
+    run.start(steps, step)
+    saved = step if resumed is not None and not resumed.get("adopted") else -1  # adopted weights: save them here
+    while step < steps:
+        if run.should_stop():
+            log(f"time budget reached at step {step}")
+            break
+        t0, c0 = time.monotonic(), time.process_time()
+        for g in opt.param_groups:
+            g["lr"] = D.lr_at(cfg, step)
+        picks = torch.from_numpy(rng.integers(0, len(tokens), cfg.batch_size))
+        loss, stats = D.training_loss(model, tokens[picks], poses[picks], cfg.n_past, variant, cfg.label_smoothing,
+                                      generator=gen)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        step += 1
+        dt = time.monotonic() - t0
+        elapsed += dt
+        cpu += time.process_time() - c0
+        rec = {"step": step, "lr": opt.param_groups[0]["lr"], **stats, "grad_norm": float(gnorm), "step_s": dt}
+        window.append(rec)
+        if step % LOG_EVERY == 0 or step == steps:
+            avg = {k: float(np.nanmean([r[k] for r in window])) for k in rec}
+            avg.update(step=step, elapsed_s=elapsed, cpu_s=cpu)
+            history.append(avg)
+            window = []
+        run.update(1, loss=stats["loss"], acc=stats["accuracy"])
+        if step % CHECKPOINT_EVERY == 0 or step == steps:
+            save(step >= steps)
+            saved = step
+    if saved != step:
+        save(step >= steps)
+    return {"step": step, "history": history, "elapsed_s": elapsed, "cpu_s": cpu}
+
+
+def write_world_curve(history: list[dict], out_dir: Path, stem: str = "curve") -> tuple[Path, Path]:
+    """The world model's training curve as CSV and PNG (loss; token accuracy on the scored and
+    on the masked tokens)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path = out_dir / f"{stem}.csv"
+    with open(csv_path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(history[0]))
+        w.writeheader()
+        w.writerows(history)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = [r["step"] for r in history]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    axes[0].plot(s, [r["loss"] for r in history], label="cross entropy (label smoothing 0.1)")
+    axes[0].set_xlabel("step")
+    axes[0].legend()
+    axes[1].plot(s, [r["accuracy"] for r in history], label="token accuracy (scored tokens)")
+    axes[1].plot(s, [r["masked_accuracy"] for r in history], label="token accuracy (masked tokens)")
+    axes[1].set_ylim(0, 1)
+    axes[1].set_xlabel("step")
+    axes[1].legend()
+    fig.tight_layout()
+    png = out_dir / f"{stem}.png"
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return csv_path, png
+
+
+# --------------------------------------------------------------------------- the methods
+class Copilot4D(TrainedMethod):
+    """Copilot4D: tokenizer + discrete-diffusion world model, forecasting autoregressively."""
+
+    name = "copilot4d"
+    version = "1"
+    Options = WorldOptions
+    variant_name = "copilot4d"
+    training_time = "about 45 min for the tiny configuration on a 2-core CPU (plus its tokenizer's training)"
+
+    def __init__(self, options: WorldOptions | None = None) -> None:
+        super().__init__(options)
+        from pcfbench.methods.copilot4d.config import get_config
+        from pcfbench.methods.copilot4d.diffusion import get_variant
+        from pcfbench.methods.copilot4d.world_config import get_world_config
+
+        self.tok_cfg = get_config(self.options.config)
+        self.world_cfg = world_config_for(get_world_config(self.options.config), self.tok_cfg)
+        self.variant = get_variant(self.variant_name)
+        self.world = None
+        self.tokenizer = None
+
+    def training_steps(self) -> int:
+        return self.options.steps or self.world_cfg.max_steps
+
+    # -- the tokenizer this world model is trained on -------------------------------------------
+    def tokenizer_spec(self):
+        from pcfbench.method import resolve_method
+
+        opts = {} if self.options.config == "tiny" else {"config": self.options.config}
+        if self.options.tokenizer_steps:
+            opts["steps"] = str(self.options.tokenizer_steps)
+        return resolve_method((TOKENIZER_METHOD, opts))
+
+    def tokenizer_checkpoint(self, train_source: TrainSource) -> Checkpoint:
+        """The tokenizer checkpoint trained on the same data; missing: one error with the command."""
+        from pcfbench.training import find_checkpoint, missing_checkpoint_message
+
+        spec = self.tokenizer_spec()
+        ck = find_checkpoint(spec, train_source.train_on)
+        if ck is None:
+            raise CheckpointError(f"{self.name} trains on the tokens of its tokenizer: "
+                                  + missing_checkpoint_message(spec, train_source.train_on))
+        return ck
+
+    def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
+        import torch
+
+        from pcfbench.methods.copilot4d.train import load_tokenizer
+        from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
+
+        torch.set_num_threads(1)  # the most steps per CPU-second on this machine (as the tokenizer)
+        tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
+        tokenizer = load_tokenizer(tok_ck, torch.device("cpu"))
+        if tokenizer.cfg != self.tok_cfg:
+            raise CheckpointError(f"tokenizer checkpoint {tok_ck.manifest_path} records another '{self.tok_cfg.name}' "
+                                  f"configuration than this pcfbench defines; retrain it with `pcfbench train "
+                                  f"{TOKENIZER_METHOD} --dataset {train_source.train_on.dataset} --fresh`")
+        tok_state = tokenizer.state_dict()
+        tok_digest = tensor_digest(tok_state)
+        resumed = progress.resume()
+        if resumed is not None:  # the same tokenizer, or the cached tokens and the weights disagree
+            had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
+            if had != tok_ck.sha256:
+                raise CheckpointError(f"checkpoint {out_dir / 'manifest.json'} was trained on the tokens of tokenizer "
+                                      f"{str(had)[:12]}, and {tok_ck.manifest_path} is now {tok_ck.sha256[:12]}: "
+                                      "rerun with --fresh")
+        cfg = self.world_cfg
+        progress.log(f"{self.name} ({self.variant.name}, {cfg.name}): tokenizer {tok_ck.dir} "
+                     f"(sha256 {tok_ck.sha256[:12]}), {train_source.train_on.label}")
+        windows = build_windows(tokenizer, train_source.adapter, train_source.split, cfg.n_past, cfg.n_future,
+                                tuple(self.options.strides), self.options.anchor_every,
+                                window_cache_dir(tok_ck.sha256, train_source.train_on.key), log=progress.log)
+        progress.log(f"{len(windows['tokens'])} training windows of {cfg.n_frames} frames, "
+                     f"{cfg.token_grid}x{cfg.token_grid} tokens")
+        torch.manual_seed(0)
+        model = WorldModel(cfg)
+        manifest_config = {
+            "world": cfg.to_dict(), "variant": self.variant.name, "tokenizer": self.tok_cfg.to_dict(),
+            "tokenizer_sha256": tok_ck.sha256, "tokenizer_digest": tok_digest,
+            "tokenizer_checkpoint": str(tok_ck.manifest_path), "tokenizer_steps": tok_ck.steps,
+            "parameters": count_parameters(model), "steps_target": self.training_steps(),
+            "windows": int(len(windows["tokens"])), "strides": list(self.options.strides),
+        }
+        if resumed is None:  # the same training options trained already: continue from those weights
+            base = self.base_checkpoint(train_source, tok_ck.sha256)
+            if base is not None:
+                progress.log(f"{base.dir} was trained with the same training options (only {', '.join(INFERENCE_OPTIONS)} "
+                             f"may differ): continuing from its step {base.steps}")
+                resumed = {"step": base.steps, "weights": base.load_weights(), "state": base.load_state(),
+                           "adopted": True}
+                manifest_config["weights_from"] = str(base.manifest_path)
+        out = train_world(model, cfg, windows, self.variant, progress, steps=self.training_steps(), seed=0,
+                          manifest_config=manifest_config, resumed=resumed,
+                          extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()}, log=progress.log)
+        if out["history"]:
+            csv_path, png = write_world_curve(out["history"], Path(out_dir))
+            progress.log(f"training curve: {csv_path} and {png}")
+
+    def base_checkpoint(self, train_source: TrainSource, tokenizer_sha: str) -> Checkpoint | None:
+        """The checkpoint of this method with the same training options and the inference
+        options at their defaults, trained on the same data with the same tokenizer, if any
+        (its weights are what training these options would produce)."""
+        from dataclasses import fields, replace
+
+        from pcfbench.method import MethodSpec, options_hash
+        from pcfbench.training import find_checkpoint
+
+        defaults = {f.name: f.default for f in fields(WorldOptions) if f.name in INFERENCE_OPTIONS}
+        opts = replace(self.options, **defaults)
+        if opts == self.options:
+            return None
+        spec = MethodSpec(self.name, {}, opts, options_hash(opts), type(self))
+        try:
+            ck = find_checkpoint(spec, train_source.train_on)
+        except CheckpointError:
+            return None
+        if ck is None or ck.manifest.get("config", {}).get("tokenizer_sha256") != tokenizer_sha:
+            return None
+        return ck
+
+    # -- loading ------------------------------------------------------------------------------
+    def load(self, checkpoint: Checkpoint) -> None:
+        from pcfbench.methods.copilot4d.model import Tokenizer
+        from pcfbench.methods.copilot4d.train import config_from_dict, default_device
+        from pcfbench.methods.copilot4d.world import WorldModel
+        from pcfbench.methods.copilot4d.world_config import WorldModelConfig
+
+        mf = checkpoint.manifest_path
+        conf = checkpoint.manifest.get("config", {})
+        for key in ("world", "tokenizer", "tokenizer_digest", "variant"):
+            if key not in conf:
+                raise CheckpointError(f"checkpoint {mf} records no config.{key}: not a {self.name} checkpoint")
+        if conf["variant"] != self.variant.name:
+            raise CheckpointError(f"checkpoint {mf} holds a {conf['variant']} world model, not {self.variant.name}")
+        tok_cfg = config_from_dict(conf["tokenizer"])
+        world_cfg = WorldModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in conf["world"].items()})
+        if tok_cfg != self.tok_cfg or world_cfg != self.world_cfg:
+            raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' tokenizer or "
+                                  "world model configuration than this pcfbench defines; retrain it with --fresh")
+        weights = checkpoint.load_weights()
+        def part(prefix: str) -> dict:  # float32 whatever the stored precision (fp16 when shipped)
+            return {k[len(prefix):]: (v.float() if v.is_floating_point() else v)
+                    for k, v in weights.items() if k.startswith(prefix)}
+
+        tok_w, world_w = part("tokenizer."), part("world.")
+        if tensor_digest(tok_w) != conf["tokenizer_digest"]:
+            raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights are not the tokenizer "
+                                  f"it was trained with (digest {tensor_digest(tok_w)[:12]}, the manifest {mf} "
+                                  f"records {str(conf['tokenizer_digest'])[:12]}); retrain it with --fresh")
+        tokenizer, world = Tokenizer(tok_cfg), WorldModel(world_cfg)
+        for what, net, w in (("tokenizer", tokenizer, tok_w), ("world model", world, world_w)):
+            try:
+                net.load_state_dict(w)
+            except RuntimeError as exc:
+                raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its {what} weights do not fit the "
+                                      f"network it records: {str(exc).splitlines()[0]}") from None
+        device = default_device()
+        self.tokenizer, self.world = tokenizer.to(device).eval(), world.to(device).eval()
+
+    # -- forecasting --------------------------------------------------------------------------
+    def forecast(self, sample: Sample) -> Forecast:
+        import torch
+
+        from pcfbench.methods.copilot4d.evaluate import render_codes
+
+        if self.world is None:
+            raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
+        codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
+        gen = torch.Generator(next(self.tokenizer.parameters()).device)
+        gen.manual_seed(sample_seed(sample.sample_id, self.options.seed) ^ 1)
+        depths = []
+        for f, q in enumerate(sample.queries):
+            origin = T_s0_ref[:3, :3] @ q.origin_ref + T_s0_ref[:3, 3]
+            dirs = (q.directions_ref.astype(np.float64) @ T_s0_ref[:3, :3].T).astype(np.float32)
+            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen,
+                                       threshold=self.options.threshold))
+        return Forecast.from_depths(sample, depths)
+
+    def forecast_tokens(self, sample: Sample):
+        """The future token maps (F, H, W) of ``sample`` in its t=0 sensor frame, the future poses
+        in that frame (F, 4, 4), and the transform from the reference frame into it."""
+        import torch
+
+        from pcfbench.methods.copilot4d.diffusion import sample_frame
+        from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
+
+        cfg = self.world_cfg
+        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+        past = list(range(len(sample.past_points_ref)))[-cfg.n_past:]  # the model's window at most
+        dev = next(self.world.parameters()).device
+        seq = torch.stack([tokenize_sweep(self.tokenizer, transform(sample.past_points_ref[k], T_s0_ref))
+                           for k in past])[None]
+        poses = np.concatenate([sample.past_T_ref_sensor[past], sample.future_T_ref_sensor])
+        rel = torch.from_numpy((T_s0_ref @ poses).astype(np.float32))[None].to(dev)
+        gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, self.options.seed))
+        P = len(past)
+        out = []
+        for f in range(sample.num_future):
+            # the context: every frame so far, at the positions of training (t=0 at n_past-1),
+            # sliding once past and future outgrow the trained sequence
+            n_ctx = min(P + f, cfg.n_frames - 1)
+            first = max(0, cfg.n_past - P) if P + f < cfg.n_frames else 0
+            first = min(first, cfg.n_frames - 1 - n_ctx)
+            ctx = seq[:, -n_ctx:]
+            pose = rel[:, P + f - n_ctx: P + f + 1]
+            nxt = sample_frame(self.world, ctx, pose, steps=self.options.sampling_steps,
+                               guidance=self.options.cfg_weight, revise=self.variant.revise, generator=gen,
+                               first_position=first)
+            seq = torch.cat([seq, nxt[:, None]], 1)
+            out.append(nxt[0])
+        return out, rel[0, P:].cpu().numpy(), T_s0_ref
+
+
+class Copilot4DMaskGIT(Copilot4D):
+    """The same world model and tokenizer, trained and sampled as MaskGIT (eta = 0, loss on masked
+    tokens only, decoded tokens frozen): Table 4's comparison."""
+
+    name = "copilot4d-maskgit"
+    variant_name = "maskgit"
+
+
+def world_config_for(world_cfg, tok_cfg):
+    """``world_cfg`` fitted to a tokenizer's output: its codebook size and token grid."""
+    if (world_cfg.codebook_size, world_cfg.token_grid) == (tok_cfg.codebook_size, tok_cfg.bev_tokens):
+        return world_cfg
+    return world_cfg.with_overrides(codebook_size=tok_cfg.codebook_size, token_grid=tok_cfg.bev_tokens)
+

@@ -1,0 +1,313 @@
+"""Copilot4D world model as trained methods (copilot4d, copilot4d-maskgit): options, training
+windows in the t=0 frame, train/resume through the TrainingRun surface, checkpoint refusals,
+the context window of settings unlike training's, and forecasts through the harness."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import resolve_method
+from pcfbench.methods.copilot4d import config as tok_config
+from pcfbench.methods.copilot4d import world_config
+from pcfbench.methods.copilot4d.forecaster import Copilot4D, Copilot4DMaskGIT, build_windows, tensor_digest
+
+# the same architectures, small enough for seconds: 8 x 8 tokens of 64 codes, 2 past + 1 future
+MICRO_TOK = tok_config.TINY.with_overrides(
+    name="micro", x_range=(-25.6, 25.6), y_range=(-25.6, 25.6), grid_xy=64, grid_z=16, nfg_z=16, nfg_up=2,
+    pointnet_dim=16, bev_dim=16, dims=(16, 32), heads=(2, 4), depths=(2, 2), window=4, codebook_size=64,
+    code_dim=16, nfg_dim=8, rays_per_step=256, samples_per_ray=16, skip_pool=4, warmup=10, decay_steps=200,
+    max_steps=200, checkpoint_every=2, log_every=1,
+)
+MICRO_WORLD = world_config.WorldModelConfig(
+    name="micro", codebook_size=64, token_grid=8, n_past=2, n_future=1,
+    dims=(16, 16, 16), heads=(1, 1, 1), windows=(4, 4, 2), groups_down=(1, 1, 1), groups_up=(1, 1),
+    mlp_ratio=2.0, lr=3e-3, warmup=5, decay_steps=200, max_steps=200,
+)
+MICRO_TRAIN = "config=micro,strides=1,anchor_every=4,tokenizer_steps=2"
+MICRO = MICRO_TRAIN + ",sampling_steps=2"
+
+
+@pytest.fixture
+def micro(monkeypatch, tmp_path):
+    monkeypatch.setitem(tok_config.CONFIGS, "micro", MICRO_TOK)
+    monkeypatch.setitem(world_config.CONFIGS, "micro", MICRO_WORLD)
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PCFBENCH_NO_PROGRESS", "1")
+    torch.set_num_threads(1)
+
+
+@pytest.fixture
+def kitti(tmp_path):
+    from conftest import write_tiny_kitti
+
+    return write_tiny_kitti(tmp_path / "kitti", sequences=("00", "08"), num_sweeps=20, beams=8, azimuths=180)
+
+
+def _train(spec: str, root, **kw):
+    from pcfbench.training import train
+
+    return train(resolve_method(spec), f"kitti={root}", progress=False, log=lambda *_: None, **kw)
+
+
+def _tokenizer(root):
+    return _train("copilot4d-token-copy:config=micro,steps=2", root)
+
+
+# --------------------------------------------------------------------------- options
+def test_options_are_typed_and_checked():
+    s = resolve_method("copilot4d:cfg_weight=1,sampling_steps=3,strides=2/6,seed=4")
+    assert (s.options.cfg_weight, s.options.sampling_steps, s.options.strides, s.options.seed) == (1.0, 3, (2, 6), 4)
+    d = resolve_method("copilot4d-maskgit").options
+    assert (d.cfg_weight, d.sampling_steps, d.config) == (2.0, 10, "tiny")
+    for bad in ("cfg_weight=-1", "sampling_steps=0", "cfg_weight=x", "threshold=1", "strides=0", "bogus=1"):
+        with pytest.raises(PcfbenchError):
+            resolve_method(f"copilot4d:{bad}")
+    with pytest.raises(PcfbenchError, match="huge"):
+        Copilot4D(resolve_method("copilot4d:config=huge").options)
+    assert Copilot4DMaskGIT().variant.name == "maskgit" and Copilot4D().variant.name == "copilot4d"
+    assert not Copilot4DMaskGIT().variant.revise and Copilot4D().variant.revise
+
+
+# --------------------------------------------------------------------------- training windows
+class _Seq:
+    def __init__(self, n):
+        self.T_world_sensor = np.repeat(np.eye(4)[None], n, 0)
+        self.T_world_sensor[:, 0, 3] = np.arange(n) * 2.0  # 2 m forward per sweep
+        self.n = n
+
+    def __len__(self):
+        return self.n
+
+    def load_points(self, i):  # one point 10 m ahead of the sensor, tagged by its index in z
+        return np.array([[10.0, 0.0, i / 100.0]], np.float32)
+
+
+class _Adapter:
+    name = "toy"
+
+    class ego_box:  # noqa: N801
+        @staticmethod
+        def remove(p):
+            return p
+
+    def sequence_names(self, split):
+        return ["a"]
+
+    def sequence(self, name):
+        return _Seq(12)
+
+
+def test_windows_are_tokenized_in_the_t0_frame(monkeypatch, tmp_path):
+    """Window (stride s, anchor i) holds sweeps i + (j - n_past + 1) s, each moved into sweep i's
+    sensor frame before tokenizing; its poses are each frame's pose in that frame."""
+    from pcfbench.methods.copilot4d import evaluate
+
+    seen = []
+
+    def fake_tokenize(model, pts):  # code = where the point lands, in metres (x), and its index
+        seen.append((float(pts[0, 0]), round(float(pts[0, 2]) * 100)))
+        return torch.full((2, 2), int(round(pts[0, 0])))
+
+    monkeypatch.setattr(evaluate, "tokenize_sweep", fake_tokenize)
+    tok = type("Tok", (), {"cfg": type("C", (), {"bev_tokens": 2})()})()
+    w = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 3, tmp_path / "c", log=lambda *_: None)
+    # n = 12, stride 2: anchors 2, 5 (every 3rd from (n_past - 1) s = 2, while i + s < 12)
+    anchors = [2, 5, 8]
+    assert w["tokens"].shape == (3, 3, 2, 2) and list(w["stride"]) == [2, 2, 2]
+    for a, i in enumerate(anchors):
+        frames = [i - 2, i, i + 2]
+        assert [int(w["tokens"][a, j, 0, 0]) for j in range(3)] == [10 + 2 * (k - i) for k in frames]
+        np.testing.assert_allclose(w["poses"][a, :, 0, 3], [2.0 * (k - i) for k in frames])
+    assert [k for _, k in seen] == [k for i in anchors for k in (i - 2, i, i + 2)]
+    # cached: a second call tokenizes nothing and returns the same arrays
+    seen.clear()
+    w2 = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 3, tmp_path / "c", log=lambda *_: None)
+    assert not seen and np.array_equal(w2["tokens"], w["tokens"]) and np.array_equal(w2["poses"], w["poses"])
+    with pytest.raises(PcfbenchError, match="no sequence is long enough"):
+        build_windows(tok, _Adapter(), "train", 5, 5, (2,), 1, None, log=lambda *_: None)
+
+
+# --------------------------------------------------------------------------- the context window
+class _Recorder(torch.nn.Module):
+    """A world model that records the temporal positions and poses it is given."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.cfg, self.mask_token = cfg, cfg.codebook_size
+        self.w = torch.nn.Parameter(torch.zeros(1))
+        self.calls = []
+
+    def forward(self, tokens, poses, mask, frame_index=None, past_kv=None, return_kv=False):
+        self.calls.append((frame_index.tolist(), poses[0, :, 0, 3].tolist(), past_kv is not None))
+        out = torch.zeros(*tokens.shape, self.cfg.codebook_size)
+        if return_kv:
+            return out, type("KV", (), {"frames": tokens.shape[1], "batch": tokens.shape[0], "kv": []})()
+        return out
+
+
+@pytest.mark.parametrize("P,F", [(2, 2), (5, 5), (6, 6)])
+def test_context_positions_follow_training(P, F, monkeypatch):
+    """t=0 keeps its training position (n_past - 1) while past + future fit the trained
+    sequence; beyond it the context slides (the newest n_frames - 1 frames)."""
+    from pcfbench.data import RayQuery, Sample
+    from pcfbench.methods.copilot4d import evaluate
+
+    monkeypatch.setattr(evaluate, "tokenize_sweep", lambda m, p: torch.zeros(4, 4, dtype=torch.long))
+    cfg = world_config.WorldModelConfig(name="r", codebook_size=8, token_grid=4, n_past=5, n_future=5,
+                                        dims=(8, 8, 8), heads=(1, 1, 1), windows=(4, 2, 1))
+    m = Copilot4D()
+    m.world_cfg, m.world = cfg, _Recorder(cfg)
+    m.options = resolve_method("copilot4d:sampling_steps=1,cfg_weight=0").options
+    x = np.arange(P + F, dtype=np.float64) - (P - 1)  # frame k at x = k - (P - 1): t=0 at 0
+    poses = np.repeat(np.eye(4)[None], P + F, 0)
+    poses[:, 0, 3] = x + 100.0  # a reference frame 100 m away from t=0's sensor
+    q = RayQuery(np.zeros(3), np.array([[1.0, 0, 0]], np.float32))
+    s = Sample("s/1", "toy", "s", 1, tuple(np.zeros((1, 3), np.float32) for _ in range(P)), poses[:P],
+               np.arange(P), poses[P:], np.arange(F), (q,) * F)
+    codes, rel, _ = m.forecast_tokens(s)
+    assert len(codes) == F
+    np.testing.assert_allclose(rel[:, 0, 3], x[P:])  # future poses in the t=0 sensor frame
+    steps = [c for c in m.world.calls if c[2]]  # the sampling passes (the context ran once, cached)
+    ctx = [c for c in m.world.calls if not c[2]]
+    for f in range(F):
+        used_past = min(P, 5)
+        n_ctx = min(used_past + f, 9)
+        first = (5 - used_past) if used_past + f < 10 else 0
+        first = min(first, 9 - n_ctx)
+        assert ctx[f][0] == list(range(first, first + n_ctx))
+        assert steps[f][0] == [first + n_ctx]
+        assert steps[f][1] == [pytest.approx(x[P + f])]
+        assert ctx[f][1] == pytest.approx(list(x[P + f - n_ctx: P + f]))
+
+
+# --------------------------------------------------------------------------- training and checkpoints
+def test_missing_tokenizer_is_one_error_with_the_command(micro, kitti):
+    from pcfbench.training import CheckpointError
+
+    with pytest.raises(CheckpointError, match=r"pcfbench train copilot4d-token-copy:config=micro,steps=2"):
+        _train(f"copilot4d:{MICRO},steps=2", kitti)
+
+
+def test_train_resume_continues_the_same_curve(micro, kitti, monkeypatch, tmp_path):
+    """Stopped after one step (--max-minutes 0) and resumed: the curve and weights of an
+    uninterrupted run; the checkpoint holds the world model and its tokenizer."""
+    _tokenizer(kitti)
+    spec = f"copilot4d:{MICRO},steps=3"
+    first = _train(spec, kitti, max_minutes=0)
+    assert first.steps == 1 and not first.manifest["complete"]
+    resumed = _train(spec, kitti)
+    assert resumed.steps == 3 and resumed.manifest["complete"]
+    curve = (resumed.dir / "curve.csv").read_text()  # the same folder is overwritten by the straight run
+    straight = _train(spec, kitti, fresh=True)
+    assert _same_losses(straight.dir / "curve.csv", resumed.dir / "curve.csv", curve)
+    w = straight.load_weights()
+    for k, v in resumed.load_weights().items():
+        assert torch.equal(v, w[k]), k
+    conf = straight.manifest["config"]
+    assert {k.split(".")[0] for k in w} == {"world", "tokenizer"}
+    assert conf["variant"] == "copilot4d" and conf["world"]["codebook_size"] == 64
+    tok = resolve_method("copilot4d-token-copy:config=micro,steps=2")
+    from pcfbench.training import checkpoint_for
+
+    tok_ck = checkpoint_for(tok, train_on=f"kitti={kitti}", progress=False)
+    assert conf["tokenizer_sha256"] == tok_ck.sha256
+    assert conf["tokenizer_digest"] == tensor_digest(tok_ck.load_weights())
+
+
+def _same_losses(a, b, b_text):
+    """The two curves agree step for step on everything but the timings."""
+    import csv
+    import io
+
+    ra, rb = list(csv.DictReader(open(a))), list(csv.DictReader(io.StringIO(b_text)))
+    keys = ("step", "loss", "accuracy", "masked_accuracy", "grad_norm")
+    return [[r[k] for k in keys] for r in ra] == [[r[k] for k in keys] for r in rb]
+
+
+def test_checkpoint_refused_when_its_tokenizer_differs(micro, kitti):
+    import io
+
+    from pcfbench.training import Checkpoint, CheckpointError, _sha256
+
+    _tokenizer(kitti)
+    ck = _train(f"copilot4d-maskgit:{MICRO},steps=1", kitti)
+    m = Copilot4DMaskGIT(resolve_method(f"copilot4d-maskgit:{MICRO},steps=1").options)
+    m.load(ck)
+    assert m.world is not None and m.tokenizer is not None
+    with pytest.raises(CheckpointError, match="holds a maskgit world model"):
+        Copilot4D(resolve_method(f"copilot4d:{MICRO},steps=1").options).load(ck)
+    # another tokenizer's weights in the checkpoint (its files re-hashed, so only the digest tells)
+    w = ck.load_weights()
+    key = next(k for k in w if k.startswith("tokenizer.") and w[k].is_floating_point())
+    w[key] = w[key] + 0.5
+    buf = io.BytesIO()
+    torch.save(w, buf)
+    ck.weights_path.write_bytes(buf.getvalue())
+    manifest = dict(ck.manifest, weights_sha256=_sha256(buf.getvalue()))
+    ck.manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(CheckpointError, match="tokenizer weights are not the tokenizer it was trained with"):
+        m.load(Checkpoint.open(ck.dir))
+    # resuming on the tokens of a retrained tokenizer is refused
+    manifest["config"] = dict(manifest["config"], tokenizer_sha256="0" * 64)
+    ck.manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(CheckpointError, match="trained on the tokens of tokenizer 000000000000.*--fresh"):
+        _train(f"copilot4d-maskgit:{MICRO},steps=1", kitti)
+
+
+def test_inference_options_reuse_the_trained_weights(micro, kitti):
+    """copilot4d:cfg_weight=0 trains nothing new: the weights of the same training options."""
+    _tokenizer(kitti)
+    base = _train(f"copilot4d:{MICRO_TRAIN},steps=2", kitti)
+    other = _train(f"copilot4d:{MICRO},steps=2,cfg_weight=0,seed=3", kitti)
+    assert other.dir != base.dir and other.manifest["config"]["weights_from"] == str(base.manifest_path)
+    a, b = base.load_weights(), other.load_weights()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+# --------------------------------------------------------------------------- through the harness
+@pytest.mark.slow
+def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
+    """Trained through `pcfbench train` (tiny configuration, a few steps), evaluated by
+    `pcfbench run` at kitti-1s in worker processes: finite depths for every future sweep, and
+    the same numbers when the cells are recomputed (forecasts seeded by the sample id)."""
+    import pandas as pd
+
+    from pcfbench.cli import build_cli
+
+    runner, cli = CliRunner(), build_cli()
+    tiny = "strides=2,anchor_every=4,sampling_steps=2,tokenizer_steps=2,steps=2"
+    r = runner.invoke(cli, ["train", f"copilot4d:{tiny}", "--dataset", f"kitti={kitti}"])
+    assert r.exit_code != 0 and "pcfbench train copilot4d-token-copy:steps=2" in r.output
+    r = runner.invoke(cli, ["train", "copilot4d-token-copy:steps=2", "--dataset", f"kitti={kitti}"])
+    assert r.exit_code == 0, r.output
+    for method in ("copilot4d", "copilot4d-maskgit"):
+        r = runner.invoke(cli, ["train", f"{method}:{tiny}", "--dataset", f"kitti={kitti}"])
+        assert r.exit_code == 0, r.output
+    args = ["run", "-m", f"copilot4d:{tiny}", "-m", f"copilot4d-maskgit:{tiny}", "--train-on", f"kitti={kitti}",
+            "-d", f"kitti={kitti}", "-s", "kitti-1s", "--limit", "1", "-q", "--store", str(tmp_path / "store"),
+            "--reports", str(tmp_path / "rep")]
+    r = runner.invoke(cli, args)
+    assert r.exit_code == 0, r.output
+
+    def rows():
+        out = {}
+        for cell in sorted((tmp_path / "store").rglob("cell.json")):
+            method = json.loads(cell.read_text())["method"]
+            out[method] = pd.concat([pd.read_parquet(p) for p in sorted((cell.parent / "rows").glob("*.parquet"))])
+        return out
+
+    first = rows()
+    assert set(first) == {"copilot4d", "copilot4d-maskgit"}
+    for df in first.values():
+        assert len(df) == 5 and np.isfinite(df["l1_mean"].to_numpy(dtype=float)).all()
+    r = runner.invoke(cli, args[:2] + args[5:] + ["--force"])  # copilot4d again
+    assert r.exit_code == 0, r.output
+    for method, df in rows().items():
+        pd.testing.assert_frame_equal(df[["l1_mean", "chamfer_nf"]].reset_index(drop=True),
+                                      first[method][["l1_mean", "chamfer_nf"]].reset_index(drop=True))
