@@ -10,6 +10,8 @@ def register_datasets(register):
     register("av2", "pcfbench.datasets.av2:Argoverse2", "Argoverse 2 Sensor / LiDAR datasets (feather sweeps and poses)")
     register("mcap", "pcfbench.datasets.mcap:McapRecording", "MCAP recordings: ROS 2 PointCloud2 or foxglove.PointCloud + TF")
     register("synthetic-town", "pcfbench.datasets.synthetic.adapter:SyntheticTown", "Generated town, 64-beam LiDAR, 10 Hz (embedded default)")
+    register("synthetic-town-realistic", "pcfbench.datasets.synthetic.adapter:SyntheticTownRealistic",
+             "synthetic-town with realistic sensor and surfaces (world physics v2), 10 Hz")
     register("synthetic-suburb", "pcfbench.datasets.synthetic.adapter:SyntheticSuburb", "Generated suburb, 32-beam LiDAR, 2 Hz keyframes")
 
 

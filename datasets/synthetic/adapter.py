@@ -88,3 +88,13 @@ class SyntheticSuburb(SyntheticKitti):
     rate_hz = 2.0
     default_settings = ("nuscenes-1s", "nuscenes-3s")
     embedded = False  # generated on first use too, but not part of the no-argument default run
+
+
+class SyntheticTownRealistic(SyntheticKitti):
+    """synthetic-town with world physics version 2 (docs/realism.md); not yet the default."""
+
+    name = "synthetic-town-realistic"
+    domain = "synthetic-town-realistic"
+    rate_hz = 10.0
+    default_settings = ("kitti-1s", "kitti-3s")
+    embedded = False  # the default stays on physics 1 until the learned checkpoints are retrained

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 
@@ -30,3 +32,43 @@ def add_commands(cli: click.Group) -> None:
         manifest = generate_domain(dom, out, layout, progress=not quiet, splits=tuple(splits) or None)
         n = sum(s["sweeps"] for s in manifest["sequences"].values())
         click.echo(f"{dom.name}: {len(manifest['sequences'])} sequence(s), {n} sweeps in {manifest['seconds']:.1f} s -> {out} ({layout} layout)")
+
+    @cli.group()
+    def synthetic():
+        """The generated world: compare it with real LiDAR."""
+
+    @synthetic.command()
+    @click.option("--real", required=True, metavar="NAME=ROOT",
+                  help="The real dataset, e.g. kitti=/data/kitti-seq00 (root options ?key=value allowed).")
+    @click.option("--domain", default="synthetic-town", show_default=True, metavar="NAME[=ROOT]",
+                  help="The generated dataset (synthetic-town, synthetic-town-realistic, ...); default root: the cache.")
+    @click.option("--out", "-o", type=click.Path(file_okay=False), required=True, help="Report folder (md, csv, json, png).")
+    @click.option("--sweeps", type=click.IntRange(1), default=12, show_default=True,
+                  help="Sweeps of each side (each with its successor) for the statistics.")
+    @click.option("--setting", default="kitti-1s", show_default=True, help="Setting of the baselines' runs.")
+    @click.option("--limit", type=click.IntRange(1), default=None, help="Synthetic samples for the baselines (default: all).")
+    @click.option("--real-limit", type=click.IntRange(1), default=None, help="Real samples for the baselines (default: all).")
+    @click.option("--split", "synthetic_split", default=None, help="Synthetic split (default: the adapter's evaluation split).")
+    @click.option("--real-split", default=None, help="Real split (default: the adapter's evaluation split, else the first with sequences).")
+    @click.option("--store", type=click.Path(file_okay=False), default=None,
+                  help="Results store for the baselines' cells (default: OUT/store; reused when run again).")
+    @click.option("--no-baselines", is_flag=True, help="Statistics only (no method runs).")
+    @click.option("--threads", type=click.IntRange(1), default=None, help="Thread budget of the baselines' runs.")
+    @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+    def compare(real, domain, out, sweeps, setting, limit, real_limit, synthetic_split, real_split, store, no_baselines,
+                threads, quiet):
+        """Realism report: a generated domain beside a real dataset (ratios synthetic / real)."""
+        from pcfbench.datasets.synthetic.compare import compare as run_compare
+        from pcfbench.protocol import get_setting
+
+        get_setting(setting)
+        res = run_compare(real, domain, out, sweeps=sweeps, setting=setting, limit=limit, real_limit=real_limit,
+                          baselines=not no_baselines, store=store, real_split=real_split, synthetic_split=synthetic_split,
+                          progress=not quiet, threads=threads)
+        s, r = res["synthetic"], res["real"]
+        for k in ("points per sweep", "static-scene residual median (m)", "roughness median (m)"):
+            click.echo(f"{k}: synthetic {s[k]:.4g}, real {r[k]:.4g}, ratio {s[k] / r[k]:.3g}")
+        click.echo(f"range histogram distance (TV): {res['range histogram distance (TV)']:.3f}")
+        if "baselines" in res:
+            click.echo("kendall tau: " + ", ".join(f"{k} {t:+.2f}" for k, t in res["baselines"]["kendall_tau"].items()))
+        click.echo(f"report: {Path(out) / 'realism.md'}")

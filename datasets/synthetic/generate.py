@@ -99,8 +99,20 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     directions = domain.sensor.directions()
     seq = SimulatedSequence(domain.name, name, split, [], [], [], T, times)
     hits = drops = 0
+    if domain.realism is not None:
+        from pcfbench.datasets.synthetic import realism as physics2
+
+        calibration = physics2.beam_calibration(domain.sensor, domain.realism, domain.seed)
+        fire = physics2.column_times(domain.sensor, domain.realism)
+        half = domain.realism.revolution_s / 2
     for k, t in enumerate(times):
-        res = cast_sweep(domain.sensor, static, agents, ground, float(t), T[k], rng_sensor, directions)
+        if domain.realism is None:
+            res = cast_sweep(domain.sensor, static, agents, ground, float(t), T[k], rng_sensor, directions)
+        else:
+            sub = float(t) + np.linspace(-half, half, 33)
+            col_T = physics2.interpolate_poses(sub, ego_poses(domain, ground, route, s_t, sub, t_start), float(t) + fire)
+            res = physics2.cast_sweep_realistic(domain.sensor, static, agents, ground, float(t), col_T, rng_sensor,
+                                                calibration, domain.realism)
         seq.points.append(res.points)
         seq.intensity.append(res.intensity)
         seq.labels.append(res.labels | (res.instance << np.uint32(16)))
@@ -201,6 +213,8 @@ def generate_domain(domain: Domain | str, out: str | Path, layout: str = "kitti"
         "ego_shape": {"x_min": EGO_SHAPE.x_min, "x_max": EGO_SHAPE.x_max, "half_width": EGO_SHAPE.half_width},
         "sequences": {},
     }
+    if domain.realism is not None:  # physics version 1 manifests stay as they were
+        manifest["physics"] = domain.physics
     started = time.perf_counter()
     held = []  # other layouts write all sequences at once
     with _progress_bar(sum(k for _, _, k in todo), f"generating {domain.name}", progress) as bar:

@@ -1,0 +1,536 @@
+"""The realism report: a generated domain beside a real dataset, statistic by statistic.
+
+``pcfbench synthetic compare --real kitti=ROOT [--domain synthetic-town]`` reads a few sweeps
+of each side and writes ``realism.md``, ``realism.csv`` and one figure per statistic under
+``--out``. Every number is given for both sides and as the ratio synthetic / real:
+
+* points per sweep, and returns per beam (points binned by elevation into the beams of the
+  HDL-64E-like table of :mod:`pcfbench.datasets.synthetic.sensor`);
+* the range histogram (1 m bins) and its distance to the real one: total variation
+  ``0.5 * sum |p - q|`` (0: same, 1: disjoint) and the earth mover's distance in metres;
+* elevation / azimuth coverage: the fraction of 1 deg x 0.5 deg (azimuth x elevation) cells
+  inside the beam fan that hold a return, and the elevation span of the returns;
+* the static-scene residual: each point of sweep i+1 (3-20 m), registered into sweep i by
+  the poses, against the plane fitted to its neighbours in sweep i (median distance);
+* local surface roughness: the same plane fit within one sweep (median RMS distance of the
+  neighbourhood to its plane);
+* the fraction of points on moving objects, where labels say so (generated domains, or
+  SemanticKITTI labels ``>= 252``);
+* the ray-drop pattern: per beam, the share of azimuth columns without a return, the column
+  count estimated from the fullest beams;
+* the five baselines' flat means of chamfer_nf, l1_median and l1_mean at a setting, and the
+  Kendall tau between the two rankings per metric.
+
+Both clouds are thinned to one point per ``VOXEL_M`` cube before the plane fits, so the
+neighbourhoods have the same size whatever the sensor's point density.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pcfbench.errors import PcfbenchError
+
+BASELINES = ("copy-last", "raycast-4docc", "raycast-freespace", "raycast-voxel", "raycast-zbuffer")
+RANK_METRICS = ("chamfer_nf", "l1_median", "l1_mean")
+RANGE_EDGES = np.arange(0.0, 121.0, 1.0)
+ELEV_EDGES = np.arange(-30.0, 10.001, 0.25)
+VOXEL_M = 0.15  # thinning before plane fits
+NEIGHBOURS = 16  # points of a local plane
+RADIUS_M = 0.6  # neighbours farther than this are not used
+MIN_NEIGHBOURS = 8
+PLANE_RANGE_M = (3.0, 20.0)  # points whose planes are fitted (near enough to be sampled densely)
+QUERIES = 4000  # plane fits per sweep
+#: SemanticKITTI classes of moving objects (moving-car ... moving-other-vehicle)
+SEMANTIC_KITTI_MOVING = 252
+
+
+# --- the statistics, each a plain function of arrays (tested against hand-computed cases) ------
+
+def beam_edges(elevations_deg) -> np.ndarray:
+    """Bin edges (deg, increasing) halfway between sorted beam elevations, open-ended by half a gap."""
+    e = np.sort(np.asarray(elevations_deg, float))
+    mid = (e[1:] + e[:-1]) / 2
+    return np.concatenate([[e[0] - (e[1] - e[0]) / 2], mid, [e[-1] + (e[-1] - e[-2]) / 2]])
+
+
+def elevation_deg(points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, np.float64)
+    return np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+
+
+def azimuth_deg(points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, np.float64)
+    return np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+
+
+def returns_per_beam(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Points per elevation bin (beam), lowest beam first."""
+    return np.histogram(elevation_deg(points), bins=edges)[0]
+
+
+def drop_per_beam(counts_per_sweep: np.ndarray, quantile: float = 0.9) -> tuple[np.ndarray, float]:
+    """Share of azimuth columns without a return, per beam, and the column count used.
+
+    The sensor's columns per revolution are estimated as the ``quantile`` of the per-beam
+    counts (the fullest beams see something in nearly every direction)."""
+    c = np.asarray(counts_per_sweep, float)
+    columns = float(np.quantile(c, quantile))
+    if columns <= 0:
+        return np.ones_like(c), 0.0
+    return np.clip(1.0 - c / columns, 0.0, 1.0), columns
+
+
+def histogram_distance(p: np.ndarray, q: np.ndarray) -> float:
+    """Total variation distance between two histograms (normalised here): 0.5 * sum |p - q|."""
+    p = np.asarray(p, float)
+    q = np.asarray(q, float)
+    return float(0.5 * np.abs(p / p.sum() - q / q.sum()).sum())
+
+
+def emd_1d(p: np.ndarray, q: np.ndarray, edges: np.ndarray) -> float:
+    """Earth mover's distance between two histograms on the same bins (bin-centre mass)."""
+    p = np.asarray(p, float) / np.sum(p)
+    q = np.asarray(q, float) / np.sum(q)
+    widths = np.diff(edges)
+    return float(np.sum(np.abs(np.cumsum(p - q))[:-1] * widths[:-1]))
+
+
+def coverage(points: np.ndarray, el_range=(-24.0, 2.0), az_bin=1.0, el_bin=0.5) -> float:
+    """Fraction of (azimuth x elevation) cells inside ``el_range`` holding at least one return."""
+    el = elevation_deg(points)
+    az = azimuth_deg(points)
+    inside = (el >= el_range[0]) & (el < el_range[1])
+    n_az = int(round(360 / az_bin))
+    n_el = int(round((el_range[1] - el_range[0]) / el_bin))
+    ia = np.clip(((az[inside] + 180.0) / az_bin).astype(int), 0, n_az - 1)
+    ie = np.clip(((el[inside] - el_range[0]) / el_bin).astype(int), 0, n_el - 1)
+    return float(len(np.unique(ia * n_el + ie)) / (n_az * n_el))
+
+
+def voxel_thin(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
+    """One point (the first) per ``voxel`` cube."""
+    if not len(points):
+        return points
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
+def plane_residuals(queries: np.ndarray, cloud: np.ndarray, exclude_self: bool,
+                    k: int = NEIGHBOURS, radius: float = RADIUS_M, min_neighbours: int = MIN_NEIGHBOURS,
+                    planarity: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Per query point: (distance of the query to its neighbours' plane, RMS distance of the
+    neighbours to that plane), NaN where fewer than ``min_neighbours`` lie within ``radius``
+    or the neighbourhood is a line (second eigenvalue below ``planarity`` x the largest)."""
+    queries = np.asarray(queries, np.float64)
+    cloud = np.asarray(cloud, np.float64)
+    out_q = np.full(len(queries), np.nan)
+    out_rms = np.full(len(queries), np.nan)
+    if len(cloud) < min_neighbours or not len(queries):
+        return out_q, out_rms
+    kk = min(k + int(exclude_self), len(cloud))
+    d, idx = cKDTree(cloud).query(queries, k=kk, distance_upper_bound=radius)
+    if exclude_self:
+        d, idx = d[:, 1:], idx[:, 1:]
+    ok = np.isfinite(d)
+    n = ok.sum(1)
+    use = n >= min_neighbours
+    if not use.any():
+        return out_q, out_rms
+    d, idx, ok, n = d[use], idx[use], ok[use], n[use]
+    nb = cloud[np.where(ok, idx, 0)]  # (Q, k, 3); masked entries weigh zero
+    w = ok[..., None].astype(float)
+    mean = (nb * w).sum(1) / n[:, None]
+    c = (nb - mean[:, None]) * w
+    cov = np.einsum("qki,qkj->qij", c, c) / n[:, None, None]
+    evals, evecs = np.linalg.eigh(cov)  # ascending
+    normal = evecs[:, :, 0]
+    flat = evals[:, 1] >= planarity * np.maximum(evals[:, 2], 1e-12)
+    rq = np.abs(np.sum((queries[use] - mean) * normal, axis=1))
+    rms = np.sqrt(np.maximum(evals[:, 0], 0.0))
+    out_q[np.nonzero(use)[0][flat]] = rq[flat]
+    out_rms[np.nonzero(use)[0][flat]] = rms[flat]
+    return out_q, out_rms
+
+
+def kendall_tau(a, b) -> float:
+    """Kendall's tau-a of two score lists over the same items (ties count zero)."""
+    a = np.asarray(a, float)
+    b = np.asarray(b, float)
+    n = len(a)
+    if n < 2 or len(b) != n:
+        raise PcfbenchError(f"kendall_tau needs two equally long lists of at least 2 scores, got {len(a)} and {len(b)}")
+    s = 0.0
+    for i in range(n):
+        for j in range(i + 1, n):
+            s += np.sign(a[i] - a[j]) * np.sign(b[i] - b[j])
+    return float(s / (n * (n - 1) / 2))
+
+
+# --- reading a dataset -------------------------------------------------------------------------
+
+@dataclass
+class SideStats:
+    """Everything the report says about one dataset."""
+
+    label: str
+    sweeps: int = 0
+    points: list = field(default_factory=list)
+    beam_counts: np.ndarray | None = None  # (beams,) summed over sweeps
+    range_hist: np.ndarray | None = None
+    elev_hist: np.ndarray | None = None
+    az_hist: np.ndarray | None = None
+    coverage: list = field(default_factory=list)
+    elev_span: tuple[float, float] = (np.nan, np.nan)
+    static_residual: list = field(default_factory=list)
+    roughness: list = field(default_factory=list)
+    moving: list = field(default_factory=list)  # (moving points, labelled points) per sweep
+    seconds: float = 0.0
+
+    def summary(self, edges: np.ndarray) -> dict:
+        beams = self.beam_counts / max(self.sweeps, 1)
+        drop, columns = drop_per_beam(beams)
+        sr = np.concatenate(self.static_residual) if self.static_residual else np.zeros(0)
+        ro = np.concatenate(self.roughness) if self.roughness else np.zeros(0)
+        moving = (sum(m for m, _ in self.moving) / sum(n for _, n in self.moving)) if self.moving else float("nan")
+        return {
+            "points per sweep": float(np.mean(self.points)),
+            "returns per beam (median)": float(np.median(beams)),
+            "columns per beam (estimated)": columns,
+            "ray drop (mean over beams)": float(np.mean(drop)),
+            "coverage (1x0.5 deg cells)": float(np.mean(self.coverage)),
+            "elevation span low (deg)": self.elev_span[0],
+            "elevation span high (deg)": self.elev_span[1],
+            "median range (m)": _hist_median(self.range_hist, RANGE_EDGES),
+            "static-scene residual median (m)": float(np.median(sr)) if sr.size else float("nan"),
+            "static-scene residual p90 (m)": float(np.quantile(sr, 0.9)) if sr.size else float("nan"),
+            "roughness median (m)": float(np.median(ro)) if ro.size else float("nan"),
+            "roughness p90 (m)": float(np.quantile(ro, 0.9)) if ro.size else float("nan"),
+            "moving-object points (fraction)": moving,
+        }
+
+
+def _hist_median(h, edges) -> float:
+    c = np.cumsum(h) / max(np.sum(h), 1)
+    i = int(np.searchsorted(c, 0.5))
+    return float(edges[min(i + 1, len(edges) - 1)])
+
+
+def _moving_mask(adapter, seq_name: str, index: int, n: int) -> np.ndarray | None:
+    """Per point: on a moving object? None where the dataset has no labels."""
+    root = getattr(adapter, "root", None)
+    if root is None:
+        return None
+    path = Path(root) / "sequences" / seq_name / "labels" / f"{index:06d}.label"
+    if not path.is_file():
+        return None
+    lab = np.fromfile(path, dtype=np.uint32) & 0xFFFF
+    if len(lab) != n:
+        raise PcfbenchError(f"{path}: {len(lab)} labels for {n} points (expected one uint32 per point)")
+    from pcfbench.datasets.synthetic.adapter import SyntheticKitti
+    from pcfbench.datasets.synthetic.world import MOVING_CLASSES
+
+    if isinstance(adapter, SyntheticKitti):
+        return np.isin(lab, MOVING_CLASSES)
+    return lab >= SEMANTIC_KITTI_MOVING
+
+
+def pick_sweeps(adapter, split: str, count: int) -> list[tuple[str, int]]:
+    """``count`` (sequence, index) pairs spread evenly over the split (each has a next sweep)."""
+    pairs = []
+    for name in adapter.sequence_names(split):
+        n = len(adapter.sequence(name))
+        pairs += [(name, i) for i in range(n - 1)]
+    if not pairs:
+        raise PcfbenchError(f"dataset {adapter.name} split {split!r} has no two consecutive sweeps to compare")
+    take = np.unique(np.linspace(0, len(pairs) - 1, min(count, len(pairs))).round().astype(int))
+    return [pairs[i] for i in take]
+
+
+def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed: int = 0) -> SideStats:
+    """Read ``count`` sweeps (and each one's successor) of ``adapter`` and gather the statistics."""
+    from pcfbench.geometry import transform_points
+    from pcfbench.protocol import MIN_RANGE_M
+
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    st = SideStats(label)
+    st.beam_counts = np.zeros(len(edges) - 1)
+    st.range_hist = np.zeros(len(RANGE_EDGES) - 1)
+    st.elev_hist = np.zeros(len(ELEV_EDGES) - 1)
+    st.az_hist = np.zeros(180)
+    lows, highs = [], []
+    seqs = {}
+    for name, i in pick_sweeps(adapter, split, count):
+        seq = seqs.setdefault(name, adapter.sequence(name))
+        raw = np.asarray(seq.load_points(i), np.float64)
+        keep = ~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)
+        pts = raw[keep]
+        st.sweeps += 1
+        st.points.append(len(pts))
+        st.beam_counts += returns_per_beam(pts, edges)
+        r = np.linalg.norm(pts, axis=1)
+        st.range_hist += np.histogram(r, bins=RANGE_EDGES)[0]
+        el = elevation_deg(pts)
+        st.elev_hist += np.histogram(el, bins=ELEV_EDGES)[0]
+        st.az_hist += np.histogram(azimuth_deg(pts), bins=180, range=(-180, 180))[0]
+        st.coverage.append(coverage(pts))
+        lows.append(np.quantile(el, 0.001))
+        highs.append(np.quantile(el, 0.999))
+        mask = _moving_mask(adapter, name, i, len(raw))
+        if mask is not None:
+            st.moving.append((int(mask[keep].sum()), int(keep.sum())))
+        # planes: thinned clouds, queries 3-20 m
+        near = (r > PLANE_RANGE_M[0]) & (r < PLANE_RANGE_M[1])
+        thin = voxel_thin(pts)
+        q = pts[near]
+        if len(q) > QUERIES:
+            q = q[rng.choice(len(q), QUERIES, replace=False)]
+        _, rms = plane_residuals(q, thin, exclude_self=True)
+        st.roughness.append(rms[np.isfinite(rms)])
+        nxt = np.asarray(seq.load_points(i + 1), np.float64)
+        nxt = nxt[~adapter.ego_box.inside(nxt)]
+        rn = np.linalg.norm(nxt, axis=1)
+        qn = nxt[(rn > PLANE_RANGE_M[0]) & (rn < PLANE_RANGE_M[1])]
+        if len(qn) > QUERIES:
+            qn = qn[rng.choice(len(qn), QUERIES, replace=False)]
+        T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[i + 1]
+        res, _ = plane_residuals(transform_points(T, qn), thin, exclude_self=False)
+        st.static_residual.append(res[np.isfinite(res)])
+    st.elev_span = (float(np.median(lows)), float(np.median(highs)))
+    st.seconds = time.perf_counter() - t0
+    return st
+
+
+# --- the baselines -----------------------------------------------------------------------------
+
+def baseline_means(dataset: str, root: str, split: str, setting: str, store: Path, limit: int | None,
+                   methods=BASELINES, metrics=RANK_METRICS, progress: bool = False, threads: int | None = None) -> dict:
+    """method -> {metric: flat mean over (sample, future sweep)}; cells run (or resumed) in ``store``."""
+    from pcfbench.method import resolve_method
+    from pcfbench.plugins import get_plugins
+    from pcfbench.runner import default_metrics, run_cell
+    from pcfbench.store import Cell, CellSpec
+
+    plugins = get_plugins()
+    names = default_metrics(plugins)
+    out = {}
+    for m in methods:
+        spec_m = resolve_method(m, plugins)
+        spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, split, setting,
+                        "full-context", limit, names)
+        t0 = time.perf_counter()
+        res = run_cell(spec, store, progress=progress, plugins=plugins, threads=threads)
+        df = Cell(store, spec).read_rows()
+        ok = df[df["status"] == "ok"]
+        row = {k: float(np.nanmean(ok[k].to_numpy(float))) for k in metrics}
+        row["samples"] = res.samples
+        row["seconds"] = time.perf_counter() - t0
+        out[m] = row
+    return out
+
+
+# --- the report --------------------------------------------------------------------------------
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b and np.isfinite(a) and np.isfinite(b) else float("nan")
+
+
+def _fmt(x) -> str:
+    if isinstance(x, str):
+        return x
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    return f"{x:.4g}" if abs(x) < 1000 else f"{x:.0f}"
+
+
+def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, base_syn: dict | None,
+                 base_real: dict | None, meta: dict) -> dict:
+    """realism.md, realism.csv, realism.json and the figures under ``out``; returns the numbers."""
+    out.mkdir(parents=True, exist_ok=True)
+    s, r = syn.summary(edges), real.summary(edges)
+    rows = [(k, s[k], r[k], _ratio(s[k], r[k])) for k in s]
+    tv = histogram_distance(syn.range_hist, real.range_hist)
+    emd = emd_1d(syn.range_hist, real.range_hist, RANGE_EDGES)
+    tv_el = histogram_distance(syn.elev_hist, real.elev_hist)
+    result = {"meta": meta, "synthetic": s, "real": r,
+              "range histogram distance (TV)": tv, "range histogram EMD (m)": emd,
+              "elevation histogram distance (TV)": tv_el}
+    base_rows, taus = [], {}
+    if base_syn and base_real:
+        for m in base_syn:
+            base_rows.append((m, *[(base_real[m][k], base_syn[m][k], _ratio(base_syn[m][k], base_real[m][k])) for k in RANK_METRICS]))
+        for k in RANK_METRICS:
+            taus[k] = kendall_tau([base_real[m][k] for m in base_syn], [base_syn[m][k] for m in base_syn])
+        result["baselines"] = {"synthetic": base_syn, "real": base_real, "kendall_tau": taus}
+    with open(out / "realism.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["statistic", "synthetic", "real", "ratio_synthetic_over_real"])
+        for k, a, b, q in rows:
+            w.writerow([k, a, b, q])
+        w.writerow(["range histogram distance (TV)", tv, "", ""])
+        w.writerow(["range histogram EMD (m)", emd, "", ""])
+        w.writerow(["elevation histogram distance (TV)", tv_el, "", ""])
+        for m, *vals in base_rows:
+            for k, (rv, sv, q) in zip(RANK_METRICS, vals):
+                w.writerow([f"{m} {k}", sv, rv, q])
+        for k, t in taus.items():
+            w.writerow([f"kendall tau {k}", t, "", ""])
+    (out / "realism.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
+    figures = _figures(out, syn, real, edges, base_syn, base_real)
+    lines = [f"# Realism report: {meta['synthetic']} vs {meta['real']}", "",
+             f"{syn.sweeps} synthetic sweeps ({meta['synthetic_split']}) and {real.sweeps} real sweeps "
+             f"({meta['real_split']}), each with its successor. Ratios are synthetic / real.", "",
+             "| statistic | synthetic | real | ratio |", "|---|---|---|---|"]
+    lines += [f"| {k} | {_fmt(a)} | {_fmt(b)} | {_fmt(q)} |" for k, a, b, q in rows]
+    lines += ["", f"Range histogram distance: total variation {tv:.3f} (0 same, 1 disjoint), "
+                  f"earth mover's {emd:.2f} m. Elevation histogram total variation {tv_el:.3f}.", ""]
+    if base_rows:
+        lines += [f"## Baselines at {meta['setting']} (flat means)", "",
+                  "| method | " + " | ".join(f"real {k} | synthetic {k} | ratio" for k in RANK_METRICS) + " |",
+                  "|---|" + "---|---|---|" * len(RANK_METRICS)]
+        for m, *vals in base_rows:
+            lines.append(f"| {m} | " + " | ".join(f"{_fmt(a)} | {_fmt(b)} | {_fmt(q)}" for a, b, q in vals) + " |")
+        lines += ["", "Kendall tau between the rankings: " + ", ".join(f"{k} {t:+.2f}" for k, t in taus.items()),
+                  f"(samples: real {next(iter(base_real.values()))['samples']}, "
+                  f"synthetic {next(iter(base_syn.values()))['samples']})", ""]
+    lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    (out / "realism.md").write_text("\n".join(lines))
+    return result
+
+
+def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_real) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = []
+
+    def save(fig, name):
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        names.append(name)
+
+    sides = ((syn, "synthetic", "tab:orange"), (real, "real", "tab:blue"))
+    fig, ax = plt.subplots(figsize=(5, 3))
+    ax.bar([0, 1], [np.mean(syn.points), np.mean(real.points)], color=["tab:orange", "tab:blue"])
+    ax.set_xticks([0, 1], ["synthetic", "real"])
+    ax.set_ylabel("points per sweep")
+    save(fig, "points_per_sweep.png")
+
+    centres = (edges[1:] + edges[:-1]) / 2
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3))
+    for st, lab, col in sides:
+        beams = st.beam_counts / max(st.sweeps, 1)
+        axes[0].plot(centres, beams, color=col, label=lab)
+        axes[1].plot(centres, drop_per_beam(beams)[0], color=col, label=lab)
+    axes[0].set(xlabel="beam elevation (deg)", ylabel="returns per beam per sweep")
+    axes[1].set(xlabel="beam elevation (deg)", ylabel="columns without return (ray drop)")
+    axes[0].legend()
+    save(fig, "returns_per_beam_and_ray_drop.png")
+
+    fig, ax = plt.subplots(figsize=(6, 3))
+    for st, lab, col in sides:
+        ax.stairs(st.range_hist / st.range_hist.sum(), RANGE_EDGES, color=col, label=lab)
+    ax.set(xlabel="range (m)", ylabel="share of points", yscale="log")
+    ax.legend()
+    save(fig, "range_histogram.png")
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3))
+    for st, lab, col in sides:
+        axes[0].stairs(st.elev_hist / st.elev_hist.sum(), ELEV_EDGES, color=col, label=lab)
+        axes[1].stairs(st.az_hist / st.az_hist.sum(), np.linspace(-180, 180, 181), color=col, label=lab)
+    axes[0].set(xlabel="elevation (deg)", ylabel="share of points")
+    axes[1].set(xlabel="azimuth (deg)", ylabel="share of points")
+    axes[0].legend()
+    save(fig, "elevation_azimuth_coverage.png")
+
+    for attr, title, name in (("static_residual", "static-scene residual to the previous sweep's plane (m)", "static_residual.png"),
+                              ("roughness", "local surface roughness: RMS to the local plane (m)", "roughness.png")):
+        fig, ax = plt.subplots(figsize=(6, 3))
+        for st, lab, col in sides:
+            v = np.sort(np.concatenate(getattr(st, attr))) if getattr(st, attr) else np.zeros(0)
+            if v.size:
+                ax.plot(v, np.arange(1, v.size + 1) / v.size, color=col, label=lab)
+        ax.set(xlabel=title, ylabel="cumulative share", xscale="log")
+        ax.legend()
+        save(fig, name)
+
+    if base_syn and base_real:
+        fig, axes = plt.subplots(1, len(RANK_METRICS), figsize=(12, 3.2))
+        methods = list(base_syn)
+        x = np.arange(len(methods))
+        for ax, k in zip(axes, RANK_METRICS):
+            ax.bar(x - 0.2, [base_real[m][k] for m in methods], 0.4, color="tab:blue", label="real")
+            ax.bar(x + 0.2, [base_syn[m][k] for m in methods], 0.4, color="tab:orange", label="synthetic")
+            ax.set_xticks(x, [m.replace("raycast-", "rc-") for m in methods], rotation=30)
+            ax.set_title(k)
+        axes[0].legend()
+        save(fig, "baselines.png")
+    return names
+
+
+def open_side(spec: str, progress: bool = True):
+    """``NAME[=ROOT[?opts]]`` -> (name, root string, adapter)."""
+    from pcfbench import config
+    from pcfbench.plugins import get_plugins
+
+    plugins = get_plugins()
+    names, roots = config.parse_dataset_args((spec,))
+    if len(names) != 1:
+        raise PcfbenchError(f"{spec!r}: expected one NAME[=ROOT]")
+    name = names[0]
+    cls = plugins.datasets.get(name)
+    root = config.resolve_root(name, cls, roots, progress)
+    return name, root, config.open_adapter(name, cls, root)
+
+
+def default_split(adapter, preferred: str | None) -> str:
+    """``preferred``, else the adapter's default split if it has sequences, else the first that has."""
+    if preferred:
+        return preferred
+    for sp in (adapter.default_split, *adapter.splits()):
+        if sp in adapter.splits() and adapter.sequence_names(sp):
+            return sp
+    raise PcfbenchError(f"dataset {adapter.name} under {adapter.root} has no split with sequences")
+
+
+def compare(real: str, domain: str, out: Path, sweeps: int = 12, setting: str = "kitti-1s",
+            limit: int | None = None, real_limit: int | None = None, baselines: bool = True,
+            store: Path | None = None, real_split: str | None = None, synthetic_split: str | None = None,
+            progress: bool = True, threads: int | None = None) -> dict:
+    """Measure both sides and write the report; returns its numbers (also in realism.json)."""
+    from pcfbench.datasets.synthetic.sensor import HDL64
+
+    s_name, s_root, s_ad = open_side(domain, progress)
+    r_name, r_root, r_ad = open_side(real, progress)
+    s_split, r_split = default_split(s_ad, synthetic_split), default_split(r_ad, real_split)
+    edges = beam_edges(HDL64.elevations_deg)
+    syn = measure(s_ad, s_split, sweeps, s_name, edges)
+    rea = measure(r_ad, r_split, sweeps, r_name, edges)
+    base_syn = base_real = None
+    t_base = {}
+    if baselines:
+        store = Path(store) if store is not None else Path(out) / "store"
+        t0 = time.perf_counter()
+        base_syn = baseline_means(s_name, s_root, s_split, setting, store, limit, progress=progress, threads=threads)
+        t_base["synthetic"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        base_real = baseline_means(r_name, r_root, r_split, setting, store, real_limit, progress=progress, threads=threads)
+        t_base["real"] = time.perf_counter() - t0
+    meta = {"synthetic": s_name, "synthetic_root": s_root, "synthetic_split": s_split, "real": r_name,
+            "real_root": r_root, "real_split": r_split, "setting": setting, "sweeps": sweeps, "limit": limit,
+            "real_limit": real_limit, "statistics_seconds": {"synthetic": syn.seconds, "real": rea.seconds},
+            "baseline_seconds": t_base}
+    return write_report(Path(out), syn, rea, edges, base_syn, base_real, meta)

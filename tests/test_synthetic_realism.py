@@ -1,0 +1,278 @@
+"""The realism report's statistics (hand-computed cases), its command on tiny inputs, and
+world physics version 2 (deterministic, opt-in, physics 1 untouched)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.datasets.synthetic import compare as C
+from pcfbench.datasets.synthetic import realism as R
+from pcfbench.datasets.synthetic.domains import get_domain
+from pcfbench.datasets.synthetic.generate import generate_domain, simulate_sequence
+
+
+def _at(elev_deg, az_deg, r=10.0):
+    e, a = np.deg2rad(np.asarray(elev_deg, float)), np.deg2rad(np.asarray(az_deg, float))
+    return np.stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e)], 1)
+
+
+# --- statistics against hand-computed cases -----------------------------------------------------
+
+def test_beam_edges_and_returns_per_beam():
+    edges = C.beam_edges([0.0, -1.0, -3.0])
+    assert np.allclose(edges, [-4.0, -2.0, -0.5, 0.5])
+    pts = _at([-3.1, -2.9, -1.2, -0.9, 0.2, 0.6, -4.5], [0, 10, 20, 30, 40, 50, 60])
+    assert C.returns_per_beam(pts, edges).tolist() == [2, 2, 1]  # 0.6 and -4.5 lie outside the fan
+
+
+def test_ray_drop_per_beam():
+    drop, columns = C.drop_per_beam(np.array([0.0, 5.0, 10.0, 10.0]), quantile=0.9)
+    assert columns == 10.0
+    assert drop.tolist() == [1.0, 0.5, 0.0, 0.0]
+
+
+def test_histogram_distances():
+    assert C.histogram_distance([1, 0], [0, 1]) == 1.0
+    assert C.histogram_distance([1, 1], [1, 3]) == pytest.approx(0.25)
+    assert C.histogram_distance([2, 2], [1, 1]) == 0.0
+    edges = np.array([0.0, 1.0, 2.0, 3.0])
+    assert C.emd_1d([1, 0, 0], [0, 0, 1], edges) == pytest.approx(2.0)  # all mass moves two bins
+    assert C.emd_1d([1, 1, 0], [0, 1, 1], edges) == pytest.approx(1.0)  # half the mass moves two bins
+
+
+def test_coverage_counts_filled_cells():
+    # 360 x 52 cells of 1 x 0.5 deg in -24..2 deg; three points, two in one cell
+    pts = _at([-10.1, -10.2, 1.0, 5.0], [0.2, 0.7, -90.5, 0.0])
+    assert C.coverage(pts) == pytest.approx(2 / (360 * 52))
+
+
+def test_voxel_thin_keeps_the_first_point_per_cube():
+    pts = np.array([[0.01, 0.01, 0.0], [0.1, 0.1, 0.1], [0.2, 0.0, 0.0], [-0.01, 0.0, 0.0]])
+    assert C.voxel_thin(pts, 0.15).tolist() == [pts[0].tolist(), pts[2].tolist(), pts[3].tolist()]
+
+
+def test_plane_residuals_hand_cases():
+    g = np.arange(-0.2, 0.21, 0.1)
+    X, Y = np.meshgrid(g, g)
+    # a plane whose points alternate +-a: RMS distance to the fitted plane z=0 is a (checkerboard)
+    a = 0.02
+    Z = a * np.where((np.round(X / 0.1) + np.round(Y / 0.1)) % 2 == 0, 1.0, -1.0)
+    cloud = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    Z0 = np.zeros_like(X)
+    flat = np.stack([X.ravel(), Y.ravel(), Z0.ravel()], 1)
+    q = np.array([[0.0, 0.0, 0.05]])
+    res, rms = C.plane_residuals(q, flat, exclude_self=False, k=25, radius=1.0)
+    assert res[0] == pytest.approx(0.05) and rms[0] == pytest.approx(0.0, abs=1e-12)
+    # 25 checkerboard points: 13 at +a, 12 at -a -> centroid z = a/25, plane z = a/25
+    _, rms = C.plane_residuals(q, cloud, exclude_self=False, k=25, radius=1.0)
+    mean = a / 25
+    expect = np.sqrt((13 * (a - mean) ** 2 + 12 * (a + mean) ** 2) / 25)
+    assert rms[0] == pytest.approx(expect, rel=1e-9)
+    # a line is not a plane; too few neighbours within the radius is no answer either
+    line = np.stack([np.linspace(0, 1, 20), np.zeros(20), np.zeros(20)], 1)
+    assert np.isnan(C.plane_residuals(np.array([[0.5, 0.1, 0.0]]), line, False, radius=2.0)[0][0])
+    assert np.isnan(C.plane_residuals(np.array([[9.0, 9.0, 9.0]]), flat, False)[0][0])
+
+
+def test_kendall_tau_matches_hand_count_and_scipy():
+    from scipy.stats import kendalltau
+
+    assert C.kendall_tau([1, 2, 3], [10, 20, 30]) == 1.0
+    assert C.kendall_tau([1, 2, 3], [3, 2, 1]) == -1.0
+    assert C.kendall_tau([1, 2, 3, 4], [1, 3, 2, 4]) == pytest.approx(4 / 6)  # one discordant pair of 6
+    rng = np.random.default_rng(0)
+    a, b = rng.random(5), rng.random(5)
+    assert C.kendall_tau(a, b) == pytest.approx(kendalltau(a, b).statistic)
+    with pytest.raises(PcfbenchError, match="equally long"):
+        C.kendall_tau([1, 2], [1])
+
+
+# --- the command on tiny inputs -----------------------------------------------------------------
+
+def _tiny_domain(name="synthetic-town", sweeps=18, azimuths=240):
+    d = get_domain(name)
+    sensor = dataclasses.replace(d.sensor, azimuth_steps=azimuths, max_range_m=60.0)
+    return dataclasses.replace(d, sensor=sensor, splits={"train": (("00", 4),), "test": (("05", sweeps),)})
+
+
+def test_compare_command_statistics_only(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.cli import build_cli
+
+    cli = build_cli()
+
+    syn = tmp_path / "syn"
+    generate_domain(_tiny_domain(sweeps=4), syn, progress=False, splits=("test",))
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=6)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli, ["synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}",
+                                   "--out", str(out), "--sweeps", "3", "--no-baselines", "-q"])
+    assert res.exit_code == 0, res.output
+    assert "points per sweep: synthetic" in res.output
+    data = json.loads((out / "realism.json").read_text())
+    assert data["synthetic"]["moving-object points (fraction)"] >= 0  # the generator labels its points
+    assert np.isnan(data["real"]["moving-object points (fraction)"])  # no labels in the tiny KITTI
+    rows = {r.split(",")[0]: r.split(",")[1:] for r in (out / "realism.csv").read_text().splitlines()[1:]}
+    s, r, q = (float(x) for x in rows["points per sweep"])
+    assert q == pytest.approx(s / r)
+    for fig in ("points_per_sweep.png", "returns_per_beam_and_ray_drop.png", "range_histogram.png",
+                "elevation_azimuth_coverage.png", "static_residual.png", "roughness.png"):
+        assert (out / fig).stat().st_size > 1000
+    assert "| points per sweep |" in (out / "realism.md").read_text()
+
+
+def test_compare_refuses_a_dataset_without_sweep_pairs(tmp_path):
+    from conftest import write_tiny_kitti
+
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=6)
+    with pytest.raises(PcfbenchError, match="no split|no two consecutive"):
+        C.compare(f"kitti={real}", f"kitti={real}", tmp_path / "o", real_split="val", synthetic_split="val",
+                  baselines=False, progress=False)
+
+
+@pytest.mark.slow
+def test_compare_command_with_baselines_on_tiny_data(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.cli import build_cli
+
+    cli = build_cli()
+
+    syn = tmp_path / "syn"
+    generate_domain(_tiny_domain(sweeps=16, azimuths=180), syn, progress=False, splits=("test",))
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=16)
+    out = tmp_path / "out"
+    args = ["synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}", "--out", str(out),
+            "--sweeps", "2", "--limit", "1", "--real-limit", "1", "--real-split", "test", "-q", "--threads", "1"]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    data = json.loads((out / "realism.json").read_text())
+    base = data["baselines"]
+    assert set(base["synthetic"]) == set(C.BASELINES) == set(base["real"])
+    for k in C.RANK_METRICS:
+        tau = C.kendall_tau([base["real"][m][k] for m in C.BASELINES], [base["synthetic"][m][k] for m in C.BASELINES])
+        assert base["kendall_tau"][k] == pytest.approx(tau)
+    assert (out / "baselines.png").is_file()
+    assert "Kendall tau" in (out / "realism.md").read_text()
+    # a second run reuses the cells of the store
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code == 0 and json.loads((out / "realism.json").read_text())["baselines"] == base
+
+
+# --- world physics version 2 --------------------------------------------------------------------
+
+def test_value_noise_is_a_smooth_deterministic_field():
+    p = np.random.default_rng(1).uniform(-50, 50, (2000, 3))
+    a = R.value_noise(p, 0.5, salt=3)
+    assert np.array_equal(a, R.value_noise(p, 0.5, salt=3))
+    assert np.all(np.abs(a) <= 1.0) and a.std() > 0.1
+    assert not np.array_equal(a, R.value_noise(p, 0.5, salt=4))
+    near = R.value_noise(p + 1e-3, 0.5, salt=3)
+    assert np.max(np.abs(near - a)) < 0.05  # continuous
+    lattice = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]])  # at lattice points: the lattice value itself
+    assert np.allclose(R.value_noise(lattice, 1.0, 7), R._lattice(lattice[:, 0], lattice[:, 1], lattice[:, 2], 7))
+
+
+def test_surface_displacement_by_class():
+    from pcfbench.datasets.synthetic.world import GROUND, VEHICLE
+
+    p = np.random.default_rng(2).uniform(-20, 20, (500, 3))
+    d = R.surface_displacement(p, np.full(500, VEHICLE), R.REALISM)
+    assert np.all(d == 0)  # moving agents are not roughened
+    g = R.surface_displacement(p, np.full(500, GROUND), R.REALISM)
+    amp = dict((c, a) for c, a, _ in R.REALISM.roughness)[GROUND]
+    assert 0 < np.abs(g).max() <= amp + 1e-12
+
+
+def test_column_times_and_pose_interpolation():
+    sensor = get_domain("synthetic-town-realistic").sensor
+    t = R.column_times(sensor, R.REALISM)
+    assert t[0] == pytest.approx(-0.05) and t[sensor.azimuth_steps // 2] == 0.0 and np.all(np.diff(t) > 0)
+    assert np.all(R.column_times(sensor, dataclasses.replace(R.REALISM, motion_distortion=False)) == 0)
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    poses[1, :3, 3] = (1.0, 2.0, 0.0)
+    out = R.interpolate_poses(np.array([0.0, 0.1]), poses, np.array([0.025, 0.1]))
+    assert np.allclose(out[0, :3, 3], (0.25, 0.5, 0.0)) and np.allclose(out[1, :3, 3], (1.0, 2.0, 0.0))
+
+
+def test_physics_2_is_deterministic_and_differs_from_physics_1():
+    d2 = _tiny_domain("synthetic-town-realistic", sweeps=2, azimuths=480)
+    a, b = simulate_sequence(d2, "05"), simulate_sequence(d2, "05")
+    assert all(np.array_equal(x, y) for x, y in zip(a.points, b.points))
+    d1 = _tiny_domain("synthetic-town", sweeps=2, azimuths=480)
+    one = simulate_sequence(d1, "05")
+    assert np.array_equal(a.T_world_sensor, one.T_world_sensor)  # same town and drive
+    assert not np.array_equal(a.points[0], one.points[0])
+    assert d2.physics == 2 and d1.physics == 1
+
+
+def test_motion_distortion_shifts_points_by_the_ego_motion():
+    """A sensor moving forward at v: a column fired at tau returns from v * tau further ahead,
+    and is stored in its own firing frame, so a wall ahead keeps its range at tau = 0 only."""
+    from pcfbench.datasets.synthetic.lidar import StaticScene
+    from pcfbench.datasets.synthetic.world import STRUCTURE, MeshSoup, box
+
+    soup = MeshSoup()
+    soup.add(STRUCTURE, *box(0.0, 0.0, -10.0, 40.0, 40.0, 30.0, 0.0))  # a room around the sensor
+    scene = StaticScene(soup)
+    sensor = dataclasses.replace(get_domain("synthetic-town-realistic").sensor, azimuth_steps=360, min_range_m=0.5)
+    quiet = dataclasses.replace(R.REALISM, beam_bias_deg=0.0, jitter_deg=0.0, range_bias_m=0.0, range_noise_m=0.0,
+                                roughness=(), mixed_prob=0.0, specular_drop=0.0, base_drop=0.0, r50_m=1e6)
+
+    class Flat:
+        def undulation(self, x, y):
+            return np.zeros_like(np.asarray(x, float))
+
+    def sweep(v):
+        tau = R.column_times(sensor, quiet)
+        poses = np.tile(np.eye(4), (len(tau), 1, 1))
+        poses[:, 0, 3] = v * tau
+        cal = (np.zeros(sensor.beams), np.zeros(sensor.beams))
+        return R.cast_sweep_realistic(sensor, scene, [], Flat(), 0.0, poses, np.random.default_rng(0), cal, quiet)
+
+    still, moving = sweep(0.0), sweep(20.0)
+    assert len(still.points) == len(moving.points) == sensor.num_rays  # a closed room: every ray returns
+
+    def x_wall(res, az):  # the +x wall (x = 20 m in the room) on the horizontal-ish beam
+        b = res.beam == int(np.argmin(np.abs(np.asarray(sensor.elevations_deg))))
+        a = np.degrees(np.arctan2(res.points[b, 1], res.points[b, 0]))
+        i = np.argmin(np.abs(a - az))
+        return res.points[b][i]
+
+    # facing forward (tau = 0) nothing changes; at azimuth -90 (tau = -0.025 s) the side wall is
+    # unchanged in y; behind (tau = -0.05 s, fired from x = -1 m) the back wall is 1 m nearer
+    assert np.allclose(x_wall(moving, 0.0), x_wall(still, 0.0), atol=1e-4)
+    back_still, back_moving = x_wall(still, -179.0), x_wall(moving, -179.0)
+    assert np.linalg.norm(back_still) - np.linalg.norm(back_moving) == pytest.approx(1.0, abs=0.05)
+
+
+def test_physics_1_output_is_unchanged_and_the_realistic_domain_is_opt_in():
+    """Golden digest of a tiny physics-1 generation (checked equal to the cache written before
+    physics 2 existed): learned checkpoints and the default leaderboard key on these bytes."""
+    from pcfbench.plugins import get_plugins
+
+    seq = simulate_sequence(_tiny_domain(sweeps=2), "05")
+    h = hashlib.sha256()
+    for p, lab in zip(seq.points, seq.labels):
+        h.update(p.tobytes())
+        h.update(lab.tobytes())
+    assert h.hexdigest() == GOLDEN_TINY_V1
+    ds = get_plugins().datasets
+    assert ds.get("synthetic-town").embedded and not ds.get("synthetic-town-realistic").embedded
+
+
+def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
+    generate_domain(_tiny_domain("synthetic-town-realistic", sweeps=2, azimuths=120), tmp_path / "r", progress=False,
+                    splits=("test",))
+    generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
+    assert json.loads((tmp_path / "r" / "synthetic.json").read_text())["physics"] == 2
+    assert "physics" not in json.loads((tmp_path / "o" / "synthetic.json").read_text())
+
+
+GOLDEN_TINY_V1 = "b50ddcca7dfc9329fbdb164954da2bc09560e65e70cb02aac482454a5ee0ead2"
