@@ -40,8 +40,8 @@ from pcfbench.methods.copy_last import CopyLast
 
 class RayProbe(CopyLast):
     """copy-last that records each construction and call (a line per event in files under
-    marker_dir), sleeps ``delay`` s a sample, and kills its own worker process the first time
-    it sees sample ``kill`` (a marker file says it did)."""
+    marker_dir), sleeps ``delay`` s a sample, and kills its own worker process the first
+    ``kills`` times it sees sample ``kill`` (a marker file counts them)."""
 
     name = "ray-probe"
 
@@ -49,7 +49,8 @@ class RayProbe(CopyLast):
     class Options:
         marker_dir: str = pcfbench.option("", help="folder of the call records")
         delay: float = pcfbench.option(0.0, help="seconds a sample")
-        kill: str = pcfbench.option("", help="sample id whose first call kills the worker")
+        kill: str = pcfbench.option("", help="sample id whose first calls kill the worker")
+        kills: int = pcfbench.option(1, help="how many of its calls kill the worker")
 
     def __init__(self, options=None):
         super().__init__(options)
@@ -60,9 +61,12 @@ class RayProbe(CopyLast):
         with open(os.path.join(self.options.marker_dir, "calls"), "a") as f:
             f.write(f"{os.getpid()} {sample.sample_id}\\n")
         killed = os.path.join(self.options.marker_dir, "killed")
-        if sample.sample_id == self.options.kill and not os.path.exists(killed):
-            open(killed, "w").close()
-            os.kill(os.getpid(), signal.SIGKILL)
+        if sample.sample_id == self.options.kill:
+            done = open(killed).read().count("x") if os.path.exists(killed) else 0
+            if done < self.options.kills:
+                with open(killed, "a") as f:
+                    f.write("x")
+                os.kill(os.getpid(), signal.SIGKILL)
         time.sleep(self.options.delay)
         return super().forecast(sample)
 
@@ -228,6 +232,23 @@ def test_a_worker_killed_mid_task_is_retried_and_every_row_is_there_once(tmp_pat
     assert [p.name for p in cell.chunk_paths()] == [shard_name(0, 3), shard_name(3, 6)]
     meta = json.loads((cell.dir / "cell.json").read_text())
     assert meta["status"] == "complete" and meta["counts"]["ok"] == 6
+
+
+@pytest.mark.slow
+def test_a_shard_whose_worker_dies_at_every_retry_stops_the_run_and_keeps_the_finished_shards(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    victim = "08/000013"  # the last sample: its shard runs last
+    out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3, kill=victim, kills=99), capture_output=True,
+                         text=True, env=_env(tmp_path), timeout=600)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "the task of samples 3-5 lost its worker more than 3 time(s)" in out.stderr, out.stderr
+    assert "the finished shards are kept: rerun to resume" in out.stderr
+    assert (markers / "killed").read_text() == "xxxx"  # the first try and Ray's 3 retries
+    cell = _probe_cell(tmp_path / "store")
+    assert [p.name for p in cell.chunk_paths()] == [shard_name(0, 3)]
+    assert json.loads((cell.dir / "cell.json").read_text())["status"] == "running"
 
 
 @pytest.mark.slow
