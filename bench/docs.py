@@ -63,10 +63,11 @@ def builtin_metrics() -> list:
     Third-party plugins installed beside pcfbench are left out, so the page documents the
     package itself and does not depend on the environment it is generated in.
     """
-    from pcfbench.plugins import BUILTIN_PREFIX, load_plugins
+    from pcfbench.plugins import load_plugins
 
-    registry = load_plugins().metrics
-    return [registry.get(name) for name, entry in registry.entries.items() if entry.plugin.startswith(BUILTIN_PREFIX)]
+    plugins = load_plugins()
+    builtin = {name for name, info in plugins.info.items() if info.builtin}  # by distribution, never by name
+    return [plugins.metrics.get(name) for name, entry in plugins.metrics.entries.items() if entry.plugin in builtin]
 
 
 def _cell(text: str) -> str:

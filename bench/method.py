@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext, current
-from pcfbench.options import NoOptions, options_dict, options_hash, parse_options
+from pcfbench.options import NoOptions, check_options, options_dict, options_hash, parse_options
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcfbench.plugins import Plugins
@@ -40,12 +40,13 @@ class Method(ABC):
     def __init__(self, options: Any = None) -> None:
         """``options``: an instance of ``Options`` (default: its defaults); from a spec's
         strings, ``resolve_method`` builds it."""
+        who = getattr(type(self), "name", type(self).__name__)
         if options is None:
             options = self.Options()
         elif not isinstance(options, self.Options):
-            who = getattr(type(self), "name", type(self).__name__)
             raise PcfbenchError(f"method {who}: options must be a {self.Options.__qualname__}, got {options!r}")
-        self.options = options
+        # built directly (Options(voxel=nan)) as well as parsed: the same declared ranges
+        self.options = check_options(options, f"method {who}")
 
     @property
     def execution(self) -> ExecutionContext:

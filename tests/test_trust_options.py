@@ -101,3 +101,12 @@ def test_ls_options_prints_the_ranges():
     assert res.exit_code == 0, res.output
     line = next(x for x in res.output.splitlines() if x.split()[:1] == ["voxel"])
     assert line.rstrip().endswith("voxel edge of the occupancy grid, metres (valid: > 0, <= 10)")
+
+
+def test_a_method_built_with_direct_options_checks_their_ranges(plugins):
+    """``Method(Options(...))`` (the Python API, no spec string) refuses what parsing refuses."""
+    cls = plugins.methods.get("raycast-voxel")
+    for value, why in ((float("nan"), "must be a finite number, got nan"), (-1.0, r"must be > 0 \(valid: > 0, <= 10\)")):
+        with pytest.raises(PcfbenchError, match=rf"^method raycast-voxel option voxel {why}"):
+            cls(cls.Options(voxel=value))
+    assert cls(cls.Options(voxel=0.5)).options.voxel == 0.5

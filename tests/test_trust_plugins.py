@@ -113,3 +113,15 @@ def test_register_kept_past_its_hook_is_refused():
     with pytest.raises(PluginError, match="after its registration hook returned"):
         kept[0]("late", Marker)
     assert "late" not in plugins.methods
+
+
+def test_docs_metrics_page_takes_builtins_by_distribution_not_name(third_party):
+    """A third-party metric from an entry point named ``builtin-...`` stays off docs/metrics.md."""
+    from pcfbench import docs
+    from pcfbench.metrics.base import Metric
+
+    rogue = Metric("rogue", "1", lambda ctx: 0.0, "a third-party metric")
+    third_party("builtin-rogue", register_metrics=lambda register: register("rogue", rogue))
+    assert "rogue" in load_plugins().metrics  # it is loaded (no allow-list)...
+    names = [m.name for m in docs.builtin_metrics()]
+    assert "rogue" not in names and "chamfer" in names  # ... but it is not a built-in
