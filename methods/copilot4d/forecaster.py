@@ -190,7 +190,7 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
         run.save(step, weights, state, config=manifest_config, complete=complete)
 
     run.start(steps, step)
-    saved = step if resumed is not None and not resumed.get("adopted") else -1  # adopted weights: save them here
+    saved = step if resumed is not None else -1
     while step < steps:
         if run.should_stop():
             log(f"time budget reached at step {step}")
@@ -323,6 +323,14 @@ class Copilot4D(TrainedMethod):
                 raise CheckpointError(f"checkpoint {out_dir / 'manifest.json'} was trained on the tokens of tokenizer "
                                       f"{str(had)[:12]}, and {tok_ck.manifest_path} is now {tok_ck.sha256[:12]}: "
                                       "rerun with --fresh")
+        elif (base := self.base_checkpoint(train_source, tok_ck.sha256)) is not None:
+            # the same training options, trained already: their weights are what training would give
+            progress.log(f"{base.dir} holds the weights of the same training options (only "
+                         f"{', '.join(INFERENCE_OPTIONS)} may differ): taking them, step {base.steps}")
+            progress.start(base.steps, base.steps)
+            progress.save(base.steps, base.load_weights(), None, complete=True,
+                          config=dict(base.manifest["config"], weights_from=str(base.manifest_path)))
+            return
         cfg = self.world_cfg
         progress.log(f"{self.name} ({self.variant.name}, {cfg.name}): tokenizer {tok_ck.dir} "
                      f"(sha256 {tok_ck.sha256[:12]}), {train_source.train_on.label}")
@@ -340,14 +348,6 @@ class Copilot4D(TrainedMethod):
             "parameters": count_parameters(model), "steps_target": self.training_steps(),
             "windows": int(len(windows["tokens"])), "strides": list(self.options.strides),
         }
-        if resumed is None:  # the same training options trained already: continue from those weights
-            base = self.base_checkpoint(train_source, tok_ck.sha256)
-            if base is not None:
-                progress.log(f"{base.dir} was trained with the same training options (only {', '.join(INFERENCE_OPTIONS)} "
-                             f"may differ): continuing from its step {base.steps}")
-                resumed = {"step": base.steps, "weights": base.load_weights(), "state": base.load_state(),
-                           "adopted": True}
-                manifest_config["weights_from"] = str(base.manifest_path)
         out = train_world(model, cfg, windows, self.variant, progress, steps=self.training_steps(), seed=0,
                           manifest_config=manifest_config, resumed=resumed,
                           extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()}, log=progress.log)
@@ -373,7 +373,8 @@ class Copilot4D(TrainedMethod):
             ck = find_checkpoint(spec, train_source.train_on)
         except CheckpointError:
             return None
-        if ck is None or ck.manifest.get("config", {}).get("tokenizer_sha256") != tokenizer_sha:
+        if ck is None or not ck.manifest.get("complete") or \
+                ck.manifest.get("config", {}).get("tokenizer_sha256") != tokenizer_sha:
             return None
         return ck
 
