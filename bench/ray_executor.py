@@ -44,6 +44,13 @@ def shards(n: int, size: int) -> list[tuple[int, int]]:
     return [(a, min(a + size, n)) for a in range(0, n, size)]
 
 
+def check_gpus(wanted: float, available: float, label: str) -> None:
+    """Refuse GPU tasks that no node of the cluster could run (Ray would keep them waiting)."""
+    if wanted > available:
+        raise PcfbenchError(f"{label}: --gpus-per-task {wanted:g}, and the Ray cluster has {available:g} GPU(s): its "
+                            "tasks would wait for ever; add GPU nodes (`ray start --num-gpus N`) or pass --gpus-per-task 0")
+
+
 def _import_ray():
     try:
         import ray
@@ -124,8 +131,10 @@ class RayExecutor:
         ray = _import_ray()
         ids = [f"{s}/{i:06d}" for s, i in keys]
         trained = is_trained(get_plugins().methods.get(spec.method))
-        task = self._task.options(num_cpus=self.cpus_per_task, num_gpus=self.gpus_per_task if trained else 0,
-                                  max_retries=self.max_retries)
+        gpus = self.gpus_per_task if trained else 0
+        if gpus:
+            check_gpus(gpus, ray.cluster_resources().get("GPU", 0), spec.label)
+        task = self._task.options(num_cpus=self.cpus_per_task, num_gpus=gpus, max_retries=self.max_retries)
         spec_ref = ray.put(spec)
         pending: dict[Any, tuple[int, int]] = {}
         for start, stop in shards(len(keys), self.shard_samples):

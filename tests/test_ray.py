@@ -22,7 +22,7 @@ import pytest
 from click.testing import CliRunner
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.ray_executor import shards
+from pcfbench.ray_executor import check_gpus, shards
 from pcfbench.store import Cell, CellSpec, shard_name, write_shard
 from tests_helpers import write_kitti_tree
 
@@ -124,6 +124,13 @@ def test_shards_cut_the_sample_list_into_fixed_ranges():
     assert shards(4, 4) == [(0, 4)] and shards(0, 4) == [] and shards(3, 16) == [(0, 3)]
     with pytest.raises(PcfbenchError, match="at least 1 sample"):
         shards(10, 0)
+
+
+def test_gpu_tasks_the_cluster_cannot_run_are_refused():
+    check_gpus(1, 1.0, "cell")
+    check_gpus(0.5, 1.0, "cell")
+    with pytest.raises(PcfbenchError, match=r"m \| d:test \| s: --gpus-per-task 1, and the Ray cluster has 0 GPU"):
+        check_gpus(1, 0, "m | d:test | s")
 
 
 def test_a_shard_written_twice_is_one_chunk_and_its_rows_are_there_once(tmp_path):
