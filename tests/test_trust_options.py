@@ -110,3 +110,17 @@ def test_a_method_built_with_direct_options_checks_their_ranges(plugins):
         with pytest.raises(PcfbenchError, match=rf"^method raycast-voxel option voxel {why}"):
             cls(cls.Options(voxel=value))
     assert cls(cls.Options(voxel=0.5)).options.voxel == 0.5
+
+
+def test_docs_trust_lists_the_baselines_ranges_as_declared(plugins):
+    """Every row of the option-range table in docs/trust.md is what the options declare."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "trust.md").read_text(encoding="utf-8")
+    rows = re.findall(r"^  \| (raycast[^|]*) \| (\w+) \| ([^|]+) \|$", text, re.M)
+    assert len(rows) >= 12
+    for methods, name, valid in rows:
+        for method in (m.strip() for m in methods.split(",")):
+            declared = {f.name: f.range for f in describe_options(plugins.methods.get(method).Options, method)}
+            assert declared[name] == valid.strip(), (method, name)
