@@ -39,7 +39,8 @@ STYLE = tables.HTML_STYLE + (
 )
 
 # Sorts the rows of each <tbody> of a table by the data-v of the clicked column (numbers;
-# a missing value sorts last either way); #sort=KEY[:desc] applies a sort on load.
+# a missing value sorts last either way); #sort=KEY[:desc] applies a sort on load. Once the
+# page has loaded, <body data-figures-shown> counts the figures the browser could decode.
 SCRIPT = """
 (function(){
 function sortBy(table, key, desc){
@@ -70,17 +71,21 @@ function fromHash(){
   if (!m) return;
   document.querySelectorAll('table.pcf.sortable').forEach(function(t){ sortBy(t, m[1], !!m[2]); });
 }
+// a click sets the address's #sort=, and the hashchange sorts: one path for both
 document.querySelectorAll('table.pcf.sortable').forEach(function(t){
   Array.prototype.forEach.call(t.tHead.rows[0].cells, function(th){
     th.addEventListener('click', function(){
       var desc = th.getAttribute('aria-sort') === 'ascending';
-      document.querySelectorAll('table.pcf.sortable').forEach(function(u){ sortBy(u, th.dataset.key, desc); });
-      history.replaceState(null, '', '#sort=' + th.dataset.key + (desc ? ':desc' : ''));
+      location.hash = 'sort=' + th.dataset.key + (desc ? ':desc' : '');
     });
   });
 });
 fromHash();
 window.addEventListener('hashchange', fromHash);
+window.addEventListener('load', function(){
+  var ok = Array.prototype.filter.call(document.images, function(i){ return i.complete && i.naturalWidth > 0; });
+  document.body.dataset.figuresShown = String(ok.length);
+});
 document.body.dataset.ready = '1';
 })();
 """

@@ -235,3 +235,84 @@ def test_report_publishes_atomically_and_refuses_a_file_as_folder(made, tmp_path
 
 def _stub(cell_dir):
     return figures._spec_stub(Path(cell_dir))
+
+
+def _chromium() -> str:
+    import shutil
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing: bash .ci/setup installs it (apt-get install chromium)")
+        pytest.skip("chromium is not installed (bash .ci/setup installs it)")
+    return exe
+
+
+def _headless(exe: str, *args: str) -> str:
+    import subprocess
+
+    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
+           "--hide-scrollbars", "--virtual-time-budget=5000", *args]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return res.stdout
+
+
+@pytest.mark.slow
+def test_html_page_renders_in_headless_chromium(made, tmp_path):
+    """Debian's chromium renders the page: every row and value, the figures decoded, sorting
+    by a column (the #sort= address a header click sets) reorders each group; a screenshot is kept."""
+    from html.parser import HTMLParser
+
+    exe = _chromium()
+    store, _, paths = made
+    lb = collect(store)
+    url = paths["html"].resolve().as_uri()
+
+    class Dom(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.rows, self.body, self.heads, self._row = [], {}, [], None
+
+        def handle_starttag(self, tag, attrs):
+            a = dict(attrs)
+            if tag == "body":
+                self.body = a
+            elif tag == "th" and "data-key" in a:
+                self.heads.append(a["data-key"])
+            elif tag == "tr" and "cell" in (a.get("class") or "").split():
+                self._row = []
+                self.rows.append(self._row)
+            elif tag == "td" and self._row is not None:
+                self._row.append(a.get("data-v"))
+
+        def handle_endtag(self, tag):
+            if tag == "tr":
+                self._row = None
+
+    def dom(address):
+        d = Dom()
+        d.feed(_headless(exe, "--dump-dom", address))
+        return d
+
+    plain = dom(url)
+    assert plain.body.get("data-ready") == "1" and plain.body.get("data-figures-shown") == "3"
+    assert len(plain.rows) == len(lb.table) == 3
+    col = plain.heads.index("l1_mean")
+    shown = {r[0]: float(r[col]) for r in plain.rows}
+    for _, r in lb.table.iterrows():
+        assert shown[r["variant"] + (" (ref)" if r["is_reference"] else "")] == r["l1_mean"]
+    ranked = [r[0] for r in plain.rows]  # ranked by Chamfer (ROI), best first
+    assert ranked == sorted(ranked, key=lambda v: next(float(r[plain.heads.index("chamfer_nf")]) for r in plain.rows if r[0] == v))
+    for key, desc in (("l1_mean", True), ("method", False)):
+        d = dom(f"{url}#sort={key}" + (":desc" if desc else ""))
+        values = [r[d.heads.index(key)] for r in d.rows]
+        want = sorted(values, key=(float if key != "method" else str), reverse=desc)
+        assert values == want and len(values) == 3
+        if key == "l1_mean":
+            assert [r[0] for r in d.rows] != ranked  # it did reorder
+    shot = tmp_path / "leaderboard.png"
+    _headless(exe, f"--screenshot={shot}", "--window-size=1400,1800", url)
+    import matplotlib.image
+
+    assert matplotlib.image.imread(shot).shape[:2] == (1800, 1400)
