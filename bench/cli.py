@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import sys
@@ -187,30 +188,34 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     failures = failed_cells = 0
     # A cell that another run is computing (it holds the cell's lock) goes last and is then
     # waited for: its rows are the other run's, computed once (docs/trust.md).
-    queue = [(spec, False) for spec in cells]
-    while queue:
-        spec, wait = queue.pop(0)
-        if wait:
-            click.echo(f"{spec.label}: waiting for the other pcfbench process computing it", err=True)
-        try:
-            result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins,
-                              threads=threads, allow_train_split=allow_train_split, executor=ray_executor,
-                              timeout=timeout or None, isolate=True, wait=wait)
-        except CellLocked:
-            click.echo(f"{spec.label}: another pcfbench process is computing it; doing the other cells first", err=True)
-            queue.append((spec, True))
-            continue
-        if result.processed == 0 and result.done_before == result.samples:
-            click.echo(f"{spec.label}: complete, nothing to do ({result.samples} samples)")
-        else:
-            click.echo(
-                f"{spec.label}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
-                f"in {result.seconds:.1f} s -> {result.path}"
-            )
-        # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
-        cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
-        failures += cell_failed
-        failed_cells += cell_failed > 0
+    queue = [(i, spec, False) for i, spec in enumerate(cells, 1)]
+    finished = 0
+    with interrupted_note(store_path, lambda: finished, len(cells)):
+        while queue:
+            i, spec, wait = queue.pop(0)
+            where = f"cell {i}/{len(cells)}: {cell_label(spec)}"  # the grid's position, the variant's options
+            if wait:
+                click.echo(f"{where}: waiting for the other pcfbench process computing it", err=True)
+            try:
+                result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins,
+                                  threads=threads, allow_train_split=allow_train_split, executor=ray_executor,
+                                  timeout=timeout or None, isolate=True, wait=wait, progress_label=where)
+            except CellLocked:
+                click.echo(f"{where}: another pcfbench process is computing it; doing the other cells first", err=True)
+                queue.append((i, spec, True))
+                continue
+            finished += 1
+            if result.processed == 0 and result.done_before == result.samples:
+                click.echo(f"{where}: complete, nothing to do ({result.samples} samples)")
+            else:
+                click.echo(
+                    f"{where}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
+                    f"in {result.seconds:.1f} s -> {result.path}"
+                )
+            # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
+            cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
+            failures += cell_failed
+            failed_cells += cell_failed > 0
     if not no_report:
         from pcfbench.report import collect, summary
 
@@ -223,6 +228,32 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
                    "ranked; their tracebacks are in the cells' rows", err=True)
         if not keep_going:
             sys.exit(1)
+
+
+def cell_label(spec) -> str:
+    """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the cell with its options."""
+    from pcfbench.sweep import cell_label as label
+
+    return label(spec)
+
+
+@contextlib.contextmanager
+def interrupted_note(store_path, finished, total: int):
+    """On Ctrl-C: say what is kept and how to resume, and exit 130 (128 + SIGINT).
+
+    ``finished()``: how many of the ``total`` cells are complete (None: not counted). The runner has written the
+    rows of every finished sample before the interrupt reached here."""
+    import shlex
+
+    try:
+        yield
+    except KeyboardInterrupt:
+        again = "pcfbench " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        done = f"{finished()} of {total} cell(s) complete, and " if finished is not None else ""
+        click.echo(f"\npcfbench: interrupted: the finished work is kept in the store {store_path} "
+                   f"({done}every sample finished in the interrupted cell); "
+                   f"run the same command again to resume:\n  {again}", err=True)
+        sys.exit(130)
 
 
 def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress) -> dict[str, dict]:
@@ -287,12 +318,14 @@ def train(method_spec, dataset, split, max_minutes, fresh, quiet, ship):
               help="Bootstrap unit: samples, whole sequences, or blocks of N consecutive samples.")
 @click.option("--resamples", type=click.IntRange(min=100), default=2000, show_default=True)
 @click.option("--seed", type=int, default=17, show_default=True, help="Bootstrap seed (output is deterministic).")
-def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed):
+@click.option("--no-figures", is_flag=True, help="Leave out reports/figures/ (and the page's figures).")
+def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed, no_figures):
     """Regenerate the leaderboard tables (reports/leaderboard.*, reports/tables/) from the store."""
     from pcfbench.report import ReportOptions, collect, summary, write_reports
     from pcfbench.stats import Resampling
 
-    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed))
+    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed),
+                            figures=not no_figures)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     board = collect(store_path, options.resampling, options.reference)
@@ -301,6 +334,35 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
     for p in paths.values():
         click.echo(str(p))
     click.echo(paths["tex"].read_text().splitlines()[0].lstrip("% "))
+
+
+@cli.command()
+@click.argument("store", required=False, type=click.Path(file_okay=False))
+@click.option("--traceback", "tracebacks", is_flag=True, help="Print each failure's full traceback.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object per failed sample.")
+def failures(store, tracebacks, as_json):
+    """List the failed samples of STORE (default: the results store) with their errors."""
+    from pcfbench.report import failures as failed_samples
+
+    store_path = Path(store) if store else config.store_dir(None, config.reports_dir(None))
+    if not store_path.is_dir():
+        raise PcfbenchError(f"results store {store_path} does not exist (pcfbench run writes it)")
+    df = failed_samples(store_path)
+    if as_json:
+        for r in df.to_dict("records"):
+            click.echo(json.dumps(r if tracebacks else {k: v for k, v in r.items() if k != "traceback"}))
+        return
+    if not len(df):
+        click.echo(f"no failed samples in {store_path}")
+        return
+    for (cell, cell_dir), g in df.groupby(["cell", "cell_dir"], sort=False):
+        click.echo(f"{cell}: {len(g)} failed sample(s) ({cell_dir})")
+        for _, r in g.iterrows():
+            click.echo(f"  {r['sample_id']}: {r['error']}")
+            if tracebacks:
+                click.echo("    " + r["traceback"].rstrip().replace("\n", "\n    "))
+    cells = df["cell_dir"].nunique()
+    click.echo(f"{len(df)} failed sample(s) in {cells} cell(s)" + ("" if tracebacks else "; --traceback prints the tracebacks"))
 
 
 @cli.command()
@@ -332,8 +394,9 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
             click.echo(f"cell {i}/{len(cells)}: {cell_label(spec)} -> {store_path / spec.relpath()}")
         click.echo(f"tables: {', '.join(str(reports_path / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
         return
-    result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
-                       progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor)
+    with interrupted_note(store_path, None, 0):
+        result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
+                           progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor)
     failed = sum(r.failed for r in result.results)
     for text in result.summaries:
         click.echo(text)
@@ -344,12 +407,22 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
 
 
 @cli.command(name="ls")
-@click.argument("what", type=click.Choice(["methods", "datasets", "metrics", "settings"]))
+@click.argument("what", type=click.Choice(["methods", "datasets", "metrics", "settings", "samples"]))
+@click.argument("dataset", required=False, metavar="[DATASET[=ROOT]]")
 @click.option("--json", "as_json", is_flag=True)
 @click.option("--options", "with_options", is_flag=True,
               help="Methods and datasets: each option (NAME:key=value / ROOT?key=value) with its type, default and help.")
-def ls_cmd(what, as_json, with_options):
-    """List registered methods, datasets, metrics or the protocol's settings."""
+@click.option("--setting", "-s", default=None, help="samples: the setting (required).")
+@click.option("--split", default=None, help="samples: the split (default: the dataset's evaluation split).")
+@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True,
+              help="samples: the sample policy.")
+def ls_cmd(what, dataset, as_json, with_options, setting, split, policy):
+    """List registered methods, datasets, metrics or the protocol's settings; ``ls samples
+    DATASET --setting S`` lists the valid sample ids (what ``export --sample`` takes)."""
+    if what == "samples":
+        return _ls_samples(dataset, setting, split, policy, as_json)
+    if dataset or setting or split:
+        raise PcfbenchError(f"DATASET, --setting and --split apply to `pcfbench ls samples`, not to ls {what}")
     if with_options and what not in ("methods", "datasets"):
         raise PcfbenchError(f"--options lists the options of methods and datasets; {what} have none")
     if what == "settings":
@@ -385,6 +458,31 @@ def ls_cmd(what, as_json, with_options):
         for o in r["options"]:
             valid = f" (valid: {o['range']})" if o.get("range") else ""
             click.echo(f"    {o['name']:<{widths[0]}}  {o['type']:<{widths[1]}}  {o['default']!r:<{widths[2]}}  {o['help']}{valid}")
+
+
+def _ls_samples(dataset, setting, split, policy, as_json) -> None:
+    from pcfbench.protocol import SampleBuilder, check_compatible
+
+    if not dataset or not setting:
+        raise PcfbenchError("usage: pcfbench ls samples DATASET[=ROOT] --setting SETTING [--split SPLIT]")
+    plugins = get_plugins()
+    ((name, root),) = _dataset_roots(plugins, (dataset,), progress=True)
+    cls = plugins.datasets.get(name)
+    adapter = config.open_adapter(name, cls, root)
+    s = get_setting(setting)
+    check_compatible(s, adapter)
+    split = split or cls.default_split
+    if split not in adapter.splits():
+        from pcfbench.errors import unknown_name
+
+        raise unknown_name(f"split of dataset {name}", split, adapter.splits())
+    ids = [f"{seq}/{i:06d}" for seq, i in SampleBuilder(adapter, s, policy).sample_keys(split)]
+    if as_json:
+        click.echo(json.dumps(ids))
+        return
+    for i in ids:
+        click.echo(i)
+    click.echo(f"{len(ids)} samples of {name}:{split} for {setting} ({policy})", err=True)
 
 
 def _options_of(registry, name: str) -> tuple[list[dict], str | None]:

@@ -118,8 +118,13 @@ def cache_dir() -> Path:
 
 
 def reports_dir(cli: str | None = None) -> Path:
-    """Where tables are written: ``--reports``, ``$PCFBENCH_REPORTS``, else ./reports."""
-    return Path(cli or os.environ.get("PCFBENCH_REPORTS") or "reports")
+    """Where tables are written: ``--reports``, ``$PCFBENCH_REPORTS``, else ./reports; an
+    existing file there is one error (before any work)."""
+    path = Path(cli or os.environ.get("PCFBENCH_REPORTS") or "reports")
+    if path.exists() and not path.is_dir():
+        where = "--reports" if cli else "$PCFBENCH_REPORTS" if os.environ.get("PCFBENCH_REPORTS") else "the default"
+        raise PcfbenchError(f"the reports folder {path} ({where}) is a file, not a folder: give a folder")
+    return path
 
 
 def store_dir(cli: str | None = None, reports: Path | None = None) -> Path:

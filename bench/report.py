@@ -505,3 +505,23 @@ def summary(store_root: Path, options: ReportOptions | None = None, leaderboard:
                          f"({r['failed']} failed, {r['missing']} without rows)")
         out = (out + "\n\n" if out else "") + "\n".join(lines)
     return out
+
+
+def failures(store_root: Path) -> pd.DataFrame:
+    """Every failed sample of the store: one row per (cell, sample) with ``cell`` (its label,
+    options included), ``cell_dir``, ``sample_id``, ``error`` (the exception's first line) and
+    ``traceback``, cells in store order, samples in sample order."""
+    from pcfbench.sweep import cell_label
+
+    out = []
+    for cell_dir, meta in iter_cells(store_root):
+        spec = spec_from_meta(meta)
+        rows = Cell(store_root, spec).read_rows()
+        if not len(rows) or "status" not in rows:
+            continue
+        bad = stats.in_sample_order(rows[rows["status"] == "failed"])
+        for _, r in bad.iterrows():
+            out.append({"cell": cell_label(spec), "cell_dir": str(cell_dir), "sample_id": r["sample_id"],
+                        "error": str(r.get("error") or "").splitlines()[0] if r.get("error") else "",
+                        "traceback": str(r.get("traceback") or "")})
+    return pd.DataFrame(out, columns=["cell", "cell_dir", "sample_id", "error", "traceback"])

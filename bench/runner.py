@@ -248,8 +248,12 @@ def run_cell(
     timeout: float | None = None,
     isolate: bool | None = None,
     wait: bool = True,
+    progress_label: str | None = None,
 ) -> CellResult:
     """Run (or resume) one cell. Returns at once if the cell is already complete.
+
+    ``progress_label``: the progress bar's text (default: the cell's label), e.g. with the
+    grid's position ``cell 3/10 ...``.
 
     A trained method's cell is refused on the very data its checkpoint was trained on (same
     dataset, split and file fingerprint) unless ``allow_train_split``; cell.json then says so.
@@ -335,7 +339,7 @@ def run_cell(
             buffer, buffered_samples, last_flush = [], 0, time.monotonic()
 
         bar = tqdm(
-            total=len(ids), initial=len(ids) - len(todo), desc=spec.label, unit="sample",
+            total=len(ids), initial=len(ids) - len(todo), desc=progress_label or spec.label, unit="sample",
             disable=_progress_disabled() if progress else True, leave=True, dynamic_ncols=True,
         )
         if jobs == 0:

@@ -512,7 +512,7 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
             line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             tqdm.write(line) if not bar.disable else echo(line)
             r = run_cell(spec, store, jobs=jobs, force=force, progress=progress, plugins=plugins, threads=threads,
-                         executor=executor)
+                         executor=executor, progress_label=line)
             results.append(r)
             done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
                 f"{r.processed} sample(s) now, {r.failed} failed, {r.seconds:.1f} s"

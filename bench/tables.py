@@ -168,15 +168,24 @@ def _title(r: pd.Series, horizon_s: float | None) -> str:
     return t
 
 
+def _failed_by_group(incomplete: pd.DataFrame) -> dict[tuple, int]:
+    """Failed samples of the unranked (incomplete) cells per (dataset, split, setting, policy, limit)."""
+    if not len(incomplete) or "failed" not in incomplete:
+        return {}
+    df = incomplete.assign(limit=incomplete["limit"].fillna(-1) if "limit" in incomplete else -1)
+    sums = df.groupby(["dataset", "split", "setting", "policy", "limit"], dropna=False)["failed"].sum()
+    return {k: int(v) for k, v in sums.items()}
+
+
 def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | None,
-            order: list[str] | None = None) -> list[Group]:
+            order: list[str] | None = None, failed_elsewhere: dict[tuple, int] | None = None) -> list[Group]:
     out = []
     if not len(df):
         return out
     keys = ["dataset", "split", "setting", "policy", "limit"]
     df = df.copy()
     df["limit"] = df["limit"].fillna(-1) if "limit" in df else -1
-    for _, g in df.groupby(keys, sort=True, dropna=False):
+    for key, g in df.groupby(keys, sort=True, dropna=False):
         if order is not None:  # a sweep's rows in the experiment's order
             g = g.assign(_row=g["variant"].map({v: i for i, v in enumerate(order)})).sort_values("_row").drop(columns="_row")
         elif rank is not None:
@@ -187,7 +196,9 @@ def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | No
         first["limit"] = None if first["limit"] == -1 else first["limit"]
         title = _title(first, first.get("horizon_s"))
         samples, sweeps = int(g["samples"].max()), int(g["sweeps"].max())
-        title += f" - {samples} samples, {sweeps} sweeps"
+        # failed samples of the group: its rows' and those of its unranked (incomplete) cells
+        failed = int(g["failed"].fillna(0).sum()) + (failed_elsewhere or {}).get(key, 0) if "failed" in g else 0
+        title += f" - {samples} samples, {sweeps} sweeps, {failed} failed"
         best = {}
         for c in columns:
             vals = g[c.metric].dropna() if c.metric in g else pd.Series(dtype=float)
@@ -227,7 +238,9 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
         f"†: not significantly different from it (paired bootstrap, p >= {1 - lb.resampling.confidence:g})",
         "-: no sweep could be scored",
     ]
-    return Table(preset, columns, _groups(lb.table, columns, rank, order), _groups(lb.partial, columns, rank, order),
+    elsewhere = _failed_by_group(getattr(lb, "incomplete", pd.DataFrame()))
+    return Table(preset, columns, _groups(lb.table, columns, rank, order, elsewhere),
+                 _groups(lb.partial, columns, rank, order, elsewhere),
                  legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence, heading)
 
 

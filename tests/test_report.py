@@ -351,7 +351,7 @@ def test_run_prints_the_summary_table(tiny_kitti, tmp_path):
                                            "--method", "copy-last", "--reports", str(tmp_path / "rep"), "-q"])
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
-    at = lines.index("kitti / test / kitti-1s (1 s) - 6 samples, 30 sweeps")
+    at = lines.index("kitti / test / kitti-1s (1 s) - 6 samples, 30 sweeps, 0 failed")
     assert lines[at + 1].split()[:3] == ["method", "n", "Chamfer"]
     assert lines[at + 2].startswith("copy-last (ref)") and "±" in lines[at + 2]
     assert lines[-1] == f"leaderboard: {tmp_path / 'rep' / 'leaderboard.md'}"
