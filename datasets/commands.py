@@ -126,33 +126,92 @@ def add_commands(cli) -> None:
         click.echo(f"wrote {path} ({n} point clouds)")
 
 
+def check_sample(builder, split: str, sample_id: str, where: str = "--sample") -> tuple[str, int]:
+    """``sample_id`` (SEQUENCE/INDEX) as a key of ``builder``'s samples of ``split``, or one
+    error saying what is wrong with it: not SEQUENCE/INDEX, an unknown sequence, an index past
+    the sequence's end, or too little past (or future) for the setting."""
+    adapter, s = builder.adapter, builder.setting
+    hint = f"`pcfbench ls samples {adapter.name}=ROOT --setting {s.name} --split {split}` lists the valid ids"
+    seq, _, idx = str(sample_id).rpartition("/")
+    if not seq or not idx.isdigit():
+        raise PcfbenchError(f"{where} {sample_id!r}: expected SEQUENCE/INDEX, e.g. 08/000010; {hint}")
+    index = int(idx)
+    names = list(adapter.sequence_names(split))
+    if seq not in names:
+        shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
+        raise PcfbenchError(f"{where} {sample_id!r}: {adapter.name}:{split} has no sequence {seq!r} (it has {shown}); {hint}")
+    keys = [i for q, i in builder.sample_keys(split) if q == seq]
+    if index in keys:
+        return seq, index
+    n = len(builder.sequence(seq))
+    if index >= n:
+        raise PcfbenchError(f"{where} {sample_id!r}: sequence {seq} has {n} sweeps (indices 0..{n - 1}); {hint}")
+    span = f"valid indices of sequence {seq}: {keys[0]}..{keys[-1]}" if keys else f"sequence {seq} has no valid sample"
+    first_ok = (s.past - 1) * s.stride
+    if index < first_ok:
+        why = (f"not enough past for {s.name}: it needs {s.past - 1} past sweeps {s.stride} apart before the "
+               f"reference, so the index must be at least {first_ok}")
+    elif index > n - 1 - s.future * s.stride:
+        why = (f"not enough future for {s.name}: it needs {s.future} future sweeps {s.stride} apart after the "
+               f"reference, and sequence {seq} ends at {n - 1}")
+    else:
+        why = f"not one of the samples of the sample policy {builder.policy}"
+    raise PcfbenchError(f"{where} {sample_id!r}: {why} ({span}); {hint}")
+
+
+def variant_topic(method) -> str:
+    """A method variant's topic name: its spec as on the command line (``raycast-voxel:voxel=0.4``),
+    the bare name without options, so two options of one method never share a topic."""
+    raw = dict(method.raw)
+    return method.name + (":" + ",".join(f"{k}={v}" for k, v in sorted(raw.items())) if raw else "")
+
+
 def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = None, split: str | None = None,
            methods: tuple[str, ...] = (), policy: str = "full-context") -> tuple[Path, int]:
+    """Write one sample, its ground truth and each method variant's forecast (scored) to the MCAP
+    ``out``; returns the path and the number of point clouds."""
+    from pcfbench.metrics.base import score_sample
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
     from pcfbench.protocol import SampleBuilder, check_compatible, get_setting
+    from pcfbench.runner import default_metrics
     from pcfbench.validate import validate_forecast
     from pcfbench.datasets.export_mcap import export_sample
 
-    resolved = [resolve_method(spec, get_plugins()) for spec in methods]  # a bad spec fails before any work
-    names = [method.name for method in resolved]
-    if len(set(names)) < len(names):
-        raise PcfbenchError(f"--method: each method can be exported once (its name is its MCAP topic), got {', '.join(methods)}")
+    plugins = get_plugins()
+    resolved = [resolve_method(spec, plugins) for spec in methods]  # a bad spec fails before any work
+    topics = [variant_topic(m) for m in resolved]
+    seen: dict[tuple[str, str], str] = {}
+    for m, spec in zip(resolved, methods):
+        key = (m.name, m.options_hash)
+        if key in seen:
+            raise PcfbenchError(f"--method {spec!r} is the same variant as {seen[key]!r} (same method and options): "
+                                "give each variant once")
+        seen[key] = spec
     adapter = open_adapter(dataset)
     s = get_setting(setting)
     check_compatible(s, adapter)
     builder = SampleBuilder(adapter, s, policy)
+    split = split or type(adapter).default_split
+    if split not in adapter.splits():
+        from pcfbench.errors import unknown_name
+
+        raise unknown_name(f"split of dataset {adapter.name}", split, adapter.splits())
     if sample_id is None:
-        keys = builder.sample_keys(split or type(adapter).default_split)
+        keys = builder.sample_keys(split)
         if not keys:
             raise PcfbenchError(f"{dataset}: no samples for setting {setting} ({policy})")
         seq, index = keys[0]
     else:
-        seq, _, idx = sample_id.rpartition("/")
-        if not seq or not idx.isdigit():
-            raise PcfbenchError(f"--sample {sample_id!r}: expected SEQUENCE/INDEX, e.g. scene-0003/000005")
-        index = int(idx)
+        seq, index = check_sample(builder, split, sample_id)
     sample, truth = builder.build(seq, index)
-    forecasts = {method.name: validate_forecast(sample, method.create().forecast(sample.for_method())) for method in resolved}
-    path = export_sample(out, sample, truth, forecasts)
+    metrics = [plugins.metrics.get(m) for m in default_metrics(plugins)]
+    forecasts, scores = {}, {}
+    for topic, method in zip(topics, resolved):
+        fc = validate_forecast(sample, method.create().forecast(sample.for_method()))
+        forecasts[topic] = fc
+        scores[topic] = score_sample(sample, truth, fc, metrics)
+    meta = {"split": split, "setting": setting, "policy": policy,
+            "metric_versions": ", ".join(f"{m.name} v{m.version}" for m in metrics)}
+    path = export_sample(out, sample, truth, forecasts, metadata=meta, scores=scores)
     return path, len(sample.past_points_ref) + len(truth.future_points_ref) * (1 + len(forecasts))

@@ -143,16 +143,20 @@ def write_ros2_recording(path: str | Path, seq: SequenceData, topic: str = "/lid
     return path
 
 
-def foxglove_pointcloud(points: np.ndarray, stamp_ns: int, frame_id: str):
-    """A foxglove.PointCloud protobuf message with x, y, z float32 (little-endian)."""
+def foxglove_pointcloud(points: np.ndarray, stamp_ns: int, frame_id: str, extra: dict[str, np.ndarray] | None = None):
+    """A foxglove.PointCloud protobuf message with x, y, z float32 (little-endian), then one
+    float32 field per entry of ``extra`` (name -> (N,) values, e.g. a per-point error)."""
     from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
-    pts = np.ascontiguousarray(np.asarray(points, np.float32)[:, :3])
-    msg = PointCloud(frame_id=frame_id, point_stride=12, data=pts.astype("<f4").tobytes())
+    pts = np.asarray(points, np.float32)[:, :3]
+    names = list(extra or {})
+    cols = [pts] + [np.asarray(extra[n], np.float32).reshape(-1, 1) for n in names]
+    data = np.ascontiguousarray(np.hstack(cols) if names else pts).astype("<f4")
+    msg = PointCloud(frame_id=frame_id, point_stride=4 * (3 + len(names)), data=data.tobytes())
     msg.timestamp.FromNanoseconds(int(stamp_ns))
     msg.pose.orientation.w = 1.0
-    for k, c in enumerate("xyz"):
+    for k, c in enumerate(["x", "y", "z"] + names):
         msg.fields.append(PackedElementField(name=c, offset=4 * k, type=PackedElementField.FLOAT32))
     return msg
 

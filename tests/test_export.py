@@ -45,7 +45,8 @@ def test_export_reads_back(tiny_kitti, tmp_path):
     assert [m[1] for m in gt] == list(sample.future_timestamps_ns)
     assert [len(m[2].data) // 12 for m in gt] == [len(p) for p in truth.future_points_ref]
     fc = topics["/forecast/copy-last/points"]
-    assert [len(m[2].data) // 12 for m in fc] == [len(sample.past_points_ref[-1])] * 5
+    assert [m[2].point_stride for m in fc] == [16] * 5 and [f.name for f in fc[0][2].fields] == ["x", "y", "z", "error"]
+    assert [len(m[2].data) // 16 for m in fc] == [len(sample.past_points_ref[-1])] * 5
     assert len(topics["/tf"]) == 10 and len(topics["/ego/trajectory"][0][2].poses) == 10
     # a ground-truth cloud, placed by its transform at its own time, lands on the truth in world coordinates
     tf = {m[1]: m[2] for m in topics["/tf"]}
@@ -58,6 +59,97 @@ def test_export_reads_back(tiny_kitti, tmp_path):
     T[:3, 3] = [tf[t].translation.x, tf[t].translation.y, tf[t].translation.z]
     pts = np.frombuffer(msg.data, "<f4").reshape(-1, 3)
     np.testing.assert_allclose(transform_points(T, pts), transform_points(sample.T_world_ref, truth.future_points_ref[2]), atol=2e-3)
+
+
+def _metadata(path):
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+
+
+def test_export_keeps_variants_apart_with_per_point_errors_and_scores(tiny_kitti, tmp_path):
+    """Two options of one method: two topics. Each forecast point carries its distance to the
+    nearest ground-truth point; the metadata records say which sample and hold the scores."""
+    import json
+
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.metrics.base import score_sample
+    from pcfbench.method import resolve_method
+    from pcfbench.plugins import get_plugins
+    from pcfbench.protocol import SETTINGS, SampleBuilder
+    from pcfbench.runner import default_metrics
+
+    out = tmp_path / "two.mcap"
+    args = ["export", "-d", f"kitti={tiny_kitti}", "-s", "kitti-1s", "--sample", "08/000012", "-o", str(out),
+            "-m", "raycast-voxel:voxel=0.4", "-m", "raycast-voxel:voxel=0.8", "-m", "copy-last"]
+    res = CliRunner().invoke(build_cli(), args)
+    assert res.exit_code == 0, res.output
+    assert "25 point clouds" in res.output  # 5 past + 5 truth + 3 x 5 forecasts
+    topics = _read_back(out)
+    names = ["raycast-voxel:voxel=0.4", "raycast-voxel:voxel=0.8", "copy-last"]
+    assert {f"/forecast/{n}/points" for n in names} <= set(topics)
+    sample, truth = SampleBuilder(KittiOdometry(tiny_kitti), SETTINGS["kitti-1s"]).build("08", 12)
+    plugins = get_plugins()
+    metrics = [plugins.metrics.get(m) for m in default_metrics(plugins)]
+    meta = _metadata(out)
+    assert meta["pcfbench.sample"]["sample_id"] == "08/000012" and meta["pcfbench.sample"]["setting"] == "kitti-1s"
+    assert meta["pcfbench.sample"]["split"] == "test" and meta["pcfbench.sample"]["dataset"] == "kitti"
+    for name in names:
+        msgs = topics[f"/forecast/{name}/points"]
+        fc = resolve_method(name).create().forecast(sample.for_method())
+        for k, (_, _, msg) in enumerate(msgs):
+            data = np.frombuffer(msg.data, "<f4").reshape(-1, 4)
+            pred, gt = np.asarray(fc.points_ref[k], np.float64), truth.future_points_ref[k].astype(np.float64)
+            assert len(data) == len(pred)
+            brute = np.sqrt(((pred[:, None] - gt[None]) ** 2).sum(-1)).min(1)
+            np.testing.assert_allclose(data[:, 3], brute, rtol=1e-5, atol=1e-5)
+        want = score_sample(sample, truth, fc, metrics)
+        got = json.loads(meta["pcfbench.scores"][name])
+        assert [r["l1_mean"] for r in got] == pytest.approx([r["l1_mean"] for r in want], rel=1e-12)
+        assert [r["chamfer"] for r in got] == pytest.approx([r["chamfer"] for r in want], rel=1e-12)
+    a, b = (topics[f"/forecast/raycast-voxel:voxel={v}/points"] for v in ("0.4", "0.8"))
+    assert len(a) == len(b) == 5 and a[-1][2].data != b[-1][2].data  # both variants' clouds, not one twice
+
+
+@pytest.mark.parametrize("sample_id, message", [
+    ("08-000012", r"--sample '08-000012': expected SEQUENCE/INDEX"),
+    ("07/000012", r"kitti:test has no sequence '07' \(it has 08\)"),
+    ("08/000099", r"sequence 08 has 24 sweeps \(indices 0..23\)"),
+    ("08/000003", r"not enough past for kitti-1s: it needs 4 past sweeps 2 apart before the reference, so the index "
+                  r"must be at least 8 \(valid indices of sequence 08: 8..13\)"),
+    ("08/000020", r"not enough future for kitti-1s: it needs 5 future sweeps 2 apart"),
+])
+def test_export_rejects_a_bad_sample_with_one_error(tiny_kitti, tmp_path, sample_id, message):
+    import re
+
+    out = tmp_path / "x.mcap"
+    res = CliRunner().invoke(build_cli(), ["export", "-d", f"kitti={tiny_kitti}", "-s", "kitti-1s", "--sample", sample_id,
+                                           "-o", str(out)])
+    assert res.exit_code == 2 and not out.exists(), res.output
+    (line,) = [x for x in res.output.splitlines() if x.strip()]
+    assert line.startswith("pcfbench: error: ") and re.search(message, line), line
+    assert "`pcfbench ls samples kitti=ROOT --setting kitti-1s --split test` lists the valid ids" in line
+
+
+def test_export_refuses_the_same_variant_twice(tiny_kitti, tmp_path):
+    res = CliRunner().invoke(build_cli(), ["export", "-d", f"kitti={tiny_kitti}", "-s", "kitti-1s", "-o", str(tmp_path / "x.mcap"),
+                                           "-m", "raycast-voxel:voxel=0.4", "-m", "raycast-voxel:voxel=0.40"])
+    assert res.exit_code == 2 and "is the same variant as 'raycast-voxel:voxel=0.4'" in res.output
+
+
+def test_ls_samples_lists_the_valid_ids(tiny_kitti):
+    import json
+
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.protocol import SETTINGS, SampleBuilder
+
+    res = CliRunner().invoke(build_cli(), ["ls", "samples", f"kitti={tiny_kitti}", "--setting", "kitti-1s", "--json"])
+    assert res.exit_code == 0, res.output
+    keys = SampleBuilder(KittiOdometry(tiny_kitti), SETTINGS["kitti-1s"]).sample_keys("test")
+    assert json.loads(res.output.splitlines()[0]) == [f"{q}/{i:06d}" for q, i in keys] == [f"08/{i:06d}" for i in range(8, 14)]
+    res = CliRunner().invoke(build_cli(), ["ls", "samples", f"kitti={tiny_kitti}"])
+    assert res.exit_code == 2 and "--setting SETTING" in res.output
 
 
 @pytest.mark.parametrize("layout", ["nuscenes", "av2-sensor", "mcap", "mcap-foxglove"])
