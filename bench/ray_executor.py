@@ -11,7 +11,10 @@ and publishes their rows itself as one chunk, ``rows/shard-START-STOP.parquet``
 - a finished shard is never recomputed: a rerun of a killed driver finds its rows;
 - a task that Ray retries after its worker died (``max_retries``) replaces the same file, so
   its rows are never there twice;
-- the rows travel from the worker to the store, not through the driver.
+- the rows travel from the worker to the store, not through the driver;
+- a shard whose worker dies on every try runs again one task per sample, and a sample whose
+  worker dies on every try is one failure row (``SampleCrash``), as the local executor
+  records a crash: the cell goes on.
 
 A worker process keeps the last cell it resolved (the dataset adapter, the metrics, the
 method, a trained method with its checkpoint loaded), so a worker loads a checkpoint once
@@ -31,6 +34,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from pcfbench.errors import PcfbenchError
+from pcfbench.store import write_shard
 
 #: Samples per task unless told otherwise: enough that a task's overhead (a few ms) is
 #: small against its samples (~0.1-1 s each), few enough to share a cell over many workers.
@@ -136,18 +140,36 @@ class RayExecutor:
             check_gpus(gpus, ray.cluster_resources().get("GPU", 0), spec.label)
         task = self._task.options(num_cpus=self.cpus_per_task, num_gpus=gpus, max_retries=self.max_retries)
         spec_ref = ray.put(spec)
-        pending: dict[Any, tuple[int, int]] = {}
+        pending: dict[Any, tuple[int, int, list[int]]] = {}
+
+        def submit(start: int, stop: int, todo: list[int]) -> None:
+            ref = task.remote(spec_ref, str(cell.dir), start, stop, [keys[i] for i in todo], self.cpus_per_task)
+            pending[ref] = (start, stop, todo)
+
         for start, stop in shards(len(keys), self.shard_samples):
-            todo = [keys[i] for i in range(start, stop) if ids[i] not in done]
+            todo = [i for i in range(start, stop) if ids[i] not in done]
             if todo:
-                pending[task.remote(spec_ref, str(cell.dir), start, stop, todo, self.cpus_per_task)] = (start, stop)
+                submit(start, stop, todo)
         failed = 0
         try:
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 for ref in ready:
-                    start, stop = pending.pop(ref)
-                    result = self._result(ray, ref, spec, cell, start, stop)
+                    start, stop, todo = pending.pop(ref)
+                    try:
+                        result = self._result(ray, ref, cell, start, stop)
+                    except _WorkerLost as lost:
+                        if len(todo) > 1:  # find the sample that kills its worker: one task per sample
+                            for i in todo:
+                                submit(i, i + 1, [i])
+                            continue
+                        # that one sample is a failure row, as the local executor records a crash
+                        from pcfbench.runner import _failure_row
+
+                        reason = (f"its Ray worker process died on each of {self.max_retries + 1} tries "
+                                  f"({lost.kind})")
+                        write_shard(cell.dir, start, stop, _failure_row(keys[todo[0]], "crash", reason))
+                        result = {"start": start, "stop": stop, "samples": 1, "failed": 1, "crashed": True}
                     self.log.append(result)
                     failed += result["failed"]
                     progress(result["samples"])
@@ -156,7 +178,7 @@ class RayExecutor:
                 ray.cancel(ref, force=True)
         return failed
 
-    def _result(self, ray, ref, spec, cell, start: int, stop: int) -> dict[str, Any]:
+    def _result(self, ray, ref, cell, start: int, stop: int) -> dict[str, Any]:
         try:
             return ray.get(ref)
         except ray.exceptions.RayTaskError as exc:
@@ -166,9 +188,15 @@ class RayExecutor:
             raise PcfbenchError(f"cell {cell.dir}: the task of samples {start}-{stop - 1} raised "
                                 f"{type(cause).__name__ if cause else 'an error'}: {cause or exc}") from None
         except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError, ray.exceptions.ObjectLostError) as exc:
-            raise PcfbenchError(f"cell {cell.dir}: the task of samples {start}-{stop - 1} lost its worker more than "
-                                f"{self.max_retries} time(s) ({type(exc).__name__}); the finished shards are kept: "
-                                "rerun to resume") from None
+            raise _WorkerLost(type(exc).__name__) from None
+
+
+class _WorkerLost(Exception):
+    """A task's worker process died on every try (Ray's retries included)."""
+
+    def __init__(self, kind: str) -> None:
+        super().__init__(kind)
+        self.kind = kind
 
 
 # -- in the worker process --------------------------------------------------------------------
@@ -200,7 +228,6 @@ def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, keys: list[tuple
     """One task: the rows of ``keys`` (the samples of shard [start, stop) not done yet),
     published as the shard's chunk. A data error propagates (it stops the run)."""
     from pcfbench.runner import process_sample
-    from pcfbench.store import write_shard
 
     t0 = time.perf_counter()
     res, built = _resolved(spec, threads)

@@ -242,20 +242,29 @@ def test_a_worker_killed_mid_task_is_retried_and_every_row_is_there_once(tmp_pat
 
 
 @pytest.mark.slow
-def test_a_shard_whose_worker_dies_at_every_retry_stops_the_run_and_keeps_the_finished_shards(tmp_path):
+def test_a_sample_that_kills_its_worker_at_every_try_is_one_failed_sample(tmp_path):
+    """The shard fails on its first try and Ray's 3 retries; its samples then run one task
+    each, and the one whose worker dies on all 4 tries is a failure row (SampleCrash), as with
+    the local executor; the other samples and shards score, each (sample, step) once."""
     root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
     markers = tmp_path / "markers"
     markers.mkdir()
-    victim = "08/000013"  # the last sample: its shard runs last
+    victim = "08/000013"  # the last sample (index 5): shard [3, 6)
     out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3, kill=victim, kills=99), capture_output=True,
                          text=True, env=_env(tmp_path), timeout=600)
-    assert out.returncode == 2, out.stdout + out.stderr
-    assert "the task of samples 3-5 lost its worker more than 3 time(s)" in out.stderr, out.stderr
-    assert "the finished shards are kept: rerun to resume" in out.stderr
-    assert (markers / "killed").read_text() == "xxxx"  # the first try and Ray's 3 retries
+    assert out.returncode == 1, out.stdout + out.stderr  # pcfbench run: samples failed
+    assert "6 samples (6 now, 1 failed)" in out.stdout, out.stdout
+    assert (markers / "killed").read_text() == "x" * 8  # 4 tries of the shard, 4 of the sample alone
     cell = _probe_cell(tmp_path / "store")
-    assert [p.name for p in cell.chunk_paths()] == [shard_name(0, 3)]
-    assert json.loads((cell.dir / "cell.json").read_text())["status"] == "running"
+    assert [p.name for p in cell.chunk_paths()] == [shard_name(0, 3), shard_name(3, 4), shard_name(4, 5), shard_name(5, 6)]
+    rows = _rows(cell)
+    assert not rows.duplicated(KEY).any() and rows["sample_id"].nunique() == 6
+    bad = rows[rows["status"] == "failed"]
+    assert list(bad["sample_id"]) == [victim] and list(bad["step"]) == [-1]
+    assert bad["error"].iloc[0].startswith(f"SampleCrash: sample {victim}: its Ray worker process died on each of 4 tries")
+    assert (rows["status"] == "ok").sum() == 5 * 5
+    meta = json.loads((cell.dir / "cell.json").read_text())
+    assert meta["status"] == "complete" and meta["counts"]["failed"] == 1 and meta["counts"]["ok"] == 5
 
 
 @pytest.mark.slow
