@@ -77,14 +77,60 @@ def register_methods(register):
 '''
 
 
+_TOY = '''
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+import pcfbench
+
+
+class RayToy(pcfbench.TrainedMethod):
+    """A trained method whose training learns one depth, 7.5 m; load() records the loading
+    process in $RAY_TOY_MARKERS/loads."""
+
+    name = "ray-toy"
+    default_train_on = "kitti"
+    training_time = "about 1 s (toy)"
+
+    @dataclass(frozen=True)
+    class Options:
+        scale: float = pcfbench.option(1.0, help="times the learnt depth")
+
+    def fit(self, train_source, out_dir, progress):
+        import torch
+
+        progress.start(1, 0)
+        progress.update(1)
+        progress.save(1, {"w": torch.tensor([7.5], dtype=torch.float64)}, {}, complete=True)
+
+    def load(self, checkpoint):
+        self.w = float(checkpoint.load_weights()["w"]) * self.options.scale
+        with open(os.path.join(os.environ["RAY_TOY_MARKERS"], "loads"), "a") as f:
+            f.write(f"{os.getpid()}\\n")
+
+    def forecast(self, sample):
+        return pcfbench.Forecast.from_depths(sample, [np.full(len(q), self.w) for q in sample.queries])
+
+
+@pcfbench.hookimpl
+def register_methods(register):
+    register("ray-toy", RayToy, "a toy trained method (tests/test_ray.py)")
+'''
+
+
 def _env(tmp_path: Path) -> dict[str, str]:
     site = tmp_path / "site"
     (site / "ray_probe-0.dist-info").mkdir(parents=True)
     (site / "ray_probe-0.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: ray-probe\nVersion: 0\n")
-    (site / "ray_probe-0.dist-info" / "entry_points.txt").write_text("[pcfbench]\nray-probe = ray_probe_plugin\n")
+    (site / "ray_probe-0.dist-info" / "entry_points.txt").write_text(
+        "[pcfbench]\nray-probe = ray_probe_plugin\nray-toy = ray_toy_plugin\n")
     (site / "ray_probe_plugin.py").write_text(_PROBE)
+    (site / "ray_toy_plugin.py").write_text(_TOY)
     path = [str(site)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])
-    return dict(os.environ, PYTHONPATH=os.pathsep.join(path), PCFBENCH_PLUGINS="ray-probe", PCFBENCH_NO_PROGRESS="1")
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(path), PCFBENCH_PLUGINS="ray-probe,ray-toy",
+                PCFBENCH_NO_PROGRESS="1", PCFBENCH_CACHE=str(tmp_path / "cache"))
 
 
 def _rows(cell: Cell) -> pd.DataFrame:
@@ -315,3 +361,33 @@ def test_a_killed_driver_resumes_without_recomputing_finished_shards(tmp_path):
     # the rerun's workers each built the method once, however many shards they ran
     constructed = (markers / "constructed").read_text().split()
     assert len(constructed) == len(set(constructed)) < 10 - len(landed)
+
+
+@pytest.mark.slow
+def test_a_trained_method_loads_its_checkpoint_once_per_worker_and_scores_as_locally(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", sequences=("00", "08"), num_sweeps=24)  # 00: train, 08: test
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    env = {**_env(tmp_path), "RAY_TOY_MARKERS": str(markers)}
+    out = subprocess.run([PCFBENCH, "train", "ray-toy", "--dataset", f"kitti={root}", "--quiet"], capture_output=True,
+                         text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    common = ["--dataset", f"kitti={root}", "--train-on", f"kitti={root}", "--setting", "kitti-1s", "--method", "ray-toy",
+              "--metric", "l1_median", "--metric", "absrel_median", "--no-report", "--quiet"]
+    for name, extra in (("local", ["--jobs", "1"]), ("ray", ["--executor", "ray", "--shard-samples", "2"])):
+        (markers / "loads").unlink(missing_ok=True)
+        out = subprocess.run([PCFBENCH, "run", *common, "--store", str(tmp_path / name), *extra], capture_output=True,
+                             text=True, env=env, timeout=600)
+        assert out.returncode == 0, out.stdout + out.stderr
+    loads = (markers / "loads").read_text().split()  # of the Ray run: the driver's and each worker's
+    assert 2 <= len(loads) == len(set(loads)) <= 3  # 3 shards, at most 2 workers: each process loaded it once
+    from pcfbench.store import iter_cells
+
+    (local, _), = iter_cells(tmp_path / "local")
+    (ray, meta), = iter_cells(tmp_path / "ray")
+    assert local.relative_to(tmp_path / "local") == ray.relative_to(tmp_path / "ray") and ".ck" in ray.name
+    assert sorted(p.name for p in (ray / "rows").iterdir()) == [shard_name(0, 2), shard_name(2, 4), shard_name(4, 6)]
+    a, b = (pd.concat([pd.read_parquet(p) for p in sorted((d / "rows").iterdir())]).sort_values(KEY)
+            .drop(columns=list(TIMINGS)).reset_index(drop=True) for d in (local, ray))
+    pd.testing.assert_frame_equal(a, b, check_exact=True)
+    assert len(b) == 6 * 5 and set(b["status"]) == {"ok"} and meta["checkpoint_sha256"]
