@@ -384,6 +384,7 @@ def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) 
         return paths
     option_cols = [c for c in df.columns if c.startswith("option.")]
     for method, g in df.groupby("method", sort=True):
+        g = _with_defaults(g, method, option_cols, plugins)
         for opt in option_cols:
             values = g[opt].dropna()
             if values.nunique() < 2:
@@ -392,6 +393,25 @@ def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) 
             fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins))
             paths.update(save(fig, out_dir, "ablation-" + _slug(stem, method, opt.removeprefix("option."))))
     return paths
+
+
+def _with_defaults(g: pd.DataFrame, method: str, option_cols: list[str], plugins=None) -> pd.DataFrame:
+    """``g`` with the options a cell left at their defaults filled in (a cell run without
+    options is the same cell as one naming the defaults, and keeps the empty spec)."""
+    from pcfbench.options import describe_options
+    from pcfbench.plugins import get_plugins
+
+    try:
+        cls = (plugins or get_plugins()).methods.get(method)
+        defaults = {f.name: f.default for f in describe_options(cls.Options, f"method {method}")}
+    except (PcfbenchError, AttributeError):
+        return g
+    g = g.copy()
+    for col in option_cols:
+        name = col.removeprefix("option.")
+        if name in defaults and g[col].notna().any():
+            g[col] = g[col].astype(object).where(g[col].notna(), defaults[name])
+    return g
 
 
 def _numeric(values: pd.Series) -> np.ndarray | None:

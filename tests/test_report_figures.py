@@ -316,3 +316,12 @@ def test_html_page_renders_in_headless_chromium(made, tmp_path):
     import matplotlib.image
 
     assert matplotlib.image.imread(shot).shape[:2] == (1800, 1400)
+
+
+def test_ablation_fills_in_the_defaults_of_a_cell_run_without_options():
+    """A sweep reuses the cell of a plain run (no options) for its default variant: that row's
+    option value is the method's default, so the figure still has its point."""
+    g = pd.DataFrame({"method": ["shifted", "shifted"], "option.dx": [np.nan, "0.5"]})
+    filled = figures._with_defaults(g, "shifted", ["option.dx"], _plugins())
+    assert list(filled["option.dx"]) == [0.0, "0.5"]
+    np.testing.assert_array_equal(figures._numeric(filled["option.dx"]), [0.0, 0.5])
