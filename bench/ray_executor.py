@@ -125,9 +125,9 @@ class RayExecutor:
     def run(self, spec: Any, cell: Any, keys: list[tuple[str, int]], done: set[str],
             progress: Callable[[int], Any] = lambda n: None) -> int:
         """Compute every sample of ``keys`` (the cell's whole list) not in ``done`` as shard
-        tasks; each writes its rows to ``cell.dir``. Returns how many samples failed.
-        Bad data in a task stops the run with its error; so does a shard whose worker died
-        more than ``max_retries`` times."""
+        tasks; each writes its rows to ``cell.dir``. Returns how many samples failed. Bad
+        data in a task stops the run with its error; a shard whose worker died on every try
+        runs again one task per sample, and such a sample is a failure row."""
         from pcfbench.plugins import get_plugins
         from pcfbench.training import is_trained
 
