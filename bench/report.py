@@ -15,6 +15,7 @@ column never mixes metric versions. :func:`write_reports` renders the tables of
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
@@ -48,8 +49,9 @@ class ReportOptions:
     reference: str | None = None  # None: DEFAULT_REFERENCE, and groups without it are only noted
     ci: str = "pm"
     resampling: stats.Resampling = field(default_factory=stats.Resampling)
-    #: write reports/figures/ (and embed them in leaderboard.html)
-    figures: bool = True
+    #: write reports/figures/ (and embed them in leaderboard.html); default: yes, unless the
+    #: environment has PCFBENCH_FIGURES=0 (the test suite's quick runs)
+    figures: bool = field(default_factory=lambda: os.environ.get("PCFBENCH_FIGURES", "1") != "0")
     #: samples re-run per group for the error-vs-range and gallery figures (0: those are left out)
     figure_samples: int = 2
 
@@ -369,7 +371,6 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     either old or new, never half written. ``leaderboard``: the :func:`collect` result of the
     same store and options, if already made.
     """
-    import os
     import shutil
 
     options = options or ReportOptions()
@@ -457,8 +458,6 @@ def publish(stage: Path, out_dir: Path, files: list[Path]) -> None:
     """Rename each of ``files`` (relative paths) from ``stage`` into ``out_dir`` (same file
     system: each rename is atomic); leaderboard.* last, so a reader who sees the new
     leaderboard sees the new tables and figures too."""
-    import os
-
     for f in sorted(files, key=lambda f: (f.parts[0] == f.name and f.name.startswith("leaderboard."), str(f))):
         dest = out_dir / f
         dest.parent.mkdir(parents=True, exist_ok=True)
@@ -467,7 +466,6 @@ def publish(stage: Path, out_dir: Path, files: list[Path]) -> None:
 
 def _remove_stale_staging(out_dir: Path) -> None:
     """Staging folders of reports that were killed (their process is gone)."""
-    import os
     import shutil
 
     for d in out_dir.glob(".report-*.tmp"):

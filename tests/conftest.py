@@ -10,6 +10,8 @@ import pytest
 
 # Hermetic: no test reads the user's config or dataset roots or writes into their cache.
 os.environ["PCFBENCH_NO_PROGRESS"] = "1"
+# Reports without figures unless a test asks (re-running samples for them would slow every CLI run).
+os.environ["PCFBENCH_FIGURES"] = "0"
 _HOME = Path(tempfile.mkdtemp(prefix="pcfbench-tests-"))
 os.environ["PCFBENCH_CACHE"] = str(_HOME / "cache")
 os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")

@@ -61,8 +61,15 @@ def made(tmp_path_factory):
     for method, raw in [("copy-last", None), ("shifted", {"dx": "0.5"}), ("shifted", {"dx": "1.5"})]:
         run_cell(_spec(root, method, raw), store, plugins=_plugins(), progress=False)
     out = tmp / "rep"
-    paths = write_reports(store, out, plugins=_plugins())
+    paths = write_reports(store, out, ReportOptions(figures=True), plugins=_plugins())
     return store, out, paths
+
+
+def test_figures_are_on_by_default_and_off_with_pcfbench_figures_0(monkeypatch):
+    monkeypatch.delenv("PCFBENCH_FIGURES")
+    assert ReportOptions().figures is True
+    monkeypatch.setenv("PCFBENCH_FIGURES", "0")  # what tests/conftest.py sets for the quick CLI runs
+    assert ReportOptions().figures is False
 
 
 def test_every_kind_of_figure_is_written_as_png_and_svg_with_labelled_axes(made):
