@@ -12,12 +12,10 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-import pcfbench
 from conftest import write_tiny_kitti
 from pcfbench.cli import build_cli
 from pcfbench.data import Forecast
