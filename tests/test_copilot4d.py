@@ -387,3 +387,71 @@ def test_token_copy_renders_the_t0_tokens_from_the_future_origin(toy_sweeps):
     np.testing.assert_allclose(a, ref, atol=1e-6)
     # the same sample twice: the same forecast (spatial skipping's noise is seeded by the sample)
     np.testing.assert_array_equal(method.forecast(_sample(pts, np.eye(4), origin, dirs)).depths[0], a)
+
+
+def test_render_codes_chunking_and_candidate_cut_give_the_same_depths(toy_sweeps):
+    """Rays are grouped by their exit from the grid and each chunk's spatial-skipping
+    candidates stop at its farthest exit: one ray per chunk (each cut at its own exit) gives
+    the depths of one chunk holding every ray (cut at the farthest exit of all)."""
+    from pcfbench.methods.copilot4d.evaluate import render_codes, tokenize_sweep
+
+    torch.manual_seed(0)
+    model = Tokenizer(MICRO).eval()
+    with torch.no_grad():
+        model.decoder.coarse_linear.bias.fill_(2.0)  # a dense coarse mask: skipping has candidates to cut
+    rng = np.random.default_rng(1)
+    dirs = rng.normal(size=(120, 3))
+    dirs[:, 2] *= 0.3
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    codes = tokenize_sweep(model, toy_sweeps[0])
+    kw = dict(origin=np.array([1.0, 2.0, 0.0]), noise=False, threshold=0.5)
+    whole = render_codes(model, codes, dirs.astype(np.float32), chunk=10_000, **kw)
+    single = render_codes(model, codes, dirs.astype(np.float32), chunk=1, **kw)
+    assert np.all(np.isfinite(whole)) and np.ptp(whole) > 1.0
+    np.testing.assert_allclose(single, whole, rtol=1e-5, atol=1e-5)
+
+
+def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypatch):
+    """With a perfect tokenizer (tokens = the future sweep's own points; rendering = the range
+    of the point in each ray's direction, in that sweep's sensor frame) the oracle scores
+    zero on every depth metric and Chamfer: the future sweep's tokens, its origin and the
+    rays' frame are the right ones. copy-last in the same loop scores what the runner gives."""
+    from conftest import write_tiny_kitti
+
+    import pcfbench.methods.copilot4d.evaluate as ev
+    from pcfbench.methods.copilot4d.data import open_dataset
+    from pcfbench.runner import run_cell
+    from pcfbench.store import CellSpec
+
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=24)
+    adapter = open_dataset("kitti", root)
+
+    def perfect_tokens(model, points):
+        pts = points[np.linalg.norm(points, axis=1) > 0.01].astype(np.float64)
+        return pts
+
+    def perfect_render(model, pts, dirs, **kw):
+        unit = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+        match = np.argmax(dirs.astype(np.float64) @ unit.T, axis=1)
+        assert np.all(np.einsum("ij,ij->i", dirs, unit[match]) > 1 - 1e-5)  # every ray is one of the sweep's
+        return np.linalg.norm(pts[match], axis=1)
+
+    monkeypatch.setattr(ev, "tokenize_sweep", perfect_tokens)
+    monkeypatch.setattr(ev, "render_codes", perfect_render)
+    model = Tokenizer(MICRO)
+    res = ev.evaluate_oracle(model, adapter, "test", "kitti-1s", log=lambda *a: None)
+    o, c = res["means"]["oracle"], res["means"]["copy-last"]
+    assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
+    for name in ("l1_mean", "l1_median", "chamfer_nf", "chamfer"):
+        assert o[name] == pytest.approx(0.0, abs=1e-4), name
+    assert c["chamfer_nf"] > 0.01
+    from pcfbench.method import options_hash
+    from pcfbench.store import Cell
+
+    spec = CellSpec("copy-last", {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", None,
+                    tuple(o))
+    run_cell(spec, tmp_path / "store", progress=False)
+    rows = Cell(tmp_path / "store", spec).read_rows()
+    assert len(rows) == res["sweeps"]
+    for name in ("chamfer_nf", "l1_mean", "l1_median"):
+        assert c[name] == pytest.approx(float(rows[name].mean()), rel=1e-9), name

@@ -103,19 +103,21 @@ PAPER = TokenizerConfig(
     warmup=4000, decay_steps=400_000, grad_clip=0.1, batch_size=16, max_steps=400_000,
 )
 
-# CPU scale: a smaller extent (+-38.4 m, where most returns of a 64-beam sweep fall) at
-# 0.3 x 0.3 x 0.5625 m voxels (256 x 256 x 16), 32 x 32 tokens (2.4 m each), 512 codes;
-# NFG 128 x 128 x 16 x 8 (0.6 m cells). Rays beyond the grid end at its boundary.
+# CPU scale: the paper's extent [-80, 80]^2 m, which covers the protocol's ROI (+-70 m around
+# the t=0 sensor) also from a future sensor that moved up to 10 m, at 0.625 x 0.625 x 0.5625 m
+# voxels (256 x 256 x 16), 32 x 32 tokens (5 m each), 512 codes; NFG 128 x 128 x 16 x 8
+# (1.25 m cells: a 256^2 NFG made each step 1.4x slower), candidate points every 0.5 m for
+# spatial skipping (its cells are 5 m wide), 1200 steps (docs/copilot4d.md: what was measured).
 TINY = TokenizerConfig(
     name="tiny",
-    x_range=(-38.4, 38.4), y_range=(-38.4, 38.4), z_range=(-4.5, 4.5),
+    x_range=(-80.0, 80.0), y_range=(-80.0, 80.0), z_range=(-4.5, 4.5),
     grid_xy=256, grid_z=16,
     pointnet_dim=32, bev_dim=32, patch_size=4,
     dims=(48, 96), heads=(3, 6), depths=(2, 2), window=8, mlp_ratio=2.0,
     codebook_size=512, code_dim=64,
     nfg_up=2, nfg_dim=8, nfg_z=16, mlp_hidden=32,
-    rays_per_step=2048, samples_per_ray=64, candidate_step=0.25,
-    warmup=100, decay_steps=2400, grad_clip=0.1, batch_size=1, max_steps=2400,
+    rays_per_step=2048, samples_per_ray=64, candidate_step=0.5,
+    warmup=60, decay_steps=1200, grad_clip=0.1, batch_size=1, max_steps=1200,
     checkpoint_every=100, log_every=10,
 )
 

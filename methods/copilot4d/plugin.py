@@ -42,6 +42,13 @@ def _tokenizer(method: str, train_on: str | None, train_split: str, checkpoint: 
     return m.model, ck
 
 
+def spec_options(method: str):
+    """The typed options of a ``copilot4d-token-copy[:opts]`` spec."""
+    from pcfbench.method import resolve_method
+
+    return resolve_method(method).options
+
+
 def _tokenizer_options(f):
     f = click.option("--checkpoint", type=click.Path(exists=True), default=None,
                      help="Checkpoint folder or file (default: the one trained on --train-on).")(f)
@@ -92,9 +99,15 @@ def register_commands(cli):  # noqa: ANN001
     @click.option("--split", default="val", show_default=True)
     @click.option("--sweeps", type=int, default=40, show_default=True)
     @click.option("--reports", default=None)
-    def tokenizer_report(method, train_on, train_split, checkpoint, dataset_spec, split, sweeps, reports):
+    @click.option("--oracle", "oracle_setting", default=None, metavar="SETTING",
+                  help="Also the oracle bar on SETTING (e.g. kitti-1s) of --split: each ground-truth future sweep "
+                       "rendered from its own tokens, beside copy-last (it sees the future; never a method).")
+    @click.option("--oracle-samples", type=int, default=0, show_default=True,
+                  help="Oracle: this many evenly spaced samples (0: all).")
+    def tokenizer_report(method, train_on, train_split, checkpoint, dataset_spec, split, sweeps, reports,
+                         oracle_setting, oracle_samples):
         """Table-7-style reconstruction numbers (NFCD, L1 median/mean, CD) of a trained tokenizer,
-        scored by the registered metrics."""
+        scored by the registered metrics; with --oracle, the oracle bar beside copy-last."""
         from pcfbench.config import reports_dir
         from pcfbench.methods.copilot4d.data import SweepSource
         from pcfbench.methods.copilot4d.evaluate import calibrate_skipping, evaluate_reconstruction, write_report
@@ -119,3 +132,16 @@ def register_commands(cli):  # noqa: ANN001
                    f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
                    f"codebook usage {result['codebook_usage']:.1%}")
         click.echo(f"wrote {md}")
+        if oracle_setting:
+            from pcfbench.methods.copilot4d.evaluate import evaluate_oracle, write_oracle
+
+            opts = spec_options(method)
+            res = evaluate_oracle(model, adapter, split, oracle_setting, threshold=opts.threshold,
+                                  max_samples=oracle_samples or None, log=click.echo)
+            md, csv_path = write_oracle(res, meta, reports_dir(reports) / "copilot4d",
+                                        f"oracle-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}-"
+                                        f"{oracle_setting}")
+            o, c = res["means"]["oracle"], res["means"]["copy-last"]
+            click.echo(f"oracle ({oracle_setting}, {res['samples']} samples): chamfer_nf {o['chamfer_nf']:.3f} vs "
+                       f"copy-last {c['chamfer_nf']:.3f}, l1_mean {o['l1_mean']:.3f} vs {c['l1_mean']:.3f}")
+            click.echo(f"wrote {md} and {csv_path}")

@@ -61,7 +61,10 @@ def _sample_along_rays(cfg, origins, dirs, batch, mask, n_samples, jitter):
         return uniform
     step = cfg.candidate_step
     diag = max(abs(v) for v in (*cfg.x_range, *cfg.y_range)) * 1.5 + 5.0
-    nc = int(diag / step) + 1
+    # Candidates past every ray's exit from the box are never occupied: stopping at the
+    # farthest exit gives the very same depths (render_codes groups rays by exit distance).
+    far = float(t1.max()) if R else 0.0
+    nc = min(int(diag / step), int(far / step) + 1) + 1
     hc = (torch.arange(nc, device=origins.device, dtype=origins.dtype) + 0.5) * step  # (nc,)
     with torch.no_grad():
         pts = origins[:, None, :] + hc[None, :, None] * dirs[:, None, :]  # (R, nc, 3)
@@ -69,11 +72,16 @@ def _sample_along_rays(cfg, origins, dirs, batch, mask, n_samples, jitter):
         lo = pts.new_tensor([cfg.x_range[0], cfg.y_range[0], cfg.z_range[0]])
         cell = pts.new_tensor([(cfg.x_range[1] - cfg.x_range[0]) / Xc, (cfg.y_range[1] - cfg.y_range[0]) / Yc,
                                (cfg.z_range[1] - cfg.z_range[0]) / Z])
-        ijk = torch.floor((pts - lo) / cell).long()
-        dims = torch.tensor([Xc, Yc, Z], device=pts.device)
-        inside = ((ijk >= 0) & (ijk < dims)).all(-1) & (hc[None] >= t0[:, None]) & (hc[None] <= t1[:, None])
-        ijk = torch.where(inside[..., None], ijk, torch.zeros_like(ijk))
-        flat = ((batch[:, None] * Xc + ijk[..., 0]) * Yc + ijk[..., 1]) * Z + ijk[..., 2]
+        # cell indices in int32, one flat index per candidate (int64 only when the mask needs it)
+        itype = torch.int32 if mask.numel() < 2 ** 31 else torch.int64
+        ijk = torch.floor((pts - lo) / cell).to(itype)
+        del pts
+        dims = torch.tensor([Xc, Yc, Z], device=ijk.device, dtype=itype)
+        inside = ((ijk >= 0) & (ijk < dims)).all(-1)
+        inside &= (hc[None] >= t0[:, None]) & (hc[None] <= t1[:, None])
+        ijk *= inside[..., None]  # outside: cell (0, 0, 0), masked out below
+        flat = ((batch[:, None].to(itype) * Xc + ijk[..., 0]) * Yc + ijk[..., 1]) * Z + ijk[..., 2]
+        del ijk
         occ = mask.reshape(-1)[flat] & inside  # (R, nc)
         seg = occ.to(origins.dtype) * step
         cdf = torch.cumsum(seg, dim=1)
@@ -98,6 +106,13 @@ def render_depth(decoder, nfg: torch.Tensor, cfg: TokenizerConfig, origins: torc
     inside = ((norm >= -1) & (norm <= 1)).all(-1)
     # grid_sample on (B, F, D=Z, H=X, W=Y): grid's last axis is ordered (W, H, D) = (y, x, z)
     grid = torch.stack([norm[..., 1], norm[..., 0], norm[..., 2]], dim=-1)
+    if B == 1:  # one grid (inference): no per-grid selection and scatter
+        f = F.grid_sample(nfg, grid[None, :, :, None, :].to(nfg.dtype), mode="bilinear", padding_mode="border",
+                          align_corners=False)
+        alpha = decoder.occupancy(f[0, :, :, :, 0].permute(1, 2, 0)).float() * inside.float()
+        trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha[:, :-1] + 1e-7], dim=1), dim=1)
+        w = alpha * trans
+        return (w * h.float()).sum(dim=1), w
     feats = []
     for b in range(B):
         sel = batch == b
