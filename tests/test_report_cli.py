@@ -149,3 +149,31 @@ def test_a_file_as_the_reports_folder_is_one_error(failing_store, tmp_path, monk
     assert res.exit_code == 2 and f.read_text() == "not a folder"
     assert res.output.strip() == (f"pcfbench: error: the reports folder {f} ($PCFBENCH_REPORTS) is a file, not a folder: "
                                   "give a folder")
+
+
+@pytest.mark.slow
+def test_run_writes_the_figures_and_the_page_by_default(tmp_path, monkeypatch):
+    monkeypatch.delenv("PCFBENCH_FIGURES")  # the suite turns them off (conftest); a user's run has them
+    root = write_tiny_kitti(tmp_path / "kitti")
+    rep = tmp_path / "rep"
+    res = CliRunner().invoke(build_cli(), ["run", "-d", f"kitti={root}", "-s", "kitti-1s", "-m", "copy-last",
+                                           "--reports", str(rep), "-q"])
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in (rep / "figures").iterdir())
+    assert names == sorted(f"{k}-kitti_test_kitti-1s.{e}" for k in ("gallery", "horizon", "range") for e in ("png", "svg"))
+    page = (rep / "leaderboard.html").read_text()
+    assert page.count("src='data:image/png;base64,") == 3 and "<tr id='cell-1'>" in page
+
+
+def test_ctrl_c_in_a_sweep_says_the_same(tmp_path, monkeypatch):
+    import pcfbench.sweep
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pcfbench.sweep, "run_sweep", interrupted)
+    exp = Path(__file__).resolve().parent.parent / "docs" / "experiments" / "raycast-voxel-size.toml"
+    res = CliRunner().invoke(build_cli(), ["sweep", str(exp), "--store", str(tmp_path / "s"), "-q"])
+    assert res.exit_code == 130, res.output
+    assert "pcfbench: interrupted: the finished work is kept in the store" in res.output
+    assert "run the same command again to resume:" in res.output
