@@ -145,8 +145,8 @@ def test_compare_command_with_baselines_on_tiny_data(tmp_path):
     cli = build_cli()
 
     syn = tmp_path / "syn"
-    generate_domain(_tiny_domain(sweeps=16, azimuths=180), syn, progress=False, splits=("test",))
-    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=16)
+    generate_domain(_tiny_domain(sweeps=20, azimuths=180), syn, progress=False, splits=("test",))  # 2 kitti-1s samples
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=20)
     out = tmp_path / "out"
     args = ["synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}", "--out", str(out),
             "--sweeps", "2", "--limit", "1", "--real-limit", "1", "--real-split", "test", "-q", "--threads", "1"]
@@ -160,9 +160,14 @@ def test_compare_command_with_baselines_on_tiny_data(tmp_path):
         assert base["kendall_tau"][k] == pytest.approx(tau)
     assert (out / "baselines.png").is_file()
     assert "Kendall tau" in (out / "realism.md").read_text()
-    # a second run reuses the cells of the store
+    # a second run reuses the cells of the store: the same means (times differ)
     again = CliRunner().invoke(cli, args)
-    assert again.exit_code == 0 and json.loads((out / "realism.json").read_text())["baselines"] == base
+    assert again.exit_code == 0
+
+    def means(b):
+        return {side: {m: {k: v for k, v in row.items() if k != "seconds"} for m, row in b[side].items()}
+                for side in ("synthetic", "real")}
+    assert means(json.loads((out / "realism.json").read_text())["baselines"]) == means(base)
 
 
 # --- world physics version 2 --------------------------------------------------------------------
@@ -193,7 +198,7 @@ def test_surface_displacement_by_class():
 def test_column_times_and_pose_interpolation():
     sensor = get_domain("synthetic-town-realistic").sensor
     t = R.column_times(sensor, R.REALISM)
-    assert t[0] == pytest.approx(-0.05) and t[sensor.azimuth_steps // 2] == 0.0 and np.all(np.diff(t) > 0)
+    assert t[0] == pytest.approx(0.05) and t[sensor.azimuth_steps // 2] == 0.0 and np.all(np.diff(t) < 0)  # clockwise
     assert np.all(R.column_times(sensor, dataclasses.replace(R.REALISM, motion_distortion=False)) == 0)
     poses = np.tile(np.eye(4), (2, 1, 1))
     poses[1, :3, 3] = (1.0, 2.0, 0.0)
@@ -207,14 +212,16 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert all(np.array_equal(x, y) for x, y in zip(a.points, b.points))
     d1 = _tiny_domain("synthetic-town", sweeps=2, azimuths=480)
     one = simulate_sequence(d1, "05")
-    assert np.array_equal(a.T_world_sensor, one.T_world_sensor)  # same town and drive
+    # same town and drive; the stored poses are estimates, off by millimetres
+    assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
+    assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
     assert d2.physics == 2 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
-    """A sensor moving forward at v: a column fired at tau returns from v * tau further ahead,
-    and is stored in its own firing frame, so a wall ahead keeps its range at tau = 0 only."""
+    """A sensor moving forward at v: a column fired at tau is fired from v * tau further ahead
+    and stored as if fired at tau = 0 (no de-skewing)."""
     from pcfbench.datasets.synthetic.lidar import StaticScene
     from pcfbench.datasets.synthetic.world import STRUCTURE, MeshSoup, box
 
@@ -245,11 +252,12 @@ def test_motion_distortion_shifts_points_by_the_ego_motion():
         i = np.argmin(np.abs(a - az))
         return res.points[b][i]
 
-    # facing forward (tau = 0) nothing changes; at azimuth -90 (tau = -0.025 s) the side wall is
-    # unchanged in y; behind (tau = -0.05 s, fired from x = -1 m) the back wall is 1 m nearer
+    # facing forward (tau = 0) nothing changes; just left of behind (azimuth 179 deg, tau = -0.05 s,
+    # fired from x = -1 m) the back wall is 1 m nearer, just right of it (tau = +0.05 s) 1 m farther
     assert np.allclose(x_wall(moving, 0.0), x_wall(still, 0.0), atol=1e-4)
-    back_still, back_moving = x_wall(still, -179.0), x_wall(moving, -179.0)
-    assert np.linalg.norm(back_still) - np.linalg.norm(back_moving) == pytest.approx(1.0, abs=0.05)
+    for az, sign in ((179.0, 1.0), (-179.0, -1.0)):
+        gap = np.linalg.norm(x_wall(still, az)) - np.linalg.norm(x_wall(moving, az))
+        assert gap == pytest.approx(sign * 1.0, abs=0.05)
 
 
 def test_physics_1_output_is_unchanged_and_the_realistic_domain_is_opt_in():

@@ -88,6 +88,10 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     lo = T[:, :2, 3].min(0) - margin
     hi = T[:, :2, 3].max(0) + margin
     soup = build_static(style, graph, ground, rng_static, lo, hi)
+    if domain.realism is not None:  # its own stream: physics 1 draws stay as they were
+        from pcfbench.datasets.synthetic.realism import add_shrubs
+
+        add_shrubs(soup, style, graph, ground, np.random.default_rng([domain.seed, index, 2]), lo, hi, domain.realism)
     static = StaticScene(soup)
     agents = make_agents(style, graph, rng_agents, lo, hi, duration + t_start)
     for a in agents:
@@ -120,6 +124,8 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
         drops += res.rays_dropped
         if progress:
             progress(1)
+    if domain.realism is not None:  # stored poses are estimates (realism.pose_errors)
+        seq.T_world_sensor = T @ physics2.pose_errors(len(T), domain.realism, np.random.default_rng([domain.seed, index, 3]))
     seq.stats = {
         "sweeps": num,
         "mean_points": float(np.mean([len(p) for p in seq.points])),

@@ -8,8 +8,9 @@ roughness, and baselines ranked differently. Version 2 adds, all of it physics o
 statistics of the world and the sensor, none of it tied to a scene:
 
 * **Real azimuth resolution**: 2048 columns a revolution (HDL-64E at 10 Hz: ~0.17 deg).
-* **Beam calibration and jitter**: each beam's true elevation is off its nominal one by a
-  fixed offset (1-sigma ``beam_bias_deg``), each shot by a random jitter
+* **Beam calibration and jitter**: each beam's true elevation is off its nominal one by the
+  sensor's intrinsic error (``elevation_error_deg``, as KITTI's) plus a fixed offset per
+  beam (1-sigma ``beam_bias_deg``), each shot by a random jitter
   (``jitter_deg``); the point is reported along the nominal direction, as a real sensor
   does, so rings on the ground wave. Range noise: a fixed bias per beam plus Gaussian noise.
 * **Rough surfaces**: every static surface is displaced along its normal by smooth value
@@ -20,8 +21,11 @@ statistics of the world and the sensor, none of it tied to a scene:
 * **Mixed pixels**: a ray at a depth discontinuity (its azimuth neighbour more than
   ``mixed_gap_m`` away) returns, with probability ``mixed_prob``, from between the two.
 * **A spinning sensor**: each column is fired at its own time over the 0.1 s revolution
-  (azimuth -180 deg first, the sweep's timestamp when facing forward) from the ego pose at
-  that time, and is stored without de-skewing, as KITTI's velodyne files are.
+  (clockwise from above, from behind the car round to behind it again, the sweep's
+  timestamp when facing forward) from the ego pose at that time, and is stored without
+  de-skewing, as KITTI's velodyne files are.
+* **Estimated poses**: the stored poses are the true ones off by a random walk of a few
+  millimetres and a hundredth of a degree per sweep, as SLAM poses are.
 * **Returns that fade**: a return is detected with probability ``1 / (1 + (r / r50)^6)``
   where ``r50`` grows with the surface's reflectance and incidence (dark asphalt at grazing
   incidence fades first); car bodies add a specular drop.
@@ -51,13 +55,20 @@ PHYSICS_VERSION = 2
 class Realism:
     """The knobs of physics version 2 (one set for every scene of a domain)."""
 
-    beam_bias_deg: float = 0.06  # 1-sigma fixed elevation error per beam
+    #: the sensor's intrinsic elevation error, every beam alike: KITTI's HDL-64E scans need a
+    #: 0.22 deg correction of their vertical angles (Deschaud, IMLS-SLAM, ICRA 2018)
+    elevation_error_deg: float = 0.22
+    beam_bias_deg: float = 0.06  # 1-sigma fixed elevation error per beam, on top
     jitter_deg: float = 0.03  # 1-sigma per-shot elevation and azimuth jitter
-    range_bias_m: float = 0.015  # 1-sigma fixed range offset per beam
-    range_noise_m: float = 0.03  # 1-sigma per-shot range noise
-    #: (amplitude m, wavelength m) of the surface displacement per class, two octaves
-    roughness: tuple = ((GROUND, 0.05, 0.4), (STRUCTURE, 0.03, 0.5), (POLE, 0.005, 0.3),
+    range_bias_m: float = 0.02  # 1-sigma fixed range offset per beam
+    range_noise_m: float = 0.015  # 1-sigma per-shot range noise (HDL-64E: < 2 cm)
+    #: (class, amplitude m, wavelength m) of the surface displacement, two octaves; the
+    #: ground's is the carriageway's (asphalt), ``verge_roughness`` the ground's off the road
+    roughness: tuple = ((GROUND, 0.015, 0.4), (STRUCTURE, 0.02, 0.5), (POLE, 0.005, 0.3),
                         (VEGETATION, 0.10, 0.4), (PARKED, 0.01, 0.5))
+    verge_roughness: tuple = (0.06, 0.3)  # grass, soil and planted strips beyond the sidewalk
+    #: shrubs: hedges along the yards and bushes, (hedges per 100 m of frontage, bushes per 100 m)
+    shrubs_per_100m: tuple = (4.0, 6.0)
     crown_depth_m: float = 0.35  # mean depth a return comes from inside a tree crown
     mixed_gap_m: float = 0.5
     mixed_prob: float = 0.35
@@ -66,6 +77,9 @@ class Realism:
     base_drop: float = 0.02
     revolution_s: float = 0.1
     motion_distortion: bool = True
+    #: localisation error of the stored poses (estimates, as SLAM poses are): a random walk
+    #: per sweep, 1-sigma steps in translation (m, per axis) and rotation (deg, per axis)
+    pose_walk: tuple = (0.004, 0.01)
 
 
 REALISM = Realism()
@@ -98,16 +112,65 @@ def value_noise(p: np.ndarray, wavelength: float, salt: int = 0) -> np.ndarray:
     return out
 
 
-def surface_displacement(points: np.ndarray, cls: np.ndarray, realism: Realism) -> np.ndarray:
+def _octaves(p: np.ndarray, lam: float, salt: int) -> np.ndarray:
+    return 0.7 * value_noise(p, lam, salt=salt) + 0.3 * value_noise(p, lam / 3.7, salt=salt + 1)
+
+
+def surface_displacement(points: np.ndarray, cls: np.ndarray, realism: Realism, ground=None) -> np.ndarray:
     """Displacement (m) along the surface normal at world ``points`` of class ``cls``: two
-    octaves of value noise, amplitude and wavelength by class, zero for other classes."""
+    octaves of value noise, amplitude and wavelength by class, zero for other classes. With
+    ``ground`` (a :class:`~pcfbench.datasets.synthetic.world.Ground`), ground beyond the
+    sidewalk takes ``verge_roughness``."""
     out = np.zeros(len(points))
     for c, amp, lam in realism.roughness:
         m = cls == c
         if m.any():
-            p = points[m]
-            out[m] = amp * (0.7 * value_noise(p, lam, salt=17 * c + 1) + 0.3 * value_noise(p, lam / 3.7, salt=17 * c + 2))
+            out[m] = amp * _octaves(points[m], lam, 17 * c + 1)
+    g = np.nonzero(cls == GROUND)[0]
+    if ground is not None and len(g):
+        verge = ground.road_distance(points[g, 0], points[g, 1]) > ground.half_road + ground.style.sidewalk_m
+        if verge.any():
+            amp, lam = realism.verge_roughness
+            out[g[verge]] = amp * _octaves(points[g[verge]], lam, 5)
     return out
+
+
+def add_shrubs(soup, style, graph, ground, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray,
+               realism: Realism) -> None:
+    """Hedges (long low boxes) and bushes (ellipsoids) in the yards beyond the sidewalks, as
+    vegetation: rays into them return from inside (``cast_sweep_realistic``)."""
+    from pcfbench.datasets.synthetic.world import _resample, box, ellipsoid
+
+    edge_band = ground.half_road + style.sidewalk_m
+    hedges, bushes = realism.shrubs_per_100m
+    for poly in graph.polylines:
+        mid = poly[len(poly) // 2]
+        if not (lo[0] - 150 <= mid[0] <= hi[0] + 150 and lo[1] - 150 <= mid[1] <= hi[1] + 150):
+            continue
+        line = _resample(poly, 0.5)
+        seg = np.gradient(line, axis=0)
+        tangent = seg / (np.linalg.norm(seg, axis=1, keepdims=True) + 1e-12)
+        total = (len(line) - 1) * 0.5
+        for side in (-1.0, 1.0):
+            normal = side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+            for _ in range(int(rng.poisson(hedges * total / 100))):
+                length = rng.uniform(3.0, 12.0)
+                s = rng.uniform(6.0, max(total - 6.0 - length, 6.5))
+                i = min(int((s + length / 2) / 0.5), len(line) - 1)
+                depth = rng.uniform(0.6, 1.2)
+                c = line[i] + normal[i] * (edge_band + 0.2 + depth / 2)
+                if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]:
+                    yaw = np.arctan2(tangent[i, 1], tangent[i, 0])
+                    z = float(ground.height(c[0], c[1])) - 0.1
+                    soup.add(VEGETATION, *box(c[0], c[1], z, length, depth, rng.uniform(0.7, 1.7), yaw))
+            for _ in range(int(rng.poisson(bushes * total / 100))):
+                s = rng.uniform(4.0, max(total - 4.0, 4.5))
+                i = min(int(s / 0.5), len(line) - 1)
+                r = rng.uniform(0.4, 1.1)
+                c = line[i] + normal[i] * (edge_band + r + rng.uniform(0.0, 2.0))
+                if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]:
+                    z = float(ground.height(c[0], c[1]))
+                    soup.add(VEGETATION, *ellipsoid(c[0], c[1], z + r * 0.6, r, r * rng.uniform(0.8, 1.3), r * 0.8))
 
 
 def beam_calibration(sensor: LidarConfig, realism: Realism, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -118,11 +181,27 @@ def beam_calibration(sensor: LidarConfig, realism: Realism, seed: int) -> tuple[
     return el, rb
 
 
+def pose_errors(count: int, realism: Realism, rng: np.random.Generator) -> np.ndarray:
+    """(count, 4, 4) rigid errors of the stored poses: ``T_stored = T_true @ E``, a random walk
+    in translation and small rotations, starting at the identity."""
+    from scipy.spatial.transform import Rotation
+
+    st, sr = realism.pose_walk
+    trans = np.cumsum(rng.normal(0.0, st, (count, 3)), axis=0)
+    rot = np.cumsum(rng.normal(0.0, np.deg2rad(sr), (count, 3)), axis=0)
+    trans[0] = rot[0] = 0.0
+    E = np.tile(np.eye(4), (count, 1, 1))
+    E[:, :3, :3] = Rotation.from_rotvec(rot).as_matrix()
+    E[:, :3, 3] = trans
+    return E
+
+
 def column_times(sensor: LidarConfig, realism: Realism) -> np.ndarray:
-    """Firing time (s) of each azimuth column relative to the sweep's timestamp: the column
-    facing forward (azimuth 0) fires at the timestamp, -180 deg half a revolution earlier."""
+    """Firing time (s) of each azimuth column relative to the sweep's timestamp: the sensor
+    spins clockwise seen from above (as Velodyne's do), the column facing forward (azimuth 0)
+    fires at the timestamp, the one facing backwards half a revolution before or after."""
     az = np.linspace(-np.pi, np.pi, sensor.azimuth_steps, endpoint=False)
-    return az / (2 * np.pi) * realism.revolution_s if realism.motion_distortion else np.zeros(sensor.azimuth_steps)
+    return -az / (2 * np.pi) * realism.revolution_s if realism.motion_distortion else np.zeros(sensor.azimuth_steps)
 
 
 def interpolate_poses(times: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -151,7 +230,7 @@ def cast_sweep_realistic(sensor: LidarConfig, static, agents: list[Agent], groun
     el0 = np.deg2rad(np.asarray(sensor.elevations_deg, np.float64))
     az0 = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
     jit = np.deg2rad(realism.jitter_deg)
-    E = el0[:, None] + el_bias[:, None] + rng.normal(0.0, jit, (n_b, n_az))
+    E = el0[:, None] + el_bias[:, None] + np.deg2rad(realism.elevation_error_deg) + rng.normal(0.0, jit, (n_b, n_az))
     A = az0[None, :] + rng.normal(0.0, jit, (n_b, n_az))
     d_true = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
     d_nominal = sensor.directions()
@@ -170,7 +249,7 @@ def cast_sweep_realistic(sensor: LidarConfig, static, agents: list[Agent], groun
     if fin.any():
         idx = np.nonzero(fin)[0]
         p = o[idx] + t_hit[idx, None] * d_world[idx]
-        disp = surface_displacement(p, cls[idx], realism)
+        disp = surface_displacement(p, cls[idx], realism, ground)
         cosi = np.maximum(np.abs(np.sum(normals[idx] * d_world[idx], axis=1)), 0.08)
         t_hit[idx] = t_hit[idx] - np.clip(disp / cosi, -1.0, 1.0)
 
