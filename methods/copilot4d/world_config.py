@@ -94,15 +94,16 @@ PAPER = WorldModelConfig(
 
 # CPU scale: the tiny tokenizer's grid and codebook, the paper's block layout at an eighth to a
 # fifth of its widths (still 32 dimensions per head) and a batch of one sequence: about 0.35 s
-# per training step (10 frames) on an idle 2-core CPU, 1.5-2 s on the shared one, so 1200 steps
-# (the schedule decays over them) fit the 45 minutes the world model may take there.
+# per training step (10 frames) on an idle 2-core CPU; 3.75 s measured on the shared one (load
+# average 10) with the MaskGIT variant training beside it, so 600 steps (the schedule decays
+# over them) are what fits the 45 minutes the world model may take there.
 TINY = WorldModelConfig(
     name="tiny",
     codebook_size=TINY_TOKENIZER.codebook_size, token_grid=TINY_TOKENIZER.bev_tokens,
     n_past=5, n_future=5,
     dims=(32, 64, 96), heads=(1, 2, 3), windows=(8, 8, 8),
     groups_down=(2, 2, 1), groups_up=(2, 1),
-    warmup=100, decay_steps=1200, batch_size=1, max_steps=1200,
+    warmup=100, decay_steps=600, batch_size=1, max_steps=600,
 )
 
 CONFIGS = {"paper": PAPER, "tiny": TINY}
