@@ -102,7 +102,7 @@ def executor_options(command):
     return command
 
 
-def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads):
+def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout=None):
     """The Ray executor for ``--executor ray`` (None: the local one); options of the other
     executor are refused rather than ignored."""
     if executor == "local":
@@ -117,7 +117,7 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
     from pcfbench.ray_executor import RayExecutor
 
     return RayExecutor(address=address, shard_samples=shard_samples, cpus_per_task=cpus_per_task,
-                       gpus_per_task=gpus_per_task)
+                       gpus_per_task=gpus_per_task, timeout=timeout)
 
 
 @cli.command()
@@ -164,7 +164,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
     plugins = get_plugins()
     warn_failed(plugins)
-    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads)
+    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
     for s in settings:
         get_setting(s)
     method_specs = _selected_methods(plugins, methods)

@@ -14,7 +14,9 @@ and publishes their rows itself as one chunk, ``rows/shard-START-STOP.parquet``
 - the rows travel from the worker to the store, not through the driver;
 - a shard whose worker dies on every try runs again one task per sample, and a sample whose
   worker dies on every try is one failure row (``SampleCrash``), as the local executor
-  records a crash: the cell goes on.
+  records a crash: the cell goes on;
+- a sample running past ``timeout`` is a failure row (``SampleTimeout``) too: the task
+  publishes what it finished, kills its worker, and Ray's retry does the rest of the shard.
 
 A worker process keeps the last cell it resolved (the dataset adapter, the metrics, the
 method, a trained method with its checkpoint loaded), so a worker loads a checkpoint once
@@ -28,10 +30,14 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
+
+import pandas as pd
 
 from pcfbench.errors import PcfbenchError
 from pcfbench.store import write_shard
@@ -71,7 +77,8 @@ class RayExecutor:
     ``HOST:PORT``); None starts a Ray on this machine only, of ``num_cpus`` CPUs (default:
     all). ``cpus_per_task``: the CPUs Ray reserves for a task, and its thread budget.
     ``gpus_per_task``: GPUs reserved for each task of a trained method's cell (0: none).
-    ``max_retries``: how often Ray reruns a task whose worker process died.
+    ``max_retries``: how often Ray reruns a task whose worker process died. ``timeout``:
+    seconds a sample may run (``pcfbench run --timeout``) before it is a failure row.
     """
 
     address: str | None = None
@@ -80,6 +87,8 @@ class RayExecutor:
     gpus_per_task: float = 0.0
     max_retries: int = 3
     num_cpus: int | None = None
+    #: seconds a sample may run before it is recorded as timed out (None: no limit)
+    timeout: float | None = None
     #: per shard run (this process's calls): samples, seconds in the task, worker pid, whether it resolved the cell
     log: list[dict[str, Any]] = field(default_factory=list)
     _task: Any = field(default=None, repr=False)
@@ -143,7 +152,8 @@ class RayExecutor:
         pending: dict[Any, tuple[int, int, list[int]]] = {}
 
         def submit(start: int, stop: int, todo: list[int]) -> None:
-            ref = task.remote(spec_ref, str(cell.dir), start, stop, [keys[i] for i in todo], self.cpus_per_task)
+            ref = task.remote(spec_ref, str(cell.dir), start, stop, todo, [keys[i] for i in todo], self.cpus_per_task,
+                              self.timeout)
             pending[ref] = (start, stop, todo)
 
         for start, stop in shards(len(keys), self.shard_samples):
@@ -223,23 +233,73 @@ def _resolved(spec: Any, threads: int) -> tuple[Any, bool]:
     return res, True
 
 
-def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, keys: list[tuple[str, int]],
-               threads: int) -> dict[str, Any]:
-    """One task: the rows of ``keys`` (the samples of shard [start, stop) not done yet),
-    published as the shard's chunk. A data error propagates (it stops the run)."""
-    from pcfbench.runner import process_sample
+def _published(cell_dir: Path, start: int, stop: int) -> dict[str, bool]:
+    """Samples of shard [start, stop) already in the store, in files of this shard's range
+    (one that a timed-out try of this task published before its worker was killed), and
+    whether each failed."""
+    from pcfbench.store import ROWS_DIR
+
+    out: dict[str, bool] = {}
+    for path in sorted((Path(cell_dir) / ROWS_DIR).glob("shard-*.parquet")):
+        a, b = (int(x) for x in path.stem.split("-")[1:3])
+        if start <= a and b <= stop:
+            df = pd.read_parquet(path, columns=["sample_id", "status"])
+            for sid, status in zip(df["sample_id"], df["status"]):
+                out[sid] = out.get(sid, False) or status == "failed"
+    return out
+
+
+def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, todo: list[int], keys: list[tuple[str, int]],
+               threads: int, timeout: float | None = None) -> dict[str, Any]:
+    """One task: the rows of ``keys`` (samples ``todo`` of shard [start, stop), not done when
+    it was submitted), published as one chunk. A data error propagates (it stops the run).
+
+    With a ``timeout``, a watchdog thread ends a sample running past it the way the local
+    executor does: it publishes the rows done so far and a ``SampleTimeout`` row for that
+    sample (``shard-FIRST-HUNG+1``), then kills this worker process; Ray's retry of the task
+    skips what is published and writes the rest (``shard-HUNG+1-STOP``)."""
+    from pcfbench.runner import _failure_row, process_sample
 
     t0 = time.perf_counter()
+    published = _published(Path(cell_dir), start, stop)
+    ids = [f"{s}/{i:06d}" for s, i in keys]
+    remaining = [(i, k) for i, k, sid in zip(todo, keys, ids) if sid not in published]
+    failed = sum(published[sid] for sid in ids if sid in published)
+    result = {"start": start, "stop": stop, "samples": len(keys), "failed": failed, "pid": os.getpid(),
+              "resolved": False, "t_resolve": 0.0, "t_samples": 0.0, "t_write": 0.0}
+    if not remaining:
+        return {**result, "t_task": time.perf_counter() - t0}
     res, built = _resolved(spec, threads)
     t1 = time.perf_counter()
+    first = remaining[0][0]
     rows: list[dict[str, Any]] = []
-    failed = 0
-    for key in keys:
-        sample_rows = process_sample(res, key)
-        failed += sample_rows[0]["status"] == "failed"
-        rows.extend(sample_rows)
+    lock = threading.Lock()
+    current: list[Any] = [None]  # (index, key, start time) of the sample running now
+    finished = threading.Event()
+
+    def watchdog() -> None:
+        while not finished.wait(min(1.0, timeout / 10)):
+            with lock:
+                if current[0] is not None and time.monotonic() - current[0][2] > timeout:
+                    i, key, _ = current[0]
+                    reason = f"it ran past the time limit of {timeout:g} s on its Ray worker"
+                    write_shard(Path(cell_dir), first, i + 1, rows + _failure_row(key, "timeout", reason))
+                    os.kill(os.getpid(), signal.SIGKILL)  # the only way to stop a hung method; Ray retries the task
+
+    if timeout:
+        threading.Thread(target=watchdog, name="pcfbench-timeout", daemon=True).start()
+    try:
+        for i, key in remaining:
+            with lock:
+                current[0] = (i, key, time.monotonic())
+            sample_rows = process_sample(res, key)
+            with lock:
+                rows.extend(sample_rows)
+                current[0] = None
+            failed += sample_rows[0]["status"] == "failed"
+    finally:
+        finished.set()
     t2 = time.perf_counter()
-    write_shard(Path(cell_dir), start, stop, rows)
-    return {"start": start, "stop": stop, "samples": len(keys), "failed": failed, "pid": os.getpid(),
-            "resolved": built, "t_resolve": t1 - t0, "t_samples": t2 - t1, "t_write": time.perf_counter() - t2,
-            "t_task": time.perf_counter() - t0}
+    write_shard(Path(cell_dir), first, stop, rows)
+    return {**result, "failed": failed, "resolved": built, "t_resolve": t1 - t0, "t_samples": t2 - t1,
+            "t_write": time.perf_counter() - t2, "t_task": time.perf_counter() - t0}

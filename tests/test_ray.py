@@ -51,6 +51,7 @@ class RayProbe(CopyLast):
         delay: float = pcfbench.option(0.0, help="seconds a sample")
         kill: str = pcfbench.option("", help="sample id whose first calls kill the worker")
         kills: int = pcfbench.option(1, help="how many of its calls kill the worker")
+        hang: str = pcfbench.option("", help="sample id on which it hangs")
 
     def __init__(self, options=None):
         super().__init__(options)
@@ -67,7 +68,7 @@ class RayProbe(CopyLast):
                 with open(killed, "a") as f:
                     f.write("x")
                 os.kill(os.getpid(), signal.SIGKILL)
-        time.sleep(self.options.delay)
+        time.sleep(3600 if sample.sample_id == self.options.hang else self.options.delay)
         return super().forecast(sample)
 
 
@@ -156,12 +157,12 @@ def _probe_cell(store: Path) -> Cell | None:
     return cell
 
 
-def _probe_args(root: Path, tmp_path: Path, markers: Path, limit: int, shard: int, **options) -> list[str]:
+def _probe_args(root: Path, tmp_path: Path, markers: Path, limit: int, shard: int, *extra: str, **options) -> list[str]:
     opts = ",".join([f"marker_dir={markers}"] + [f"{k}={v}" for k, v in options.items()])
     return [PCFBENCH, "run", "--executor", "ray", "--shard-samples", str(shard), "--dataset", f"kitti={root}",
             "--setting", "kitti-1s", "--method", f"ray-probe:{opts}", "--metric", "chamfer", "--metric", "l1_median",
             "--limit", str(limit), "--store", str(tmp_path / "store"), "--reports", str(tmp_path / "reports"),
-            "--no-report", "--quiet"]
+            "--no-report", "--quiet", *extra]
 
 
 # -- quick ------------------------------------------------------------------------------------
@@ -311,6 +312,28 @@ def test_a_sample_that_kills_its_worker_at_every_try_is_one_failed_sample(tmp_pa
     assert (rows["status"] == "ok").sum() == 5 * 5
     meta = json.loads((cell.dir / "cell.json").read_text())
     assert meta["status"] == "complete" and meta["counts"]["failed"] == 1 and meta["counts"]["ok"] == 5
+
+
+@pytest.mark.slow
+def test_a_sample_running_past_the_timeout_is_one_failed_sample_and_the_rest_of_its_shard_scores(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    hung = "08/000012"  # index 4: shard [3, 6) is published as [3, 5) by the watchdog, then [5, 6) by Ray's retry
+    out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3, "--timeout", "3", hang=hung), capture_output=True,
+                         text=True, env=_env(tmp_path), timeout=600)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "6 samples (6 now, 1 failed)" in out.stdout, out.stdout
+    calls = _calls(markers)
+    assert calls.count(hung) == 1 and all(calls.count(f"08/{i:06d}") == 1 for i in range(8, 14))  # nothing twice
+    cell = _probe_cell(tmp_path / "store")
+    assert [p.name for p in cell.chunk_paths()] == [shard_name(0, 3), shard_name(3, 5), shard_name(5, 6)]
+    rows = _rows(cell)
+    assert not rows.duplicated(KEY).any() and rows["sample_id"].nunique() == 6
+    bad = rows[rows["status"] == "failed"]
+    assert list(bad["sample_id"]) == [hung]
+    assert bad["error"].iloc[0] == f"SampleTimeout: sample {hung}: it ran past the time limit of 3 s on its Ray worker"
+    assert (rows["status"] == "ok").sum() == 5 * 5
 
 
 @pytest.mark.slow
