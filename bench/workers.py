@@ -9,7 +9,8 @@ sample per message, so it always knows which sample a dead worker held.
 
 Workers die with the driver, even one SIGKILLed: they start from the ``forkserver``, which
 exits when the driver does, and each worker asks the kernel for SIGKILL when its parent (the
-forkserver) exits (``PR_SET_PDEATHSIG``, Linux) and watches for it from a thread elsewhere.
+forkserver) exits (``PR_SET_PDEATHSIG``, Linux), and watches its pipe to the driver for a
+hang-up from a thread (:func:`_die_with_driver`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import ctypes
 import multiprocessing
 import os
+import select
 import signal
 import sys
 import threading
@@ -42,9 +44,11 @@ def _context() -> multiprocessing.context.BaseContext:
     return ctx
 
 
-def _die_with_parent() -> None:
-    """SIGKILL this process when its parent exits; a watcher thread where prctl is missing
-    (and as a second line: it also catches a parent gone before prctl took effect)."""
+def _die_with_driver(conn: Connection) -> None:
+    """Exit when the driver does. The kernel sends SIGKILL when the parent (the forkserver,
+    which exits with the driver) exits (``PR_SET_PDEATHSIG``, Linux), even while native code
+    holds the GIL; a watcher thread exits when the driver's end of ``conn`` hangs up, which
+    also covers a driver that died before this process got to ask the kernel."""
     parent = os.getppid()
     if sys.platform.startswith("linux"):
         try:
@@ -52,20 +56,22 @@ def _die_with_parent() -> None:
             libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
         except (OSError, AttributeError):  # pragma: no cover - no libc prctl
             pass
+    hangup = getattr(select, "POLLRDHUP", 0x2000) | select.POLLHUP | select.POLLERR | select.POLLNVAL
+    poller = select.poll()
+    poller.register(conn.fileno(), hangup)  # not POLLIN: the tasks are the main thread's to read
 
     def watch() -> None:
         while True:
-            if os.getppid() != parent:
+            if os.getppid() != parent or any(event & hangup for _, event in poller.poll(500)):
                 os._exit(70)
-            time.sleep(0.5)
 
-    threading.Thread(target=watch, name="pcfbench-parent-watch", daemon=True).start()
+    threading.Thread(target=watch, name="pcfbench-driver-watch", daemon=True).start()
 
 
 def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, task: Callable[[Any], Any]) -> None:
     """A worker's life: set up (``init(*init_args)``), then answer one task per message until
     told to stop (``None``) or the driver's end of the pipe closes."""
-    _die_with_parent()
+    _die_with_driver(conn)
     try:
         init(*init_args)
     except BaseException as exc:  # noqa: BLE001 - every setup failure goes back to the driver
