@@ -261,9 +261,13 @@ def test_checkpoint_refused_when_its_tokenizer_differs(micro, kitti):
 
 
 def test_inference_options_reuse_the_trained_weights(micro, kitti):
-    """copilot4d:cfg_weight=0 trains nothing new: the weights of the same training options."""
-    _tokenizer(kitti)
+    """copilot4d:cfg_weight=0 trains nothing new: the weights of the same training options
+    (which embed their tokenizer: the tokenizer's own checkpoint is not needed any more)."""
+    import shutil
+
+    tok = _tokenizer(kitti)
     base = _train(f"copilot4d:{MICRO_TRAIN},steps=2", kitti)
+    shutil.rmtree(tok.dir)
     other = _train(f"copilot4d:{MICRO},steps=2,cfg_weight=0,seed=3", kitti)
     assert other.dir != base.dir and other.manifest["config"]["weights_from"] == str(base.manifest_path)
     a, b = base.load_weights(), other.load_weights()

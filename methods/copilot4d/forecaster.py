@@ -308,6 +308,16 @@ class Copilot4D(TrainedMethod):
         from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
 
         torch.set_num_threads(1)  # the most steps per CPU-second on this machine (as the tokenizer)
+        resumed = progress.resume()
+        if resumed is None and (base := self.base_checkpoint(train_source)) is not None:
+            # the same training options, trained already (cache or shipped): the same model, which
+            # these options only sample differently; its weights embed their tokenizer
+            progress.log(f"{base.dir} holds the weights of the same training options (only "
+                         f"{', '.join(INFERENCE_OPTIONS)} may differ): taking them, step {base.steps}")
+            progress.start(base.steps, base.steps)
+            progress.save(base.steps, base.load_weights(), None, complete=True,
+                          config=dict(base.manifest["config"], weights_from=str(base.manifest_path)))
+            return
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
         tokenizer = load_tokenizer(tok_ck, torch.device("cpu"))
         if tokenizer.cfg != self.tok_cfg:
@@ -316,21 +326,12 @@ class Copilot4D(TrainedMethod):
                                   f"{TOKENIZER_METHOD} --dataset {train_source.train_on.dataset} --fresh`")
         tok_state = tokenizer.state_dict()
         tok_digest = tensor_digest(tok_state)
-        resumed = progress.resume()
         if resumed is not None:  # the same tokenizer, or the cached tokens and the weights disagree
             had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
             if had != tok_ck.sha256:
                 raise CheckpointError(f"checkpoint {out_dir / 'manifest.json'} was trained on the tokens of tokenizer "
                                       f"{str(had)[:12]}, and {tok_ck.manifest_path} is now {tok_ck.sha256[:12]}: "
                                       "rerun with --fresh")
-        elif (base := self.base_checkpoint(train_source, tok_ck.sha256)) is not None:
-            # the same training options, trained already: their weights are what training would give
-            progress.log(f"{base.dir} holds the weights of the same training options (only "
-                         f"{', '.join(INFERENCE_OPTIONS)} may differ): taking them, step {base.steps}")
-            progress.start(base.steps, base.steps)
-            progress.save(base.steps, base.load_weights(), None, complete=True,
-                          config=dict(base.manifest["config"], weights_from=str(base.manifest_path)))
-            return
         cfg = self.world_cfg
         progress.log(f"{self.name} ({self.variant.name}, {cfg.name}): tokenizer {tok_ck.dir} "
                      f"(sha256 {tok_ck.sha256[:12]}), {train_source.train_on.label}")
@@ -355,10 +356,10 @@ class Copilot4D(TrainedMethod):
             csv_path, png = write_world_curve(out["history"], Path(out_dir))
             progress.log(f"training curve: {csv_path} and {png}")
 
-    def base_checkpoint(self, train_source: TrainSource, tokenizer_sha: str) -> Checkpoint | None:
-        """The checkpoint of this method with the same training options and the inference
-        options at their defaults, trained on the same data with the same tokenizer, if any
-        (its weights are what training these options would produce)."""
+    def base_checkpoint(self, train_source: TrainSource) -> Checkpoint | None:
+        """The complete checkpoint of this method with the same training options and the
+        inference options at their defaults, trained on the same data (in the cache, else
+        shipped), if any: training these options would give the same model."""
         from dataclasses import fields, replace
 
         from pcfbench.method import MethodSpec, options_hash
@@ -373,8 +374,7 @@ class Copilot4D(TrainedMethod):
             ck = find_checkpoint(spec, train_source.train_on)
         except CheckpointError:
             return None
-        if ck is None or not ck.manifest.get("complete") or \
-                ck.manifest.get("config", {}).get("tokenizer_sha256") != tokenizer_sha:
+        if ck is None or not ck.manifest.get("complete"):
             return None
         return ck
 
