@@ -375,9 +375,11 @@ def failures(store, tracebacks, as_json):
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
 @click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells; run nothing.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+@click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
+              help="Per-sample time limit, as for run (0: no limit).")
 @executor_options
-def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, executor, address, shard_samples,
-          cpus_per_task, gpus_per_task):
+def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, timeout, executor, address,
+          shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
     from pcfbench.sweep import cell_label, load_experiment, plan, run_sweep
@@ -385,7 +387,7 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
     plugins = get_plugins()
     warn_failed(plugins)
     exp = load_experiment(experiment, plugins)
-    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads)
+    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     if dry_run:
@@ -396,7 +398,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
         return
     with interrupted_note(store_path, None, 0):
         result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
-                           progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor)
+                           progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor,
+                           timeout=timeout or None, isolate=True)
     failed = sum(r.failed for r in result.results)
     for text in result.summaries:
         click.echo(text)

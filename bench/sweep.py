@@ -492,11 +492,13 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
 
 def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None = None, jobs: int | None = None,
               threads: int | None = None, force: bool = False, progress: bool = True,
-              plugins: Plugins | None = None, echo: Callable[[str], None] = print, executor: Any = None) -> SweepResult:
+              plugins: Plugins | None = None, echo: Callable[[str], None] = print, executor: Any = None,
+              timeout: float | None = None, isolate: bool | None = None) -> SweepResult:
     """Run (or resume) every cell of ``exp`` through ``run_cell``, then write its ablation
     tables to ``reports/sweeps/``. Complete cells are reused without calling the method;
     ``force`` recomputes them. ``limit``/``jobs`` override the file's. ``executor``: run_cell's
-    (``pcfbench.ray_executor.RayExecutor``; the file's ``jobs`` then does not apply)."""
+    (``pcfbench.ray_executor.RayExecutor``; the file's ``jobs`` then does not apply).
+    ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes."""
     from tqdm import tqdm
 
     from pcfbench.runner import _progress_disabled, run_cell
@@ -512,7 +514,7 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
             line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             tqdm.write(line) if not bar.disable else echo(line)
             r = run_cell(spec, store, jobs=jobs, force=force, progress=progress, plugins=plugins, threads=threads,
-                         executor=executor, progress_label=line)
+                         executor=executor, progress_label=line, timeout=timeout, isolate=isolate)
             results.append(r)
             done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
                 f"{r.processed} sample(s) now, {r.failed} failed, {r.seconds:.1f} s"

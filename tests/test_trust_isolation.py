@@ -205,3 +205,22 @@ def test_run_timeout_option_records_the_hung_sample_and_exits_1(tiny_kitti, tmp_
         "SampleTimeout: sample 08/000008: it ran longer than the per-sample time limit of 5 s"]
     bad = CliRunner().invoke(cli, [*args, "--timeout", "-1"])
     assert bad.exit_code == 2 and "-1" in bad.output
+
+
+def test_sweep_timeout_option_records_the_hung_sample(tiny_kitti, tmp_path, monkeypatch):
+    import pcfbench.plugins
+    from click.testing import CliRunner
+
+    from pcfbench.cli import cli
+
+    monkeypatch.setattr(pcfbench.plugins, "_PLUGINS", plugins())
+    exp = tmp_path / "hang.toml"
+    exp.write_text(f"datasets = ['kitti={tiny_kitti}']\nsettings = ['kitti-1s']\nmetrics = ['chamfer']\n"
+                   "[[methods]]\nname = 'hangs'\n")
+    res = CliRunner().invoke(cli, ["sweep", str(exp), "--store", str(tmp_path / "store"), "--reports",
+                                   str(tmp_path / "r"), "-q", "--timeout", "5"])
+    assert res.exit_code == 0, res.output
+    assert "1 sample(s) failed" in res.stderr
+    rows = _rows(tmp_path / "store", tiny_kitti, "hangs")
+    assert rows[rows.status == "failed"].error.tolist() == [
+        "SampleTimeout: sample 08/000008: it ran longer than the per-sample time limit of 5 s"]
