@@ -185,7 +185,7 @@ class RayExecutor:
                     progress(result["samples"])
         finally:
             for ref in pending:  # interrupted or stopped by an error: what is left is not wanted now
-                ray.cancel(ref, force=True)
+                ray.cancel(ref)  # Ray also ends them when the driver exits
         return failed
 
     def _result(self, ray, ref, cell, start: int, stop: int) -> dict[str, Any]:

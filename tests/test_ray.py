@@ -337,6 +337,22 @@ def test_a_sample_running_past_the_timeout_is_one_failed_sample_and_the_rest_of_
 
 
 @pytest.mark.slow
+def test_bad_data_in_a_task_stops_the_run_with_the_error_naming_the_file(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
+    bad = root / "sequences" / "08" / "velodyne" / "000017.bin"  # a future sweep of samples 08/000009, 11 and 13
+    bad.write_bytes(bad.read_bytes()[:-4])  # not a whole number of points
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3), capture_output=True, text=True, env=_env(tmp_path),
+                         timeout=600)
+    assert out.returncode == 2, out.stdout + out.stderr
+    error = [line for line in out.stderr.splitlines() if line.startswith("pcfbench: error:")]
+    assert len(error) == 1 and "000017.bin" in error[0], out.stderr
+    cell = _probe_cell(tmp_path / "store")
+    assert json.loads((cell.dir / "cell.json").read_text())["status"] == "running"
+
+
+@pytest.mark.slow
 def test_a_killed_driver_resumes_without_recomputing_finished_shards(tmp_path):
     """SIGKILL the driver once two shards have landed; the rerun computes only the shards
     that had not, and each worker built the method once for all the shards it ran."""
