@@ -183,9 +183,12 @@ class RayExecutor:
                     self.log.append(result)
                     failed += result["failed"]
                     progress(result["samples"])
-        finally:
-            for ref in pending:  # interrupted or stopped by an error: what is left is not wanted now
-                ray.cancel(ref)  # Ray also ends them when the driver exits
+        except KeyboardInterrupt:
+            raise  # the driver exits, and Ray ends its tasks with it
+        except BaseException:
+            for ref in pending:  # stopped by an error: what is left is not wanted now
+                ray.cancel(ref)
+            raise
         return failed
 
     def _result(self, ray, ref, cell, start: int, stop: int) -> dict[str, Any]:
