@@ -102,6 +102,27 @@ def _tiny_domain(name="synthetic-town", sweeps=18, azimuths=240):
     return dataclasses.replace(d, sensor=sensor, splits={"train": (("00", 4),), "test": (("05", sweeps),)})
 
 
+def test_measure_counts_the_points_of_the_chosen_sweeps(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.protocol import MIN_RANGE_M
+
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=5)
+    ad = KittiOdometry(real)
+    assert C.pick_sweeps(ad, "test", 2) == [("08", 0), ("08", 3)]  # spread over the 4 sweeps with a successor
+    st = C.measure(ad, "test", 2, "tiny", C.beam_edges([0.0, -1.0, -3.0]))
+    seq = ad.sequence("08")
+    expect = []
+    for i in (0, 3):
+        p = seq.load_points(i)
+        expect.append(int((~ad.ego_box.inside(p) & (np.linalg.norm(p, axis=1) > MIN_RANGE_M)).sum()))
+    assert st.sweeps == 2 and st.points == expect
+    assert st.range_hist.sum() == sum(expect)
+    assert st.moving == []  # no labels: unknown, not zero
+    assert np.isnan(st.summary(C.beam_edges([0.0, -1.0, -3.0]))["moving-object points (fraction)"])
+
+
+@pytest.mark.slow
 def test_compare_command_statistics_only(tmp_path):
     from conftest import write_tiny_kitti
     from pcfbench.cli import build_cli
