@@ -35,9 +35,11 @@ class TokenCopy(TrainedMethod):
     name = "copilot4d-token-copy"
     version = "2"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m)
     Options = TokenCopyOptions
-    # Measured on the 2-core development machine, otherwise idle (tiny config, 1 thread,
-    # synthetic-town train): 2400 steps in 993 s wall, 966 s CPU. A loaded machine is slower.
-    training_time = "about 17 min for the tiny configuration on an idle 2-core CPU (0.41 s/step x 2400 steps)"
+    # Measured on the 2-core development machine shared with other work (load average ~10;
+    # tiny config, 1 thread, synthetic-town train): 1200 steps in 2137 s wall, 550 s CPU
+    # (0.46 CPU-s/step); the last 100 steps, at a lower load, 0.4 s/step wall.
+    training_time = ("about 10 min for the tiny configuration on an idle 2-core CPU (1200 steps, 550 CPU-s measured; "
+                     "36 min wall on a machine at load 10)")
 
     def __init__(self, options: TokenCopyOptions | None = None) -> None:
         super().__init__(options)
