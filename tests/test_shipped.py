@@ -145,7 +145,9 @@ def test_every_shipped_checkpoint_verifies_and_loads(manifest_path):
     assert {"from_weights_sha256", "data_sha256", "retrain"} <= set(m["shipped"])
     assert m["shipped"]["retrain"].startswith(f"pcfbench train {m['method']}") and "--ship" in m["shipped"]["retrain"]
     ck = Checkpoint.open(manifest_path.parent)  # sha256 of the weights
-    spec = resolve_method((m["method"], {k: str(v) for k, v in m["options"].items()}), get_plugins())
+    # the options as the command line gives them (a tuple option's items joined by "/")
+    raw_options = {k: "/".join(map(str, v)) if isinstance(v, list) else str(v) for k, v in m["options"].items()}
+    spec = resolve_method((m["method"], raw_options), get_plugins())
     ck.check_method(spec)
     assert manifest_path.parent == shipped_dir(spec, m["train_on"]["dataset"], m["train_on"]["split"])
     raw = torch.load(ck.weights_path, weights_only=True)
