@@ -20,10 +20,10 @@ statistics of the world and the sensor, none of it tied to a scene:
   (exponential), different every sweep, as leaves do.
 * **Mixed pixels**: a ray at a depth discontinuity (its azimuth neighbour more than
   ``mixed_gap_m`` away) returns, with probability ``mixed_prob``, from between the two.
-* **A spinning sensor**: each column is fired at its own time over the 0.1 s revolution
-  (clockwise from above, from behind the car round to behind it again, the sweep's
-  timestamp when facing forward) from the ego pose at that time, and is stored without
-  de-skewing, as KITTI's velodyne files are.
+* **A spinning sensor** (``motion_distortion=True``): each column is fired at its own time
+  over the 0.1 s revolution (clockwise from above, the sweep's timestamp when facing
+  forward) from the ego pose at that time and stored without de-skewing. Off in the town:
+  KITTI's odometry scans come de-skewed, so its sweeps are too.
 * **Estimated poses**: the stored poses are the true ones off by a random walk of a few
   millimetres and a hundredth of a degree per sweep, as SLAM poses are.
 * **Returns that fade**: a return is detected with probability ``1 / (1 + (r / r50)^6)``
@@ -76,7 +76,9 @@ class Realism:
     specular_drop: float = 0.12  # extra drop on car bodies
     base_drop: float = 0.02
     revolution_s: float = 0.1
-    motion_distortion: bool = True
+    #: store each column as fired from its own pose (True), or de-skewed into the sweep's
+    #: frame (False): KITTI's odometry scans come de-skewed, so the town's sensor does too
+    motion_distortion: bool = False
     #: localisation error of the stored poses (estimates, as SLAM poses are): a random walk
     #: per sweep, 1-sigma steps in translation (m, per axis) and rotation (deg, per axis)
     pose_walk: tuple = (0.004, 0.01)
