@@ -302,7 +302,7 @@ def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
     def rows():
         out = {}
         for cell in sorted((tmp_path / "store").rglob("cell.json")):
-            method = json.loads(cell.read_text())["method"]
+            method = json.loads(cell.read_text())["spec"]["method"]
             out[method] = pd.concat([pd.read_parquet(p) for p in sorted((cell.parent / "rows").glob("*.parquet"))])
         return out
 
@@ -310,7 +310,7 @@ def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
     assert set(first) == {"copilot4d", "copilot4d-maskgit"}
     for df in first.values():
         assert len(df) == 5 and np.isfinite(df["l1_mean"].to_numpy(dtype=float)).all()
-    r = runner.invoke(cli, args[:2] + args[5:] + ["--force"])  # copilot4d again
+    r = runner.invoke(cli, args[:3] + args[5:] + ["--force"])  # copilot4d again
     assert r.exit_code == 0, r.output
     for method, df in rows().items():
         pd.testing.assert_frame_equal(df[["l1_mean", "chamfer_nf"]].reset_index(drop=True),
