@@ -138,6 +138,8 @@ def register_commands(cli):  # noqa: ANN001
             opts = spec_options(method)
             res = evaluate_oracle(model, adapter, split, oracle_setting, threshold=opts.threshold,
                                   max_samples=oracle_samples or None, log=click.echo)
+            meta["regenerate"] = (f"pcfbench tokenizer-report --dataset {dataset_spec} --split {split} "
+                                  f"--oracle {oracle_setting} --oracle-samples {oracle_samples}")
             md, csv_path = write_oracle(res, meta, reports_dir(reports) / "copilot4d",
                                         f"oracle-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}-"
                                         f"{oracle_setting}")
