@@ -118,7 +118,12 @@ def test_ctrl_c_keeps_the_finished_work_and_says_how_to_resume(tmp_path):
                             start_new_session=True)
     first = proc.stdout.readline()  # cell 1 done
     assert first.startswith("cell 1/2: copy-last"), first
-    time.sleep(3.0)  # into cell 2
+    # Into cell 2: interrupt as soon as its first sample's chunk lands (a fixed sleep raced
+    # the whole cell on a fast machine: 12 samples of raycast-voxel take about 2.5 s).
+    deadline = time.monotonic() + 120
+    while not list(store.glob("kitti/kitti-1s/test/raycast-voxel.*/rows/*.parquet")):
+        assert time.monotonic() < deadline and proc.poll() is None, "cell 2 never wrote a chunk"
+        time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C sends: the whole foreground process group
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, (out, err)
