@@ -377,8 +377,10 @@ def failures(store, tracebacks, as_json):
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 @click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
               help="Per-sample time limit, as for run (0: no limit).")
+@click.option("--keep-going", is_flag=True,
+              help="Exit 0 even when samples failed (their cells are incomplete and not in the tables either way).")
 @executor_options
-def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, timeout, executor, address,
+def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, timeout, keep_going, executor, address,
           shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
@@ -406,7 +408,10 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
     for path in result.paths.values():
         click.echo(str(path))
     if failed:
-        click.echo(f"pcfbench: {failed} sample(s) failed; their tracebacks are in the cells' rows", err=True)
+        click.echo(f"pcfbench: {failed} sample(s) failed; `pcfbench failures` lists them, their tracebacks are in the "
+                   "cells' rows", err=True)
+        if not keep_going:  # as run: a sweep with failed samples is not a clean result
+            sys.exit(1)
 
 
 @cli.command(name="ls")

@@ -219,8 +219,11 @@ def test_sweep_timeout_option_records_the_hung_sample(tiny_kitti, tmp_path, monk
                    "[[methods]]\nname = 'hangs'\n")
     res = CliRunner().invoke(cli, ["sweep", str(exp), "--store", str(tmp_path / "store"), "--reports",
                                    str(tmp_path / "r"), "-q", "--timeout", "5"])
-    assert res.exit_code == 0, res.output
+    assert res.exit_code == 1, res.output  # failed samples: exit 1, as run
     assert "1 sample(s) failed" in res.stderr
+    again = CliRunner().invoke(cli, ["sweep", str(exp), "--store", str(tmp_path / "store2"), "--reports",
+                                     str(tmp_path / "r2"), "-q", "--timeout", "5", "--keep-going"])
+    assert again.exit_code == 0 and "1 sample(s) failed" in again.stderr, again.output
     rows = _rows(tmp_path / "store", tiny_kitti, "hangs")
     assert rows[rows.status == "failed"].error.tolist() == [
         "SampleTimeout: sample 08/000008: it ran longer than the per-sample time limit of 5 s"]
