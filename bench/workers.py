@@ -122,6 +122,7 @@ class _Worker:
         finally:
             child.close()
         self.ready = False
+        self.stopping = False  # told to exit (None sent)
         self.key: Any = None
         self.started = 0.0
 
@@ -163,9 +164,13 @@ def run_supervised(
             spawn()
         while workers:
             for w in workers:
-                if w.ready and w.key is None and todo:
-                    w.key, w.started = todo.popleft(), time.monotonic()
-                    w.conn.send(w.key)
+                if w.ready and w.key is None and not w.stopping:
+                    if todo:
+                        w.key, w.started = todo.popleft(), time.monotonic()
+                        w.conn.send(w.key)
+                    else:  # nothing left for it (also one that got ready after the others took every key)
+                        w.stopping = True
+                        w.conn.send(None)
             busy = [w for w in workers if w.key is not None]
             wait_s = None
             if timeout is not None and busy:
@@ -185,10 +190,8 @@ def run_supervised(
                     if kind == "ready":
                         w.ready = True
                     else:
-                        key, w.key = w.key, None
+                        w.key = None
                         yield value
-                        if not todo:  # nothing left for it: let it go now
-                            w.conn.send(None)
                     continue
                 if w.process.sentinel in ready or not w.process.is_alive():
                     w.process.join()
@@ -217,7 +220,7 @@ def _stop(workers: list[_Worker]) -> None:
     """Ask idle workers to exit, then kill whatever is left (a worker busy on a sample whose
     result nobody will read, after an error or an interrupt)."""
     for w in workers:
-        if w.key is None:
+        if w.key is None and not w.stopping:
             try:
                 w.conn.send(None)
             except (OSError, ValueError):
