@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import json
 import sys
@@ -324,8 +325,9 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
     from pcfbench.report import ReportOptions, collect, summary, write_reports
     from pcfbench.stats import Resampling
 
-    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed),
-                            figures=not no_figures)
+    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed))
+    if no_figures:  # otherwise the default: figures unless PCFBENCH_FIGURES=0, as for run and sweep
+        options = dataclasses.replace(options, figures=False)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     board = collect(store_path, options.resampling, options.reference)

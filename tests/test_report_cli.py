@@ -182,3 +182,17 @@ def test_ctrl_c_in_a_sweep_says_the_same(tmp_path, monkeypatch):
     assert res.exit_code == 130, res.output
     assert "pcfbench: interrupted: the finished work is kept in the store" in res.output
     assert "run the same command again to resume:" in res.output
+
+
+def test_report_leaves_the_figures_out_with_pcfbench_figures_0_or_no_figures(failing_store, tmp_path, monkeypatch):
+    """PCFBENCH_FIGURES=0 applies to `pcfbench report` as to run and sweep (the command used
+    to force figures on unless --no-figures), and --no-figures wins over the environment."""
+    monkeypatch.setenv("PCFBENCH_FIGURES", "0")
+    res = CliRunner().invoke(build_cli(), ["report", "--store", str(failing_store), "--reports", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "a" / "leaderboard.md").is_file() and not (tmp_path / "a" / "figures").exists()
+    monkeypatch.setenv("PCFBENCH_FIGURES", "1")
+    res = CliRunner().invoke(build_cli(), ["report", "--store", str(failing_store), "--reports", str(tmp_path / "b"),
+                                           "--no-figures"])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "b" / "leaderboard.md").is_file() and not (tmp_path / "b" / "figures").exists()
