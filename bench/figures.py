@@ -203,7 +203,7 @@ def rerun(store_root: Path, cells: pd.DataFrame, sample_ids: list[str], plugins=
     builder = None
     for _, row in cells.iterrows():
         cell_dir = Path(row["cell_dir"])
-        spec = spec_from_meta(Cell(store_root, _spec_stub(cell_dir)).read_meta() or {})
+        spec = spec_from_meta(Cell.at(store_root, cell_dir).read_meta() or {})
         try:
             res = resolve(spec, plugins)
         except PcfbenchError as exc:  # a plugin gone, a checkpoint moved: the tables stand, the figure says so
@@ -243,16 +243,6 @@ def rerun(store_root: Path, cells: pd.DataFrame, sample_ids: list[str], plugins=
             out.mismatch.append(row["variant"])
     out.seconds = time.perf_counter() - t0
     return out
-
-
-def _spec_stub(cell_dir: Path):
-    """A stand-in spec whose ``relpath`` is the cell folder (to open a ``Cell`` by its folder)."""
-
-    class _At:
-        def relpath(self) -> Path:
-            return cell_dir
-
-    return _At()
 
 
 # -- error vs range --------------------------------------------------------------------------
@@ -513,7 +503,7 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
         base = ref.iloc[0] if len(ref) else g.iloc[0]
         from pcfbench.store import Cell
 
-        rows = Cell(store_root, _spec_stub(Path(base["cell_dir"]))).read_rows()
+        rows = Cell.at(store_root, base["cell_dir"]).read_rows()
         ids = choose_samples(rows, rank, samples)
         if not ids:
             continue

@@ -181,6 +181,13 @@ class Cell:
         self.wait = wait
         self._lock_fh = None
 
+    @classmethod
+    def at(cls, root: Path, relpath: str | Path) -> "Cell":
+        """The cell in the folder ``root / relpath``, to read it (its spec is in its cell.json)."""
+        cell = cls.__new__(cls)
+        cell.spec, cell.dir, cell.wait, cell._lock_fh = None, Path(root) / relpath, False, None
+        return cell
+
     # -- locking ------------------------------------------------------------------------
     def __enter__(self) -> "Cell":
         try:

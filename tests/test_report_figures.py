@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -115,7 +114,7 @@ def test_range_bins_pool_exactly_the_errors_the_stored_l1_and_absrel_average(mad
     store = made[0]
     lb = collect(store)
     cells = lb.table[lb.table["variant"] == "shifted (dx=0.5)"]
-    rows = Cell(store, _stub(cells.iloc[0]["cell_dir"])).read_rows()
+    rows = Cell.at(store, cells.iloc[0]["cell_dir"]).read_rows()
     sid = rows["sample_id"].iloc[0]
     run = figures.rerun(store, cells, [sid], _plugins())
     assert run.mismatch == []
@@ -164,7 +163,7 @@ def test_gallery_colours_each_forecast_by_its_per_point_error(made):
     store = made[0]
     lb = collect(store)
     g = lb.table
-    sid = Cell(store, _stub(g.iloc[0]["cell_dir"])).read_rows()["sample_id"].iloc[0]
+    sid = Cell.at(store, g.iloc[0]["cell_dir"]).read_rows()["sample_id"].iloc[0]
     run = figures.rerun(store, g, [sid], _plugins())
     fig = figures.gallery_figure(run, "t", "t = +1 s")
     panels = [ax for ax in fig.axes if ax.get_title().endswith("forecast, t = +1 s")]
@@ -238,10 +237,6 @@ def test_report_publishes_atomically_and_refuses_a_file_as_folder(made, tmp_path
     with pytest.raises(PcfbenchError, match=r"afile is a file, not a folder"):
         write_reports(store, f / "sub", ReportOptions(figures=False))
     assert f.read_text() == "x"
-
-
-def _stub(cell_dir):
-    return figures._spec_stub(Path(cell_dir))
 
 
 def _chromium() -> str:
