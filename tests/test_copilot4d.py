@@ -17,7 +17,7 @@ from pcfbench.methods.copilot4d.train import compute_losses, count_parameters, l
 # a very small configuration of the same architecture, for fast tests
 MICRO = TINY.with_overrides(
     name="micro", x_range=(-25.6, 25.6), y_range=(-25.6, 25.6), grid_xy=64, grid_z=16, nfg_z=16, nfg_up=2,
-    pointnet_dim=16, bev_dim=16,
+    pointnet_dim=16, bev_dim=16, patch_size=4,
     dims=(16, 32), heads=(2, 4), depths=(2, 2), window=4, codebook_size=64, code_dim=16, nfg_dim=8,
     rays_per_step=512, samples_per_ray=32, skip_pool=4, warmup=10, decay_steps=200, max_steps=200,
     checkpoint_every=2, log_every=1,
@@ -39,13 +39,13 @@ def test_parameter_counts():
     assert n == 13_187_233
     assert 12.5e6 < n < 13.5e6  # A.2.1: "a 13-Million parameter model"
     assert count_parameters(paper.vq) == 1024 * 1024
-    assert count_parameters(Tokenizer(TINY)) == 562_837
+    assert count_parameters(Tokenizer(TINY)) == 534_997
 
 
 def test_paper_grid_sizes():
     assert PAPER.voxel_size == pytest.approx((0.15625, 0.15625, 0.140625))
     assert (PAPER.grid_xy, PAPER.grid_z, PAPER.bev_tokens) == (1024, 64, 128)
-    assert TINY.bev_tokens == 32
+    assert TINY.bev_tokens == 64  # 2.5 m tokens (version 3 of copilot4d-token-copy)
 
 
 def test_paper_decoder_shapes_on_meta():
@@ -61,14 +61,15 @@ def test_tiny_shapes_and_losses(toy_sweeps):
     model = Tokenizer(TINY)
     batch = make_batch(TINY, toy_sweeps[:2], 256, np.random.default_rng(0))
     z = model.encoder(batch.points, batch.point_batch, 2)
-    assert z.shape == (2, 32, 32, TINY.code_dim)
+    assert z.shape == (2, TINY.bev_tokens, TINY.bev_tokens, TINY.code_dim)
     zq, codes, _ = model.vq(z)
-    assert codes.shape == (2, 32, 32) and codes.max() < TINY.codebook_size
+    assert codes.shape == (2, TINY.bev_tokens, TINY.bev_tokens) and codes.max() < TINY.codebook_size
     nfg, coarse = model.decoder(zq)
-    assert nfg.shape == (2, 8, 16, 128, 128)
+    assert nfg.shape == (2, 8, 16, 256, 256)
     assert coarse.shape == (2, 256, 256, 16)
     # coarse bias initialised to -5: almost every voxel starts "empty"
-    assert torch.sigmoid(coarse).mean().item() == pytest.approx(1 / (1 + math.e ** 5), rel=0.2)
+    assert (model.decoder.coarse_linear.bias == TINY.coarse_bias).all() and TINY.coarse_bias == -5.0
+    assert 0.5 / (1 + math.e ** 5) < torch.sigmoid(coarse).mean().item() < 2 / (1 + math.e ** 5)
     out = compute_losses(model, batch, TINY)
     assert all(torch.isfinite(out[k]) for k in ("loss", "l1", "conc", "bce", "vq"))
 
@@ -102,6 +103,32 @@ def test_render_depth_matches_hand_computed_ray():
     h2 = torch.tensor([[x_of(89) + cell / 2]])
     _, w2 = render_depth(_StubDecoder(), nfg, cfg, origin, direction, torch.zeros(1, dtype=torch.long), h2)
     assert w2.item() == pytest.approx(0.75, abs=1e-5)
+
+
+def test_median_readout_hand_computed_and_against_a_loop():
+    from pcfbench.methods.copilot4d.evaluate import median_depth
+
+    h = torch.tensor([[1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]])
+    # row 0: total 0.6, half 0.3, cumulative 0.1, 0.4, ... -> 2.0; row 1: exactly half at
+    # the first sample -> 1.0; row 2: no weight -> the exit distance
+    w = torch.tensor([[0.1, 0.3, 0.2, 0.0], [0.5, 0.0, 0.5, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    exit = torch.tensor([10.0, 11.0, 12.0])
+    assert median_depth(w, h, exit).tolist() == [2.0, 1.0, 12.0]
+
+    gen = torch.Generator().manual_seed(0)
+    h = torch.sort(torch.rand(200, 16, generator=gen) * 50, dim=1).values
+    w = torch.rand(200, 16, generator=gen) * (torch.rand(200, 16, generator=gen) > 0.6)
+    exit = torch.full((200,), 80.0)
+    got = median_depth(w, h, exit)
+    for r in range(200):  # the obvious reading: walk the samples until half of the weight is in
+        total, acc, want = float(w[r].sum()), 0.0, 80.0
+        if total > 0:
+            for j in range(16):
+                acc += float(w[r, j])
+                if acc >= 0.5 * total - 1e-6:
+                    want = float(h[r, j])
+                    break
+        assert got[r].item() == pytest.approx(want)
 
 
 def test_vq_straight_through_gradient():
@@ -382,8 +409,9 @@ def test_token_copy_renders_the_t0_tokens_from_the_future_origin(toy_sweeps):
     import hashlib
 
     seed = int.from_bytes(hashlib.sha256(b"toy/000001").digest()[:8], "little")
+    assert method.render == {"threshold": 0.02, "noise": False, "readout": "median"}  # the options' defaults
     ref = render_codes(method.model, tokenize_sweep(method.model, pts), dirs.astype(np.float32), origin=origin,
-                       generator=torch.Generator().manual_seed(seed))
+                       generator=torch.Generator().manual_seed(seed), **method.render)
     np.testing.assert_allclose(a, ref, atol=1e-6)
     # the same sample twice: the same forecast (spatial skipping's noise is seeded by the sample)
     np.testing.assert_array_equal(method.forecast(_sample(pts, np.eye(4), origin, dirs)).depths[0], a)

@@ -20,8 +20,8 @@ from pcfbench.methods.copilot4d.forecaster import Copilot4D, Copilot4DMaskGIT, b
 # the same architectures, small enough for seconds: 8 x 8 tokens of 64 codes, 2 past + 1 future
 MICRO_TOK = tok_config.TINY.with_overrides(
     name="micro", x_range=(-25.6, 25.6), y_range=(-25.6, 25.6), grid_xy=64, grid_z=16, nfg_z=16, nfg_up=2,
-    pointnet_dim=16, bev_dim=16, dims=(16, 32), heads=(2, 4), depths=(2, 2), window=4, codebook_size=64,
-    code_dim=16, nfg_dim=8, rays_per_step=256, samples_per_ray=16, skip_pool=4, warmup=10, decay_steps=200,
+    pointnet_dim=16, bev_dim=16, patch_size=4, dims=(16, 32), heads=(2, 4), depths=(2, 2), window=4,
+    codebook_size=64, code_dim=16, nfg_dim=8, rays_per_step=256, samples_per_ray=16, skip_pool=4, warmup=10, decay_steps=200,
     max_steps=200, checkpoint_every=2, log_every=1,
 )
 MICRO_WORLD = world_config.WorldModelConfig(
@@ -65,7 +65,8 @@ def test_options_are_typed_and_checked():
     assert (s.options.cfg_weight, s.options.sampling_steps, s.options.strides, s.options.seed) == (1.0, 3, (2, 6), 4)
     d = resolve_method("copilot4d-maskgit").options
     assert (d.cfg_weight, d.sampling_steps, d.config) == (2.0, 10, "tiny")
-    for bad in ("cfg_weight=-1", "sampling_steps=0", "cfg_weight=x", "threshold=1", "strides=0", "bogus=1"):
+    for bad in ("cfg_weight=-1", "sampling_steps=0", "cfg_weight=x", "threshold=1", "strides=0", "bogus=1",
+                "readout=mean"):
         with pytest.raises(PcfbenchError):
             resolve_method(f"copilot4d:{bad}")
     with pytest.raises(PcfbenchError, match="huge"):

@@ -105,14 +105,16 @@ PAPER = TokenizerConfig(
 
 # CPU scale: the paper's extent [-80, 80]^2 m, which covers the protocol's ROI (+-70 m around
 # the t=0 sensor) also from a future sensor that moved up to 10 m, at 0.625 x 0.625 x 0.5625 m
-# voxels (256 x 256 x 16), 32 x 32 tokens (5 m each), 512 codes; NFG 128 x 128 x 16 x 8
-# (1.25 m cells: a 256^2 NFG made each step 1.4x slower), candidate points every 0.5 m for
-# spatial skipping (its cells are 5 m wide), 1200 steps (docs/copilot4d.md: what was measured).
+# voxels (256 x 256 x 16), 64 x 64 tokens (2.5 m each; patch 2, then 4), 512 codes; NFG
+# 256 x 256 x 16 x 8 (0.625 m cells), candidate points every 0.5 m for spatial skipping (its
+# cells are 5 m wide), 1200 steps (docs/copilot4d.md: what was measured). 32 x 32 tokens
+# (5 m, patch 4; version 2) reconstructed about 5x worse than copy-last's forecast error: 9 bits
+# per 25 m^2 column cannot hold the scene.
 TINY = TokenizerConfig(
     name="tiny",
     x_range=(-80.0, 80.0), y_range=(-80.0, 80.0), z_range=(-4.5, 4.5),
     grid_xy=256, grid_z=16,
-    pointnet_dim=32, bev_dim=32, patch_size=4,
+    pointnet_dim=32, bev_dim=32, patch_size=2,
     dims=(48, 96), heads=(3, 6), depths=(2, 2), window=8, mlp_ratio=2.0,
     codebook_size=512, code_dim=64,
     nfg_up=2, nfg_dim=8, nfg_z=16, mlp_hidden=32,

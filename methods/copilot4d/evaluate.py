@@ -36,11 +36,32 @@ def decode(model: Tokenizer, codes: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return nfg.float(), coarse
 
 
+#: how ``render_codes`` turns a ray's weights into a depth
+READOUTS = ("expected", "median")
+
+
+def rendering_kwargs(options) -> dict:
+    """``render_codes`` keywords from a Copilot4D method's options (``threshold``, ``noise``,
+    ``readout``, which the options check): how the three forecasting methods and the oracle
+    render token maps."""
+    return {"threshold": options.threshold, "noise": options.noise, "readout": options.readout}
+
+
+def median_depth(w: torch.Tensor, h: torch.Tensor, exit: torch.Tensor) -> torch.Tensor:
+    """Per ray (rows of the sorted sample depths ``h`` with weights ``w``): the first h_j whose
+    cumulative weight reaches half of the row's total; ``exit`` (R,) where the total is 0."""
+    total = w.sum(dim=1)
+    cdf = torch.cumsum(w, dim=1)
+    j = torch.searchsorted(cdf, (0.5 * total)[:, None]).clamp(max=h.shape[1] - 1)
+    return torch.where(total > 0, h.gather(1, j)[:, 0].to(exit.dtype), exit)
+
+
 @torch.no_grad()
 def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, skipping: bool = True,
                  samples: int | None = None, chunk: int = 4096, generator: torch.Generator | None = None,
                  far_bound: bool = True, threshold: float = 0.5, noise: bool = True,
-                 origin: np.ndarray | None = None, decoded: tuple | None = None) -> np.ndarray:
+                 origin: np.ndarray | None = None, decoded: tuple | None = None,
+                 readout: str = "expected") -> np.ndarray:
     """Expected depth (equation 4) along unit rays for one (T, T) token map, from the sensor
     of the tokenized sweep or from ``origin`` (3,), a point in that sensor's frame (the rays'
     directions in the same frame).
@@ -49,7 +70,17 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     With ``far_bound``, the transmittance left after the last sample puts its share of the
     depth at the grid's boundary (equation 4 plus a background term; training uses
     equation 4 alone, on returns inside the grid). ``decoded``: ``decode(model, codes)``
-    already computed (rendering one token map from several origins decodes it once)."""
+    already computed (rendering one token map from several origins decodes it once).
+
+    ``readout`` turns the ray's weights w_i into one depth: ``expected`` is equation 4
+    (sum w_i h_i, with ``far_bound``); ``median`` is the depth h_j at which the cumulative
+    weight first reaches half of the ray's total weight, the median of where the ray ends
+    given that it ends inside the grid (every query ray of the protocol is a return), and
+    the grid's exit for a ray with no weight at all. Where the weight is split between a
+    thin object and what lies behind it, the expected depth lands in the empty space between
+    them; the median lands on one of the two."""
+    if readout not in READOUTS:
+        raise ValueError(f"readout={readout!r}; expected one of {', '.join(READOUTS)}")
     cfg = model.cfg
     dev = next(model.parameters()).device
     nfg, coarse = decoded if decoded is not None else decode(model, codes)
@@ -68,7 +99,9 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
         b = torch.zeros(len(d), dtype=torch.long, device=dev)
         h = sample_along_rays(cfg, o, d, b, mask, n, jitter=False)
         depth, w = render_depth(model.decoder, nfg, cfg, o, d, b, h)
-        if far_bound:  # transmittance left at the end of the grid: the ray leaves it there
+        if readout == "median":
+            depth = median_depth(w, h, box_interval(cfg, o, d)[1])
+        elif far_bound:  # transmittance left at the end of the grid: the ray leaves it there
             depth = depth + (1.0 - w.sum(dim=1)).clamp(min=0.0) * box_interval(cfg, o, d)[1]
         out[idx.numpy()] = depth.double().cpu().numpy()
     return out
@@ -129,15 +162,16 @@ def calibrate_skipping(model: Tokenizer, source: SweepSource, *, sweeps: int = 4
 
 
 def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps: int = 40, seed: int = 0,
-                            skip: dict | None = None, log=print) -> dict:
+                            skip: dict | None = None, render: dict | None = None, log=print) -> dict:
     """Reconstruct up to ``max_sweeps`` evenly spaced sweeps of ``source`` through their tokens,
-    with spatial skipping as in the paper (Logistic noise, threshold 0.5), with the calibrated
-    skipping setting ``skip`` (if given) and without skipping; per-sweep metrics averaged flat
-    (docs/protocol.md section 4)."""
+    with spatial skipping as in the paper (Logistic noise, threshold 0.5, expected depth), with
+    the calibrated skipping setting ``skip`` (if given), with the forecasting methods' rendering
+    ``render`` (``rendering_kwargs``, if given) and without skipping; per-sweep metrics averaged
+    flat (docs/protocol.md section 4)."""
     model.eval()
     picks = np.unique(np.linspace(0, len(source) - 1, min(max_sweeps, len(source))).round().astype(int))
     gen = torch.Generator().manual_seed(seed)
-    rows = {"skipping": [], "calibrated": [], "uniform": []} if skip else {"skipping": [], "uniform": []}
+    rows = {"skipping": [], **({"calibrated": []} if skip else {}), **({"method": []} if render else {}), "uniform": []}
     cfg = model.cfg
     grid = Box((cfg.x_range[0], cfg.y_range[0], cfg.z_range[0]), (cfg.x_range[1], cfg.y_range[1], cfg.z_range[1]))
     used = np.zeros(model.cfg.codebook_size, dtype=np.int64)
@@ -150,7 +184,8 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
         codes = tokenize_sweep(model, pts)
         used += np.bincount(codes.flatten().cpu().numpy(), minlength=used.size)
         for mode in rows:
-            kw = {"threshold": skip["threshold"], "noise": skip["noise"]} if mode == "calibrated" else {}
+            kw = ({"threshold": skip["threshold"], "noise": skip["noise"]} if mode == "calibrated"
+                  else render if mode == "method" else {})
             depth = render_codes(model, codes, dirs.astype(np.float32), skipping=mode != "uniform", generator=gen, **kw)
             rows[mode].append(sweep_errors(pts.astype(np.float64), dirs, depth, grid))
     p = used / max(used.sum(), 1)
@@ -163,10 +198,15 @@ def evaluate_reconstruction(model: Tokenizer, source: SweepSource, *, max_sweeps
         "codebook_perplexity": float(np.exp(-(nz * np.log(nz)).sum())),
         "eval_s": time.monotonic() - t0,
         "skip_calibration": skip,
+        "render": render,
     }
     for mode, rs in rows.items():
         result[mode] = {k: float(np.nanmean([r[k] for r in rs])) for k in rs[0]}
     return result
+
+
+#: the rows of the reconstruction report, in order
+MODES = ("skipping", "calibrated", "method", "uniform")
 
 
 def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
@@ -189,7 +229,11 @@ def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
         c = result["skip_calibration"]
         names["calibrated"] = (f"Spatial skipping, threshold {c['threshold']} {'with' if c['noise'] else 'without'} "
                                f"noise (calibrated on {c['sweeps']} {c['split']} sweeps)")
-    for mode in [m for m in ("skipping", "calibrated", "uniform") if m in result]:
+    if result.get("render"):
+        r = result["render"]
+        names["method"] = (f"The forecasting methods' rendering: spatial skipping, threshold {r['threshold']} "
+                           f"{'with' if r['noise'] else 'without'} noise, {r['readout']} depth")
+    for mode in [m for m in MODES if m in result]:
         r = result[mode]
         lines.append(f"| {names[mode]} | {r['chamfer_nf']:.3f} | {r['l1_median']:.3f} | {r['l1_mean']:.3f} | {r['chamfer']:.3f} "
                      f"| {r.get('l1_median_in_grid', float('nan')):.3f} |")
@@ -210,7 +254,7 @@ def write_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
         w = csv.writer(f)
         cols = [*TABLE7_METRICS, "l1_median_in_grid", "rays_in_grid"]
         w.writerow(["rendering", "dataset", "split", "sweeps", *cols])
-        for mode in [m for m in ("skipping", "calibrated", "uniform") if m in result]:
+        for mode in [m for m in MODES if m in result]:
             w.writerow([names[mode], result["dataset"], result["split"], result["sweeps"],
                         *(f"{result[mode].get(k, float('nan')):.6g}" for k in cols)])
     return md, js
@@ -236,12 +280,12 @@ def tokenize_split(model: Tokenizer, adapter, split: str, out_dir: Path, log=pri
 
 
 def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, threshold: float = 0.5,
-                    noise: bool = True, max_samples: int | None = None, log=print) -> dict:
+                    noise: bool = True, readout: str = "expected", max_samples: int | None = None, log=print) -> dict:
     """The tokenizer's oracle bar: every ground-truth FUTURE sweep of the protocol's samples
     (``setting`` on ``split``) tokenized in its own sensor frame (perfect tokens) and rendered
     from that future sensor origin along the harness's query rays, with the rendering of
     ``copilot4d-token-copy`` (spatial skipping at ``threshold``, Logistic noise seeded by the
-    sample id). Each forecast and copy-last's are scored in the same loop by every registered
+    sample id if ``noise``, the ``readout``). Each forecast and copy-last's are scored in the same loop by every registered
     metric, as the runner scores them (``score_sample``). It sees the future: a bound on what
     a world model on this tokenizer can reach, never a method. Returns per-method flat means
     over (sample, future sweep)."""
@@ -279,7 +323,8 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
             codes = tokenize_sweep(model, builder.points_sensor(seq, ref + (k + 1) * s.stride))
             R = sample.future_T_ref_sensor[k][:3, :3]
             dirs = (q.directions_ref.astype(np.float64) @ R).astype(np.float32)  # into the future sensor frame
-            depths.append(render_codes(model, codes, dirs, generator=gen, threshold=threshold, noise=noise))
+            depths.append(render_codes(model, codes, dirs, generator=gen, threshold=threshold, noise=noise,
+                                       readout=readout))
         for name, fc in (("oracle", Forecast.from_depths(sample, depths)), ("copy-last", copy_last.forecast(sample.for_method()))):
             rows[name] += score_sample(sample, truth, validate_forecast(sample, fc), metrics)
         if (n + 1) % 10 == 0:
@@ -290,7 +335,8 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
 
     means = {name: {m.name: mean([r[m.name] for r in rs]) for m in metrics} for name, rs in rows.items()}
     return {"setting": setting, "split": split, "dataset": adapter.name, "samples": len(keys),
-            "sweeps": len(rows["oracle"]), "threshold": threshold, "noise": noise, "eval_s": time.monotonic() - t0,
+            "sweeps": len(rows["oracle"]), "threshold": threshold, "noise": noise, "readout": readout,
+            "eval_s": time.monotonic() - t0,
             "means": means}
 
 
@@ -320,7 +366,8 @@ def write_oracle(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Pa
         "**An oracle, not a method: it sees the future.** Each ground-truth future sweep is tokenized in its own "
         "sensor frame (perfect tokens) and rendered by the tokenizer's decoder from that future sensor origin along "
         "the harness's query rays (the rendering of `copilot4d-token-copy`: spatial skipping at threshold "
-        f"{result['threshold']}, Logistic noise {'on' if result['noise'] else 'off'}). It bounds what a world model "
+        f"{result['threshold']}, Logistic noise {'on' if result['noise'] else 'off'}, {result.get('readout', 'expected')} "
+        "depth). It bounds what a world model "
         "on this tokenizer can reach; it is never ranked. copy-last is scored in the same loop on the same samples "
         "by the same registered metrics; means are flat over (sample, future sweep).",
         "",

@@ -42,7 +42,7 @@ from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, Traini
 
 TOKENIZER_METHOD = "copilot4d-token-copy"
 #: options that change only how a trained checkpoint forecasts, never its weights
-INFERENCE_OPTIONS = ("cfg_weight", "sampling_steps", "seed", "threshold")
+INFERENCE_OPTIONS = ("cfg_weight", "sampling_steps", "seed", "threshold", "noise", "readout")
 CHECKPOINT_EVERY = 100
 LOG_EVERY = 10
 
@@ -54,14 +54,23 @@ class WorldOptions:
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
     seed: int = option(0, help="sampler seed, combined with the sample id (training uses seed 0)")
-    threshold: float = option(0.5, help="spatial skipping: coarse-voxel probability threshold when rendering",
-                              gt=0, lt=1)
+    threshold: float = option(0.02, help="spatial skipping: coarse-voxel probability threshold when rendering "
+                                         "(the paper gives none)", gt=0, lt=1)
+    noise: bool = option(False, help="spatial skipping: Logistic noise on the coarse logits (figure 8)")
+    readout: str = option("median", help="a ray's depth from its weights: median (where half of the weight "
+                                         "is reached) or expected (equation 4)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)", min=0)
     tokenizer_steps: int = option(0, help="the copilot4d-token-copy checkpoint used: its steps option "
                                           "(0: its default)", min=0)
     strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames, one "
                                                    "stride drawn per window (kitti-1s uses 2, kitti-3s 6)", min=1)
     anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
+
+    def __post_init__(self) -> None:
+        from pcfbench.methods.copilot4d.evaluate import READOUTS
+
+        if self.readout not in READOUTS:
+            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS)}")
 
 
 def sample_seed(sample_id: str, seed: int) -> int:
@@ -274,7 +283,10 @@ class Copilot4D(TrainedMethod):
 
         self.tok_cfg = get_config(self.options.config)
         self.world_cfg = world_config_for(get_world_config(self.options.config), self.tok_cfg)
+        from pcfbench.methods.copilot4d.evaluate import rendering_kwargs
+
         self.variant = get_variant(self.variant_name)
+        self.render = rendering_kwargs(self.options)
         self.world = None
         self.tokenizer = None
 
@@ -432,8 +444,7 @@ class Copilot4D(TrainedMethod):
         for f, q in enumerate(sample.queries):
             origin = T_s0_ref[:3, :3] @ q.origin_ref + T_s0_ref[:3, 3]
             dirs = (q.directions_ref.astype(np.float64) @ T_s0_ref[:3, :3].T).astype(np.float32)
-            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen,
-                                       threshold=self.options.threshold))
+            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen, **self.render))
         return Forecast.from_depths(sample, depths)
 
     def forecast_tokens(self, sample: Sample):

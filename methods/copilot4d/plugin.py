@@ -110,7 +110,8 @@ def register_commands(cli):  # noqa: ANN001
         scored by the registered metrics; with --oracle, the oracle bar beside copy-last."""
         from pcfbench.config import reports_dir
         from pcfbench.methods.copilot4d.data import SweepSource
-        from pcfbench.methods.copilot4d.evaluate import calibrate_skipping, evaluate_reconstruction, write_report
+        from pcfbench.methods.copilot4d.evaluate import (calibrate_skipping, evaluate_reconstruction, rendering_kwargs,
+                                                         write_report)
         from pcfbench.methods.copilot4d.train import count_parameters
 
         model, ck = _tokenizer(method, train_on, train_split, checkpoint)
@@ -119,7 +120,8 @@ def register_commands(cli):  # noqa: ANN001
         skip = calibrate_skipping(model, SweepSource(train_adapter, ck.train_on["split"]))
         click.echo(f"spatial skipping calibrated on {ck.train_on_label} sweeps: threshold {skip['threshold']}, "
                    f"noise {skip['noise']}")
-        result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=sweeps, skip=skip)
+        render = rendering_kwargs(spec_options(method))
+        result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=sweeps, skip=skip, render=render)
         meta = {"config": model.cfg.name, "codebook_size": model.cfg.codebook_size,
                 "tokens": f"{model.cfg.bev_tokens}x{model.cfg.bev_tokens}", "parameters": count_parameters(model),
                 "trained_on": ck.train_on_label, "steps": ck.steps, "training_time_s": ck.manifest.get("wall_s"),
@@ -127,7 +129,7 @@ def register_commands(cli):  # noqa: ANN001
                 "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256}
         md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
                              f"tokenizer-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}")
-        s = result.get("calibrated", result["skipping"])
+        s = result.get("method", result["skipping"])
         click.echo(f"reconstruction ({split}, {result['sweeps']} sweeps): L1 median {s['l1_median']:.3f} m, "
                    f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
                    f"codebook usage {result['codebook_usage']:.1%}")
@@ -135,8 +137,7 @@ def register_commands(cli):  # noqa: ANN001
         if oracle_setting:
             from pcfbench.methods.copilot4d.evaluate import evaluate_oracle, write_oracle
 
-            opts = spec_options(method)
-            res = evaluate_oracle(model, adapter, split, oracle_setting, threshold=opts.threshold,
+            res = evaluate_oracle(model, adapter, split, oracle_setting, **render,
                                   max_samples=oracle_samples or None, log=click.echo)
             meta["regenerate"] = (f"pcfbench tokenizer-report --dataset {dataset_spec} --split {split} "
                                   f"--oracle {oracle_setting} --oracle-samples {oracle_samples}")

@@ -26,26 +26,38 @@ class TokenCopyOptions:
     config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale) or paper (A.2.1 sizes)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)")
     seed: int = option(0, help="training seed (initialisation, batches, rays)")
-    threshold: float = option(0.5, help="spatial skipping: coarse-voxel probability threshold at inference")
+    threshold: float = option(0.02, help="spatial skipping: coarse-voxel probability threshold at inference "
+                                         "(the paper gives none)", gt=0, lt=1)
+    noise: bool = option(False, help="spatial skipping: Logistic noise on the coarse logits (figure 8)")
+    readout: str = option("median", help="a ray's depth from its weights: median (where half of the weight "
+                                         "is reached) or expected (equation 4)")
+
+    def __post_init__(self) -> None:
+        from pcfbench.methods.copilot4d.evaluate import READOUTS
+
+        if self.readout not in READOUTS:
+            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS)}")
 
 
 class TokenCopy(TrainedMethod):
     """Copilot4D's tokenizer decoding the t=0 sweep's tokens at every future pose."""
 
     name = "copilot4d-token-copy"
-    version = "2"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m)
+    version = "3"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m); 3: tiny has 64 x 64 tokens (2.5 m)
     Options = TokenCopyOptions
-    # Measured on the 2-core development machine shared with other work (load average ~10;
-    # tiny config, 1 thread, synthetic-town train): 1200 steps in 2137 s wall, 550 s CPU
-    # (0.46 CPU-s/step); the last 100 steps, at a lower load, 0.4 s/step wall.
-    training_time = ("about 10 min for the tiny configuration on an idle 2-core CPU (1200 steps, 550 CPU-s measured; "
-                     "36 min wall on a machine at load 10)")
+    # Measured on the 2-core development machine (tiny config, 1 thread, synthetic-town train,
+    # another one-thread job on the second core): 1200 steps in 1641 s wall, 1600 s CPU
+    # (1.33 CPU-s/step; version 2's 32 x 32 tokens took 0.46).
+    training_time = "about 27 min for the tiny configuration on a 2-core CPU (1200 steps, 1641 s measured)"
 
     def __init__(self, options: TokenCopyOptions | None = None) -> None:
         super().__init__(options)
         from pcfbench.methods.copilot4d.config import get_config
 
+        from pcfbench.methods.copilot4d.evaluate import rendering_kwargs
+
         self.cfg = get_config(self.options.config)
+        self.render = rendering_kwargs(self.options)
         self.model = None
 
     def training_steps(self) -> int:
@@ -98,6 +110,6 @@ class TokenCopy(TrainedMethod):
         for q in sample.queries:
             origin = R @ q.origin_ref + t
             dirs = (q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)
-            depths.append(render_codes(self.model, codes, dirs, origin=origin, generator=gen,
-                                       threshold=self.options.threshold, decoded=decoded))
+            depths.append(render_codes(self.model, codes, dirs, origin=origin, generator=gen, decoded=decoded,
+                                       **self.render))
         return Forecast.from_depths(sample, depths)
