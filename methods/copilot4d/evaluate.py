@@ -40,6 +40,14 @@ def decode(model: Tokenizer, codes: torch.Tensor) -> tuple[torch.Tensor, torch.T
 READOUTS = ("expected", "median")
 
 
+def check_readout(readout: str) -> None:
+    """One error for a ``readout`` option that ``render_codes`` does not know."""
+    from pcfbench.errors import PcfbenchError
+
+    if readout not in READOUTS:
+        raise PcfbenchError(f"readout={readout!r}: expected one of {', '.join(READOUTS)}")
+
+
 def rendering_kwargs(options) -> dict:
     """``render_codes`` keywords from a Copilot4D method's options (``threshold``, ``noise``,
     ``readout``, which the options check): how the three forecasting methods and the oracle
@@ -285,10 +293,10 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
     (``setting`` on ``split``) tokenized in its own sensor frame (perfect tokens) and rendered
     from that future sensor origin along the harness's query rays, with the rendering of
     ``copilot4d-token-copy`` (spatial skipping at ``threshold``, Logistic noise seeded by the
-    sample id if ``noise``, the ``readout``). Each forecast and copy-last's are scored in the same loop by every registered
-    metric, as the runner scores them (``score_sample``). It sees the future: a bound on what
-    a world model on this tokenizer can reach, never a method. Returns per-method flat means
-    over (sample, future sweep)."""
+    sample id if ``noise``, the ``readout``). Each forecast and copy-last's are scored in the
+    same loop by every registered metric, as the runner scores them (``score_sample``). It
+    sees the future: a bound on what a world model on this tokenizer can reach, never a
+    method. Returns per-method flat means over (sample, future sweep)."""
     import hashlib
 
     from pcfbench.data import Forecast

@@ -67,10 +67,9 @@ class WorldOptions:
     anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
 
     def __post_init__(self) -> None:
-        from pcfbench.methods.copilot4d.evaluate import READOUTS
+        from pcfbench.methods.copilot4d.evaluate import check_readout
 
-        if self.readout not in READOUTS:
-            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS)}")
+        check_readout(self.readout)
 
 
 def sample_seed(sample_id: str, seed: int) -> int:
@@ -279,12 +278,11 @@ class Copilot4D(TrainedMethod):
         super().__init__(options)
         from pcfbench.methods.copilot4d.config import get_config
         from pcfbench.methods.copilot4d.diffusion import get_variant
+        from pcfbench.methods.copilot4d.evaluate import rendering_kwargs
         from pcfbench.methods.copilot4d.world_config import get_world_config
 
         self.tok_cfg = get_config(self.options.config)
         self.world_cfg = world_config_for(get_world_config(self.options.config), self.tok_cfg)
-        from pcfbench.methods.copilot4d.evaluate import rendering_kwargs
-
         self.variant = get_variant(self.variant_name)
         self.render = rendering_kwargs(self.options)
         self.world = None

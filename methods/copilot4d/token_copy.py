@@ -33,10 +33,9 @@ class TokenCopyOptions:
                                          "is reached) or expected (equation 4)")
 
     def __post_init__(self) -> None:
-        from pcfbench.methods.copilot4d.evaluate import READOUTS
+        from pcfbench.methods.copilot4d.evaluate import check_readout
 
-        if self.readout not in READOUTS:
-            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS)}")
+        check_readout(self.readout)
 
 
 class TokenCopy(TrainedMethod):
