@@ -25,9 +25,11 @@ GOLDEN_DEFAULT_HASHES = {
     "raycast-zbuffer": "ec2657268669",
     "raycast-voxel": "763a55d0fdf6",
     "raycast-freespace": "151fcdf81cab",
-    "copilot4d-token-copy": "16ac8cfeea92",  # new with the trained-method contract (issue 13)
-    "copilot4d": "52667c34e222",  # new with the world model (issue 14)
-    "copilot4d-maskgit": "52667c34e222",
+    # new with the trained-method contract (issue 13); moved on purpose when the rendering
+    # options noise and readout came in and the threshold default went 0.5 -> 0.02 (issue 14)
+    "copilot4d-token-copy": "399b687887eb",
+    "copilot4d": "0cf92097b60f",  # new with the world model (issue 14), moved with the same options
+    "copilot4d-maskgit": "0cf92097b60f",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {

@@ -44,7 +44,7 @@ def test_train_resume_report_tokenize_run(tmp_path, monkeypatch):
     r = runner.invoke(cli, ["tokenize", *tok, "--dataset", f"kitti={root}", "--split", "val", "--out", str(tmp_path / "t")])
     assert r.exit_code == 0, r.output
     t = np.load(tmp_path / "t" / "06.npz")
-    assert t["tokens"].shape == (24, 32, 32) and t["tokens"].max() < 512
+    assert t["tokens"].shape == (24, 64, 64) and t["tokens"].max() < 512
     r = runner.invoke(cli, ["run", "-m", "copilot4d-token-copy:steps=3", "--checkpoint", str(manifest), "-d",
                             f"kitti={root}", "-s", "kitti-1s", "--limit", "1", "-q", "--reports", str(reports)])
     assert r.exit_code == 0, r.output
