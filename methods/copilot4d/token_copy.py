@@ -52,7 +52,6 @@ class TokenCopy(TrainedMethod):
     def __init__(self, options: TokenCopyOptions | None = None) -> None:
         super().__init__(options)
         from pcfbench.methods.copilot4d.config import get_config
-
         from pcfbench.methods.copilot4d.evaluate import rendering_kwargs
 
         self.cfg = get_config(self.options.config)
