@@ -418,7 +418,7 @@ def test_token_copy_renders_the_t0_tokens_from_the_future_origin(toy_sweeps):
 
 
 def test_render_codes_chunking_and_candidate_cut_give_the_same_depths(toy_sweeps):
-    """Rays are grouped by their exit from the grid and each chunk's spatial-skipping
+    """The torch path: rays are grouped by their exit from the grid and each chunk's spatial-skipping
     candidates stop at its farthest exit: one ray per chunk (each cut at its own exit) gives
     the depths of one chunk holding every ray (cut at the farthest exit of all)."""
     from pcfbench.methods.copilot4d.evaluate import render_codes, tokenize_sweep
@@ -433,8 +433,8 @@ def test_render_codes_chunking_and_candidate_cut_give_the_same_depths(toy_sweeps
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     codes = tokenize_sweep(model, toy_sweeps[0])
     kw = dict(origin=np.array([1.0, 2.0, 0.0]), noise=False, threshold=0.5)
-    whole = render_codes(model, codes, dirs.astype(np.float32), chunk=10_000, **kw)
-    single = render_codes(model, codes, dirs.astype(np.float32), chunk=1, **kw)
+    whole = render_codes(model, codes, dirs.astype(np.float32), chunk=10_000, torch_path=True, **kw)
+    single = render_codes(model, codes, dirs.astype(np.float32), chunk=1, torch_path=True, **kw)
     assert np.all(np.isfinite(whole)) and np.ptp(whole) > 1.0
     np.testing.assert_allclose(single, whole, rtol=1e-5, atol=1e-5)
 
