@@ -12,6 +12,7 @@ import torch
 from pcfbench.roi import Box
 from pcfbench.methods.copilot4d.data import SweepSource, in_box, make_batch
 from pcfbench.methods.copilot4d.model import Tokenizer
+from pcfbench.methods.copilot4d.options import check_readout
 from pcfbench.methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
 from pcfbench.methods.copilot4d.train import autocast
 
@@ -36,22 +37,9 @@ def decode(model: Tokenizer, codes: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return nfg.float(), coarse
 
 
-#: how ``render_codes`` turns a ray's weights into a depth
-READOUTS = ("expected", "median")
-
-
-def check_readout(readout: str) -> None:
-    """One error for a ``readout`` option that ``render_codes`` does not know."""
-    from pcfbench.errors import PcfbenchError
-
-    if readout not in READOUTS:
-        raise PcfbenchError(f"readout={readout!r}: expected one of {', '.join(READOUTS)}")
-
-
 def rendering_kwargs(options) -> dict:
-    """``render_codes`` keywords from a Copilot4D method's options (``threshold``, ``noise``,
-    ``readout``, which the options check): how the three forecasting methods and the oracle
-    render token maps."""
+    """``render_codes`` keywords from a Copilot4D method's options (``options.RenderingOptions``):
+    how the three forecasting methods and the oracle render token maps."""
     return {"threshold": options.threshold, "noise": options.noise, "readout": options.readout}
 
 
@@ -91,8 +79,7 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     On the CPU the rays are marched by :func:`~.raymarch.march` (the same arithmetic fused per
     ray, several times faster); ``torch_path`` (and any other device) renders with the
     differentiable torch functions that training uses, in chunks of ``chunk`` rays."""
-    if readout not in READOUTS:
-        raise ValueError(f"readout={readout!r}; expected one of {', '.join(READOUTS)}")
+    check_readout(readout)
     cfg = model.cfg
     dev = next(model.parameters()).device
     nfg, coarse = decoded if decoded is not None else decode(model, codes)

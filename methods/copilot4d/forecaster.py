@@ -30,46 +30,37 @@ import csv
 import hashlib
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
+from pcfbench.methods.copilot4d.options import RenderingOptions
 from pcfbench.options import option
 from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
 
 TOKENIZER_METHOD = "copilot4d-token-copy"
 #: options that change only how a trained checkpoint forecasts, never its weights
-INFERENCE_OPTIONS = ("cfg_weight", "sampling_steps", "seed", "threshold", "noise", "readout")
+INFERENCE_OPTIONS = ("cfg_weight", "sampling_steps", "seed", *(f.name for f in fields(RenderingOptions)))
 CHECKPOINT_EVERY = 100
 LOG_EVERY = 10
 
 
 @dataclass(frozen=True)
-class WorldOptions:
+class WorldOptions(RenderingOptions):
     config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale) or paper (A.2.2 sizes)")
     cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
     seed: int = option(0, help="sampler seed, combined with the sample id (training uses seed 0)")
-    threshold: float = option(0.02, help="spatial skipping: coarse-voxel probability threshold when rendering "
-                                         "(the paper gives none)", gt=0, lt=1)
-    noise: bool = option(False, help="spatial skipping: Logistic noise on the coarse logits (figure 8)")
-    readout: str = option("median", help="a ray's depth from its weights: median (where half of the weight "
-                                         "is reached) or expected (equation 4)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)", min=0)
     tokenizer_steps: int = option(0, help="the copilot4d-token-copy checkpoint used: its steps option "
                                           "(0: its default)", min=0)
     strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames, one "
                                                    "stride drawn per window (kitti-1s uses 2, kitti-3s 6)", min=1)
     anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
-
-    def __post_init__(self) -> None:
-        from pcfbench.methods.copilot4d.evaluate import check_readout
-
-        check_readout(self.readout)
 
 
 def sample_seed(sample_id: str, seed: int) -> int:
@@ -370,7 +361,7 @@ class Copilot4D(TrainedMethod):
         """The complete checkpoint of this method with the same training options and the
         inference options at their defaults, trained on the same data (in the cache, else
         shipped), if any: training these options would give the same model."""
-        from dataclasses import fields, replace
+        from dataclasses import replace
 
         from pcfbench.method import MethodSpec, options_hash
         from pcfbench.training import find_checkpoint

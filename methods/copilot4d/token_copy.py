@@ -17,25 +17,16 @@ import numpy as np
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
+from pcfbench.methods.copilot4d.options import RenderingOptions
 from pcfbench.options import option
 from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
 
 
 @dataclass(frozen=True)
-class TokenCopyOptions:
+class TokenCopyOptions(RenderingOptions):
     config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale) or paper (A.2.1 sizes)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)")
     seed: int = option(0, help="training seed (initialisation, batches, rays)")
-    threshold: float = option(0.02, help="spatial skipping: coarse-voxel probability threshold at inference "
-                                         "(the paper gives none)", gt=0, lt=1)
-    noise: bool = option(False, help="spatial skipping: Logistic noise on the coarse logits (figure 8)")
-    readout: str = option("median", help="a ray's depth from its weights: median (where half of the weight "
-                                         "is reached) or expected (equation 4)")
-
-    def __post_init__(self) -> None:
-        from pcfbench.methods.copilot4d.evaluate import check_readout
-
-        check_readout(self.readout)
 
 
 class TokenCopy(TrainedMethod):
