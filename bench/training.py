@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.method import Method, MethodSpec, options_dict
+from pcfbench.method import Method, MethodSpec, options_dict, options_hash
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcfbench.plugins import Plugins
@@ -156,6 +156,31 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+def training_options(spec: MethodSpec) -> Any:
+    """``spec``'s options with its class's ``inference_options`` at their defaults: the
+    options its weights depend on."""
+    from dataclasses import MISSING, fields, replace
+
+    names = set(getattr(spec.cls, "inference_options", ()))
+    if not names:
+        return spec.options
+    known = {f.name: f for f in fields(spec.options)}
+    unknown = sorted(names - set(known))
+    if unknown:
+        raise PcfbenchError(f"method {spec.name!r}: inference_options names {', '.join(unknown)}, "
+                            f"which its options do not have")
+    defaults = {n: known[n].default if known[n].default is not MISSING else known[n].default_factory()
+                for n in names}
+    return replace(spec.options, **defaults)
+
+
+def checkpoint_options_hash(spec: MethodSpec) -> str:
+    """The options hash that names ``spec``'s checkpoints: that of :func:`training_options`
+    (``spec.options_hash`` when the method has no ``inference_options``)."""
+    opts = training_options(spec)
+    return spec.options_hash if opts == spec.options else options_hash(opts)
+
+
 def checkpoint_dir(spec: MethodSpec, train_on: TrainOn) -> Path:
     """``<cache>/checkpoints/<method>/v<version>/<options hash>/<dataset>.<split>.<data key>``."""
     return checkpoint_dir_base(spec) / train_on.key
@@ -233,7 +258,8 @@ class Checkpoint:
     def check_method(self, spec: MethodSpec) -> None:
         """Refuse a checkpoint of another method, version or option set than ``spec``."""
         m = self.manifest
-        want = {"method": spec.name, "method_version": str(spec.cls.version), "options_hash": spec.options_hash}
+        want = {"method": spec.name, "method_version": str(spec.cls.version),
+                "options_hash": checkpoint_options_hash(spec)}
         have = {"method": m.get("method"), "method_version": str(m.get("method_version")), "options_hash": m.get("options_hash")}
         if want != have:
             diff = ", ".join(f"{k} {have[k]!r} (wanted {want[k]!r})" for k in want if want[k] != have[k])
@@ -321,7 +347,8 @@ def shipped_dir(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> P
     not keyed by the data's fingerprint (file times differ on every machine): the shipped
     manifest holds the data's content sha256, checked by :func:`find_shipped`."""
     root = shipped_root(spec.cls)
-    return None if root is None else root / spec.name / f"v{spec.cls.version}" / spec.options_hash / f"{dataset}.{split}"
+    return (None if root is None else
+            root / spec.name / f"v{spec.cls.version}" / checkpoint_options_hash(spec) / f"{dataset}.{split}")
 
 
 def find_shipped(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
@@ -390,10 +417,11 @@ def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: s
 
 
 def checkpoint_dir_base(spec: MethodSpec) -> Path:
-    """``<cache>/checkpoints/<method>/v<version>/<options hash>``: the checkpoints of ``spec``."""
+    """``<cache>/checkpoints/<method>/v<version>/<options hash>``: the checkpoints of ``spec``
+    (the hash of its training options, :func:`checkpoint_options_hash`)."""
     from pcfbench.config import cache_dir
 
-    return cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / spec.options_hash
+    return cache_dir() / "checkpoints" / spec.name / f"v{spec.cls.version}" / checkpoint_options_hash(spec)
 
 
 def is_trained(cls: type) -> bool:
@@ -557,8 +585,8 @@ class TrainingRun:
             "format": FORMAT,
             "method": self.spec.name,
             "method_version": str(self.spec.cls.version),
-            "options": options_dict(self.spec.options),
-            "options_hash": self.spec.options_hash,
+            "options": options_dict(training_options(self.spec)),
+            "options_hash": checkpoint_options_hash(self.spec),
             "config": dict(config or {}),
             "train_on": self.train_on.to_meta(),
             "steps": int(step),
@@ -602,6 +630,11 @@ class TrainedMethod(Method):
     #: The folder of the checkpoints it ships (pcfbench train --ship); None: ``checkpoints/``
     #: beside the method's module, installed as package data.
     shipped_checkpoints: ClassVar[str | Path | None] = None
+    #: Options that change only how a checkpoint forecasts, never its weights (a sampler's
+    #: seed, a rendering threshold): left out of the checkpoint's identity
+    #: (:func:`checkpoint_options_hash`), so every value of them evaluates the one checkpoint
+    #: trained with the others. A result still records every option it ran with.
+    inference_options: ClassVar[tuple[str, ...]] = ()
 
     checkpoint: Checkpoint | None = None
 
@@ -637,6 +670,12 @@ def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_min
         if fresh:
             for old in [*out.glob("*.pt"), out / MANIFEST]:
                 old.unlink(missing_ok=True)
+        elif (out / MANIFEST).is_file():
+            ck = Checkpoint.open(out)
+            if ck.manifest.get("complete"):  # nothing left to train (inference options may differ)
+                ck.check_method(spec)
+                log(f"{spec.name}: {out} is complete ({ck.steps} steps); --fresh trains it again")
+                return ck
         device = "cuda" if _cuda() else "cpu"
         run = TrainingRun(spec, source.train_on, out, max_minutes=max_minutes, fresh=fresh, progress=progress,
                           device=device, log=log)

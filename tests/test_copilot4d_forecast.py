@@ -254,25 +254,31 @@ def test_checkpoint_refused_when_its_tokenizer_differs(micro, kitti):
     ck.manifest_path.write_text(json.dumps(manifest))
     with pytest.raises(CheckpointError, match="tokenizer weights are not the tokenizer it was trained with"):
         m.load(Checkpoint.open(ck.dir))
-    # resuming on the tokens of a retrained tokenizer is refused
+    # resuming (an incomplete checkpoint: a complete one is returned as it is) on the tokens of
+    # a retrained tokenizer is refused
     manifest["config"] = dict(manifest["config"], tokenizer_sha256="0" * 64)
+    manifest["complete"] = False
     ck.manifest_path.write_text(json.dumps(manifest))
     with pytest.raises(CheckpointError, match="trained on the tokens of tokenizer 000000000000.*--fresh"):
         _train(f"copilot4d-maskgit:{MICRO},steps=1", kitti)
 
 
 def test_inference_options_reuse_the_trained_weights(micro, kitti):
-    """copilot4d:cfg_weight=0 trains nothing new: the weights of the same training options
-    (which embed their tokenizer: the tokenizer's own checkpoint is not needed any more)."""
+    """copilot4d:cfg_weight=0 trains nothing new: its checkpoint is the one of the same
+    training options (which embeds its tokenizer: the tokenizer's own checkpoint is not needed
+    any more); a training option changed is another checkpoint."""
     import shutil
+
+    from pcfbench.training import find_checkpoint, open_training_data
 
     tok = _tokenizer(kitti)
     base = _train(f"copilot4d:{MICRO_TRAIN},steps=2", kitti)
     shutil.rmtree(tok.dir)
-    other = _train(f"copilot4d:{MICRO},steps=2,cfg_weight=0,seed=3", kitti)
-    assert other.dir != base.dir and other.manifest["config"]["weights_from"] == str(base.manifest_path)
-    a, b = base.load_weights(), other.load_weights()
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    other = _train(f"copilot4d:{MICRO},steps=2,cfg_weight=0,seed=3,readout=expected,threshold=0.5", kitti)
+    assert other.dir == base.dir and other.sha256 == base.sha256
+    assert other.manifest["options"]["cfg_weight"] == 2.0  # the training options, inference ones at defaults
+    spec = resolve_method(f"copilot4d:{MICRO},steps=3,cfg_weight=0")
+    assert find_checkpoint(spec, open_training_data(f"kitti={kitti}", progress=False).train_on) is None
 
 
 # --------------------------------------------------------------------------- through the harness

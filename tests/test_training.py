@@ -366,3 +366,50 @@ def test_default_run_includes_a_trained_method_only_with_its_checkpoint(env, mon
     assert "toy-trained is not trained on kitti:train yet (`pcfbench train toy-trained --dataset kitti`)" in capsys.readouterr().err
     _train(env)
     assert "toy-trained" in [m.name for m in _selected_methods(env.plugins, ())]
+
+
+@dataclass(frozen=True)
+class ToyInferenceOptions(ToyOptions):
+    offset: float = pcfbench.option(0.0, help="added to every forecast depth")
+
+
+class ToyWithInferenceOption(ToyTrained):
+    """The toy with an option that only inference reads."""
+
+    name = "toy-trained-offset"
+    Options = ToyInferenceOptions
+    inference_options = ("offset",)
+
+    def forecast(self, sample):
+        return pcfbench.Forecast.from_depths(sample, [np.full(len(q), self.w + self.options.offset)
+                                                      for q in sample.queries])
+
+
+def _spec(cls, **opts):
+    from pcfbench.method import MethodSpec, options_hash
+
+    o = cls.Options(**opts)
+    return MethodSpec(cls.name, {k: str(v) for k, v in opts.items()}, o, options_hash(o), cls)
+
+
+def test_inference_options_are_left_out_of_the_checkpoint_identity(env):
+    """A checkpoint trained with offset=0 is the checkpoint of offset=2 (the option changes no
+    weight), recorded with the training options; a training option changed is another one; an
+    inference option the options lack is one error."""
+    from pcfbench.training import checkpoint_options_hash, find_checkpoint
+
+    train_on = open_training_data(env.data, "train", env.plugins, False).train_on
+    base = train(_spec(ToyWithInferenceOption), env.data, plugins=env.plugins, progress=False, log=lambda *a: None)
+    shifted = _spec(ToyWithInferenceOption, offset=2.0)
+    assert shifted.options_hash != base.manifest["options_hash"] == checkpoint_options_hash(shifted)
+    assert find_checkpoint(shifted, train_on).dir == base.dir
+    again = train(shifted, env.data, plugins=env.plugins, progress=False, log=lambda *a: None)
+    assert again.dir == base.dir and again.sha256 == base.sha256
+    assert again.manifest["options"]["offset"] == 0.0
+    assert find_checkpoint(_spec(ToyWithInferenceOption, offset=2.0, lr=0.2), train_on) is None
+
+    class Broken(ToyWithInferenceOption):
+        inference_options = ("offest",)
+
+    with pytest.raises(PcfbenchError, match="inference_options names offest"):
+        checkpoint_options_hash(_spec(Broken))

@@ -42,8 +42,6 @@ from pcfbench.options import option
 from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
 
 TOKENIZER_METHOD = "copilot4d-token-copy"
-#: options that change only how a trained checkpoint forecasts, never its weights
-INFERENCE_OPTIONS = ("cfg_weight", "sampling_steps", "seed", *(f.name for f in fields(RenderingOptions)))
 CHECKPOINT_EVERY = 100
 LOG_EVERY = 10
 
@@ -264,6 +262,7 @@ class Copilot4D(TrainedMethod):
     Options = WorldOptions
     variant_name = "copilot4d"
     training_time = "about 45 min for the tiny configuration on a 2-core CPU (plus its tokenizer's training)"
+    inference_options = ("cfg_weight", "sampling_steps", "seed", *(f.name for f in fields(RenderingOptions)))
 
     def __init__(self, options: WorldOptions | None = None) -> None:
         super().__init__(options)
@@ -310,15 +309,6 @@ class Copilot4D(TrainedMethod):
 
         torch.set_num_threads(1)  # the most steps per CPU-second on this machine (as the tokenizer)
         resumed = progress.resume()
-        if resumed is None and (base := self.base_checkpoint(train_source)) is not None:
-            # the same training options, trained already (cache or shipped): the same model, which
-            # these options only sample differently; its weights embed their tokenizer
-            progress.log(f"{base.dir} holds the weights of the same training options (only "
-                         f"{', '.join(INFERENCE_OPTIONS)} may differ): taking them, step {base.steps}")
-            progress.start(base.steps, base.steps)
-            progress.save(base.steps, base.load_weights(), None, complete=True,
-                          config=dict(base.manifest["config"], weights_from=str(base.manifest_path)))
-            return
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
         tokenizer = load_tokenizer(tok_ck, torch.device("cpu"))
         if tokenizer.cfg != self.tok_cfg:
@@ -356,28 +346,6 @@ class Copilot4D(TrainedMethod):
         if out["history"]:
             csv_path, png = write_world_curve(out["history"], Path(out_dir))
             progress.log(f"training curve: {csv_path} and {png}")
-
-    def base_checkpoint(self, train_source: TrainSource) -> Checkpoint | None:
-        """The complete checkpoint of this method with the same training options and the
-        inference options at their defaults, trained on the same data (in the cache, else
-        shipped), if any: training these options would give the same model."""
-        from dataclasses import replace
-
-        from pcfbench.method import MethodSpec, options_hash
-        from pcfbench.training import find_checkpoint
-
-        defaults = {f.name: f.default for f in fields(WorldOptions) if f.name in INFERENCE_OPTIONS}
-        opts = replace(self.options, **defaults)
-        if opts == self.options:
-            return None
-        spec = MethodSpec(self.name, {}, opts, options_hash(opts), type(self))
-        try:
-            ck = find_checkpoint(spec, train_source.train_on)
-        except CheckpointError:
-            return None
-        if ck is None or not ck.manifest.get("complete"):
-            return None
-        return ck
 
     # -- loading ------------------------------------------------------------------------------
     def load(self, checkpoint: Checkpoint) -> None:

@@ -10,7 +10,7 @@ through the tokenizer. It isolates what a world model adds on top of the tokeniz
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ class TokenCopy(TrainedMethod):
     name = "copilot4d-token-copy"
     version = "3"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m); 3: tiny has 64 x 64 tokens (2.5 m)
     Options = TokenCopyOptions
+    inference_options = tuple(f.name for f in fields(RenderingOptions))
     # Measured on the 2-core development machine (tiny config, 1 thread, synthetic-town train,
     # another one-thread job on the second core): 1200 steps in 1641 s wall, 1600 s CPU
     # (1.33 CPU-s/step; version 2's 32 x 32 tokens took 0.46).
