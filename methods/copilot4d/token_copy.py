@@ -3,8 +3,9 @@
 ``fit`` trains the tokenizer (``train.train``, resumable through ``pcfbench train``).
 ``forecast`` tokenizes the last past sweep (t=0) in its sensor frame and renders those very
 tokens with the decoder from each future sensor origin along that future sweep's query rays
-(expected depth, equation 4, with spatial skipping): a world that does not change, seen
-through the tokenizer. It isolates what a world model adds on top of the tokenizer.
+(spatial skipping and the ``readout`` depth of ``options.RenderingOptions``): a world that
+does not change, seen through the tokenizer. The tiny checkpoint trained on synthetic-town
+ships in ``checkpoints/`` (docs/copilot4d.md). It isolates what a world model adds on top of the tokenizer.
 """
 
 from __future__ import annotations
