@@ -4,8 +4,9 @@
 ``forecast`` tokenizes the last past sweep (t=0) in its sensor frame and renders those very
 tokens with the decoder from each future sensor origin along that future sweep's query rays
 (spatial skipping and the ``readout`` depth of ``options.RenderingOptions``): a world that
-does not change, seen through the tokenizer. The tiny checkpoint trained on synthetic-town
-ships in ``checkpoints/`` (docs/copilot4d.md). It isolates what a world model adds on top of the tokenizer.
+does not change, seen through the tokenizer. It isolates what a world model adds on top of
+the tokenizer. The tiny checkpoint trained on synthetic-town ships in ``checkpoints/``
+(docs/copilot4d.md).
 """
 
 from __future__ import annotations
