@@ -114,8 +114,10 @@ def test_ctrl_c_keeps_the_finished_work_and_says_how_to_resume(tmp_path):
     cmd = [PCFBENCH, "run", "-d", f"kitti={root}", "-s", "kitti-1s", "-m", "copy-last", "-m", "raycast-voxel:voxel=0.2",
            "--store", str(store), "--no-report", "--jobs", "1"]
     env = {**os.environ, "PCFBENCH_CHUNK_SAMPLES": "1", "PCFBENCH_NO_PROGRESS": "1"}
+    # SIGINT at its default disposition, as under a terminal: a test suite started in the
+    # background (`pytest &`) inherits it ignored, and Python then never raises KeyboardInterrupt
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     first = proc.stdout.readline()  # cell 1 done
     assert first.startswith("cell 1/2: copy-last"), first
     # Into cell 2: interrupt as soon as its first sample's chunk lands (a fixed sleep raced
