@@ -92,10 +92,9 @@ def _march(origin, dirs, lo, hi, mask, mask_cell, use_mask, nfg, nfg_cell, w1, b
                     total += step
         if total > 0:
             c = 0
-            cum = f32(0.0)  # cdf up to and including candidate c
             while not cand_occ[c]:
                 c += 1
-            cum = step
+            cum = step  # cdf up to and including candidate c
             for s in range(n):
                 target = u[s] * total
                 while cum < target and c < nc - 1:
@@ -160,13 +159,15 @@ def _march(origin, dirs, lo, hi, mask, mask_cell, use_mask, nfg, nfg_cell, w1, b
                 bound = trans * f32(1.001) + acc * f32(1e-5)
                 lo_half = f32(0.5) * acc
                 hi_half = f32(0.5) * (acc + bound)
+                known = False
                 for j in range(s + 1):
                     if cdf[j] >= lo_half:
-                        if cdf[j] >= hi_half:
-                            last = s
+                        known = cdf[j] >= hi_half
                         break
-                if last == s:
-                    stopped[0] += 1
+                if known:
+                    last = s
+                    if s < n - 1:  # samples skipped: the ray stopped early
+                        stopped[0] += 1
                     break
         if readout == 1:
             if acc > 0:
