@@ -395,13 +395,27 @@ def _with_defaults(g: pd.DataFrame, method: str, option_cols: list[str], plugins
         cls = (plugins or get_plugins()).methods.get(method)
         defaults = {f.name: f.default for f in describe_options(cls.Options, f"method {method}")}
     except (PcfbenchError, AttributeError):
-        return g
+        defaults = {}
     g = g.copy()
     for col in option_cols:
         name = col.removeprefix("option.")
         if name in defaults and g[col].notna().any():
             g[col] = g[col].astype(object).where(g[col].notna(), defaults[name])
+        # one value, one point: a cell that named cfg_weight=2.0 records "2.0", and the cell
+        # of a run that left it at its default gets the float 2.0 filled in above
+        g[col] = g[col].map(_canonical, na_action="ignore")
     return g
+
+
+def _canonical(value):
+    """An option value as compared and plotted: a number (given as one or as its text) as a
+    float, anything else as its text."""
+    if isinstance(value, bool):
+        return str(value)
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return str(value)
 
 
 def _numeric(values: pd.Series) -> np.ndarray | None:

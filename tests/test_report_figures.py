@@ -325,5 +325,18 @@ def test_ablation_fills_in_the_defaults_of_a_cell_run_without_options():
     option value is the method's default, so the figure still has its point."""
     g = pd.DataFrame({"method": ["shifted", "shifted"], "option.dx": [np.nan, "0.5"]})
     filled = figures._with_defaults(g, "shifted", ["option.dx"], _plugins())
-    assert list(filled["option.dx"]) == [0.0, "0.5"]
+    assert list(filled["option.dx"]) == [0.0, 0.5]
     np.testing.assert_array_equal(figures._numeric(filled["option.dx"]), [0.0, 0.5])
+
+
+def test_ablation_draws_no_figure_for_an_option_with_one_value(made, tmp_path):
+    """A cell that named the default ("0.0", as recorded) and one run without options hold
+    the same value: no 'ablation' of a single point (it happened for copilot4d's cfg_weight)."""
+    store = made[0]
+    lb = collect(store)
+    shifted = lb.table[lb.table["method"] == "shifted"]
+    lb.table = shifted.assign(**{"option.dx": ["0.0", np.nan][: len(shifted)]})
+    t = tables.build(lb, tables.get_preset("roi", tables.load_presets()))
+    assert figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins()) == {}
+    g = pd.DataFrame({"method": ["shifted"] * 3, "option.dx": ["0.0", np.nan, "abc"]})
+    assert list(figures._with_defaults(g, "shifted", ["option.dx"], _plugins())["option.dx"]) == [0.0, 0.0, "abc"]
