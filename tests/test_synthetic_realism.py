@@ -237,7 +237,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == 2 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 3 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -301,8 +301,46 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain("synthetic-town-realistic", sweeps=2, azimuths=120), tmp_path / "r", progress=False,
                     splits=("test",))
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
-    assert json.loads((tmp_path / "r" / "synthetic.json").read_text())["physics"] == 2
+    assert json.loads((tmp_path / "r" / "synthetic.json").read_text())["physics"] == 3
     assert "physics" not in json.loads((tmp_path / "o" / "synthetic.json").read_text())
+
+
+def test_poles_and_trunks_stay_off_every_carriageway_from_physics_3(monkeypatch):
+    """Placed along one road, a pole or tree could stand inside a crossing road near the
+    junction (a drive of test sequence 05 passed a trunk 0.9 m from the sensor). Physics 3
+    leaves those out; physics 1 keeps them (its bytes are frozen), which is what makes this
+    test able to fail."""
+    import pcfbench.datasets.synthetic.world as W
+
+    placed = []
+    real_cylinder = W.cylinder
+
+    def cylinder(cx, cy, z0, radius, height):
+        placed.append((cx, cy, radius))
+        return real_cylinder(cx, cy, z0, radius, height)
+
+    monkeypatch.setattr(W, "cylinder", cylinder)
+
+    def intruders(clearance):
+        placed.clear()
+        rng = np.random.default_rng(11)
+        graph = W.make_road_graph(W.TOWN, rng)
+        ground = W.Ground(W.TOWN, graph, rng)
+        soup = W.build_static(W.TOWN, graph, ground, rng, np.array([-150.0, -150.0]), np.array([150.0, 150.0]),
+                              clearance=clearance)
+        xy = np.array([(x, y) for x, y, _ in placed])
+        gap = ground.road_distance(xy[:, 0], xy[:, 1]) - np.array([r for _, _, r in placed]) - ground.half_road
+        return len(placed), gap, soup
+
+    c = R.REALISM.clearance_m
+    n1, gap1, soup1 = intruders(None)
+    n3, gap3, soup3 = intruders(c)
+    assert (gap1 < 0).sum() > 0  # physics 1: some stand in a carriageway
+    assert gap3.min() >= c - 1e-9
+    assert n3 == n1 - (gap1 < c).sum()  # exactly those nearer than the clearance went
+    # the rest of the scene is drawn as before: same buildings and parked cars
+    for cls in (W.STRUCTURE, W.PARKED, W.GROUND):
+        assert all(np.array_equal(a, b) for a, b in zip(soup1.merged(cls), soup3.merged(cls)))
 
 
 GOLDEN_TINY_V1 = "b50ddcca7dfc9329fbdb164954da2bc09560e65e70cb02aac482454a5ee0ead2"

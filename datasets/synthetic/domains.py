@@ -32,13 +32,13 @@ class Domain:
     splits: dict
     settings: tuple[str, ...]
     description: str
-    #: None: world physics version 1 (clean surfaces, instant sweeps); else version 2
-    #: (``pcfbench.datasets.synthetic.realism``)
+    #: None: world physics version 1 (clean surfaces, instant sweeps); else the version its
+    #: knobs name (``pcfbench.datasets.synthetic.realism``)
     realism: Realism | None = None
 
     @property
     def physics(self) -> int:
-        return 1 if self.realism is None else 2
+        return 1 if self.realism is None else self.realism.version
 
     def sequences(self) -> list[tuple[str, str, int]]:
         """(split, sequence name, sweeps) of every sequence, in generation order."""
@@ -82,7 +82,7 @@ DOMAINS: dict[str, Domain] = {
     )
 }
 
-# Physics version 2 of the town: the same towns, traffic, splits and seed, seen by a sensor
+# Physics version 3 of the town (realism.REALISM.version): the same towns, traffic, splits and seed, seen by a sensor
 # and surfaces like real ones (docs/realism.md). Not the default until the learned methods'
 # checkpoints are retrained on it: flipping it is making this the embedded dataset.
 _town = DOMAINS["synthetic-town"]
@@ -90,7 +90,7 @@ DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     _town, name="synthetic-town-realistic",
     sensor=dataclasses.replace(HDL64, name="hdl64-realistic", azimuth_steps=2048),
     realism=REALISM,
-    description="synthetic-town with world physics v2: 2048 columns (~0.18 deg, ~110k points), beam "
+    description="synthetic-town with world physics v3: 2048 columns (~0.18 deg, ~110k points), beam "
                 "calibration and jitter, rough surfaces, vegetation volumes, mixed pixels, spinning-sensor "
                 "motion distortion, reflectance-dependent ray drop",
 )

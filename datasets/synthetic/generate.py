@@ -87,7 +87,8 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     margin = domain.sensor.max_range_m + 10.0
     lo = T[:, :2, 3].min(0) - margin
     hi = T[:, :2, 3].max(0) + margin
-    soup = build_static(style, graph, ground, rng_static, lo, hi)
+    soup = build_static(style, graph, ground, rng_static, lo, hi,
+                        clearance=None if domain.realism is None else domain.realism.clearance_m)
     if domain.realism is not None:  # its own stream: physics 1 draws stay as they were
         from pcfbench.datasets.synthetic.realism import add_shrubs
 
@@ -250,7 +251,8 @@ MANAGED = ".pcfbench-synthetic-cache"
 def cache_root(domain: Domain) -> Path:
     from pcfbench.config import cache_dir
 
-    return cache_dir() / "synthetic" / f"{domain.name}-v{GENERATOR_VERSION}"
+    physics = "" if domain.physics == 1 else f"-physics{domain.physics}"  # physics 1 folders stay put
+    return cache_dir() / "synthetic" / f"{domain.name}-v{GENERATOR_VERSION}{physics}"
 
 
 def split_complete(root: Path, split: str) -> bool:

@@ -1,4 +1,4 @@
-"""World physics version 2 ("realism"): a sensor and surfaces closer to real LiDAR.
+"""World physics version 3 ("realism"): a sensor and surfaces closer to real LiDAR.
 
 Version 1 (every domain's default) casts clean rays at ideal surfaces: planes stay planes,
 each sweep is an instant, returns drop only at grazing angles and long range. The realism
@@ -30,6 +30,11 @@ statistics of the world and the sensor, none of it tied to a scene:
   where ``r50`` grows with the surface's reflectance and incidence (dark asphalt at grazing
   incidence fades first); car bodies add a specular drop.
 
+Version 3 keeps street furniture off the road: a pole or tree placed along one road could
+stand inside a crossing road's carriageway near the junction (one trunk 0.9 m from a drive
+of test sequence 05), which version 1 keeps (its bytes are frozen) and 3 leaves out
+(``clearance_m``).
+
 Generation stays deterministic: the noise fields are functions of position, the random
 draws come from the sequence's sensor generator.
 """
@@ -47,13 +52,10 @@ from pcfbench.datasets.synthetic.world import (
     EGO, GROUND, PARKED, POLE, STRUCTURE, VEGETATION, VEHICLE, Agent, _place, merge,
 )
 
-#: the physics version a realism domain records in its manifest
-PHYSICS_VERSION = 2
-
 
 @dataclass(frozen=True)
 class Realism:
-    """The knobs of physics version 2 (one set for every scene of a domain)."""
+    """The knobs of physics version 2 and later (one set for every scene of a domain)."""
 
     #: the sensor's intrinsic elevation error, every beam alike: KITTI's HDL-64E scans need a
     #: 0.22 deg correction of their vertical angles (Deschaud, IMLS-SLAM, ICRA 2018)
@@ -82,6 +84,12 @@ class Realism:
     #: localisation error of the stored poses (estimates, as SLAM poses are): a random walk
     #: per sweep, 1-sigma steps in translation (m, per axis) and rotation (deg, per axis)
     pose_walk: tuple = (0.004, 0.01)
+    #: poles and tree trunks stand at least this far outside every carriageway (m): placed
+    #: along one road, some stood in a crossing road near its junction, and a drive passed a
+    #: trunk 0.9 m from the sensor (physics 3)
+    clearance_m: float = 0.3
+    #: the physics version these knobs make (written in the manifest, part of the cache name)
+    version: int = 3
 
 
 REALISM = Realism()
@@ -222,7 +230,7 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, at: np.ndarray) -> n
 def cast_sweep_realistic(sensor: LidarConfig, static, agents: list[Agent], ground, t: float,
                          column_poses: np.ndarray, rng: np.random.Generator, calibration,
                          realism: Realism = REALISM, agent_radius: float = 130.0) -> SweepResult:
-    """One sweep at time ``t`` with physics version 2.
+    """One sweep at time ``t`` with physics version 2 or later.
 
     ``column_poses``: (azimuth_steps, 4, 4) sensor poses at each column's firing time (all
     the same without motion distortion). Points are returned in the sensor frame of each

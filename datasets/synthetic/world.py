@@ -381,8 +381,14 @@ class Ground:
 
 
 def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.random.Generator,
-                 lo: np.ndarray, hi: np.ndarray) -> MeshSoup:
-    """Ground, buildings, walls and fences, poles and signs, trees and parked vehicles in [lo, hi]."""
+                 lo: np.ndarray, hi: np.ndarray, clearance: float | None = None) -> MeshSoup:
+    """Ground, buildings, walls and fences, poles and signs, trees and parked vehicles in [lo, hi].
+
+    Poles and trees are placed along each road; near a junction that can put one inside the
+    crossing road's carriageway. With ``clearance`` (m; world physics 3 and later) a pole or
+    trunk whose footprint comes nearer than that to any carriageway is left out, after its
+    random draws, so that everything else stays as it was; ``None`` keeps physics 1 as it is.
+    """
     soup = MeshSoup()
     soup.add(GROUND, *ground.mesh(lo, hi))
     half = ground.half_road
@@ -390,6 +396,9 @@ def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.ran
 
     def inside(x, y, margin=0.0):
         return lo[0] - margin <= x <= hi[0] + margin and lo[1] - margin <= y <= hi[1] + margin
+
+    def off_the_road(p, radius):
+        return clearance is None or float(ground.road_distance(np.array(p[0]), np.array(p[1]))) - radius >= half + clearance
 
     occupied: list[tuple[float, float, float]] = []  # (x, y, radius) of placed footprints
 
@@ -441,13 +450,15 @@ def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.ran
                 p = line[i] + normal[i] * (half + 0.6)
                 if inside(*p):
                     z = float(ground.height(p[0], p[1]))
-                    soup.add(POLE, *cylinder(p[0], p[1], z, 0.12, rng.uniform(6.0, 8.5)))
+                    height = rng.uniform(6.0, 8.5)
+                    if off_the_road(p, 0.12):
+                        soup.add(POLE, *cylinder(p[0], p[1], z, 0.12, height))
                 s += style.pole_spacing_m * rng.uniform(0.8, 1.2)
             for end in (8.0, total - 8.0):  # a sign near each intersection
                 if rng.random() < 0.5:
                     i = int(end / 0.5)
                     p = line[i] + normal[i] * (half + 0.4)
-                    if inside(*p):
+                    if inside(*p) and off_the_road(p, 0.04):
                         z = float(ground.height(p[0], p[1]))
                         soup.add(POLE, *cylinder(p[0], p[1], z, 0.04, 2.6))
                         yaw = np.arctan2(tangent[i, 1], tangent[i, 0]) + np.pi / 2
@@ -462,8 +473,11 @@ def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.ran
                     z = float(ground.height(p[0], p[1]))
                     trunk = rng.uniform(1.8, 3.2)
                     crown = rng.uniform(1.3, 3.0)
-                    soup.add(VEGETATION, *cylinder(p[0], p[1], z, rng.uniform(0.12, 0.3), trunk + crown * 0.5))
-                    soup.add(VEGETATION, *ellipsoid(p[0], p[1], z + trunk + crown * 0.8, crown, crown, crown * rng.uniform(0.8, 1.3)))
+                    radius = rng.uniform(0.12, 0.3)
+                    squash = rng.uniform(0.8, 1.3)
+                    if off_the_road(p, radius):
+                        soup.add(VEGETATION, *cylinder(p[0], p[1], z, radius, trunk + crown * 0.5))
+                        soup.add(VEGETATION, *ellipsoid(p[0], p[1], z + trunk + crown * 0.8, crown, crown, crown * squash))
                 s += style.tree_spacing_m * rng.uniform(0.6, 1.4)
             # Parked vehicles in the parking strip, away from intersections.
             s = 14.0
