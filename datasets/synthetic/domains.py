@@ -82,9 +82,10 @@ DOMAINS: dict[str, Domain] = {
     )
 }
 
-# Physics version 3 of the town (realism.REALISM.version): the same towns, traffic, splits and seed, seen by a sensor
-# and surfaces like real ones (docs/realism.md). Not the default until the learned methods'
-# checkpoints are retrained on it: flipping it is making this the embedded dataset.
+# Physics version 3 of the town (realism.REALISM.version): the same towns, traffic, splits
+# and seed, seen by a sensor and surfaces like real ones (docs/realism.md). Not the default
+# until the learned methods' checkpoints are retrained on it: flipping it is making this the
+# embedded dataset.
 _town = DOMAINS["synthetic-town"]
 DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     _town, name="synthetic-town-realistic",
