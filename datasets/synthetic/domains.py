@@ -92,8 +92,9 @@ DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     sensor=dataclasses.replace(HDL64, name="hdl64-realistic", azimuth_steps=2048),
     realism=REALISM,
     description="synthetic-town with world physics v3: 2048 columns (~0.18 deg, ~110k points), beam "
-                "calibration and jitter, rough surfaces, vegetation volumes, mixed pixels, spinning-sensor "
-                "motion distortion, reflectance-dependent ray drop",
+                "calibration and jitter, rough surfaces, vegetation volumes, mixed pixels, reflectance-dependent "
+                "ray drop, street furniture off the road (motion distortion available, off: KITTI's scans are "
+                "de-skewed)",
 )
 
 
