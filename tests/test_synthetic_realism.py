@@ -1,5 +1,5 @@
 """The realism report's statistics (hand-computed cases), its command on tiny inputs, and
-world physics version 2 (deterministic, opt-in, physics 1 untouched)."""
+world physics versions 2-4 (deterministic, opt-in, physics 1 untouched)."""
 
 from __future__ import annotations
 
@@ -237,7 +237,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 3 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 4 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -301,8 +301,10 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain("synthetic-town-realistic", sweeps=2, azimuths=120), tmp_path / "r", progress=False,
                     splits=("test",))
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
-    assert json.loads((tmp_path / "r" / "synthetic.json").read_text())["physics"] == 3
-    assert "physics" not in json.loads((tmp_path / "o" / "synthetic.json").read_text())
+    realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
+    one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
+    assert realistic["physics"] == 4 and "physics" not in one
+    assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
 def test_poles_and_trunks_stay_off_every_carriageway_from_physics_3(monkeypatch):
@@ -344,3 +346,39 @@ def test_poles_and_trunks_stay_off_every_carriageway_from_physics_3(monkeypatch)
 
 
 GOLDEN_TINY_V1 = "b50ddcca7dfc9329fbdb164954da2bc09560e65e70cb02aac482454a5ee0ead2"
+
+
+def test_trunks_are_solid_from_physics_4_and_crowns_return_from_inside():
+    """A ray at a trunk returns from its bark (physics 4); the same cylinder as VEGETATION (what
+    trunks were up to physics 3) returns from inside it, by the crown's exponential depth."""
+    from pcfbench.datasets.synthetic.lidar import StaticScene
+    from pcfbench.datasets.synthetic.world import STRUCTURE, TRUNK, VEGETATION, MeshSoup, box, cylinder
+
+    sensor = dataclasses.replace(get_domain("synthetic-town-realistic").sensor, azimuth_steps=720, min_range_m=0.5)
+    quiet = dataclasses.replace(R.REALISM, beam_bias_deg=0.0, jitter_deg=0.0, range_bias_m=0.0, range_noise_m=0.0,
+                                roughness=(), mixed_prob=0.0, specular_drop=0.0, base_drop=0.0, r50_m=1e6,
+                                elevation_error_deg=0.0)
+
+    class Flat:
+        def undulation(self, x, y):
+            return np.zeros_like(np.asarray(x, float))
+
+    def sweep(cls, realism=quiet):
+        soup = MeshSoup()
+        soup.add(STRUCTURE, *box(0.0, 0.0, -10.0, 40.0, 40.0, 30.0, 0.0))  # a room around the sensor
+        soup.add(cls, *cylinder(5.0, 0.0, -3.0, 1.0, 6.0))  # a 1 m trunk 4 m ahead (its near face)
+        tau = R.column_times(sensor, realism)
+        cal = (np.zeros(sensor.beams), np.zeros(sensor.beams))
+        res = R.cast_sweep_realistic(sensor, StaticScene(soup), [], Flat(), 0.0, np.tile(np.eye(4), (len(tau), 1, 1)),
+                                     np.random.default_rng(0), cal, realism)
+        return res.points[res.labels == cls].astype(np.float64), res.labels
+
+    bark, labels = sweep(TRUNK)
+    assert len(bark) > 100 and not (labels == VEGETATION).any()
+    # the bark is where the mesh is: as a crown with no depth would return
+    surface, _ = sweep(VEGETATION, dataclasses.replace(quiet, crown_depth_m=0.0))
+    assert np.allclose(bark, surface, atol=1e-5)
+    leaves, _ = sweep(VEGETATION)
+    assert len(leaves) == len(bark)
+    depth = np.linalg.norm(leaves, axis=1) - np.linalg.norm(surface, axis=1)  # along each ray, > 0: inside
+    assert np.all(depth >= 0) and 0.5 * quiet.crown_depth_m < depth.mean() < 2 * quiet.crown_depth_m

@@ -82,7 +82,7 @@ DOMAINS: dict[str, Domain] = {
     )
 }
 
-# Physics version 3 of the town (realism.REALISM.version): the same towns, traffic, splits
+# Physics version 4 of the town (realism.REALISM.version): the same towns, traffic, splits
 # and seed, seen by a sensor and surfaces like real ones (docs/realism.md). Not the default
 # until the learned methods' checkpoints are retrained on it: flipping it is making this the
 # embedded dataset.
@@ -91,10 +91,10 @@ DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     _town, name="synthetic-town-realistic",
     sensor=dataclasses.replace(HDL64, name="hdl64-realistic", azimuth_steps=2048),
     realism=REALISM,
-    description="synthetic-town with world physics v3: 2048 columns (~0.18 deg, ~110k points), beam "
-                "calibration and jitter, rough surfaces, vegetation volumes, mixed pixels, reflectance-dependent "
-                "ray drop, street furniture off the road (motion distortion available, off: KITTI's scans are "
-                "de-skewed)",
+    description="synthetic-town with world physics v4: 2048 columns (~0.18 deg, ~110k points), beam "
+                "calibration and jitter, rough surfaces, vegetation volumes with solid trunks, mixed pixels, "
+                "reflectance-dependent ray drop, street furniture off the road (motion distortion available, off: "
+                "KITTI's scans are de-skewed)",
 )
 
 

@@ -17,7 +17,7 @@ from pcfbench.datasets.synthetic.domains import get_domain
 from pcfbench.datasets.synthetic.generate import simulate_sequence
 from pcfbench.datasets.synthetic.world import CLASS_NAMES
 
-COLOURS = ["#b0b0b0", "#4c72b0", "#000000", "#55a868", "#8172b2", "#c44e52", "#dd8452", "#e377c2", "#7f7f7f"]
+COLOURS = ["#b0b0b0", "#4c72b0", "#000000", "#55a868", "#8172b2", "#c44e52", "#dd8452", "#e377c2", "#7f7f7f", "#8c564b"]
 
 
 def render(out: Path, town_seq: str = "05", suburb_seq: str = "05") -> Path:

@@ -23,11 +23,17 @@ from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.datasets.synthetic.domains import GENERATOR_VERSION, Domain, get_domain
 from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, StaticScene, cast_sweep
 from pcfbench.datasets.synthetic.world import (
-    CLASS_NAMES, Ground, build_static, make_agents, make_road_graph, make_route, speed_profile,
+    CLASS_NAMES, TRUNK, VEGETATION, Ground, build_static, make_agents, make_road_graph, make_route, speed_profile,
 )
 
 MANIFEST = "synthetic.json"
 COMPLETE = ".complete"
+
+
+def trunk_class(domain: Domain) -> int:
+    """The class of tree trunks: TRUNK where the domain's physics makes them solid (4 and
+    later), else VEGETATION (physics 1's bytes and manifests stay as they were)."""
+    return TRUNK if domain.realism is not None and domain.realism.solid_trunks else VEGETATION
 
 
 @dataclass
@@ -88,7 +94,8 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     lo = T[:, :2, 3].min(0) - margin
     hi = T[:, :2, 3].max(0) + margin
     soup = build_static(style, graph, ground, rng_static, lo, hi,
-                        clearance=None if domain.realism is None else domain.realism.clearance_m)
+                        clearance=None if domain.realism is None else domain.realism.clearance_m,
+                        trunk_class=trunk_class(domain))
     if domain.realism is not None:  # its own stream: physics 1 draws stay as they were
         from pcfbench.datasets.synthetic.realism import add_shrubs
 
@@ -216,7 +223,7 @@ def generate_domain(domain: Domain | str, out: str | Path, layout: str = "kitti"
         "domain": domain.name, "generator_version": GENERATOR_VERSION, "seed": domain.seed, "layout": layout,
         "sensor": domain.sensor.name, "beams": domain.sensor.beams, "rate_hz": domain.rate_hz,
         "splits": {sp: [n for s2, n, _ in todo if s2 == sp] for sp in domain.splits},
-        "classes": list(CLASS_NAMES),
+        "classes": list(CLASS_NAMES if trunk_class(domain) == TRUNK else CLASS_NAMES[:TRUNK]),
         "ego_shape": {"x_min": EGO_SHAPE.x_min, "x_max": EGO_SHAPE.x_max, "half_width": EGO_SHAPE.half_width},
         "sequences": {},
     }

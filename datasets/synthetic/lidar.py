@@ -17,8 +17,9 @@ import open3d as o3d
 from pcfbench.datasets.synthetic.sensor import LidarConfig
 from pcfbench.datasets.synthetic.world import EGO, STATIC_CLASSES, Agent, MeshSoup, merge, _place
 
-# Reflectance-like intensity per class (ground, structure, pole, vegetation, parked, vehicle, cyclist, pedestrian, ego).
-ALBEDO = np.array([0.25, 0.45, 0.6, 0.3, 0.7, 0.7, 0.5, 0.35, 0.5], np.float32)
+# Reflectance-like intensity per class (ground, structure, pole, vegetation, parked, vehicle, cyclist, pedestrian, ego,
+# trunk: bark, as dark as leaves).
+ALBEDO = np.array([0.25, 0.45, 0.6, 0.3, 0.7, 0.7, 0.5, 0.35, 0.5, 0.3], np.float32)
 
 
 def _tensor_mesh(V: np.ndarray, T: np.ndarray):

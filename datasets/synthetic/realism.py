@@ -1,4 +1,4 @@
-"""World physics version 3 ("realism"): a sensor and surfaces closer to real LiDAR.
+"""World physics versions 2-4 ("realism"): a sensor and surfaces closer to real LiDAR.
 
 Version 1 (every domain's default) casts clean rays at ideal surfaces: planes stay planes,
 each sweep is an instant, returns drop only at grazing angles and long range. The realism
@@ -35,6 +35,11 @@ stand inside a crossing road's carriageway near the junction (one trunk 0.9 m fr
 of test sequence 05), which version 1 keeps (its bytes are frozen) and 3 leaves out
 (``clearance_m``).
 
+Version 4 makes tree trunks solid: up to version 3 they were VEGETATION like the crowns, so
+a ray at a trunk returned from up to a metre inside it (the crown's exponential depth) and
+its points smeared behind a 0.12-0.3 m wide trunk. They are now their own class, TRUNK
+(SemanticKITTI's "trunk"), a surface with the roughness of bark (``solid_trunks``).
+
 Generation stays deterministic: the noise fields are functions of position, the random
 draws come from the sequence's sensor generator.
 """
@@ -49,7 +54,7 @@ import open3d as o3d
 from pcfbench.datasets.synthetic.lidar import ALBEDO, SweepResult, _rotate, _tensor_mesh, ego_hits
 from pcfbench.datasets.synthetic.sensor import LidarConfig
 from pcfbench.datasets.synthetic.world import (
-    EGO, GROUND, PARKED, POLE, STRUCTURE, VEGETATION, VEHICLE, Agent, _place, merge,
+    EGO, GROUND, PARKED, POLE, STRUCTURE, TRUNK, VEGETATION, VEHICLE, Agent, _place, merge,
 )
 
 
@@ -67,7 +72,7 @@ class Realism:
     #: (class, amplitude m, wavelength m) of the surface displacement, two octaves; the
     #: ground's is the carriageway's (asphalt), ``verge_roughness`` the ground's off the road
     roughness: tuple = ((GROUND, 0.015, 0.4), (STRUCTURE, 0.02, 0.5), (POLE, 0.005, 0.3),
-                        (VEGETATION, 0.10, 0.4), (PARKED, 0.01, 0.5))
+                        (VEGETATION, 0.10, 0.4), (PARKED, 0.01, 0.5), (TRUNK, 0.015, 0.2))
     verge_roughness: tuple = (0.06, 0.3)  # grass, soil and planted strips beyond the sidewalk
     #: shrubs: hedges along the yards and bushes, (hedges per 100 m of frontage, bushes per 100 m)
     shrubs_per_100m: tuple = (4.0, 6.0)
@@ -88,8 +93,11 @@ class Realism:
     #: along one road, some stood in a crossing road near its junction, and a drive passed a
     #: trunk 0.9 m from the sensor (physics 3)
     clearance_m: float = 0.3
+    #: tree trunks are solid wood (class TRUNK: bark roughness, no return from inside) instead
+    #: of VEGETATION, whose returns come from inside the volume as a crown's do (physics 4)
+    solid_trunks: bool = True
     #: the physics version these knobs make (written in the manifest, part of the cache name)
-    version: int = 3
+    version: int = 4
 
 
 REALISM = Realism()

@@ -19,10 +19,13 @@ from scipy.spatial import cKDTree
 ROUTE_STEP = 0.25  # metres between route samples
 
 # Semantic classes of every generated point (stored as SemanticKITTI-style .label files).
-GROUND, STRUCTURE, POLE, VEGETATION, PARKED, VEHICLE, CYCLIST, PEDESTRIAN, EGO = range(9)
-CLASS_NAMES = ("ground", "structure", "pole", "vegetation", "parked-vehicle", "vehicle", "cyclist", "pedestrian", "ego")
+# TRUNK (SemanticKITTI's "trunk", solid wood under the leaves) exists from world physics 4;
+# earlier physics label tree trunks VEGETATION, as physics 1's frozen bytes do.
+GROUND, STRUCTURE, POLE, VEGETATION, PARKED, VEHICLE, CYCLIST, PEDESTRIAN, EGO, TRUNK = range(10)
+CLASS_NAMES = ("ground", "structure", "pole", "vegetation", "parked-vehicle", "vehicle", "cyclist", "pedestrian", "ego",
+               "trunk")
 MOVING_CLASSES = (VEHICLE, CYCLIST, PEDESTRIAN)
-STATIC_CLASSES = (GROUND, STRUCTURE, POLE, VEGETATION, PARKED)
+STATIC_CLASSES = (GROUND, STRUCTURE, POLE, VEGETATION, PARKED, TRUNK)
 
 
 @dataclass(frozen=True)
@@ -381,13 +384,16 @@ class Ground:
 
 
 def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.random.Generator,
-                 lo: np.ndarray, hi: np.ndarray, clearance: float | None = None) -> MeshSoup:
+                 lo: np.ndarray, hi: np.ndarray, clearance: float | None = None,
+                 trunk_class: int = VEGETATION) -> MeshSoup:
     """Ground, buildings, walls and fences, poles and signs, trees and parked vehicles in [lo, hi].
 
     Poles and trees are placed along each road; near a junction that can put one inside the
     crossing road's carriageway. With ``clearance`` (m; world physics 3 and later) a pole or
     trunk whose footprint comes nearer than that to any carriageway is left out, after its
     random draws, so that everything else stays as it was; ``None`` keeps physics 1 as it is.
+    Tree trunks take ``trunk_class``: VEGETATION up to physics 3 (so a realistic sensor saw
+    into them as into leaves), TRUNK from physics 4.
     """
     soup = MeshSoup()
     soup.add(GROUND, *ground.mesh(lo, hi))
@@ -476,7 +482,7 @@ def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.ran
                     radius = rng.uniform(0.12, 0.3)
                     squash = rng.uniform(0.8, 1.3)
                     if off_the_road(p, radius):
-                        soup.add(VEGETATION, *cylinder(p[0], p[1], z, radius, trunk + crown * 0.5))
+                        soup.add(trunk_class, *cylinder(p[0], p[1], z, radius, trunk + crown * 0.5))
                         soup.add(VEGETATION, *ellipsoid(p[0], p[1], z + trunk + crown * 0.8, crown, crown, crown * squash))
                 s += style.tree_spacing_m * rng.uniform(0.6, 1.4)
             # Parked vehicles in the parking strip, away from intersections.
