@@ -70,5 +70,9 @@ def add_commands(cli: click.Group) -> None:
             click.echo(f"{k}: synthetic {s[k]:.4g}, real {r[k]:.4g}, ratio {s[k] / r[k]:.3g}")
         click.echo(f"range histogram distance (TV): {res['range histogram distance (TV)']:.3f}")
         if "baselines" in res:
-            click.echo("kendall tau: " + ", ".join(f"{k} {t:+.2f}" for k, t in res["baselines"]["kendall_tau"].items()))
+            trust = res["baselines"]["kendall_tau_bootstrap"]
+            click.echo("kendall tau: " + ", ".join(
+                f"{k} {t:+.2f}" + (f" (95 % interval {trust[k]['interval'][0]:+.2f} .. {trust[k]['interval'][1]:+.2f})"
+                                   if k in trust else "")
+                for k, t in res["baselines"]["kendall_tau"].items()))
         click.echo(f"report: {Path(out) / 'realism.md'}")
