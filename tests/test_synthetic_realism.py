@@ -79,6 +79,15 @@ def test_plane_residuals_hand_cases():
     line = np.stack([np.linspace(0, 1, 20), np.zeros(20), np.zeros(20)], 1)
     assert np.isnan(C.plane_residuals(np.array([[0.5, 0.1, 0.0]]), line, False, radius=2.0)[0][0])
     assert np.isnan(C.plane_residuals(np.array([[9.0, 9.0, 9.0]]), flat, False)[0][0])
+    # the normal's |z|: 1 on level ground, 0 on a wall (the same grid stood up as x = 0), and
+    # cos 30 deg on ground tilted by 30 deg; NaN where there is no plane
+    wall = flat[:, [2, 0, 1]]
+    tilt = np.deg2rad(30.0)
+    slope = np.stack([X.ravel(), Y.ravel() * np.cos(tilt), Y.ravel() * np.sin(tilt)], 1)
+    for cl, nz in ((flat, 1.0), (wall, 0.0), (slope, np.cos(tilt))):
+        out = C.plane_residuals(np.array([[0.0, 0.0, 0.0]]), cl, False, k=25, radius=1.0, normals=True)
+        assert len(out) == 3 and out[2][0] == pytest.approx(nz, abs=1e-9)
+    assert np.isnan(C.plane_residuals(np.array([[0.5, 0.1, 0.0]]), line, False, radius=2.0, normals=True)[2][0])
 
 
 def test_kendall_tau_matches_hand_count_and_scipy():
@@ -159,7 +168,13 @@ def test_measure_counts_the_points_of_the_chosen_sweeps(tmp_path):
     assert st.sweeps == 2 and st.points == expect
     assert st.range_hist.sum() == sum(expect)
     assert st.moving == []  # no labels: unknown, not zero
-    assert np.isnan(st.summary(C.beam_edges([0.0, -1.0, -3.0]))["moving-object points (fraction)"])
+    summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
+    assert np.isnan(summary["moving-object points (fraction)"])
+    # every roughness plane has its normal, and level / vertical are shares of those planes
+    assert [len(n) for n in st.normal_z] == [len(r) for r in st.roughness]
+    nz = np.concatenate(st.normal_z)
+    assert summary["level surfaces (share of planes)"] == pytest.approx((nz > C.LEVEL_NZ).mean())
+    assert summary["vertical surfaces (share of planes)"] == pytest.approx((nz < C.WALL_NZ).mean())
 
 
 @pytest.mark.slow

@@ -13,7 +13,8 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
 * the static-scene residual: each point of sweep i+1 (3-20 m), registered into sweep i by
   the poses, against the plane fitted to its neighbours in sweep i (median distance);
 * local surface roughness: the same plane fit within one sweep (median RMS distance of the
-  neighbourhood to its plane);
+  neighbourhood to its plane), overall and apart for level (ground-like) and vertical planes,
+  and the share of each kind among the fitted planes (what the scene near the road is made of);
 * the fraction of points on moving objects, where labels say so (generated domains, or
   SemanticKITTI labels ``>= 252``);
 * the ray-drop pattern: per beam, the share of azimuth columns without a return, the column
@@ -52,6 +53,7 @@ RADIUS_M = 0.6  # neighbours farther than this are not used
 MIN_NEIGHBOURS = 8
 PLANE_RANGE_M = (3.0, 20.0)  # points whose planes are fitted (near enough to be sampled densely)
 QUERIES = 4000  # plane fits per sweep
+LEVEL_NZ, WALL_NZ = 0.9, 0.3  # a plane is level (ground-like) above this normal |z|, vertical below that
 #: SemanticKITTI classes of moving objects (moving-car ... moving-other-vehicle)
 SEMANTIC_KITTI_MOVING = 252
 
@@ -130,16 +132,19 @@ def voxel_thin(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
 
 def plane_residuals(queries: np.ndarray, cloud: np.ndarray, exclude_self: bool,
                     k: int = NEIGHBOURS, radius: float = RADIUS_M, min_neighbours: int = MIN_NEIGHBOURS,
-                    planarity: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+                    planarity: float = 0.1, normals: bool = False) -> tuple[np.ndarray, ...]:
     """Per query point: (distance of the query to its neighbours' plane, RMS distance of the
     neighbours to that plane), NaN where fewer than ``min_neighbours`` lie within ``radius``
-    or the neighbourhood is a line (second eigenvalue below ``planarity`` x the largest)."""
+    or the neighbourhood is a line (second eigenvalue below ``planarity`` x the largest).
+    With ``normals``, a third array: the plane normal's |z| (1: level ground, 0: a wall)."""
     queries = np.asarray(queries, np.float64)
     cloud = np.asarray(cloud, np.float64)
     out_q = np.full(len(queries), np.nan)
     out_rms = np.full(len(queries), np.nan)
+    out_nz = np.full(len(queries), np.nan)
+    done = (out_q, out_rms, out_nz) if normals else (out_q, out_rms)
     if len(cloud) < min_neighbours or not len(queries):
-        return out_q, out_rms
+        return done
     kk = min(k + int(exclude_self), len(cloud))
     d, idx = cKDTree(cloud).query(queries, k=kk, distance_upper_bound=radius)
     if exclude_self:
@@ -148,7 +153,7 @@ def plane_residuals(queries: np.ndarray, cloud: np.ndarray, exclude_self: bool,
     n = ok.sum(1)
     use = n >= min_neighbours
     if not use.any():
-        return out_q, out_rms
+        return done
     d, idx, ok, n = d[use], idx[use], ok[use], n[use]
     nb = cloud[np.where(ok, idx, 0)]  # (Q, k, 3); masked entries weigh zero
     w = ok[..., None].astype(float)
@@ -162,7 +167,8 @@ def plane_residuals(queries: np.ndarray, cloud: np.ndarray, exclude_self: bool,
     rms = np.sqrt(np.maximum(evals[:, 0], 0.0))
     out_q[np.nonzero(use)[0][flat]] = rq[flat]
     out_rms[np.nonzero(use)[0][flat]] = rms[flat]
-    return out_q, out_rms
+    out_nz[np.nonzero(use)[0][flat]] = np.abs(normal[flat, 2])
+    return done
 
 
 def kendall_tau(a, b) -> float:
@@ -250,6 +256,7 @@ class SideStats:
     elev_span: tuple[float, float] = (np.nan, np.nan)
     static_residual: list = field(default_factory=list)
     roughness: list = field(default_factory=list)
+    normal_z: list = field(default_factory=list)  # |z| of each roughness plane's normal
     moving: list = field(default_factory=list)  # (moving points, labelled points) per sweep
     seconds: float = 0.0
 
@@ -258,6 +265,11 @@ class SideStats:
         drop, columns = drop_per_beam(beams)
         sr = np.concatenate(self.static_residual) if self.static_residual else np.zeros(0)
         ro = np.concatenate(self.roughness) if self.roughness else np.zeros(0)
+        nz = np.concatenate(self.normal_z) if self.normal_z else np.zeros(0)
+        level, wall = nz > LEVEL_NZ, nz < WALL_NZ
+
+        def median(x):
+            return float(np.median(x)) if x.size else float("nan")
         moving = (sum(m for m, _ in self.moving) / sum(n for _, n in self.moving)) if self.moving else float("nan")
         return {
             "points per sweep": float(np.mean(self.points)),
@@ -272,6 +284,10 @@ class SideStats:
             "static-scene residual p90 (m)": float(np.quantile(sr, 0.9)) if sr.size else float("nan"),
             "roughness median (m)": float(np.median(ro)) if ro.size else float("nan"),
             "roughness p90 (m)": float(np.quantile(ro, 0.9)) if ro.size else float("nan"),
+            "level surfaces (share of planes)": float(level.mean()) if nz.size else float("nan"),
+            "vertical surfaces (share of planes)": float(wall.mean()) if nz.size else float("nan"),
+            "roughness median, level surfaces (m)": median(ro[level]),
+            "roughness median, vertical surfaces (m)": median(ro[wall]),
             "moving-object points (fraction)": moving,
         }
 
@@ -352,8 +368,9 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
         q = pts[near]
         if len(q) > QUERIES:
             q = q[rng.choice(len(q), QUERIES, replace=False)]
-        _, rms = plane_residuals(q, thin, exclude_self=True)
+        _, rms, nz = plane_residuals(q, thin, exclude_self=True, normals=True)
         st.roughness.append(rms[np.isfinite(rms)])
+        st.normal_z.append(nz[np.isfinite(nz)])
         nxt = np.asarray(seq.load_points(i + 1), np.float64)
         nxt = nxt[~adapter.ego_box.inside(nxt)]
         rn = np.linalg.norm(nxt, axis=1)
