@@ -441,3 +441,23 @@ def test_trunks_are_solid_from_physics_4_and_crowns_return_from_inside():
     assert len(leaves) == len(bark)
     depth = np.linalg.norm(leaves, axis=1) - np.linalg.norm(surface, axis=1)  # along each ray, > 0: inside
     assert np.all(depth >= 0) and 0.5 * quiet.crown_depth_m < depth.mean() < 2 * quiet.crown_depth_m
+
+
+def test_the_roof_hides_the_steepest_beams_from_physics_4():
+    """Physics 4 lowers the roof under the sensor to 0.35 m: more of the steepest beams end on
+    the ego vehicle (and are removed), none that physics 1's roof hid comes back, and the
+    beams above -11.5 deg (which would meet the roof farther than its farthest corner, 1.66 m)
+    are untouched."""
+    from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, ego_hits
+
+    sensor = dataclasses.replace(get_domain("synthetic-town-realistic").sensor, azimuth_steps=720)
+    assert dataclasses.replace(R.REALISM, roof_below_sensor_m=None).ego_shape == EGO_SHAPE
+    shape = R.REALISM.ego_shape
+    assert shape.roof_below_sensor == R.REALISM.roof_below_sensor_m == 0.35
+    assert dataclasses.replace(shape, roof_below_sensor=EGO_SHAPE.roof_below_sensor) == EGO_SHAPE  # only the roof
+    old, new = np.isfinite(ego_hits(sensor)[0]), np.isfinite(ego_hits(sensor, shape)[0])
+    assert np.all(new[old]) and new.sum() > old.sum()
+    elev = np.repeat(np.asarray(sensor.elevations_deg), sensor.azimuth_steps)
+    assert np.array_equal(new[elev > -11.5], old[elev > -11.5])
+    steep = elev < -24
+    assert new[steep].mean() > 0.4 > old[steep].mean()  # the lowest beam: now mostly on the roof
