@@ -461,3 +461,17 @@ def test_the_roof_hides_the_steepest_beams_from_physics_4():
     assert np.array_equal(new[elev > -11.5], old[elev > -11.5])
     steep = elev < -24
     assert new[steep].mean() > 0.4 > old[steep].mean()  # the lowest beam: now mostly on the roof
+
+
+def test_the_realism_knobs_are_pinned_to_their_physics_version():
+    """The cache folder of a realistic domain is named by ``Realism.version`` alone, so a knob
+    changed without a version bump would let an older cache be read as this physics, without
+    a word. Changing any knob must come with a new version and a new digest here."""
+    knobs = dataclasses.asdict(R.REALISM)
+    digest = hashlib.sha256(json.dumps(knobs, sort_keys=True).encode()).hexdigest()
+    pinned = {4: "241122b6bd805adc66a99c0909e7b1484f1c65d4788caed725ed19fbd517dbe2"}
+    assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
+    assert digest == pinned[R.REALISM.version], (
+        f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")
+    changed = json.dumps(dataclasses.asdict(dataclasses.replace(R.REALISM, crown_depth_m=0.4)), sort_keys=True)
+    assert hashlib.sha256(changed.encode()).hexdigest() != digest  # the digest sees a knob move

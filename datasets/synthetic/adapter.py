@@ -91,7 +91,7 @@ class SyntheticSuburb(SyntheticKitti):
 
 
 class SyntheticTownRealistic(SyntheticKitti):
-    """synthetic-town with world physics version 3 (docs/realism.md); not yet the default."""
+    """synthetic-town with the world physics of ``realism.REALISM`` (docs/realism.md); not yet the default."""
 
     name = "synthetic-town-realistic"
     domain = "synthetic-town-realistic"

@@ -106,7 +106,6 @@ class Realism:
     #: the physics version these knobs make (written in the manifest, part of the cache name)
     version: int = 4
 
-
     @property
     def ego_shape(self):
         """The ego vehicle the sensor sees (physics 1's, with this roof height if one is set)."""
