@@ -162,10 +162,13 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
 
     from pcfbench.methods.copilot4d import diffusion as D
 
+    from pcfbench.methods.copilot4d.train import autocast
+
     torch.manual_seed(seed)
+    device = next(model.parameters()).device  # windows stay on the CPU; each batch moves there
     opt = D.make_optimizer(model, cfg)
     rng = np.random.default_rng(seed)
-    gen = torch.Generator().manual_seed(seed + 1)
+    gen = torch.Generator(device).manual_seed(seed + 1)
     step, history, window, elapsed, cpu = 0, [], [], 0.0, 0.0
     if resumed is not None:
         st = resumed["state"]
@@ -180,7 +183,7 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     poses = torch.from_numpy(windows["poses"].astype(np.float32))
 
     def save(complete: bool) -> None:
-        weights = {f"world.{k}": v for k, v in model.state_dict().items()} | dict(extra_weights or {})
+        weights = {f"world.{k}": v.cpu() for k, v in model.state_dict().items()} | dict(extra_weights or {})
         state = {"optimizer": opt.state_dict(), "history": history, "window": window,
                  "numpy_rng": json.dumps(rng.bit_generator.state), "torch_gen": gen.get_state(),
                  "elapsed_s": elapsed, "cpu_s": cpu}
@@ -196,8 +199,9 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
         for g in opt.param_groups:
             g["lr"] = D.lr_at(cfg, step)
         picks = torch.from_numpy(rng.integers(0, len(tokens), cfg.batch_size))
-        loss, stats = D.training_loss(model, tokens[picks], poses[picks], cfg.n_past, variant, cfg.label_smoothing,
-                                      generator=gen)
+        with autocast(device):  # bf16 on CUDA, nothing on the CPU
+            loss, stats = D.training_loss(model, tokens[picks].to(device), poses[picks].to(device), cfg.n_past,
+                                          variant, cfg.label_smoothing, generator=gen)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -304,18 +308,20 @@ class Copilot4D(TrainedMethod):
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
         import torch
 
-        from pcfbench.methods.copilot4d.train import load_tokenizer
+        from pcfbench.methods.copilot4d.train import default_device, load_tokenizer
         from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
 
-        torch.set_num_threads(1)  # the most steps per CPU-second on this machine (as the tokenizer)
+        device = default_device()
+        if device.type == "cpu":
+            torch.set_num_threads(1)  # the most steps per CPU-second on this machine (as the tokenizer)
         resumed = progress.resume()
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
-        tokenizer = load_tokenizer(tok_ck, torch.device("cpu"))
+        tokenizer = load_tokenizer(tok_ck, device)
         if tokenizer.cfg != self.tok_cfg:
             raise CheckpointError(f"tokenizer checkpoint {tok_ck.manifest_path} records another '{self.tok_cfg.name}' "
                                   f"configuration than this pcfbench defines; retrain it with `pcfbench train "
                                   f"{TOKENIZER_METHOD} --dataset {train_source.train_on.dataset} --fresh`")
-        tok_state = tokenizer.state_dict()
+        tok_state = {k: v.cpu() for k, v in tokenizer.state_dict().items()}
         tok_digest = tensor_digest(tok_state)
         if resumed is not None:  # the same tokenizer, or the cached tokens and the weights disagree
             had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
@@ -332,7 +338,7 @@ class Copilot4D(TrainedMethod):
         progress.log(f"{len(windows['tokens'])} training windows of {cfg.n_frames} frames, "
                      f"{cfg.token_grid}x{cfg.token_grid} tokens")
         torch.manual_seed(0)
-        model = WorldModel(cfg)
+        model = WorldModel(cfg).to(device)  # built on the CPU, so its initial weights do not depend on the device
         manifest_config = {
             "world": cfg.to_dict(), "variant": self.variant.name, "tokenizer": self.tok_cfg.to_dict(),
             "tokenizer_sha256": tok_ck.sha256, "tokenizer_digest": tok_digest,
@@ -411,6 +417,7 @@ class Copilot4D(TrainedMethod):
 
         from pcfbench.methods.copilot4d.diffusion import sample_frame
         from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
+        from pcfbench.methods.copilot4d.train import autocast
 
         cfg = self.world_cfg
         T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
@@ -431,9 +438,10 @@ class Copilot4D(TrainedMethod):
             first = min(first, cfg.n_frames - 1 - n_ctx)
             ctx = seq[:, -n_ctx:]
             pose = rel[:, P + f - n_ctx: P + f + 1]
-            nxt = sample_frame(self.world, ctx, pose, steps=self.options.sampling_steps,
-                               guidance=self.options.cfg_weight, revise=self.variant.revise, generator=gen,
-                               first_position=first)
+            with autocast(dev):  # bf16 on CUDA; the logits come back in float32
+                nxt = sample_frame(self.world, ctx, pose, steps=self.options.sampling_steps,
+                                   guidance=self.options.cfg_weight, revise=self.variant.revise, generator=gen,
+                                   first_position=first)
             seq = torch.cat([seq, nxt[:, None]], 1)
             out.append(nxt[0])
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
