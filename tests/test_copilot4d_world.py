@@ -173,6 +173,30 @@ def _exact_expectations(N: int, eta: float) -> tuple[float, float]:
     return e_mask / N, e_noise / N
 
 
+@pytest.mark.parametrize("mask_batch", ["broadcast", "per_sequence"])
+def test_attention_cut_into_batches_is_the_same(mask_batch):
+    """The batch cut that keeps CUDA's fused attention below 2^16 sequences changes nothing:
+    each piece, its own rows of the mask (or the broadcast one), concatenated in order."""
+    from pcfbench.methods.copilot4d.swin import CUDA_SDPA_MAX_BATCH, attention
+
+    assert CUDA_SDPA_MAX_BATCH < 2**16
+    g = torch.Generator().manual_seed(0)
+    n, h, L, d = 11, 2, 5, 4
+    q, k, v = (torch.randn(n, h, L, d, generator=g) for _ in range(3))
+    if mask_batch == "broadcast":
+        mask = torch.ones(1, L, L, dtype=torch.bool).tril()
+    else:
+        mask = torch.rand(n, 1, L, L, generator=g) > 0.3
+        mask[..., torch.arange(L), torch.arange(L)] = True  # every query sees itself
+    whole = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+    torch.testing.assert_close(attention(q, k, v, mask), whole, rtol=0, atol=0)  # CPU: one call
+    for max_batch in (1, 3, 4, 10, 11):
+        torch.testing.assert_close(attention(q, k, v, mask, max_batch=max_batch), whole, rtol=1e-6, atol=1e-6)
+    if mask_batch == "per_sequence":  # a mask row applied to the wrong sequence would show
+        shifted = attention(q, k, v, mask.roll(1, 0), max_batch=3)
+        assert not torch.allclose(shifted, whole)
+
+
 def test_corruption_counts_are_exact():
     gen = torch.Generator().manual_seed(11)
     V, B, T, H = 16, 64, 4, 6

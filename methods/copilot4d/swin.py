@@ -10,6 +10,31 @@ import torch.nn.functional as F
 from torch import nn
 
 
+#: cuDNN's fused attention fails ("mha_graph.execute(...).is_good()") on a batch of 2^16 or
+#: more sequences (PyTorch issue 181085, fixed after 2.11): the paper world model's temporal
+#: blocks reach it at 4 sequences of 128 x 128 locations. CUDA batches are cut below it.
+CUDA_SDPA_MAX_BATCH = 32768
+
+
+def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, attn_mask: torch.Tensor,
+              max_batch: int | None = None) -> torch.Tensor:
+    """``F.scaled_dot_product_attention`` over (n, heads, L, d) in batches of at most
+    ``max_batch`` sequences (default: :data:`CUDA_SDPA_MAX_BATCH` on CUDA, unbounded on the
+    CPU); ``attn_mask`` has a batch dimension of n or 1. Sequences are independent, so the
+    result is the same however the batch is cut."""
+    n = q.shape[0]
+    if max_batch is None:
+        max_batch = CUDA_SDPA_MAX_BATCH if q.is_cuda else n
+    if n <= max_batch:
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
+    parts = []
+    for s in range(0, n, max_batch):
+        m = attn_mask if attn_mask.shape[0] == 1 else attn_mask[s:s + max_batch]
+        parts.append(F.scaled_dot_product_attention(q[s:s + max_batch], k[s:s + max_batch], v[s:s + max_batch],
+                                                    attn_mask=m))
+    return torch.cat(parts)
+
+
 def _windows(x: torch.Tensor, w: int) -> torch.Tensor:
     """(B, H, W, C) -> (B * nW, w*w, C)."""
     B, H, W, C = x.shape
@@ -43,7 +68,7 @@ class WindowAttention(nn.Module):
         if mask is not None:  # (nW, L, L) additive, repeated over the batch
             nW = mask.shape[0]
             bias = (bias + mask.unsqueeze(1)).repeat(n // nW, 1, 1, 1)
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype))
+        out = attention(q, k, v, bias.to(q.dtype))
         return self.proj(out.transpose(1, 2).reshape(n, L, C))
 
 

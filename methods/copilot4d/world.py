@@ -32,7 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pcfbench.methods.copilot4d.swin import PatchMerging, PatchUpsample, SwinBlock, init_transformer_, sincos_2d
+from pcfbench.methods.copilot4d.swin import (PatchMerging, PatchUpsample, SwinBlock, attention, init_transformer_,
+                                              sincos_2d)
 from pcfbench.methods.copilot4d.world_config import WorldModelConfig
 
 
@@ -104,7 +105,7 @@ class TemporalBlock(nn.Module):
             attn_mask = mask  # (1, T, S) broadcasts over sequences and heads
         else:
             attn_mask = mask[:, None].expand(B, H * W, T, S).reshape(B * H * W, 1, T, S)
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
+        y = attention(q, k, v, attn_mask)
         y = self.attn.proj(y.transpose(1, 2).reshape(B * H * W, T, C))
         x = x + y.view(B, H, W, T, C).permute(0, 3, 1, 2, 4)
         return x + self.fc2(F.gelu(self.fc1(self.norm2(x))))
