@@ -9,7 +9,9 @@ Run from the repository root with the package importable (installed, or the tree
   the tiny tokenizer (``forecaster.build_windows``; test windows anchored at every sweep);
 - ``tiny-copilot4d.pt`` (optional): the weights of the CPU-trained tiny copilot4d checkpoint;
 - ``kitti8.npz`` (optional): a few real KITTI sweeps, ``points`` (n, 3) and ``offsets``, for
-  the paper tokenizer's training step.
+  the paper tokenizer's training step;
+- ``samples-kitti-1s.npz`` (optional): the world model's inputs for synthetic-town's kitti-1s
+  test samples; their forecast tokens come back in ``replay-tokens.npz``.
 
 Every part writes its figures into ``--out``/results.json as soon as it has them, so a run cut
 short keeps what it measured. ``--smoke`` runs every part at toy sizes on the CPU (a check of
@@ -186,6 +188,35 @@ def copy_accuracy(windows: dict, n_past: int) -> dict:
             "accuracy_on_changed": 0.0}
 
 
+@torch.no_grad()
+def replay(runs, samples: Path, out: Path, dev, smoke: bool = False) -> dict:
+    """Algorithm 2 on the staged samples' world-model inputs (as ``Copilot4D.forecast_tokens``
+    computes them, one generator for the batch instead of one seed per sample), for each model
+    with the defaults (w = 2, top-3) and, for the wide one, w = 0 with the arg max; writes
+    ``replay-tokens.npz``: sample_ids and, per run, (S, F, H, W) int16 codes."""
+    z = np.load(samples)
+    past = torch.from_numpy(z["tokens"].astype(np.int64))
+    poses = torch.from_numpy(z["poses"].astype(np.float32))
+    if smoke:
+        past, poses = past[:2], poses[:2]
+    arrays = {"sample_ids": z["sample_ids"][:len(past)], "tokenizer_sha256": z["tokenizer_sha256"]}
+    t0 = time.perf_counter()
+    for name, model, cfg in runs:
+        model.eval()
+        for w, k in ((2.0, 3), (0.0, 1)) if name == "gpu" else ((2.0, 3),):
+            gen = torch.Generator(dev).manual_seed(7)
+            parts = []
+            for s in range(0, len(past), 28):
+                with autocast(dev):
+                    parts.append(D.forecast_tokens(model, past[s:s + 28].to(dev), poses[s:s + 28].to(dev),
+                                                   poses.shape[1] - past.shape[1], steps=10, guidance=w, top_k=k,
+                                                   generator=gen).cpu())
+            arrays[f"{name}_w{w:g}_top{k}"] = torch.cat(parts).numpy().astype(np.int16)
+    np.savez_compressed(out / "replay-tokens.npz", **arrays)
+    return {"samples": len(past), "runs": [k for k in arrays if k not in ("sample_ids", "tokenizer_sha256")],
+            "seconds": time.perf_counter() - t0}
+
+
 def load_windows(inputs: Path, split: str) -> dict:
     parts = [np.load(inputs / f"{split}-s{s}.npz") for s in (2, 6)]
     return {"tokens": np.concatenate([p["tokens"] for p in parts]), "poses": np.concatenate([p["poses"] for p in parts]),
@@ -203,6 +234,8 @@ def main() -> None:
                     help="comma-separated: train_step, sampling (the paper world model), tokenizer (the paper "
                          "tokenizer's step), wide (train the wide model and judge it)")
     ap.add_argument("--batches", default="8,4,2,1", help="paper world-model batches to try, the first that fits")
+    ap.add_argument("--wide-steps", type=int, default=0,
+                    help="the wide model's training steps (0: as many as --train-budget allows, by a timed probe)")
     a = ap.parse_args()
     parts = set(a.parts.split(","))
     a.out.mkdir(parents=True, exist_ok=True)
@@ -298,12 +331,15 @@ def main() -> None:
     record(a.out, "copy_train", copy_accuracy(train_w, base.n_past))
 
     def train_big():
-        torch.manual_seed(0)
-        probe = WorldModel(base).to(dev)
-        t = time_train_steps(probe, base, dev, base.batch_size, 5 if not a.smoke else 1, 2 if not a.smoke else 1)
-        del probe
         budget = min(a.train_budget, left() - 120) if not a.smoke else 5
-        steps = max(10, int(budget / t["median_step_s"]))
+        if a.wide_steps:
+            t, steps = None, a.wide_steps
+        else:
+            torch.manual_seed(0)
+            probe = WorldModel(base).to(dev)
+            t = time_train_steps(probe, base, dev, base.batch_size, 5 if not a.smoke else 1, 2 if not a.smoke else 1)
+            del probe
+            steps = max(10, int(budget / t["median_step_s"]))
         cfg = base.with_overrides(name="paper-widths-tiny-tokens", warmup=max(1, min(200, steps // 10)),
                                   decay_steps=steps, max_steps=steps)
         torch.manual_seed(0)
@@ -321,7 +357,6 @@ def main() -> None:
 
     got = part("trained_world_model", train_big, 200 if not a.smoke else 0)
 
-    # 4. judge it (and the CPU-trained tiny checkpoint) in token space
     runs = []
     if got is not None:
         runs.append(("gpu", *got))
@@ -331,6 +366,13 @@ def main() -> None:
         tiny = WorldModel(world_config_for(TINY, TINY_TOKENIZER))
         tiny.load_state_dict({k[len("world."):]: v.float() for k, v in w.items() if k.startswith("world.")})
         runs.append(("tiny600", tiny.to(dev), tiny.cfg))
+
+    # 4. forecast the harness's kitti-1s test samples, for copilot4d_replay.py to render and score
+    samples = a.inputs / "samples-kitti-1s.npz"
+    if samples.is_file() and runs:
+        part("replay", lambda: record(a.out, "replay", replay(runs, samples, a.out, dev, smoke=a.smoke)), 20)
+
+    # 5. judge them in token space
     # the test split first, the defaults (w = 2, top 3) first: what matters most survives a cut
     order = [(split, w, k) for split in ("test", "train") for w, k in ((2.0, 3), (0.0, 1))][:3]
     for split, w, k in order:

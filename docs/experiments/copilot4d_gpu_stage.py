@@ -1,5 +1,8 @@
 """Stage the inputs of copilot4d_gpu.py in .gpu/ (ignored by git; carry it to the GPU machine).
 
+Also the world model's inputs for synthetic-town's kitti-1s test samples (``samples-kitti-1s.npz``):
+the GPU forecasts their future tokens, and ``copilot4d_replay.py`` renders and scores them here.
+
 Needs the tiny tokenizer checkpoint trained on synthetic-town (``pcfbench train
 copilot4d-token-copy --dataset synthetic-town``); copies the tiny copilot4d checkpoint's
 weights if it is trained, and 8 real KITTI sweeps if ``--kitti`` names a KITTI sequence folder
@@ -46,6 +49,25 @@ def main() -> None:
     if world is not None:
         shutil.copyfile(world.weights_path, a.out / "tiny-copilot4d.pt")
         print(f"tiny copilot4d weights: {world.weights_path}")
+    # the world model's inputs for every kitti-1s sample of the test split, exactly as the
+    # copilot4d method computes them (Copilot4D.world_inputs), for the GPU to forecast
+    from pcfbench.methods.copilot4d.forecaster import Copilot4D
+    from pcfbench.protocol import SampleBuilder, get_setting
+
+    method = Copilot4D()
+    method.tokenizer = tokenizer
+    test = open_training_data("synthetic-town", "test")
+    builder = SampleBuilder(test.adapter, get_setting("kitti-1s"))
+    ids, toks, poses = [], [], []
+    for key in builder.sample_keys("test"):
+        sample, _ = builder.build(*key)
+        seq, rel, _ = method.world_inputs(sample.for_method())
+        ids.append(sample.sample_id)
+        toks.append(seq.numpy().astype(np.int16))
+        poses.append(rel.numpy())
+    np.savez_compressed(a.out / "samples-kitti-1s.npz", sample_ids=np.array(ids), tokens=np.stack(toks),
+                        poses=np.stack(poses), tokenizer_sha256=np.array(tok_ck.sha256))
+    print(f"{len(ids)} kitti-1s test samples' world-model inputs")
     if a.kitti:
         clouds = []
         for f in sorted((a.kitti / "velodyne").glob("*.bin"))[:8]:

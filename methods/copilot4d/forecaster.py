@@ -410,25 +410,36 @@ class Copilot4D(TrainedMethod):
             depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen, **self.render))
         return Forecast.from_depths(sample, depths)
 
+    def world_inputs(self, sample: Sample):
+        """What the world model is given: the past token maps (P, H, W) of the newest
+        ``n_past`` past sweeps, each tokenized in the t=0 sensor frame; every past and future
+        sensor pose in that frame (P + F, 4, 4) float32; the transform from the reference frame
+        into it (4, 4) float64."""
+        import torch
+
+        from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
+
+        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+        past = list(range(len(sample.past_points_ref)))[-self.world_cfg.n_past:]  # the model's window at most
+        seq = torch.stack([tokenize_sweep(self.tokenizer, transform(sample.past_points_ref[k], T_s0_ref))
+                           for k in past])
+        poses = np.concatenate([sample.past_T_ref_sensor[past], sample.future_T_ref_sensor])
+        return seq, torch.from_numpy((T_s0_ref @ poses).astype(np.float32)), T_s0_ref
+
     def forecast_tokens(self, sample: Sample):
         """The future token maps (F, H, W) of ``sample`` in its t=0 sensor frame, the future poses
         in that frame (F, 4, 4), and the transform from the reference frame into it."""
         import torch
 
         from pcfbench.methods.copilot4d.diffusion import sample_frame
-        from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
         from pcfbench.methods.copilot4d.train import autocast
 
         cfg = self.world_cfg
-        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
-        past = list(range(len(sample.past_points_ref)))[-cfg.n_past:]  # the model's window at most
         dev = next(self.world.parameters()).device
-        seq = torch.stack([tokenize_sweep(self.tokenizer, transform(sample.past_points_ref[k], T_s0_ref))
-                           for k in past])[None]
-        poses = np.concatenate([sample.past_T_ref_sensor[past], sample.future_T_ref_sensor])
-        rel = torch.from_numpy((T_s0_ref @ poses).astype(np.float32))[None].to(dev)
+        seq, rel, T_s0_ref = self.world_inputs(sample)
+        seq, rel = seq[None].to(dev), rel[None].to(dev)
         gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, self.options.seed))
-        P = len(past)
+        P = seq.shape[1]
         out = []
         for f in range(sample.num_future):
             # the context: every frame so far, at the positions of training (t=0 at n_past-1),
