@@ -572,7 +572,10 @@ class TrainingRun:
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
         files = {}
-        for kind, obj in (("weights", dict(weights)), ("state", None if state is None else dict(state))):
+        # weights on the CPU whatever the training device: a checkpoint trained on a GPU has
+        # the bytes (and the sha256) of the same tensors trained anywhere, and loads anywhere
+        weights = {k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in weights.items()}
+        for kind, obj in (("weights", weights), ("state", None if state is None else dict(state))):
             if obj is None:
                 continue
             buf = io.BytesIO()

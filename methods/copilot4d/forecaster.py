@@ -183,7 +183,7 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     poses = torch.from_numpy(windows["poses"].astype(np.float32))
 
     def save(complete: bool) -> None:
-        weights = {f"world.{k}": v.cpu() for k, v in model.state_dict().items()} | dict(extra_weights or {})
+        weights = {f"world.{k}": v for k, v in model.state_dict().items()} | dict(extra_weights or {})
         state = {"optimizer": opt.state_dict(), "history": history, "window": window,
                  "numpy_rng": json.dumps(rng.bit_generator.state), "torch_gen": gen.get_state(),
                  "elapsed_s": elapsed, "cpu_s": cpu}
@@ -321,7 +321,7 @@ class Copilot4D(TrainedMethod):
             raise CheckpointError(f"tokenizer checkpoint {tok_ck.manifest_path} records another '{self.tok_cfg.name}' "
                                   f"configuration than this pcfbench defines; retrain it with `pcfbench train "
                                   f"{TOKENIZER_METHOD} --dataset {train_source.train_on.dataset} --fresh`")
-        tok_state = {k: v.cpu() for k, v in tokenizer.state_dict().items()}
+        tok_state = tokenizer.state_dict()
         tok_digest = tensor_digest(tok_state)
         if resumed is not None:  # the same tokenizer, or the cached tokens and the weights disagree
             had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
