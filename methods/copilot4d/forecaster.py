@@ -161,8 +161,7 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     import torch
 
     from pcfbench.methods.copilot4d import diffusion as D
-
-    from pcfbench.methods.copilot4d.train import autocast
+    from pcfbench.methods.copilot4d.train import autocast, synchronize
 
     torch.manual_seed(seed)
     device = next(model.parameters()).device  # windows stay on the CPU; each batch moves there
@@ -207,6 +206,7 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
         gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         opt.step()
         step += 1
+        synchronize(device)  # on a GPU the backward pass may still be running
         dt = time.monotonic() - t0
         elapsed += dt
         cpu += time.process_time() - c0

@@ -30,6 +30,12 @@ def autocast(device: torch.device):
     return contextlib.nullcontext()
 
 
+def synchronize(device: torch.device) -> None:
+    """Wait for the GPU's queued work, so a step's wall time includes its backward pass."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
     """A.3: weight decay on weight matrices only; biases, embeddings (codebook, z embedding,
     relative position biases) and LayerNorm parameters are excluded."""
@@ -161,6 +167,7 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
                     opt.state.pop(p, None)  # stale Adam moments would drag the new codes
             log(f"step {step}: K-means re-initialised the codebook ({int(model.vq.reinits)} so far)")
         step += 1
+        synchronize(device)
         dt = time.monotonic() - t0
         elapsed += dt
         cpu += time.process_time() - c0
