@@ -20,7 +20,7 @@ from pcfbench.methods.copilot4d.world import (
     guidance_mask,
     identity_mask,
 )
-from pcfbench.methods.copilot4d.world_config import PAPER, TINY, WorldModelConfig, get_world_config
+from pcfbench.methods.copilot4d.world_config import PAPER, TINY, WIDE, WorldModelConfig, get_world_config
 
 # the same architecture, small enough for unit tests: 8 x 8 tokens, 16 codes, 3 frames
 MICRO = WorldModelConfig(
@@ -56,6 +56,28 @@ def test_parameter_counts():
     assert n_paper == 39_350_696
     assert abs(n_paper - 39e6) / 39e6 < 0.03
     assert count_parameters(WorldModel(TINY)) == 1_077_562
+    assert count_parameters(WorldModel(WIDE)) == 39_219_624  # the paper's network, 512 codes instead of 1024
+
+
+def test_wide_is_the_paper_network_on_the_tiny_tokenizer():
+    """`wide`: what one GPU trains in minutes; its tokenizer is the tiny one, for the world model,
+    its checkpoint's identity and the token-copy checkpoint it trains on."""
+    from pcfbench.method import resolve_method
+    from pcfbench.methods.copilot4d.world_config import tokenizer_config_name
+
+    assert (WIDE.dims, WIDE.heads, WIDE.windows, WIDE.groups_down, WIDE.groups_up, WIDE.batch_size) == (
+        PAPER.dims, PAPER.heads, PAPER.windows, PAPER.groups_down, PAPER.groups_up, PAPER.batch_size)
+    assert (WIDE.token_grid, WIDE.codebook_size) == (tok_config.TINY.bev_tokens, tok_config.TINY.codebook_size)
+    assert [tokenizer_config_name(n) for n in ("tiny", "paper", "wide")] == ["tiny", "paper", "tiny"]
+    with pytest.raises(UnknownNameError, match="did you mean 'wide'"):
+        tokenizer_config_name("wdie")
+    for name in ("copilot4d", "copilot4d-maskgit"):
+        method = resolve_method((name, {"config": "wide"})).create()
+        assert method.world_cfg == WIDE and method.tok_cfg == tok_config.TINY
+        spec = method.tokenizer_spec()
+        assert spec.name == "copilot4d-token-copy"
+        assert spec.create().cfg == tok_config.TINY
+        assert resolve_method((name, {"config": "paper"})).create().tokenizer_spec().create().cfg == tok_config.PAPER
 
 
 def test_configs_match_their_tokenizers():

@@ -48,7 +48,8 @@ LOG_EVERY = 10
 
 @dataclass(frozen=True)
 class WorldOptions(RenderingOptions):
-    config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale) or paper (A.2.2 sizes)")
+    config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale), paper (A.2.2 "
+                                      "sizes) or wide (the paper's network on the tiny tokenizer; GPU scale)")
     cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
@@ -273,9 +274,9 @@ class Copilot4D(TrainedMethod):
         from pcfbench.methods.copilot4d.config import get_config
         from pcfbench.methods.copilot4d.diffusion import get_variant
         from pcfbench.methods.copilot4d.evaluate import rendering_kwargs
-        from pcfbench.methods.copilot4d.world_config import get_world_config
+        from pcfbench.methods.copilot4d.world_config import get_world_config, tokenizer_config_name
 
-        self.tok_cfg = get_config(self.options.config)
+        self.tok_cfg = get_config(tokenizer_config_name(self.options.config))
         self.world_cfg = world_config_for(get_world_config(self.options.config), self.tok_cfg)
         self.variant = get_variant(self.variant_name)
         self.render = rendering_kwargs(self.options)
@@ -289,7 +290,8 @@ class Copilot4D(TrainedMethod):
     def tokenizer_spec(self):
         from pcfbench.method import resolve_method
 
-        opts = {} if self.options.config == "tiny" else {"config": self.options.config}
+        tok = self.tok_cfg.name
+        opts = {} if tok == "tiny" else {"config": tok}
         if self.options.tokenizer_steps:
             opts["steps"] = str(self.options.tokenizer_steps)
         return resolve_method((TOKENIZER_METHOD, opts))

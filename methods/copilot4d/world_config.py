@@ -106,7 +106,22 @@ TINY = WorldModelConfig(
     warmup=100, decay_steps=600, batch_size=1, max_steps=600,
 )
 
-CONFIGS = {"paper": PAPER, "tiny": TINY}
+# GPU scale on the CPU-scale tokenizer: the paper's network (widths, heads, windows, A.3's batch
+# of 8) over the tiny tokenizer's 64 x 64 tokens and 512 codes, 39,219,624 parameters. The paper
+# tokenizer takes days on one GPU; this trains in minutes there (0.37 s per step on an H200,
+# 59 GiB; docs/copilot4d.md, "On a GPU") and is far too slow for a CPU.
+WIDE = replace(PAPER, name="wide", codebook_size=TINY_TOKENIZER.codebook_size, token_grid=TINY_TOKENIZER.bev_tokens,
+               warmup=200, decay_steps=2000, max_steps=2000)
+
+CONFIGS = {"paper": PAPER, "tiny": TINY, "wide": WIDE}
+#: the tokenizer configuration each world-model configuration works on
+TOKENIZER_OF = {"paper": PAPER_TOKENIZER.name, "tiny": TINY_TOKENIZER.name, "wide": TINY_TOKENIZER.name}
+
+
+def tokenizer_config_name(name: str) -> str:
+    """The tokenizer configuration that world-model configuration ``name`` works on."""
+    get_world_config(name)  # an unknown name is one clear error
+    return TOKENIZER_OF[name]
 
 
 def get_world_config(name: str) -> WorldModelConfig:
