@@ -114,14 +114,15 @@ WIDE = replace(PAPER, name="wide", codebook_size=TINY_TOKENIZER.codebook_size, t
                warmup=200, decay_steps=2000, max_steps=2000)
 
 CONFIGS = {"paper": PAPER, "tiny": TINY, "wide": WIDE}
-#: the tokenizer configuration each world-model configuration works on
-TOKENIZER_OF = {"paper": PAPER_TOKENIZER.name, "tiny": TINY_TOKENIZER.name, "wide": TINY_TOKENIZER.name}
+#: world-model configurations that work on a tokenizer configuration of another name (the
+#: others work on the tokenizer configuration of their own name)
+TOKENIZER_OF = {"wide": TINY_TOKENIZER.name}
 
 
 def tokenizer_config_name(name: str) -> str:
     """The tokenizer configuration that world-model configuration ``name`` works on."""
     get_world_config(name)  # an unknown name is one clear error
-    return TOKENIZER_OF[name]
+    return TOKENIZER_OF.get(name, name)
 
 
 def get_world_config(name: str) -> WorldModelConfig:
