@@ -525,6 +525,10 @@ class TrainingRun:
         if ck.manifest["train_on"].get("fingerprint") != self.train_on.fingerprint:
             raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on other data than {self.train_on.label} "
                                   "has now; rerun with --fresh")
+        had = ck.manifest.get("device", self.device)
+        if had != self.device:  # other numerics and RNG streams: the resumed curve would not be the one it continues
+            raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on {had} and this run would resume "
+                                  f"it on {self.device}; resume it where it was trained, or rerun with --fresh")
         self._base_wall = float(ck.manifest.get("wall_s", 0.0))
         self._base_cpu = float(ck.manifest.get("cpu_s", 0.0))
         self._created = ck.manifest.get("created", self._created)

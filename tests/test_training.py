@@ -179,6 +179,19 @@ def test_max_minutes_stops_with_a_checkpoint_and_fresh_starts_over(env):
     assert _train(env, max_minutes=0, fresh=True).steps == 1
 
 
+def test_resuming_on_another_device_is_refused(env):
+    """A run stopped on one device does not silently continue on another: the numerics and
+    the RNG streams differ, so it could not continue the same curve."""
+    ck = _train(env, max_minutes=0)
+    m = json.loads(ck.manifest_path.read_text())
+    here = m["device"]
+    m["device"] = "cuda" if here == "cpu" else "cpu"
+    ck.manifest_path.write_text(json.dumps(m))
+    with pytest.raises(CheckpointError, match=rf"trained on {m['device']} and this run would resume it on {here}"):
+        _train(env)
+    assert _train(env, fresh=True).steps == 12  # --fresh starts over
+
+
 def test_truncated_tampered_and_foreign_checkpoints_are_refused(env):
     ck = _train(env)
     weights = ck.weights_path
