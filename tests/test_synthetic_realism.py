@@ -252,6 +252,45 @@ def test_compare_command_with_baselines_on_tiny_data(tmp_path):
 
 # --- world physics version 2 --------------------------------------------------------------------
 
+def _value_noise_reference(p, wavelength, salt=0):
+    """The array form ``value_noise`` had (physics 2-4 were generated with it): every point's
+    eight lattice corners at once. The numba kernel must reproduce it bit for bit, or the
+    realistic domain's bytes (and its cache fingerprint) would change."""
+    def lattice(ix, iy, iz):
+        h = (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791) ^ salt
+        h = (h ^ (h >> 13)) * 1274126177
+        h = h ^ (h >> 16)
+        return ((h & 0xFFFF).astype(np.float64) / 32767.5) - 1.0
+
+    q = np.asarray(p, np.float64) / wavelength
+    i = np.floor(q).astype(np.int64)
+    f = q - i
+    f = f * f * (3 - 2 * f)
+    out = np.zeros(len(q))
+    for dx in (0, 1):
+        wx = f[:, 0] if dx else 1 - f[:, 0]
+        for dy in (0, 1):
+            wy = f[:, 1] if dy else 1 - f[:, 1]
+            for dz in (0, 1):
+                wz = f[:, 2] if dz else 1 - f[:, 2]
+                out += wx * wy * wz * lattice(i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz)
+    return out
+
+
+def test_value_noise_kernel_is_bit_identical_to_the_array_form():
+    rng = np.random.default_rng(11)
+    p = np.concatenate([rng.uniform(-300, 300, (20000, 3)), rng.normal(0, 2, (2000, 3)),
+                        np.array([[0.0, 0.0, 0.0], [-0.5, 1e-12, -1e-12], [1e6, -1e6, 3.0]])])
+    for lam, salt in ((0.4, 1), (0.5 / 3.7, 2), (0.2, 170), (3.0, 5)):
+        assert np.array_equal(R.value_noise(p, lam, salt), _value_noise_reference(p, lam, salt)), (lam, salt)
+    assert R.value_noise(np.zeros((0, 3)), 0.4, 1).shape == (0,)
+    hand = _value_noise_reference(np.array([[0.25, 0.0, 0.0]]), 1.0, 7)  # between two lattice points
+    s = 0.25 * 0.25 * (3 - 2 * 0.25)  # the smooth step at 0.25
+    lat = R._lattice(np.array([0, 1]), np.array([0, 0]), np.array([0, 0]), 7)
+    assert hand[0] == pytest.approx((1 - s) * lat[0] + s * lat[1], abs=1e-15)
+    assert R.value_noise(np.array([[0.25, 0.0, 0.0]]), 1.0, 7)[0] == hand[0]
+
+
 def test_value_noise_is_a_smooth_deterministic_field():
     p = np.random.default_rng(1).uniform(-50, 50, (2000, 3))
     a = R.value_noise(p, 0.5, salt=3)
@@ -273,6 +312,23 @@ def test_surface_displacement_by_class():
     g = R.surface_displacement(p, np.full(500, GROUND), R.REALISM)
     amp = dict((c, a) for c, a, _ in R.REALISM.roughness)[GROUND]
     assert 0 < np.abs(g).max() <= amp + 1e-12
+
+
+def test_farther_than_the_road_is_the_unbounded_distance_compared():
+    from pcfbench.datasets.synthetic.world import TOWN, Ground, make_road_graph
+
+    rng = np.random.default_rng(4)
+    ground = Ground(TOWN, make_road_graph(TOWN, rng), rng)
+    dense = ground.tree.data
+    xy = np.concatenate([rng.uniform(dense.min(0) - 30, dense.max(0) + 30, (20000, 2)), dense[:50]])
+    limit = ground.half_road + TOWN.sidewalk_m
+    exact = ground.road_distance(xy[:, 0], xy[:, 1])
+    on_limit = dense[:3] + np.array([0.0, limit])  # straight off a centre-line point, at the limit or nearer
+    for pts in (xy, on_limit):
+        want = ground.road_distance(pts[:, 0], pts[:, 1]) > limit
+        assert np.array_equal(ground.farther_than(pts[:, 0], pts[:, 1], limit), want)
+    assert 0.2 < (exact > limit).mean() < 0.98 and not ground.farther_than(dense[:50, 0], dense[:50, 1], limit).any()
+    assert ground.farther_than(xy[:6, 0].reshape(2, 3), xy[:6, 1].reshape(2, 3), limit).shape == (2, 3)
 
 
 def test_column_times_and_pose_interpolation():

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numba as nb
 import numpy as np
 import open3d as o3d
 
@@ -127,21 +128,41 @@ def _lattice(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.nd
     return ((h & 0xFFFF).astype(np.float64) / 32767.5) - 1.0
 
 
-def value_noise(p: np.ndarray, wavelength: float, salt: int = 0) -> np.ndarray:
-    """Trilinearly interpolated lattice noise at points ``p`` (N, 3), about in [-1, 1]."""
-    q = np.asarray(p, np.float64) / wavelength
-    i = np.floor(q).astype(np.int64)
-    f = q - i
-    f = f * f * (3 - 2 * f)  # smooth step
-    out = np.zeros(len(q))
-    for dx in (0, 1):
-        wx = f[:, 0] if dx else 1 - f[:, 0]
-        for dy in (0, 1):
-            wy = f[:, 1] if dy else 1 - f[:, 1]
-            for dz in (0, 1):
-                wz = f[:, 2] if dz else 1 - f[:, 2]
-                out += wx * wy * wz * _lattice(i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz, salt)
+@nb.njit(cache=True, nogil=True)
+def _value_noise_kernel(p, wavelength, salt):
+    """``value_noise`` one point at a time: the same float64 operations in the same order as the
+    array form it replaced (tests/test_synthetic_realism.py keeps that form as the reference
+    and checks bit equality), without its eight corners' temporaries (about 9x faster)."""
+    out = np.zeros(p.shape[0])
+    for n in range(p.shape[0]):
+        qx, qy, qz = p[n, 0] / wavelength, p[n, 1] / wavelength, p[n, 2] / wavelength
+        ix, iy, iz = np.int64(np.floor(qx)), np.int64(np.floor(qy)), np.int64(np.floor(qz))
+        fx, fy, fz = qx - ix, qy - iy, qz - iz
+        fx = fx * fx * (3 - 2 * fx)  # smooth step
+        fy = fy * fy * (3 - 2 * fy)
+        fz = fz * fz * (3 - 2 * fz)
+        acc = 0.0
+        for dx in range(2):
+            wx = fx if dx else 1 - fx
+            for dy in range(2):
+                wy = fy if dy else 1 - fy
+                for dz in range(2):
+                    wz = fz if dz else 1 - fz
+                    h = ((ix + dx) * np.int64(73856093)) ^ ((iy + dy) * np.int64(19349663)) \
+                        ^ ((iz + dz) * np.int64(83492791)) ^ salt
+                    h = (h ^ (h >> 13)) * np.int64(1274126177)
+                    h = h ^ (h >> 16)
+                    acc += wx * wy * wz * ((h & 0xFFFF) / 32767.5 - 1.0)
+        out[n] = acc
     return out
+
+
+def value_noise(p: np.ndarray, wavelength: float, salt: int = 0) -> np.ndarray:
+    """Trilinearly interpolated lattice noise at points ``p`` (N, 3), about in [-1, 1]: the
+    ``_lattice`` values at the 8 corners of each point's lattice cell, weighted by the smooth
+    step of its position in the cell."""
+    q = np.ascontiguousarray(np.asarray(p, np.float64).reshape(-1, 3))
+    return _value_noise_kernel(q, float(wavelength), np.int64(salt))
 
 
 def _octaves(p: np.ndarray, lam: float, salt: int) -> np.ndarray:
@@ -160,7 +181,7 @@ def surface_displacement(points: np.ndarray, cls: np.ndarray, realism: Realism, 
             out[m] = amp * _octaves(points[m], lam, 17 * c + 1)
     g = np.nonzero(cls == GROUND)[0]
     if ground is not None and len(g):
-        verge = ground.road_distance(points[g, 0], points[g, 1]) > ground.half_road + ground.style.sidewalk_m
+        verge = ground.farther_than(points[g, 0], points[g, 1], ground.half_road + ground.style.sidewalk_m)
         if verge.any():
             amp, lam = realism.verge_roughness
             out[g[verge]] = amp * _octaves(points[g[verge]], lam, 5)

@@ -365,6 +365,13 @@ class Ground:
     def road_distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return self.tree.query(np.stack([np.ravel(x), np.ravel(y)], axis=1))[0].reshape(np.shape(x))
 
+    def farther_than(self, x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
+        """``road_distance(x, y) > distance``, from a KD-tree search bounded just past
+        ``distance`` (about 2x faster: points beyond it end their search early)."""
+        bound = distance * (1 + 1e-9) + 1e-9  # every point within ``distance`` still gets its exact distance
+        d = self.tree.query(np.stack([np.ravel(x), np.ravel(y)], axis=1), distance_upper_bound=bound)[0]
+        return (d > distance).reshape(np.shape(x))
+
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         d = self.road_distance(x, y)
         curb = self.style.curb_m * np.clip((d - self.half_road) / 0.2, 0.0, 1.0)

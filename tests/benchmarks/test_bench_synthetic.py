@@ -19,7 +19,7 @@ FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
 SWEEPS = 30 if FULL else 3
 
 
-@pytest.mark.parametrize("name", ["synthetic-town", "synthetic-suburb"])
+@pytest.mark.parametrize("name", ["synthetic-town", "synthetic-suburb", "synthetic-town-realistic"])
 def test_bench_generate_sequence(benchmark, name, tmp_path):
     dom = dataclasses.replace(get_domain(name), splits={"test": (("05", SWEEPS),)})
     counter = iter(range(10**6))
