@@ -320,7 +320,9 @@ def test_a_sample_running_past_the_timeout_is_one_failed_sample_and_the_rest_of_
     markers = tmp_path / "markers"
     markers.mkdir()
     hung = "08/000012"  # index 4: shard [3, 6) is published as [3, 5) by the watchdog, then [5, 6) by Ray's retry
-    out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3, "--timeout", "3", hang=hung), capture_output=True,
+    # 15 s: the hung sample sleeps an hour, and a 3 s limit failed every sample of a run on a
+    # 2-core machine loaded by two other jobs (each took over 3 s there)
+    out = subprocess.run(_probe_args(root, tmp_path, markers, 6, 3, "--timeout", "15", hang=hung), capture_output=True,
                          text=True, env=_env(tmp_path), timeout=600)
     assert out.returncode == 1, out.stdout + out.stderr
     assert "6 samples (6 now, 1 failed)" in out.stdout, out.stdout
@@ -332,7 +334,7 @@ def test_a_sample_running_past_the_timeout_is_one_failed_sample_and_the_rest_of_
     assert not rows.duplicated(KEY).any() and rows["sample_id"].nunique() == 6
     bad = rows[rows["status"] == "failed"]
     assert list(bad["sample_id"]) == [hung]
-    assert bad["error"].iloc[0] == f"SampleTimeout: sample {hung}: it ran past the time limit of 3 s on its Ray worker"
+    assert bad["error"].iloc[0] == f"SampleTimeout: sample {hung}: it ran past the time limit of 15 s on its Ray worker"
     assert (rows["status"] == "ok").sum() == 5 * 5
 
 
