@@ -286,7 +286,7 @@ def test_value_noise_kernel_is_bit_identical_to_the_array_form():
     assert R.value_noise(np.zeros((0, 3)), 0.4, 1).shape == (0,)
     hand = _value_noise_reference(np.array([[0.25, 0.0, 0.0]]), 1.0, 7)  # between two lattice points
     s = 0.25 * 0.25 * (3 - 2 * 0.25)  # the smooth step at 0.25
-    lat = R._lattice(np.array([0, 1]), np.array([0, 0]), np.array([0, 0]), 7)
+    lat = [R._lattice(0, 0, 0, 7), R._lattice(1, 0, 0, 7)]
     assert hand[0] == pytest.approx((1 - s) * lat[0] + s * lat[1], abs=1e-15)
     assert R.value_noise(np.array([[0.25, 0.0, 0.0]]), 1.0, 7)[0] == hand[0]
 
@@ -300,7 +300,7 @@ def test_value_noise_is_a_smooth_deterministic_field():
     near = R.value_noise(p + 1e-3, 0.5, salt=3)
     assert np.max(np.abs(near - a)) < 0.05  # continuous
     lattice = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]])  # at lattice points: the lattice value itself
-    assert np.allclose(R.value_noise(lattice, 1.0, 7), R._lattice(lattice[:, 0], lattice[:, 1], lattice[:, 2], 7))
+    assert np.allclose(R.value_noise(lattice, 1.0, 7), [R._lattice(*map(int, q), 7) for q in lattice])
 
 
 def test_surface_displacement_by_class():

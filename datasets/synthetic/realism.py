@@ -120,12 +120,14 @@ REALISM = Realism()
 
 # --- smooth value noise of position --------------------------------------------------------------
 
-def _lattice(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, salt: int) -> np.ndarray:
-    """A deterministic value in [-1, 1] per integer lattice point (a hash, no random state)."""
-    h = (ix.astype(np.int64) * 73856093) ^ (iy.astype(np.int64) * 19349663) ^ (iz.astype(np.int64) * 83492791) ^ salt
-    h = (h ^ (h >> 13)) * 1274126177
+@nb.njit(cache=True, nogil=True, inline="always")
+def _lattice(ix, iy, iz, salt):
+    """A deterministic value in [-1, 1] for the integer lattice point (ix, iy, iz) (a hash of
+    int64s that wrap on overflow, no random state)."""
+    h = (ix * np.int64(73856093)) ^ (iy * np.int64(19349663)) ^ (iz * np.int64(83492791)) ^ salt
+    h = (h ^ (h >> 13)) * np.int64(1274126177)
     h = h ^ (h >> 16)
-    return ((h & 0xFFFF).astype(np.float64) / 32767.5) - 1.0
+    return (h & 0xFFFF) / 32767.5 - 1.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -148,11 +150,7 @@ def _value_noise_kernel(p, wavelength, salt):
                 wy = fy if dy else 1 - fy
                 for dz in range(2):
                     wz = fz if dz else 1 - fz
-                    h = ((ix + dx) * np.int64(73856093)) ^ ((iy + dy) * np.int64(19349663)) \
-                        ^ ((iz + dz) * np.int64(83492791)) ^ salt
-                    h = (h ^ (h >> 13)) * np.int64(1274126177)
-                    h = h ^ (h >> 16)
-                    acc += wx * wy * wz * ((h & 0xFFFF) / 32767.5 - 1.0)
+                    acc += wx * wy * wz * _lattice(ix + dx, iy + dy, iz + dz, salt)
         out[n] = acc
     return out
 

@@ -362,15 +362,16 @@ class Ground:
         return self.style.slope_amp_m * (0.6 * np.sin(self.k * x + p[0]) * np.cos(0.7 * self.k * y + p[1])
                                          + 0.4 * np.sin(0.5 * self.k * (x + y) + p[2]))
 
-    def road_distance(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return self.tree.query(np.stack([np.ravel(x), np.ravel(y)], axis=1))[0].reshape(np.shape(x))
+    def road_distance(self, x: np.ndarray, y: np.ndarray, bound: float = np.inf) -> np.ndarray:
+        """Distance of each point to the nearest road centre line; inf for those farther than
+        ``bound`` (a bounded KD-tree search ends early for them)."""
+        xy = np.stack([np.ravel(x), np.ravel(y)], axis=1)
+        return self.tree.query(xy, distance_upper_bound=bound)[0].reshape(np.shape(x))
 
     def farther_than(self, x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
-        """``road_distance(x, y) > distance``, from a KD-tree search bounded just past
-        ``distance`` (about 2x faster: points beyond it end their search early)."""
+        """``road_distance(x, y) > distance``, searched only just past ``distance`` (about 2x faster)."""
         bound = distance * (1 + 1e-9) + 1e-9  # every point within ``distance`` still gets its exact distance
-        d = self.tree.query(np.stack([np.ravel(x), np.ravel(y)], axis=1), distance_upper_bound=bound)[0]
-        return (d > distance).reshape(np.shape(x))
+        return self.road_distance(x, y, bound) > distance
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         d = self.road_distance(x, y)
