@@ -134,7 +134,7 @@ def _lattice(ix, iy, iz, salt):
 def _value_noise_kernel(p, wavelength, salt):
     """``value_noise`` one point at a time: the same float64 operations in the same order as the
     array form it replaced (tests/test_synthetic_realism.py keeps that form as the reference
-    and checks bit equality), without its eight corners' temporaries (about 9x faster)."""
+    and checks bit equality), without its eight corners' temporaries (12x faster on 110k points)."""
     out = np.zeros(p.shape[0])
     for n in range(p.shape[0]):
         qx, qy, qz = p[n, 0] / wavelength, p[n, 1] / wavelength, p[n, 2] / wavelength
