@@ -281,27 +281,28 @@ def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progr
 @click.option("--max-minutes", type=click.FloatRange(min=0), default=None,
               help="Stop (with a checkpoint) after this much training time; rerun to continue.")
 @click.option("--fresh", is_flag=True, help="Start over instead of resuming the checkpoint.")
+@click.option("--threads", type=click.IntRange(min=1), default=None,
+              help="CPU threads of the training (default: every CPU); recorded in the manifest, and a resumed "
+                   "training must keep the count it started with (the weights' rounding depends on it).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 @click.option("--ship", is_flag=True, help="Then copy the complete checkpoint into the method's package (float16 "
               "weights, docs/training.md#shipped-checkpoints).")
-def train(method_spec, dataset, split, max_minutes, fresh, quiet, ship):
+def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship):
     """Train (or resume) a trained method; its checkpoint goes to the cache, keyed by method,
     version, options and training data."""
     from pcfbench.method import resolve_method
-    from pcfbench.training import open_training_data, ship as ship_checkpoint, train as train_method
+    from pcfbench.training import open_training_data, retrain_command, ship as ship_checkpoint, train as train_method
 
     plugins = get_plugins()
     warn_failed(plugins)
     spec = resolve_method(method_spec, plugins)
     ck = train_method(spec, dataset, split=split, max_minutes=max_minutes, fresh=fresh, progress=not quiet,
-                      plugins=plugins, log=click.echo)
+                      plugins=plugins, threads=threads, log=click.echo)
     state = "complete" if ck.manifest.get("complete") else "not finished: rerun the same command to continue"
     click.echo(f"{spec.name}: {ck.steps} steps on {ck.train_on_label} in {ck.manifest['wall_s']:.0f} s ({state})")
     click.echo(f"checkpoint: {ck.manifest_path} (weights sha256 {ck.sha256[:16]})")
     if ship:
-        opts = ",".join(f"{k}={v}" for k, v in sorted(spec.raw.items()))
-        retrain = (f"pcfbench train {spec.name}{':' + opts if opts else ''} --dataset {dataset}"
-                   f"{'' if split == 'train' else ' --split ' + split} --fresh --ship")
+        retrain = retrain_command(spec, dataset, split, ck.manifest)
         ship_checkpoint(spec, ck, open_training_data(dataset, split, plugins, progress=False).train_on, retrain,
                         log=click.echo)
 

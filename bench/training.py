@@ -371,6 +371,17 @@ def find_shipped(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
     return ck
 
 
+def retrain_command(spec: MethodSpec, dataset: str, split: str, manifest: Mapping[str, Any]) -> str:
+    """The ``pcfbench train`` command that rebuilds a checkpoint with this ``manifest``, for its
+    shipped copy: the method with the options it was given, the data, and on the CPU the thread
+    count it trained with (the weights' rounding depends on it, so that reproduces the bits)."""
+    opts = ",".join(f"{k}={v}" for k, v in sorted(spec.raw.items()))
+    threads = manifest.get("threads") if manifest.get("device") == "cpu" else None
+    return (f"pcfbench train {spec.name}{':' + opts if opts else ''} --dataset {dataset}"
+            f"{'' if split == DEFAULT_SPLIT else ' --split ' + split}{f' --threads {threads}' if threads else ''}"
+            " --fresh --ship")
+
+
 def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: str, log=print) -> Checkpoint:
     """Copy a complete ``checkpoint`` of ``spec`` into the method's package
     (:func:`shipped_dir`): weights cast to float16, no optimiser state, a manifest that
@@ -497,7 +508,8 @@ class TrainingRun:
     """
 
     def __init__(self, spec: MethodSpec, train_on: TrainOn, out_dir: Path, *, max_minutes: float | None = None,
-                 fresh: bool = False, progress: bool = True, device: str = "cpu", log=print) -> None:
+                 fresh: bool = False, progress: bool = True, device: str = "cpu", threads: int = 1,
+                 log=print) -> None:
         self.spec = spec
         self.train_on = train_on
         self.out_dir = Path(out_dir)
@@ -505,6 +517,9 @@ class TrainingRun:
         self.fresh = fresh
         self.show = progress
         self.device = device
+        #: the thread budget ``fit`` runs under (``pcfbench train --threads``; the harness has
+        #: applied it to torch, numba and the BLAS libraries): recorded in the manifest
+        self.threads = threads
         self.log = log
         self._t0 = time.monotonic()
         self._c0 = time.process_time()
@@ -529,6 +544,12 @@ class TrainingRun:
         if had != self.device:  # other numerics and RNG streams: the resumed curve would not be the one it continues
             raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on {had} and this run would resume "
                                   f"it on {self.device}; resume it where it was trained, or rerun with --fresh")
+        had = ck.manifest.get("threads")  # unrecorded before the thread budget was (2026-11-26)
+        if self.device == "cpu" and had is not None and had != self.threads:
+            # a matrix product cut over another number of threads rounds differently: the resumed
+            # curve would drift from the one it continues (measured: 1e-7 at step 10, 1e-5 at 100)
+            raise CheckpointError(f"checkpoint {ck.manifest_path} was trained with {had} CPU threads and this run "
+                                  f"has {self.threads}; resume it with --threads {had}, or rerun with --fresh")
         self._base_wall = float(ck.manifest.get("wall_s", 0.0))
         self._base_cpu = float(ck.manifest.get("cpu_s", 0.0))
         self._created = ck.manifest.get("created", self._created)
@@ -601,6 +622,7 @@ class TrainingRun:
             "wall_s": round(self._base_wall + self.elapsed_s(), 3),
             "cpu_s": round(self._base_cpu + time.process_time() - self._c0, 3),
             "device": self.device,
+            "threads": self.threads,
             "torch": torch.__version__,
             "git_commit": git_commit(),
             "weights": files["weights"][0],
@@ -662,8 +684,16 @@ class TrainedMethod(Method):
 
 # -- the driver -------------------------------------------------------------------------------------
 def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_minutes: float | None = None,
-          fresh: bool = False, progress: bool = True, plugins: Plugins | None = None, log=print) -> Checkpoint:
-    """Train (or resume) ``spec`` on ``dataset`` (``NAME[=ROOT]``) ``split``; returns the checkpoint."""
+          fresh: bool = False, progress: bool = True, plugins: Plugins | None = None, threads: int | None = None,
+          log=print) -> Checkpoint:
+    """Train (or resume) ``spec`` on ``dataset`` (``NAME[=ROOT]``) ``split``; returns the checkpoint.
+
+    ``fit`` runs under a budget of ``threads`` CPU threads (default: every CPU this process may
+    use), applied to torch, numba and the BLAS libraries for its duration and recorded in the
+    manifest. The weights depend on it (float sums cut differently), not the checkpoint's
+    identity: a resumed run must use the count it started with."""
+    from pcfbench.execution import ExecutionContext, applied
+
     if not is_trained(spec.cls):
         raise PcfbenchError(f"method {spec.name!r} does not train (it is not a pcfbench.TrainedMethod)")
     source = open_training_data(dataset, split, plugins, progress)
@@ -684,11 +714,13 @@ def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_min
                 log(f"{spec.name}: {out} is complete ({ck.steps} steps); --fresh trains it again")
                 return ck
         device = "cuda" if _cuda() else "cpu"
+        context = ExecutionContext(threads) if threads else ExecutionContext()
         run = TrainingRun(spec, source.train_on, out, max_minutes=max_minutes, fresh=fresh, progress=progress,
-                          device=device, log=log)
+                          device=device, threads=context.threads, log=log)
         method = spec.create()
         try:
-            method.fit(source, out, run)
+            with applied(context):
+                method.fit(source, out, run)
         finally:
             run.close()
     if run.saved_steps is None:

@@ -144,6 +144,8 @@ def test_every_shipped_checkpoint_verifies_and_loads(manifest_path):
     assert {"dataset", "split", "fingerprint"} <= set(m["train_on"])
     assert {"from_weights_sha256", "data_sha256", "retrain"} <= set(m["shipped"])
     assert m["shipped"]["retrain"].startswith(f"pcfbench train {m['method']}") and "--ship" in m["shipped"]["retrain"]
+    if m["device"] == "cpu" and m.get("threads"):  # the command that rebuilds the bits names the thread count
+        assert f"--threads {m['threads']} " in m["shipped"]["retrain"]
     ck = Checkpoint.open(manifest_path.parent)  # sha256 of the weights
     # the options as the command line gives them (a tuple option's items joined by "/")
     raw_options = {k: "/".join(map(str, v)) if isinstance(v, list) else str(v) for k, v in m["options"].items()}

@@ -69,7 +69,8 @@ class ToyTrained(pcfbench.TrainedMethod):
             progress.update(1, loss=history[-1]["loss"])
             if step % self.options.save_every == 0 or step == total or progress.should_stop():
                 progress.save(step, {"w": w}, {"history": history, "numpy_rng": rng.bit_generator.state,
-                                               "torch_rng": torch.get_rng_state()}, complete=step == total)
+                                               "torch_rng": torch.get_rng_state(),
+                                               "torch_threads": torch.get_num_threads()}, complete=step == total)
             time.sleep(sleep)
 
     def load(self, checkpoint):
@@ -190,6 +191,38 @@ def test_resuming_on_another_device_is_refused(env):
     with pytest.raises(CheckpointError, match=rf"trained on {m['device']} and this run would resume it on {here}"):
         _train(env)
     assert _train(env, fresh=True).steps == 12  # --fresh starts over
+
+
+def test_training_runs_under_its_thread_budget_and_resumes_only_with_the_same(env):
+    """``--threads``: fit runs with torch pinned to the budget (then it is put back), the manifest
+    records it, and a resume with another count is refused (the rounding of the weights, and so
+    the curve it continues, depend on it)."""
+    import torch
+
+    before = torch.get_num_threads()
+    ck = _train(env, max_minutes=0, threads=1)
+    assert ck.manifest["threads"] == 1 and ck.load_state()["torch_threads"] == 1
+    assert torch.get_num_threads() == before
+    with pytest.raises(CheckpointError, match=r"trained with 1 CPU threads and this run has 2; resume it with "
+                                              r"--threads 1, or rerun with --fresh"):
+        _train(env, threads=2)
+    done = _train(env, threads=1)
+    assert done.steps == 12 and done.manifest["complete"] and done.manifest["threads"] == 1
+    again = _train(env, fresh=True, threads=2)
+    assert again.manifest["threads"] == 2 and again.load_state()["torch_threads"] == 2
+
+
+def test_the_retrain_command_names_options_split_and_cpu_threads(env):
+    from pcfbench.training import retrain_command
+
+    spec = resolve_method("toy-trained:steps=5,lr=0.2", env.plugins)
+    assert retrain_command(spec, "kitti=/d", "train", {"device": "cpu", "threads": 3}) == (
+        "pcfbench train toy-trained:lr=0.2,steps=5 --dataset kitti=/d --threads 3 --fresh --ship")
+    plain = resolve_method("toy-trained", env.plugins)
+    assert retrain_command(plain, "kitti", "val", {"device": "cuda", "threads": 3}) == (
+        "pcfbench train toy-trained --dataset kitti --split val --fresh --ship")  # a GPU's bits: not the CPU's threads
+    assert retrain_command(plain, "kitti", "train", {"device": "cpu"}) == (
+        "pcfbench train toy-trained --dataset kitti --fresh --ship")  # not recorded (before 2026-11-26)
 
 
 def test_truncated_tampered_and_foreign_checkpoints_are_refused(env):

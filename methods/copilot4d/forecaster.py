@@ -313,9 +313,7 @@ class Copilot4D(TrainedMethod):
         from pcfbench.methods.copilot4d.train import default_device, load_tokenizer
         from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
 
-        device = default_device()
-        if device.type == "cpu":
-            torch.set_num_threads(1)  # the most steps per CPU-second on this machine (as the tokenizer)
+        device = default_device()  # CPU threads: the harness applied `pcfbench train --threads` (every CPU)
         resumed = progress.resume()
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
         tokenizer = load_tokenizer(tok_ck, device)

@@ -38,10 +38,9 @@ class TokenCopy(TrainedMethod):
     version = "3"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m); 3: tiny has 64 x 64 tokens (2.5 m)
     Options = TokenCopyOptions
     inference_options = tuple(f.name for f in fields(RenderingOptions))
-    # Measured on the 2-core development machine (tiny config, 1 thread, synthetic-town train,
-    # another one-thread job on the second core): 1200 steps in 1641 s wall, 1600 s CPU
-    # (1.33 CPU-s/step; version 2's 32 x 32 tokens took 0.46).
-    training_time = "about 27 min for the tiny configuration on a 2-core CPU (1200 steps, 1641 s measured)"
+    # Measured on the idle 2-core development machine (tiny config, synthetic-town train, both
+    # threads, 2026-11-26): 1200 steps in 966 s; on one thread beside another job, 1641 s.
+    training_time = "about 16 min for the tiny configuration on a 2-core CPU (1200 steps, 966 s measured)"
 
     def __init__(self, options: TokenCopyOptions | None = None) -> None:
         super().__init__(options)
@@ -56,14 +55,10 @@ class TokenCopy(TrainedMethod):
         return self.options.steps or self.cfg.max_steps
 
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
-        import torch
-
         from pcfbench.methods.copilot4d.data import SweepSource
         from pcfbench.methods.copilot4d.train import default_device, train, write_curve
 
-        device = default_device()
-        if device.type == "cpu":  # one thread: the most steps per CPU-second (a second one adds little here)
-            torch.set_num_threads(1)
+        device = default_device()  # CPU threads: the harness applied `pcfbench train --threads` (every CPU)
         source = SweepSource(train_source.adapter, train_source.split)
         progress.log(f"tokenizer {self.cfg.name}: {len(source)} {train_source.split} sweeps of "
                      f"{train_source.adapter.name}, device {device}, checkpoint {out_dir}")
