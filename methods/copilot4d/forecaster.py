@@ -266,7 +266,10 @@ class Copilot4D(TrainedMethod):
     version = "1"
     Options = WorldOptions
     variant_name = "copilot4d"
-    training_time = "about 45 min for the tiny configuration on a 2-core CPU (plus its tokenizer's training)"
+    # Both threads of the idle 2-core machine (2026-11-26): the 216 windows tokenized in 254 s, then
+    # 1.9-2.2 s a step (600 steps on one thread beside other jobs: 2605 s in all)
+    training_time = ("about 25 min for the tiny configuration on a 2-core CPU (4 min of tokenizing, 600 steps "
+                     "at about 2 s), plus its tokenizer's training")
     inference_options = ("cfg_weight", "sampling_steps", "seed", *(f.name for f in fields(RenderingOptions)))
 
     def __init__(self, options: WorldOptions | None = None) -> None:
