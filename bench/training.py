@@ -508,7 +508,7 @@ class TrainingRun:
     """
 
     def __init__(self, spec: MethodSpec, train_on: TrainOn, out_dir: Path, *, max_minutes: float | None = None,
-                 fresh: bool = False, progress: bool = True, device: str = "cpu", threads: int = 1,
+                 fresh: bool = False, progress: bool = True, device: str = "cpu", threads: int | None = None,
                  log=print) -> None:
         self.spec = spec
         self.train_on = train_on
@@ -517,8 +517,9 @@ class TrainingRun:
         self.fresh = fresh
         self.show = progress
         self.device = device
-        #: the thread budget ``fit`` runs under (``pcfbench train --threads``; the harness has
-        #: applied it to torch, numba and the BLAS libraries): recorded in the manifest
+        #: the thread budget ``fit`` runs under (``pcfbench train --threads``; :func:`train` has
+        #: applied it to torch, numba and the BLAS libraries), recorded in the manifest; None
+        #: where no budget was applied (a run made outside :func:`train`): not recorded
         self.threads = threads
         self.log = log
         self._t0 = time.monotonic()
@@ -545,7 +546,7 @@ class TrainingRun:
             raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on {had} and this run would resume "
                                   f"it on {self.device}; resume it where it was trained, or rerun with --fresh")
         had = ck.manifest.get("threads")  # unrecorded before the thread budget was (2026-11-26)
-        if self.device == "cpu" and had is not None and had != self.threads:
+        if self.device == "cpu" and None not in (had, self.threads) and had != self.threads:
             # a matrix product cut over another number of threads rounds differently: the resumed
             # curve would drift from the one it continues (measured: 1e-7 at step 10, 1e-5 at 100)
             raise CheckpointError(f"checkpoint {ck.manifest_path} was trained with {had} CPU threads and this run "
@@ -622,7 +623,7 @@ class TrainingRun:
             "wall_s": round(self._base_wall + self.elapsed_s(), 3),
             "cpu_s": round(self._base_cpu + time.process_time() - self._c0, 3),
             "device": self.device,
-            "threads": self.threads,
+            **({"threads": self.threads} if self.threads is not None else {}),
             "torch": torch.__version__,
             "git_commit": git_commit(),
             "weights": files["weights"][0],
