@@ -14,6 +14,9 @@
 # the real cache ($PCFBENCH_CACHE or ~/.cache/pcfbench), which must hold them
 # (`pcfbench train copilot4d-token-copy --dataset synthetic-town` first); the world model's
 # token windows are linked too, so a fresh cache builds them once for both.
+# TOP_K=k samples x0 among the top k logits instead of Algorithm 2's 3 (1: the arg max); the
+# results store is keyed by the method's options, which do not include it, so give each k a
+# store of its own (STORE=FOLDER; default $WORK/store).
 # Results of 2026-11-26: docs/copilot4d.md, "Twice the steps".
 set -euo pipefail
 steps=${1:-1200}
@@ -32,9 +35,15 @@ from dataclasses import replace
 from pcfbench.methods.copilot4d import world_config as wc
 wc.CONFIGS["tiny"] = wc.TINY = replace(wc.TINY, max_steps=$steps, decay_steps=$steps)
 EOF
+if [ -n "${TOP_K:-}" ]; then  # Algorithm 2's x0 among the top TOP_K logits (the paper: 3; 1 = arg max)
+  cat >> "$work/patch/sitecustomize.py" <<EOF
+from pcfbench.methods.copilot4d import diffusion
+diffusion.sample_frame.__wrapped__.__kwdefaults__["top_k"] = $TOP_K
+EOF
+fi
 export PYTHONPATH="$work/patch${PYTHONPATH:+:$PYTHONPATH}" PCFBENCH_CACHE="$work/cache"
 "$py" -m pcfbench train copilot4d --dataset synthetic-town -q
 for s in "${settings[@]}"; do
   "$py" -m pcfbench run -m copilot4d -m copilot4d-token-copy -d synthetic-town -s "$s" -j 2 \
-    --store "$work/store" --reports "$work/reports" -q
+    --store "${STORE:-$work/store}" --reports "$work/reports" -q
 done
