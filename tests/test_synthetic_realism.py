@@ -53,6 +53,47 @@ def test_coverage_counts_filled_cells():
     assert C.coverage(pts) == pytest.approx(2 / (360 * 52))
 
 
+def test_free_space_violations_hand_case():
+    # the earlier sweep: a wall 20 m away around azimuth 0 at elevation 0 (bins of 0.2 x 0.4 deg)
+    earlier = _at([0.1, 0.1, 0.1], [0.1, 0.3, -0.1], r=20.0)
+    later = np.concatenate([
+        _at([0.1], [0.1], r=10.0),   # 10 m in front of the wall: violates
+        _at([0.1], [0.5], r=18.5),   # two bins over from the return at 0.3 deg, 1.5 m in front: violates
+        _at([0.1], [0.1], r=19.5),   # 0.5 m in front: within the margin, judged, no violation
+        _at([0.1], [0.1], r=25.0),   # behind the wall: judged, no violation
+        _at([0.1], [0.7], r=10.0),   # three bins from every return (azimuth 0.7 deg): not judged
+        _at([0.1], [0.1], r=2.0),    # nearer than 3 m: not judged
+        _at([0.1], [0.1], r=45.0),   # farther than 40 m: not judged
+    ])
+    later = np.concatenate([later, [[10.0, 0.0, -1.5]]])  # on the ground (z below -1.2 m): not judged
+    judged, viol = C.free_space_violations(earlier, later)
+    assert judged.tolist() == [True, True, True, True, False, False, False, False]
+    assert viol.tolist() == [True, True, False, False, False, False, False, False]
+    # azimuth wraps: a return at -179.9 deg neighbours a point at +179.9 deg
+    j, v = C.free_space_violations(_at([0.1], [-179.9], r=30.0), _at([0.1], [179.9], r=10.0))
+    assert j.tolist() == [True] and v.tolist() == [True]
+
+
+def test_free_space_violations_match_a_brute_force_reference():
+    rng = np.random.default_rng(3)
+    earlier = _at(rng.uniform(-3, 3, 400), rng.uniform(-8, 8, 400), r=rng.uniform(3, 30, 400))
+    later = _at(rng.uniform(-3, 3, 300), rng.uniform(-8, 8, 300), r=rng.uniform(2, 45, 300))
+    judged, viol = C.free_space_violations(earlier, later)
+    n_az = int(round(360 / C.FREE_AZ_DEG))
+    ea, ee, ein = C.range_image_bins(earlier)
+    la, le, lin = C.range_image_bins(later)
+    er = np.linalg.norm(earlier, axis=1)
+    for k, p in enumerate(later):
+        r = np.linalg.norm(p)
+        da = np.abs(ea - la[k]) % n_az
+        close = ein & (np.minimum(da, n_az - da) <= 1) & (np.abs(ee - le[k]) <= 1)
+        nearest = er[close].min() if close.any() else np.inf
+        want = bool(lin[k] and 3.0 <= r < 40.0 and p[2] > C.FREE_ABOVE_M and np.isfinite(nearest))
+        assert judged[k] == want, k
+        assert viol[k] == (want and r <= nearest - C.FREE_MARGIN_M), k
+    assert viol.sum() > 10 and (judged & ~viol).sum() > 10  # the random case holds both kinds
+
+
 def test_voxel_thin_keeps_the_first_point_per_cube():
     pts = np.array([[0.01, 0.01, 0.0], [0.1, 0.1, 0.1], [0.2, 0.0, 0.0], [-0.01, 0.0, 0.0]])
     assert C.voxel_thin(pts, 0.15).tolist() == [pts[0].tolist(), pts[2].tolist(), pts[3].tolist()]
@@ -168,6 +209,7 @@ def test_measure_counts_the_points_of_the_chosen_sweeps(tmp_path):
     assert st.sweeps == 2 and st.points == expect
     assert st.range_hist.sum() == sum(expect)
     assert st.moving == []  # no labels: unknown, not zero
+    assert st.free_space == []  # the tiny KITTI's sweeps are 0.1 s apart and 5 long: none 0.45-0.55 s after another
     summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
     assert np.isnan(summary["moving-object points (fraction)"])
     # every roughness plane has its normal, and level / vertical are shares of those planes
@@ -175,6 +217,29 @@ def test_measure_counts_the_points_of_the_chosen_sweeps(tmp_path):
     nz = np.concatenate(st.normal_z)
     assert summary["level surfaces (share of planes)"] == pytest.approx((nz > C.LEVEL_NZ).mean())
     assert summary["vertical surfaces (share of planes)"] == pytest.approx((nz < C.WALL_NZ).mean())
+
+
+def test_measure_judges_free_space_against_the_sweep_half_a_second_later(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.geometry import transform_points
+    from pcfbench.protocol import MIN_RANGE_M
+
+    ad = KittiOdometry(write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=8))
+    seq = ad.sequence("08")
+    gaps = np.diff(seq.timestamps_ns) / 1e9
+    assert np.allclose(gaps, gaps[0]) and round(C.MOVING_GAP_S / gaps[0]) == 5
+    st = C.measure(ad, "test", 2, "tiny", C.beam_edges([0.0, -1.0, -3.0]))  # sweeps 0 and 6: only 0 has one 5 later
+    a = np.asarray(seq.load_points(0), np.float64)
+    a = a[~ad.ego_box.inside(a) & (np.linalg.norm(a, axis=1) > MIN_RANGE_M)]
+    b = np.asarray(seq.load_points(5), np.float64)
+    b = b[~ad.ego_box.inside(b)]
+    judged, viol = C.free_space_violations(a, transform_points(np.linalg.inv(seq.T_world_sensor[0]) @ seq.T_world_sensor[5], b))
+    assert st.free_space == [(int(viol.sum()), int(judged.sum()))] and judged.sum() > 0
+    assert st.free_space_moving == []  # no labels
+    summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
+    assert summary["free-space violations at 0.5 s (fraction)"] == pytest.approx(viol.sum() / judged.sum())
+    assert np.isnan(summary["free-space violations on labelled moving objects (share)"])
 
 
 @pytest.mark.slow
@@ -185,7 +250,7 @@ def test_compare_command_statistics_only(tmp_path):
     cli = build_cli()
 
     syn = tmp_path / "syn"
-    generate_domain(_tiny_domain(sweeps=4), syn, progress=False, splits=("test",))
+    generate_domain(_tiny_domain(sweeps=7), syn, progress=False, splits=("test",))  # sweep 0 has one 0.5 s later
     real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=6)
     out = tmp_path / "out"
     res = CliRunner().invoke(cli, ["synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}",
@@ -195,6 +260,10 @@ def test_compare_command_statistics_only(tmp_path):
     data = json.loads((out / "realism.json").read_text())
     assert data["synthetic"]["moving-object points (fraction)"] >= 0  # the generator labels its points
     assert np.isnan(data["real"]["moving-object points (fraction)"])  # no labels in the tiny KITTI
+    for side in ("synthetic", "real"):  # both sides judged, labelled or not
+        assert 0 <= data[side]["free-space violations at 0.5 s (fraction)"] < 0.5
+    assert 0 <= data["synthetic"]["free-space violations on labelled moving objects (share)"] <= 1
+    assert np.isnan(data["real"]["free-space violations on labelled moving objects (share)"])
     rows = {r.split(",")[0]: r.split(",")[1:] for r in (out / "realism.csv").read_text().splitlines()[1:]}
     s, r, q = (float(x) for x in rows["points per sweep"])
     assert q == pytest.approx(s / r)

@@ -16,7 +16,12 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
   neighbourhood to its plane), overall and apart for level (ground-like) and vertical planes,
   and the share of each kind among the fitted planes (what the scene near the road is made of);
 * the fraction of points on moving objects, where labels say so (generated domains, or
-  SemanticKITTI labels ``>= 252``);
+  SemanticKITTI labels ``>= 252``); and, on both sides whether labelled or not, free-space
+  violations: the share of the points of the sweep ``MOVING_GAP_S`` later (above the ground,
+  3-40 m), registered into sweep i by the poses, that lie at least ``FREE_MARGIN_M`` in front
+  of every return of sweep i around their direction, in space sweep i saw empty. Still
+  surfaces seldom do that; moving objects do. It estimates how much moves without labels
+  (where labels exist, the report gives how many of the violations are on moving objects);
 * the ray-drop pattern: per beam, the share of azimuth columns without a return, the column
   count estimated from the fullest beams;
 * the five baselines' flat means of chamfer_nf, l1_median and l1_mean at a setting, and the
@@ -53,7 +58,13 @@ RADIUS_M = 0.6  # neighbours farther than this are not used
 MIN_NEIGHBOURS = 8
 PLANE_RANGE_M = (3.0, 20.0)  # points whose planes are fitted (near enough to be sampled densely)
 QUERIES = 4000  # plane fits per sweep
-LEVEL_NZ, WALL_NZ = 0.9, 0.3  # a plane is level (ground-like) above this normal |z|, vertical below that
+LEVEL_NZ, WALL_NZ = 0.9, 0.3
+MOVING_GAP_S = 0.5  # free-space test: the later sweep is the one nearest this long after sweep i
+FREE_MARGIN_M = 1.0  # a later point this far in front of what sweep i saw around it violates free space
+FREE_RANGE_M = (3.0, 40.0)  # later points judged: range from sweep i's sensor
+FREE_ABOVE_M = -1.2  # ... and z above this in sweep i's sensor frame (off the ground near the car)
+FREE_AZ_DEG, FREE_EL_DEG = 0.2, 0.4  # range-image bins (the HDL-64E's column and beam spacing)
+FREE_EL_DEG_RANGE = (-30.0, 10.0)  # a plane is level (ground-like) above this normal |z|, vertical below that
 #: SemanticKITTI classes of moving objects (moving-car ... moving-other-vehicle)
 SEMANTIC_KITTI_MOVING = 252
 
@@ -119,6 +130,45 @@ def coverage(points: np.ndarray, el_range=(-24.0, 2.0), az_bin=1.0, el_bin=0.5) 
     ia = np.clip(((az[inside] + 180.0) / az_bin).astype(int), 0, n_az - 1)
     ie = np.clip(((el[inside] - el_range[0]) / el_bin).astype(int), 0, n_el - 1)
     return float(len(np.unique(ia * n_el + ie)) / (n_az * n_el))
+
+
+def range_image_bins(points: np.ndarray, az_res: float = FREE_AZ_DEG, el_res: float = FREE_EL_DEG,
+                     el_range=FREE_EL_DEG_RANGE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's (azimuth bin, elevation bin) in a spherical image of ``az_res`` x ``el_res``
+    degrees (azimuth bin 0 starts at -180 deg, elevation bin 0 at ``el_range[0]``), and whether
+    it falls inside ``el_range``."""
+    n_az = int(round(360 / az_res))
+    ia = np.floor((azimuth_deg(points) + 180.0) / az_res).astype(np.int64) % n_az
+    e = np.floor((elevation_deg(points) - el_range[0]) / el_res)
+    inside = (e >= 0) & (e < int(round((el_range[1] - el_range[0]) / el_res)))
+    return ia, np.where(inside, e, 0).astype(np.int64), inside
+
+
+def free_space_violations(earlier: np.ndarray, later: np.ndarray, margin: float = FREE_MARGIN_M,
+                          ranges=FREE_RANGE_M, above: float = FREE_ABOVE_M, az_res: float = FREE_AZ_DEG,
+                          el_res: float = FREE_EL_DEG, el_range=FREE_EL_DEG_RANGE) -> tuple[np.ndarray, np.ndarray]:
+    """Points of a later sweep (``later``, registered into the earlier sweep's sensor frame) in
+    space the earlier sweep saw empty. Returns (judged, violating), (N,) bool each: a later point
+    is judged when its range from the earlier sensor is within ``ranges``, its z is above
+    ``above``, and the earlier sweep has a return in its range-image bin or one of the 8 around
+    it (azimuth wraps); it violates when it lies ``margin`` or more in front of the nearest of
+    those returns."""
+    n_az = int(round(360 / az_res))
+    n_el = int(round((el_range[1] - el_range[0]) / el_res))
+    img = np.full((n_az, n_el + 2), np.inf)  # one padding row of elevation bins each side
+    ia, ie, inside = range_image_bins(earlier, az_res, el_res, el_range)
+    np.minimum.at(img, (ia[inside], ie[inside] + 1), np.linalg.norm(earlier[inside], axis=1))
+    near = img.copy()
+    for da in (-1, 0, 1):
+        for de in (-1, 0, 1):
+            if da or de:
+                near = np.minimum(near, np.roll(np.roll(img, da, axis=0), de, axis=1))
+    near = near[:, 1:-1]  # the padding rows only fed their neighbours
+    r = np.linalg.norm(later, axis=1)
+    ja, je, ok = range_image_bins(later, az_res, el_res, el_range)
+    seen = near[ja, je]
+    judged = ok & (r >= ranges[0]) & (r < ranges[1]) & (later[:, 2] > above) & np.isfinite(seen)
+    return judged, judged & (r <= seen - margin)
 
 
 def voxel_thin(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
@@ -258,6 +308,8 @@ class SideStats:
     roughness: list = field(default_factory=list)
     normal_z: list = field(default_factory=list)  # |z| of each roughness plane's normal
     moving: list = field(default_factory=list)  # (moving points, labelled points) per sweep
+    free_space: list = field(default_factory=list)  # (violating, judged) later points per sweep pair
+    free_space_moving: list = field(default_factory=list)  # (violating on labelled moving objects, violating)
     seconds: float = 0.0
 
     def summary(self, edges: np.ndarray) -> dict:
@@ -270,7 +322,9 @@ class SideStats:
 
         def median(x):
             return float(np.median(x)) if x.size else float("nan")
-        moving = (sum(m for m, _ in self.moving) / sum(n for _, n in self.moving)) if self.moving else float("nan")
+        def share(pairs):
+            return sum(a for a, _ in pairs) / sum(b for _, b in pairs) if sum(b for _, b in pairs) else float("nan")
+        moving = share(self.moving) if self.moving else float("nan")
         return {
             "points per sweep": float(np.mean(self.points)),
             "returns per beam (median)": float(np.median(beams)),
@@ -289,6 +343,8 @@ class SideStats:
             "roughness median, level surfaces (m)": median(ro[level]),
             "roughness median, vertical surfaces (m)": median(ro[wall]),
             "moving-object points (fraction)": moving,
+            f"free-space violations at {MOVING_GAP_S:g} s (fraction)": share(self.free_space),
+            "free-space violations on labelled moving objects (share)": share(self.free_space_moving),
         }
 
 
@@ -380,6 +436,18 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
         T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[i + 1]
         res, _ = plane_residuals(transform_points(T, qn), thin, exclude_self=False)
         st.static_residual.append(res[np.isfinite(res)])
+        # free space: the sweep MOVING_GAP_S later (when the sequence has it)
+        ts = seq.timestamps_ns
+        j = i + 1 + int(np.argmin(np.abs(ts[i + 1:] - ts[i] - MOVING_GAP_S * 1e9)))
+        if abs(ts[j] - ts[i] - MOVING_GAP_S * 1e9) <= 0.1 * MOVING_GAP_S * 1e9:  # within 10 %
+            later_raw = np.asarray(seq.load_points(j), np.float64)
+            keep_later = ~adapter.ego_box.inside(later_raw)
+            T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
+            judged, viol = free_space_violations(pts, transform_points(T, later_raw[keep_later]))
+            st.free_space.append((int(viol.sum()), int(judged.sum())))
+            later_moving = _moving_mask(adapter, name, j, len(later_raw))
+            if later_moving is not None:
+                st.free_space_moving.append((int((viol & later_moving[keep_later]).sum()), int(viol.sum())))
     st.elev_span = (float(np.median(lows)), float(np.median(highs)))
     st.seconds = time.perf_counter() - t0
     return st
