@@ -652,6 +652,22 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         ax.legend()
         save(fig, name)
 
+    if syn.free_space or real.free_space:
+        fig, ax = plt.subplots(figsize=(5, 3))
+        for x, (st, lab, col) in enumerate(sides):
+            if not st.free_space:
+                continue
+            share = sum(v for v, _ in st.free_space) / max(1, sum(n for _, n in st.free_space))
+            ax.bar(x, share, color=col)
+            if st.free_space_moving:  # the part on labelled moving objects, hatched
+                on = sum(m for m, _ in st.free_space_moving) / max(1, sum(v for _, v in st.free_space_moving))
+                ax.bar(x, share * on, color=col, hatch="//", edgecolor="black", label=f"{lab}: on labelled moving objects")
+        ax.set_xticks([0, 1], ["synthetic", "real"])
+        ax.set_ylabel(f"free-space violations at {MOVING_GAP_S:g} s")
+        if syn.free_space_moving or real.free_space_moving:
+            ax.legend(fontsize=7)
+        save(fig, "free_space_violations.png")
+
     if base_syn and base_real:
         fig, axes = plt.subplots(1, len(RANK_METRICS), figsize=(12, 3.2))
         methods = list(base_syn)
