@@ -94,6 +94,31 @@ def test_free_space_violations_match_a_brute_force_reference():
     assert viol.sum() > 10 and (judged & ~viol).sum() > 10  # the random case holds both kinds
 
 
+def test_mixed_pixel_share_hand_case():
+    edges = C.beam_edges([0.0, -1.0, -3.0])
+    az = (np.arange(12) + 0.5) * 30.0 - 180.0  # 12 columns of 30 deg, one point in the middle of each
+    # beam 0 deg: 10 m, 10 m, 15 m (in between), 20 m, 20 m, then 10 m straight after 20 m (a jump
+    # with nothing in between), then 10 m to the end; beam -1 deg: 10.1 m next to 10.2 m everywhere
+    # (no jump); beam -3 deg: one column only (no three in a row)
+    r0 = np.array([10, 10, 15, 20, 20, 10, 10, 10, 10, 10, 10, 10], float)
+    pts = np.concatenate([
+        _at(np.zeros(12), az, r=r0[:, None].ravel()),
+        _at(-np.ones(12), az, r=np.where(np.arange(12) % 2, 10.1, 10.2)),
+        _at([-3.0], [az[0]], r=5.0),
+        _at([0.0], [az[2] + 1.0], r=40.0),  # a second return in column 2: the nearer one (15 m) counts
+    ])
+    inside, jumps = C.mixed_pixel_share(pts, edges, columns=12)
+    # jumps (the neighbours a, c of column b more than 1 m apart): columns 1 (10 | 15), 2 (10 | 20),
+    # 3 (15 | 20), 4 (20 | 10) and 5 (20 | 10); b lies in between only at column 2
+    assert jumps == 5
+    assert inside == 1  # only the 15 m return between 10 and 20
+    # a return 0.2 m from one side is not in between (and column 1's neighbours, 10 and 10.2 m,
+    # are no jump now)
+    r1 = r0.copy()
+    r1[2] = 10.2
+    assert C.mixed_pixel_share(_at(np.zeros(12), az, r=r1), edges, columns=12) == (0, 4)
+
+
 def test_voxel_thin_keeps_the_first_point_per_cube():
     pts = np.array([[0.01, 0.01, 0.0], [0.1, 0.1, 0.1], [0.2, 0.0, 0.0], [-0.01, 0.0, 0.0]])
     assert C.voxel_thin(pts, 0.15).tolist() == [pts[0].tolist(), pts[2].tolist(), pts[3].tolist()]
@@ -262,6 +287,7 @@ def test_compare_command_statistics_only(tmp_path):
     assert np.isnan(data["real"]["moving-object points (fraction)"])  # no labels in the tiny KITTI
     for side in ("synthetic", "real"):  # both sides judged, labelled or not
         assert 0 <= data[side]["free-space violations at 0.5 s (fraction)"] < 0.5
+        assert 0 <= data[side]["mixed pixels: depth jumps with a return in between (share)"] <= 1
     assert 0 <= data["synthetic"]["free-space violations on labelled moving objects (share)"] <= 1
     assert np.isnan(data["real"]["free-space violations on labelled moving objects (share)"])
     rows = {r.split(",")[0]: r.split(",")[1:] for r in (out / "realism.csv").read_text().splitlines()[1:]}

@@ -22,6 +22,9 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
   of every return of sweep i around their direction, in space sweep i saw empty. Still
   surfaces seldom do that; moving objects do. It estimates how much moves without labels
   (where labels exist, the report gives how many of the violations are on moving objects);
+* mixed pixels: along each beam of a range image, the share of depth jumps (the two
+  neighbours of a return more than ``JUMP_M`` apart) whose middle return lies in between,
+  more than ``BETWEEN_M`` from both: a return from neither surface;
 * the ray-drop pattern: per beam, the share of azimuth columns without a return, the column
   count estimated from the fullest beams;
 * the five baselines' flat means of chamfer_nf, l1_median and l1_mean at a setting, and the
@@ -58,13 +61,15 @@ RADIUS_M = 0.6  # neighbours farther than this are not used
 MIN_NEIGHBOURS = 8
 PLANE_RANGE_M = (3.0, 20.0)  # points whose planes are fitted (near enough to be sampled densely)
 QUERIES = 4000  # plane fits per sweep
-LEVEL_NZ, WALL_NZ = 0.9, 0.3
+LEVEL_NZ, WALL_NZ = 0.9, 0.3  # a plane is level (ground-like) above this normal |z|, vertical below that
 MOVING_GAP_S = 0.5  # free-space test: the later sweep is the one nearest this long after sweep i
 FREE_MARGIN_M = 1.0  # a later point this far in front of what sweep i saw around it violates free space
 FREE_RANGE_M = (3.0, 40.0)  # later points judged: range from sweep i's sensor
 FREE_ABOVE_M = -1.2  # ... and z above this in sweep i's sensor frame (off the ground near the car)
 FREE_AZ_DEG, FREE_EL_DEG = 0.2, 0.4  # range-image bins (the HDL-64E's column and beam spacing)
-FREE_EL_DEG_RANGE = (-30.0, 10.0)  # a plane is level (ground-like) above this normal |z|, vertical below that
+FREE_EL_DEG_RANGE = (-30.0, 10.0)
+JUMP_M = 1.0  # mixed pixels: a depth jump between the two neighbours of a return along its beam
+BETWEEN_M = 0.3  # ... and the return lies this far from both of them, in between
 #: SemanticKITTI classes of moving objects (moving-car ... moving-other-vehicle)
 SEMANTIC_KITTI_MOVING = 252
 
@@ -169,6 +174,32 @@ def free_space_violations(earlier: np.ndarray, later: np.ndarray, margin: float 
     seen = near[ja, je]
     judged = ok & (r >= ranges[0]) & (r < ranges[1]) & (later[:, 2] > above) & np.isfinite(seen)
     return judged, judged & (r <= seen - margin)
+
+
+def mixed_pixel_share(points: np.ndarray, edges: np.ndarray, columns: float, jump: float = JUMP_M,
+                      between: float = BETWEEN_M) -> tuple[int, int]:
+    """Mixed pixels at depth jumps, in one sweep: (jumps with a return in between, jumps).
+
+    Returns are placed in a range image: the beam by ``edges`` (elevation bins), the column by
+    azimuth in ``columns`` columns per revolution, the nearest return where a cell has several.
+    Along each beam, every three consecutive filled columns (a, b, c; the beam wraps) whose
+    outer two differ in range by more than ``jump`` are a jump; it has a return in between when
+    b's range is more than ``between`` from both a's and c's and lies between them: a return
+    from neither surface, as when the beam's footprint straddles the edge."""
+    n_col = max(int(round(columns)), 3)
+    beam = np.searchsorted(edges, elevation_deg(points), side="right") - 1
+    ok = (beam >= 0) & (beam < len(edges) - 1)
+    col = np.floor((azimuth_deg(points[ok]) + 180.0) / (360.0 / n_col)).astype(np.int64) % n_col
+    img = np.full((len(edges) - 1, n_col), np.inf)
+    np.minimum.at(img, (beam[ok], col), np.linalg.norm(points[ok], axis=1))
+    a, b, c = np.roll(img, 1, axis=1), img, np.roll(img, -1, axis=1)
+    filled = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
+    lo, hi = np.minimum(a, c), np.maximum(a, c)
+    gap = np.zeros_like(img)
+    gap[filled] = hi[filled] - lo[filled]  # empty cells are inf
+    jumps = gap > jump
+    inside = jumps & (b > lo + between) & (b < hi - between)
+    return int(inside.sum()), int(jumps.sum())
 
 
 def voxel_thin(points: np.ndarray, voxel: float = VOXEL_M) -> np.ndarray:
@@ -310,6 +341,7 @@ class SideStats:
     moving: list = field(default_factory=list)  # (moving points, labelled points) per sweep
     free_space: list = field(default_factory=list)  # (violating, judged) later points per sweep pair
     free_space_moving: list = field(default_factory=list)  # (violating on labelled moving objects, violating)
+    mixed: list = field(default_factory=list)  # (jumps with a return in between, jumps) per sweep
     seconds: float = 0.0
 
     def summary(self, edges: np.ndarray) -> dict:
@@ -345,6 +377,7 @@ class SideStats:
             "moving-object points (fraction)": moving,
             f"free-space violations at {MOVING_GAP_S:g} s (fraction)": share(self.free_space),
             "free-space violations on labelled moving objects (share)": share(self.free_space_moving),
+            "mixed pixels: depth jumps with a return in between (share)": share(self.mixed),
         }
 
 
@@ -406,7 +439,9 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
         pts = raw[keep]
         st.sweeps += 1
         st.points.append(len(pts))
-        st.beam_counts += returns_per_beam(pts, edges)
+        per_beam = returns_per_beam(pts, edges)
+        st.beam_counts += per_beam
+        st.mixed.append(mixed_pixel_share(pts, edges, drop_per_beam(per_beam)[1]))
         r = np.linalg.norm(pts, axis=1)
         st.range_hist += np.histogram(r, bins=RANGE_EDGES)[0]
         el = elevation_deg(pts)
