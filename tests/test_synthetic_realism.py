@@ -295,7 +295,7 @@ def test_compare_command_statistics_only(tmp_path):
     assert q == pytest.approx(s / r)
     for fig in ("points_per_sweep.png", "returns_per_beam_and_ray_drop.png", "range_histogram.png",
                 "elevation_azimuth_coverage.png", "static_residual.png", "roughness.png",
-                "free_space_violations.png"):
+                "free_space_and_mixed_pixels.png"):
         assert (out / fig).stat().st_size > 1000
     assert "| points per sweep |" in (out / "realism.md").read_text()
 

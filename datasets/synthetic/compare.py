@@ -354,9 +354,6 @@ class SideStats:
 
         def median(x):
             return float(np.median(x)) if x.size else float("nan")
-        def share(pairs):
-            return sum(a for a, _ in pairs) / sum(b for _, b in pairs) if sum(b for _, b in pairs) else float("nan")
-        moving = share(self.moving) if self.moving else float("nan")
         return {
             "points per sweep": float(np.mean(self.points)),
             "returns per beam (median)": float(np.median(beams)),
@@ -374,11 +371,17 @@ class SideStats:
             "vertical surfaces (share of planes)": float(wall.mean()) if nz.size else float("nan"),
             "roughness median, level surfaces (m)": median(ro[level]),
             "roughness median, vertical surfaces (m)": median(ro[wall]),
-            "moving-object points (fraction)": moving,
-            f"free-space violations at {MOVING_GAP_S:g} s (fraction)": share(self.free_space),
-            "free-space violations on labelled moving objects (share)": share(self.free_space_moving),
-            "mixed pixels: depth jumps with a return in between (share)": share(self.mixed),
+            "moving-object points (fraction)": _share(self.moving),
+            f"free-space violations at {MOVING_GAP_S:g} s (fraction)": _share(self.free_space),
+            "free-space violations on labelled moving objects (share)": _share(self.free_space_moving),
+            "mixed pixels: depth jumps with a return in between (share)": _share(self.mixed),
         }
+
+
+def _share(pairs: list) -> float:
+    """sum of parts / sum of wholes over (part, whole) pairs; NaN when there is no whole (unknown, not 0)."""
+    whole = sum(b for _, b in pairs)
+    return sum(a for a, _ in pairs) / whole if whole else float("nan")
 
 
 def _hist_median(h, edges) -> float:
@@ -687,21 +690,22 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         ax.legend()
         save(fig, name)
 
-    if syn.free_space or real.free_space:
-        fig, ax = plt.subplots(figsize=(5, 3))
-        for x, (st, lab, col) in enumerate(sides):
-            if not st.free_space:
-                continue
-            share = sum(v for v, _ in st.free_space) / max(1, sum(n for _, n in st.free_space))
-            ax.bar(x, share, color=col)
-            if st.free_space_moving:  # the part on labelled moving objects, hatched
-                on = sum(m for m, _ in st.free_space_moving) / max(1, sum(v for _, v in st.free_space_moving))
-                ax.bar(x, share * on, color=col, hatch="//", edgecolor="black", label=f"{lab}: on labelled moving objects")
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3))
+    for x, (st, lab, col) in enumerate(sides):
+        fs, mixed = _share(st.free_space), _share(st.mixed)
+        if np.isfinite(fs):
+            axes[0].bar(x, fs, color=col)
+            on = _share(st.free_space_moving)
+            if np.isfinite(on):  # the part on labelled moving objects, hatched
+                axes[0].bar(x, fs * on, color=col, hatch="//", edgecolor="black", label=f"{lab}: on labelled moving objects")
+                axes[0].legend(fontsize=7)
+        if np.isfinite(mixed):
+            axes[1].bar(x, mixed, color=col)
+    for ax in axes:
         ax.set_xticks([0, 1], ["synthetic", "real"])
-        ax.set_ylabel(f"free-space violations at {MOVING_GAP_S:g} s")
-        if syn.free_space_moving or real.free_space_moving:
-            ax.legend(fontsize=7)
-        save(fig, "free_space_violations.png")
+    axes[0].set_ylabel(f"free-space violations at {MOVING_GAP_S:g} s")
+    axes[1].set_ylabel("depth jumps with a return in between")
+    save(fig, "free_space_and_mixed_pixels.png")
 
     if base_syn and base_real:
         fig, axes = plt.subplots(1, len(RANK_METRICS), figsize=(12, 3.2))
