@@ -102,7 +102,7 @@ def test_mixed_pixel_share_hand_case():
     # (no jump); beam -3 deg: one column only (no three in a row)
     r0 = np.array([10, 10, 15, 20, 20, 10, 10, 10, 10, 10, 10, 10], float)
     pts = np.concatenate([
-        _at(np.zeros(12), az, r=r0[:, None].ravel()),
+        _at(np.zeros(12), az, r=r0),
         _at(-np.ones(12), az, r=np.where(np.arange(12) % 2, 10.1, 10.2)),
         _at([-3.0], [az[0]], r=5.0),
         _at([0.0], [az[2] + 1.0], r=40.0),  # a second return in column 2: the nearer one (15 m) counts
@@ -235,6 +235,14 @@ def test_measure_counts_the_points_of_the_chosen_sweeps(tmp_path):
     assert st.range_hist.sum() == sum(expect)
     assert st.moving == []  # no labels: unknown, not zero
     assert st.free_space == []  # the tiny KITTI's sweeps are 0.1 s apart and 5 long: none 0.45-0.55 s after another
+    # mixed pixels: one count per sweep, over its own range image at its own column estimate
+    edges = C.beam_edges([0.0, -1.0, -3.0])
+    want = []
+    for i in (0, 3):
+        p = np.asarray(seq.load_points(i), np.float64)
+        p = p[~ad.ego_box.inside(p) & (np.linalg.norm(p, axis=1) > MIN_RANGE_M)]
+        want.append(C.mixed_pixel_share(p, edges, C.drop_per_beam(C.returns_per_beam(p, edges))[1]))
+    assert st.mixed == want
     summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
     assert np.isnan(summary["moving-object points (fraction)"])
     # every roughness plane has its normal, and level / vertical are shares of those planes
