@@ -15,8 +15,9 @@
 # (`pcfbench train copilot4d-token-copy --dataset synthetic-town` first); the world model's
 # token windows are linked too, so a fresh cache builds them once for both.
 # TOP_K=k samples x0 among the top k logits instead of Algorithm 2's 3 (1: the arg max); the
-# results store is keyed by the method's options, which do not include it, so give each k a
-# store of its own (STORE=FOLDER; default $WORK/store).
+# results store is keyed by the method's options, which do not include it, so each k gets a
+# store of its own ($WORK/store-topk<k>; $WORK/store without TOP_K; STORE=FOLDER overrides),
+# and a top-3 cell is never read back as another k's.
 # Results of 2026-11-26: docs/copilot4d.md, "Twice the steps".
 set -euo pipefail
 steps=${1:-1200}
@@ -45,5 +46,5 @@ export PYTHONPATH="$work/patch${PYTHONPATH:+:$PYTHONPATH}" PCFBENCH_CACHE="$work
 "$py" -m pcfbench train copilot4d --dataset synthetic-town -q
 for s in "${settings[@]}"; do
   "$py" -m pcfbench run -m copilot4d -m copilot4d-token-copy -d synthetic-town -s "$s" -j 2 \
-    --store "${STORE:-$work/store}" --reports "$work/reports" -q
+    --store "${STORE:-$work/store${TOP_K:+-topk$TOP_K}}" --reports "$work/reports" -q
 done
