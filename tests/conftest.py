@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -13,6 +15,11 @@ os.environ["PCFBENCH_NO_PROGRESS"] = "1"
 # Reports without figures unless a test asks (re-running samples for them would slow every CLI run).
 os.environ["PCFBENCH_FIGURES"] = "0"
 _HOME = Path(tempfile.mkdtemp(prefix="pcfbench-tests-"))
+# Each process that imports this (pytest, every xdist worker) removes its own on exit: left
+# behind, a cache of generated worlds per run filled the CI machine's disk.
+# Only by the process that made it: a forked child that runs atexit must not pull it away.
+_OWNER = os.getpid()
+atexit.register(lambda: os.getpid() == _OWNER and shutil.rmtree(_HOME, ignore_errors=True))
 os.environ["PCFBENCH_CACHE"] = str(_HOME / "cache")
 os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")
 for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + ["PCFBENCH_CONFIG", "PCFBENCH_STORE", "PCFBENCH_REPORTS", "PCFBENCH_PLUGINS", "PCFBENCH_BLOCK_PLUGINS"]:
