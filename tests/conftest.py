@@ -22,6 +22,7 @@ _OWNER = os.getpid()
 atexit.register(lambda: os.getpid() == _OWNER and shutil.rmtree(_HOME, ignore_errors=True))
 os.environ["PCFBENCH_CACHE"] = str(_HOME / "cache")
 os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")
+os.environ["RAY_TMPDIR"] = str(_HOME / "ray")  # the local Rays' session folders, else left in /tmp/ray
 for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + ["PCFBENCH_CONFIG", "PCFBENCH_STORE", "PCFBENCH_REPORTS", "PCFBENCH_PLUGINS", "PCFBENCH_BLOCK_PLUGINS"]:
     os.environ.pop(_var, None)
 
