@@ -94,6 +94,66 @@ def test_free_space_violations_match_a_brute_force_reference():
     assert viol.sum() > 10 and (judged & ~viol).sum() > 10  # the random case holds both kinds
 
 
+def _ground_grid(step=0.1, half=14.0, z=-1.73):
+    g = np.arange(-half, half + 1e-9, step)
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z)], 1)
+
+
+def test_ground_height_pairs_hand_case():
+    # flat ground 1.73 m under the earlier sensor; the later sensor 3 m ahead; its ground 2 cm higher
+    ground = _ground_grid()
+    o = np.array([3.0, 0.0, 0.0])
+    later = ground + [0.0, 0.0, 0.02]
+    dr, dz = C.ground_height_pairs(ground, later, o)
+    r_own = np.linalg.norm(later - o, axis=1)
+    judged = (r_own >= 4.0) & (r_own < 12.0)  # later ground 4-12 m from its own sensor (all of it is ground)
+    assert len(dz) == judged.sum() > 1000
+    assert np.allclose(dz, 0.02)
+    assert np.allclose(np.sort(dr), np.sort(np.linalg.norm(later[judged], axis=1) - r_own[judged]))
+    slope, drift = C.fit_ground_drift(dr, dz)
+    assert slope == pytest.approx(0.0, abs=1e-9) and drift == pytest.approx(0.02)
+    # a sensor that places the ground lower the farther it is (k m per m of range), no drift
+    k = np.tan(np.deg2rad(0.2))
+    earlier = ground - [0.0, 0.0, 1.0] * (k * np.linalg.norm(ground, axis=1))[:, None]
+    seen_later = ground - [0.0, 0.0, 1.0] * (k * np.linalg.norm(ground - o, axis=1))[:, None]
+    dr, dz = C.fit_ground_drift(*C.ground_height_pairs(earlier, seen_later, o)), None
+    assert dr[0] == pytest.approx(0.2, abs=0.01) and abs(dr[1]) < 0.002
+    # not ground in its own sweep (z above -1.3 m from the later sensor): not judged
+    assert len(C.ground_height_pairs(ground, ground + [0.0, 0.0, 0.5], o)[0]) == 0
+    # a curb under the earlier points (a 15+ cm step within 0.3 m): left out
+    step = ground + [0.0, 0.0, 1.0] * (0.2 * (ground[:, 1] > 5.0))[:, None]
+    dr, dz = C.ground_height_pairs(step, ground, o)
+    assert len(dz) < judged.sum()  # those within 0.3 m of the step are left out
+    assert set(np.round(dz, 9)) == {0.0, -0.2}  # no height averaged across it
+    assert np.isnan(C.fit_ground_drift(np.zeros(1), np.zeros(1))[1])
+
+
+def test_ground_height_pairs_match_a_brute_force_reference():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    earlier = _ground_grid(step=0.2) + rng.normal(0, [0.03, 0.03, 0.03], (19881, 3))
+    earlier = np.concatenate([earlier, rng.uniform([-14, -14, -1.7], [14, 14, 1.0], (500, 3))])  # some off the ground
+    o = np.array([2.0, 1.0, 0.05])
+    later = _ground_grid(step=0.7) + [0.3, 0.2, 0.0] + rng.normal(0, [0.0, 0.0, 0.04], (1681, 3))
+    dr, dz = C.ground_height_pairs(earlier, later, o)
+    e = earlier[(earlier[:, 2] < -1.3) & (np.hypot(earlier[:, 0], earlier[:, 1]) < 40.0)]
+    tree = cKDTree(e[:, :2])
+    want = []
+    for p in later:
+        r = np.linalg.norm(p - o)
+        if not (p[2] - o[2] < -1.3 and 4.0 <= r < 12.0):
+            continue
+        z = e[tree.query_ball_point(p[:2], 0.3), 2]
+        if len(z) >= 3 and np.ptp(z) <= 0.15:
+            want.append((np.linalg.norm(p) - r, p[2] - z.mean()))
+    want = np.array(want)
+    assert len(want) > 200 and len(want) < (np.linalg.norm(later - o, axis=1) < 12).sum()  # some left out by the span
+    order, worder = np.lexsort((dz, dr)), np.lexsort((want[:, 1], want[:, 0]))
+    assert np.allclose(dr[order], want[worder, 0]) and np.allclose(dz[order], want[worder, 1])
+
+
 def test_mixed_pixel_share_hand_case():
     edges = C.beam_edges([0.0, -1.0, -3.0])
     az = (np.arange(12) + 0.5) * 30.0 - 180.0  # 12 columns of 30 deg, one point in the middle of each
@@ -270,9 +330,32 @@ def test_measure_judges_free_space_against_the_sweep_half_a_second_later(tmp_pat
     judged, viol = C.free_space_violations(a, transform_points(np.linalg.inv(seq.T_world_sensor[0]) @ seq.T_world_sensor[5], b))
     assert st.free_space == [(int(viol.sum()), int(judged.sum()))] and judged.sum() > 0
     assert st.free_space_moving == []  # no labels
+    assert st.ground_pairs == []  # no sweep 1 s after another in 8 sweeps 0.1 s apart
     summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
     assert summary["free-space violations at 0.5 s (fraction)"] == pytest.approx(viol.sum() / judged.sum())
     assert np.isnan(summary["free-space violations on labelled moving objects (share)"])
+
+
+def test_measure_fits_the_ground_drift_against_the_sweep_a_second_later(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.geometry import transform_points
+    from pcfbench.protocol import MIN_RANGE_M
+
+    ad = KittiOdometry(write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=13))
+    seq = ad.sequence("08")
+    st = C.measure(ad, "test", 3, "tiny", C.beam_edges([0.0, -1.0, -3.0]))  # sweeps 0, 6, 11: only 0 has one 10 later
+    a = np.asarray(seq.load_points(0), np.float64)
+    a = a[~ad.ego_box.inside(a) & (np.linalg.norm(a, axis=1) > MIN_RANGE_M)]
+    b = np.asarray(seq.load_points(10), np.float64)
+    T = np.linalg.inv(seq.T_world_sensor[0]) @ seq.T_world_sensor[10]
+    dr, dz = C.ground_height_pairs(a, transform_points(T, b[~ad.ego_box.inside(b)]), T[:3, 3])
+    assert len(st.ground_pairs) == 1 and len(dz) > 0
+    assert np.array_equal(st.ground_pairs[0][0], dr) and np.array_equal(st.ground_pairs[0][1], dz)
+    summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
+    slope, drift = C.fit_ground_drift(dr, dz)
+    assert summary["ground drift: height of the ground seen 1 s later at the same range (m)"] == drift
+    assert summary["ground drop with range: elevation error (deg)"] == slope
 
 
 @pytest.mark.slow
@@ -283,8 +366,8 @@ def test_compare_command_statistics_only(tmp_path):
     cli = build_cli()
 
     syn = tmp_path / "syn"
-    generate_domain(_tiny_domain(sweeps=7), syn, progress=False, splits=("test",))  # sweep 0 has one 0.5 s later
-    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=6)
+    generate_domain(_tiny_domain(sweeps=12), syn, progress=False, splits=("test",))  # sweep 0 has one 0.5 s and 1 s later
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=12)
     out = tmp_path / "out"
     res = CliRunner().invoke(cli, ["synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}",
                                    "--out", str(out), "--sweeps", "3", "--no-baselines", "-q"])
@@ -296,6 +379,7 @@ def test_compare_command_statistics_only(tmp_path):
     for side in ("synthetic", "real"):  # both sides judged, labelled or not
         assert 0 <= data[side]["free-space violations at 0.5 s (fraction)"] < 0.5
         assert 0 <= data[side]["mixed pixels: depth jumps with a return in between (share)"] <= 1
+        assert abs(data[side]["ground drift: height of the ground seen 1 s later at the same range (m)"]) < 0.1
     assert 0 <= data["synthetic"]["free-space violations on labelled moving objects (share)"] <= 1
     assert np.isnan(data["real"]["free-space violations on labelled moving objects (share)"])
     rows = {r.split(",")[0]: r.split(",")[1:] for r in (out / "realism.csv").read_text().splitlines()[1:]}
@@ -303,7 +387,7 @@ def test_compare_command_statistics_only(tmp_path):
     assert q == pytest.approx(s / r)
     for fig in ("points_per_sweep.png", "returns_per_beam_and_ray_drop.png", "range_histogram.png",
                 "elevation_azimuth_coverage.png", "static_residual.png", "roughness.png",
-                "free_space_and_mixed_pixels.png"):
+                "free_space_and_mixed_pixels.png", "ground_drift.png"):
         assert (out / fig).stat().st_size > 1000
     assert "| points per sweep |" in (out / "realism.md").read_text()
 

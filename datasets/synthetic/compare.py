@@ -68,6 +68,14 @@ FREE_RANGE_M = (3.0, 40.0)  # later points judged: range from sweep i's sensor
 FREE_ABOVE_M = -1.2  # ... and z above this in sweep i's sensor frame (off the ground near the car)
 FREE_AZ_DEG, FREE_EL_DEG = 0.2, 0.4  # range-image bins (the HDL-64E's column and beam spacing)
 FREE_EL_DEG_RANGE = (-30.0, 10.0)
+DRIFT_GAP_S = 1.0  # ground drift: the later sweep is the one nearest this long after sweep i
+DRIFT_BELOW_M = -1.3  # ground: z below this in its own sweep's sensor frame
+DRIFT_RANGE_M = (4.0, 12.0)  # later ground points judged: range from their own sensor
+DRIFT_EARLIER_M = 40.0  # earlier ground points used: horizontal range from their sensor
+DRIFT_RADIUS_M = 0.3  # earlier ground points within this horizontal distance give the height
+DRIFT_MIN = 3  # ... at least this many
+DRIFT_FLAT_M = 0.15  # ... spanning at most this in z (not a curb or an object's foot)
+DRIFT_OUTLIER_M = 0.15  # pairs whose heights differ by more are left out of the fit
 JUMP_M = 1.0  # mixed pixels: a depth jump between the two neighbours of a return along its beam
 BETWEEN_M = 0.3  # ... and the return lies this far from both of them, in between
 #: SemanticKITTI classes of moving objects (moving-car ... moving-other-vehicle)
@@ -174,6 +182,58 @@ def free_space_violations(earlier: np.ndarray, later: np.ndarray, margin: float 
     seen = near[ja, je]
     judged = ok & (r >= ranges[0]) & (r < ranges[1]) & (later[:, 2] > above) & np.isfinite(seen)
     return judged, judged & (r <= seen - margin)
+
+
+def ground_height_pairs(earlier: np.ndarray, later: np.ndarray, later_origin: np.ndarray,
+                        below: float = DRIFT_BELOW_M, ranges=DRIFT_RANGE_M, earlier_range: float = DRIFT_EARLIER_M,
+                        radius: float = DRIFT_RADIUS_M, min_points: int = DRIFT_MIN,
+                        flat: float = DRIFT_FLAT_M) -> tuple[np.ndarray, np.ndarray]:
+    """The same ground seen by two sweeps: (r_earlier - r_later, z_later - z_earlier) per judged point.
+
+    ``earlier`` in its own sensor frame; ``later`` registered into it by the poses, its sensor
+    at ``later_origin``; ``later`` points are judged where they were ground in their own sweep
+    (z below ``below`` relative to ``later_origin``, range within ``ranges`` of it). Each takes
+    the mean height of the earlier sweep's ground points (z below ``below``, within
+    ``earlier_range`` horizontally) within ``radius`` of it horizontally, where there are at
+    least ``min_points`` of them spanning at most ``flat`` in z. A sensor whose beams point
+    off their nominal elevations places the ground lower (or higher) the farther it is, so the
+    height difference grows with the range difference; stored poses that drift apart from the
+    scans shift it by the same amount everywhere (``fit_ground_drift``)."""
+    from scipy.spatial import cKDTree
+
+    e = earlier[(earlier[:, 2] < below) & (np.hypot(earlier[:, 0], earlier[:, 1]) < earlier_range)]
+    rel = later - later_origin
+    r_later = np.linalg.norm(rel, axis=1)
+    q = later[(rel[:, 2] < below) & (r_later >= ranges[0]) & (r_later < ranges[1])]
+    if len(e) < min_points or not len(q):
+        return np.zeros(0), np.zeros(0)
+    k = min(32, len(e))
+    dist, idx = cKDTree(e[:, :2]).query(q[:, :2], k=k, distance_upper_bound=radius)
+    dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+    near = np.isfinite(dist)
+    count = near.sum(axis=1)
+    enough = count >= min_points
+    z = e[np.minimum(idx[enough], len(e) - 1), 2]
+    m = near[enough]
+    span = np.where(m, z, -np.inf).max(axis=1) - np.where(m, z, np.inf).min(axis=1)
+    ok = span <= flat
+    z_mean = np.where(m, z, 0.0).sum(axis=1)[ok] / count[enough][ok]
+    q = q[enough][ok]
+    dr = np.linalg.norm(q, axis=1) - np.linalg.norm(q - later_origin, axis=1)
+    return dr, q[:, 2] - z_mean
+
+
+def fit_ground_drift(dr: np.ndarray, dz: np.ndarray, outlier: float = DRIFT_OUTLIER_M) -> tuple[float, float]:
+    """Least-squares ``dz = slope * dr + drift`` over the pairs with |dz| <= ``outlier``:
+    (slope in degrees, the elevation error's effect; drift in metres, the height the later
+    sweep's ground stands above the earlier one's where both saw it from the same range).
+    NaNs without pairs."""
+    keep = np.abs(dz) <= outlier
+    if keep.sum() < 2:
+        return float("nan"), float("nan")
+    A = np.stack([dr[keep], np.ones(int(keep.sum()))], axis=1)
+    (slope, drift), *_ = np.linalg.lstsq(A, dz[keep], rcond=None)
+    return float(np.degrees(np.arctan(slope))), float(drift)
 
 
 def mixed_pixel_share(points: np.ndarray, edges: np.ndarray, columns: float, jump: float = JUMP_M,
@@ -342,6 +402,7 @@ class SideStats:
     free_space: list = field(default_factory=list)  # (violating, judged) later points per sweep pair
     free_space_moving: list = field(default_factory=list)  # (violating on labelled moving objects, violating)
     mixed: list = field(default_factory=list)  # (jumps with a return in between, jumps) per sweep
+    ground_pairs: list = field(default_factory=list)  # (r_i - r_j, z_j - z_i) arrays per sweep pair DRIFT_GAP_S apart
     seconds: float = 0.0
 
     def summary(self, edges: np.ndarray) -> dict:
@@ -351,6 +412,10 @@ class SideStats:
         ro = np.concatenate(self.roughness) if self.roughness else np.zeros(0)
         nz = np.concatenate(self.normal_z) if self.normal_z else np.zeros(0)
         level, wall = nz > LEVEL_NZ, nz < WALL_NZ
+        if self.ground_pairs:
+            slope, drift = fit_ground_drift(*(np.concatenate(x) for x in zip(*self.ground_pairs)))
+        else:
+            slope, drift = float("nan"), float("nan")
 
         def median(x):
             return float(np.median(x)) if x.size else float("nan")
@@ -375,6 +440,8 @@ class SideStats:
             f"free-space violations at {MOVING_GAP_S:g} s (fraction)": _share(self.free_space),
             "free-space violations on labelled moving objects (share)": _share(self.free_space_moving),
             "mixed pixels: depth jumps with a return in between (share)": _share(self.mixed),
+            f"ground drift: height of the ground seen {DRIFT_GAP_S:g} s later at the same range (m)": drift,
+            "ground drop with range: elevation error (deg)": slope,
         }
 
 
@@ -419,6 +486,14 @@ def pick_sweeps(adapter, split: str, count: int) -> list[tuple[str, int]]:
         raise PcfbenchError(f"dataset {adapter.name} split {split!r} has no two consecutive sweeps to compare")
     take = np.unique(np.linspace(0, len(pairs) - 1, min(count, len(pairs))).round().astype(int))
     return [pairs[i] for i in take]
+
+
+def _later(ts: np.ndarray, i: int, gap_s: float) -> int | None:
+    """The sweep nearest ``gap_s`` after sweep ``i`` (timestamps ``ts``, ns), if within 10 % of it."""
+    if i + 1 >= len(ts):
+        return None
+    j = i + 1 + int(np.argmin(np.abs(ts[i + 1:] - ts[i] - gap_s * 1e9)))
+    return j if abs(ts[j] - ts[i] - gap_s * 1e9) <= 0.1 * gap_s * 1e9 else None
 
 
 def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed: int = 0) -> SideStats:
@@ -476,8 +551,8 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
         st.static_residual.append(res[np.isfinite(res)])
         # free space: the sweep MOVING_GAP_S later (when the sequence has it)
         ts = seq.timestamps_ns
-        j = i + 1 + int(np.argmin(np.abs(ts[i + 1:] - ts[i] - MOVING_GAP_S * 1e9)))
-        if abs(ts[j] - ts[i] - MOVING_GAP_S * 1e9) <= 0.1 * MOVING_GAP_S * 1e9:  # within 10 %
+        j = _later(ts, i, MOVING_GAP_S)
+        if j is not None:
             later_raw = np.asarray(seq.load_points(j), np.float64)
             keep_later = ~adapter.ego_box.inside(later_raw)
             T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
@@ -486,6 +561,13 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
             later_moving = _moving_mask(adapter, name, j, len(later_raw))
             if later_moving is not None:
                 st.free_space_moving.append((int((viol & later_moving[keep_later]).sum()), int(viol.sum())))
+        # ground drift: the sweep DRIFT_GAP_S later
+        j = _later(ts, i, DRIFT_GAP_S)
+        if j is not None:
+            later_raw = np.asarray(seq.load_points(j), np.float64)
+            T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
+            st.ground_pairs.append(ground_height_pairs(pts, transform_points(T, later_raw[~adapter.ego_box.inside(later_raw)]),
+                                                       T[:3, 3]))
     st.elev_span = (float(np.median(lows)), float(np.median(highs)))
     st.seconds = time.perf_counter() - t0
     return st
@@ -707,6 +789,28 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
     axes[0].set_ylabel(f"free-space violations at {MOVING_GAP_S:g} s")
     axes[1].set_ylabel("depth jumps with a return in between")
     save(fig, "free_space_and_mixed_pixels.png")
+
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    for st, lab, col in sides:
+        if not st.ground_pairs:
+            continue
+        dr, dz = (np.concatenate(x) for x in zip(*st.ground_pairs))
+        keep = np.abs(dz) <= DRIFT_OUTLIER_M
+        dr, dz = dr[keep], dz[keep]
+        bins = np.arange(np.floor(dr.min()), np.ceil(dr.max()) + 1.0, 1.0)
+        which = np.digitize(dr, bins)
+        mid = [(bins[b - 1] + 0.5, np.median(dz[which == b])) for b in np.unique(which) if (which == b).sum() >= 50]
+        if mid:
+            ax.plot(*np.array(mid).T, "o", color=col, ms=3, label=f"{lab}: median per 1 m")
+        slope, drift = fit_ground_drift(dr, dz)
+        xs = np.array([bins[0], bins[-1]])
+        ax.plot(xs, drift + np.tan(np.deg2rad(slope)) * xs, color=col,
+                label=f"{lab}: fit, {slope:.2f} deg, drift {100 * drift:+.1f} cm")
+    ax.axhline(0.0, color="grey", lw=0.5)
+    ax.set(xlabel=f"range from the earlier sweep - from the one {DRIFT_GAP_S:g} s later (m)",
+           ylabel="later ground height - earlier (m)")
+    ax.legend(fontsize=7)
+    save(fig, "ground_drift.png")
 
     if base_syn and base_real:
         fig, axes = plt.subplots(1, len(RANK_METRICS), figsize=(12, 3.2))
