@@ -11,7 +11,7 @@ def register_datasets(register):
     register("mcap", "pcfbench.datasets.mcap:McapRecording", "MCAP recordings: ROS 2 PointCloud2 or foxglove.PointCloud + TF")
     register("synthetic-town", "pcfbench.datasets.synthetic.adapter:SyntheticTown", "Generated town, 64-beam LiDAR, 10 Hz (embedded default)")
     register("synthetic-town-realistic", "pcfbench.datasets.synthetic.adapter:SyntheticTownRealistic",
-             "synthetic-town with realistic sensor and surfaces (world physics v4), 10 Hz")
+             "synthetic-town with realistic sensor, surfaces, poses and traffic (world physics v5), 10 Hz")
     register("synthetic-suburb", "pcfbench.datasets.synthetic.adapter:SyntheticSuburb", "Generated suburb, 32-beam LiDAR, 2 Hz keyframes")
 
 

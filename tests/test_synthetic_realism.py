@@ -1,5 +1,5 @@
 """The realism report's statistics (hand-computed cases), its command on tiny inputs, and
-world physics versions 2-4 (deterministic, opt-in, physics 1 untouched)."""
+world physics versions 2-5 (deterministic, opt-in, physics 1 untouched)."""
 
 from __future__ import annotations
 
@@ -540,7 +540,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 4 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 5 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -606,7 +606,7 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
     realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
     one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
-    assert realistic["physics"] == 4 and "physics" not in one
+    assert realistic["physics"] == 5 and "physics" not in one
     assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
@@ -707,13 +707,42 @@ def test_the_roof_hides_the_steepest_beams_from_physics_4():
     assert new[steep].mean() > 0.4 > old[steep].mean()  # the lowest beam: now mostly on the roof
 
 
+def test_stored_poses_drift_up_from_the_true_ones():
+    T = np.tile(np.eye(4), (5, 1, 1))
+    T[:, 0, 3] = np.arange(5) * 0.8
+    times = 100.0 + np.arange(5) * 0.1
+    real = dataclasses.replace(R.REALISM, pose_drift_m_s=0.02)
+    walk = T @ R.pose_errors(5, real, np.random.default_rng(1))
+    stored = R.stored_poses(T, times, real, np.random.default_rng(1))
+    assert np.allclose(stored[:, 2, 3] - walk[:, 2, 3], 0.02 * np.arange(5) * 0.1)
+    assert np.array_equal(np.delete(stored.reshape(5, 16), 11, axis=1), np.delete(walk.reshape(5, 16), 11, axis=1))
+    none = R.stored_poses(T, times, dataclasses.replace(real, pose_drift_m_s=0.0), np.random.default_rng(1))
+    assert np.array_equal(none, walk)  # without a drift, physics 4's poses
+
+
+def test_traffic_is_a_share_of_the_towns_from_physics_5(monkeypatch):
+    from pcfbench.datasets.synthetic import generate as G
+    from pcfbench.datasets.synthetic.world import TOWN
+
+    fewer = R.with_traffic(TOWN, R.REALISM)
+    assert (fewer.vehicles_per_km, fewer.cyclists_per_km, fewer.pedestrians_per_km) == (8.8, 2.0, 5.6)  # 0.4 of 22, 5, 14
+    assert dataclasses.replace(fewer, vehicles_per_km=22.0, cyclists_per_km=5.0, pedestrians_per_km=14.0) == TOWN
+    seen = []
+    real_make_agents = G.make_agents
+    monkeypatch.setattr(G, "make_agents", lambda style, *a: seen.append(style) or real_make_agents(style, *a))
+    for name in ("synthetic-town-realistic", "synthetic-town"):
+        simulate_sequence(_tiny_domain(name, sweeps=1, azimuths=60), "05")
+    assert seen == [R.with_traffic(get_domain("synthetic-town").style, R.REALISM), get_domain("synthetic-town").style]
+
+
 def test_the_realism_knobs_are_pinned_to_their_physics_version():
     """The cache folder of a realistic domain is named by ``Realism.version`` alone, so a knob
     changed without a version bump would let an older cache be read as this physics, without
     a word. Changing any knob must come with a new version and a new digest here."""
     knobs = dataclasses.asdict(R.REALISM)
     digest = hashlib.sha256(json.dumps(knobs, sort_keys=True).encode()).hexdigest()
-    pinned = {4: "241122b6bd805adc66a99c0909e7b1484f1c65d4788caed725ed19fbd517dbe2"}
+    pinned = {4: "241122b6bd805adc66a99c0909e7b1484f1c65d4788caed725ed19fbd517dbe2",
+              5: "d524ce43893fddd53f30f3aaf0f3e1cf5057baf7f60d34e4dc9a58ecad800cae"}
     assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
     assert digest == pinned[R.REALISM.version], (
         f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")

@@ -97,11 +97,12 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
                         clearance=None if domain.realism is None else domain.realism.clearance_m,
                         trunk_class=trunk_class(domain))
     if domain.realism is not None:  # its own stream: physics 1 draws stay as they were
-        from pcfbench.datasets.synthetic.realism import add_shrubs
+        from pcfbench.datasets.synthetic import realism as physics2
 
-        add_shrubs(soup, style, graph, ground, np.random.default_rng([domain.seed, index, 2]), lo, hi, domain.realism)
+        physics2.add_shrubs(soup, style, graph, ground, np.random.default_rng([domain.seed, index, 2]), lo, hi, domain.realism)
     static = StaticScene(soup)
-    agents = make_agents(style, graph, rng_agents, lo, hi, duration + t_start)
+    traffic = style if domain.realism is None else physics2.with_traffic(style, domain.realism)
+    agents = make_agents(traffic, graph, rng_agents, lo, hi, duration + t_start)
     for a in agents:
         a.t0 += t_start
     # No collisions with the ego vehicle: agents that would come within 3.5 m of it are left out.
@@ -112,8 +113,6 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     seq = SimulatedSequence(domain.name, name, split, [], [], [], T, times)
     hits = drops = 0
     if domain.realism is not None:
-        from pcfbench.datasets.synthetic import realism as physics2
-
         calibration = physics2.beam_calibration(domain.sensor, domain.realism, domain.seed)
         fire = physics2.column_times(domain.sensor, domain.realism)
         half = domain.realism.revolution_s / 2
@@ -132,8 +131,8 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
         drops += res.rays_dropped
         if progress:
             progress(1)
-    if domain.realism is not None:  # stored poses are estimates (realism.pose_errors)
-        seq.T_world_sensor = T @ physics2.pose_errors(len(T), domain.realism, np.random.default_rng([domain.seed, index, 3]))
+    if domain.realism is not None:  # stored poses are estimates (realism.stored_poses)
+        seq.T_world_sensor = physics2.stored_poses(T, times, domain.realism, np.random.default_rng([domain.seed, index, 3]))
     seq.stats = {
         "sweeps": num,
         "mean_points": float(np.mean([len(p) for p in seq.points])),
