@@ -38,13 +38,19 @@ def group_of(points_ref: np.ndarray, T_ref_future: np.ndarray) -> np.ndarray:
     return band * 2 + (p[:, 2] < -1.3)
 
 
-def split(dataset: str, root: str, split_name: str, samples: int, labels: bool) -> None:
+def evenly_spaced(dataset: str, root: str, split_name: str, samples: int, method_names=METHODS):
+    """(adapter, the kitti-1s setting, its sample builder, ``samples`` sample keys spread evenly
+    over the split, the methods by name): what each of these realism scripts starts from."""
     ad = get_plugins().datasets.get(dataset)(root)
     setting = get_setting("kitti-1s")
     builder = SampleBuilder(ad, setting)
     keys = builder.sample_keys(split_name)
     keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, samples).round().astype(int))]
-    methods = {m: resolve_method(m).create() for m in METHODS}
+    return ad, setting, builder, keys, {m: resolve_method(m).create() for m in method_names}
+
+
+def split(dataset: str, root: str, split_name: str, samples: int, labels: bool) -> None:
+    ad, setting, builder, keys, methods = evenly_spaced(dataset, root, split_name, samples)
     gp = {m: np.zeros(len(GROUPS)) for m in methods}
     pg = {m: np.zeros(len(GROUPS)) for m in methods}
     n_cls = 16
@@ -95,14 +101,20 @@ def split(dataset: str, root: str, split_name: str, samples: int, labels: bool) 
                   + " | ".join(f"{m[8:]} " + " ".join(f"{v / sweeps:.3f}" for v in by_cls[m][c]) for m in methods))
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parse_sides(doc: str, labels: bool = False) -> argparse.Namespace:
+    """The command line these realism scripts share: a generated split and / or a KITTI root."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--synthetic", help="a generated synthetic-town-realistic test split (folder)")
     ap.add_argument("--domain", default="synthetic-town-realistic")
     ap.add_argument("--real", help="a KITTI root (split train)")
     ap.add_argument("--samples", type=int, default=12)
-    ap.add_argument("--labels", action="store_true", help="also split the generated side by labelled class")
-    a = ap.parse_args()
+    if labels:
+        ap.add_argument("--labels", action="store_true", help="also split the generated side by labelled class")
+    return ap.parse_args()
+
+
+def main() -> None:
+    a = parse_sides(__doc__, labels=True)
     if a.synthetic:
         split(a.domain, a.synthetic, "test", a.samples, a.labels)
     if a.real:

@@ -16,15 +16,11 @@ FOLDER, splits=("test",))``).
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 
-from pcfbench.method import resolve_method
 from pcfbench.metrics.base import SweepContext
-from pcfbench.plugins import get_plugins
-from pcfbench.protocol import SampleBuilder, get_setting
 from pcfbench.validate import validate_forecast
+from realism_chamfer_split import evenly_spaced, parse_sides  # this folder is on the path when a script here runs
 
 METHODS = ("copy-last", "raycast-zbuffer", "raycast-freespace", "raycast-voxel")
 RANGES = (5.0, 10.0, 20.0)  # bands 0-5, 5-10, 10-20, 20+ m from the future sensor
@@ -33,12 +29,7 @@ HEIGHTS = (-1.3, -0.5, 0.5)  # ground, low, middle, high: z relative to the futu
 
 def signed_errors(dataset: str, root: str, split_name: str, samples: int):
     """(signed errors per method, range, height) over the kept rays of every future sweep."""
-    ad = get_plugins().datasets.get(dataset)(root)
-    setting = get_setting("kitti-1s")
-    builder = SampleBuilder(ad, setting)
-    keys = builder.sample_keys(split_name)
-    keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, samples).round().astype(int))]
-    methods = {m: resolve_method(m).create() for m in METHODS}
+    _, setting, builder, keys, methods = evenly_spaced(dataset, root, split_name, samples, METHODS)
     errs = {m: [] for m in methods}
     ranges, heights = [], []
     for seq, ref in keys:
@@ -80,12 +71,7 @@ def report(dataset: str, root: str, split_name: str, samples: int) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--synthetic", help="a generated synthetic-town-realistic test split (folder)")
-    ap.add_argument("--domain", default="synthetic-town-realistic")
-    ap.add_argument("--real", help="a KITTI root (split train)")
-    ap.add_argument("--samples", type=int, default=12)
-    a = ap.parse_args()
+    a = parse_sides(__doc__)
     if a.synthetic:
         report(a.domain, a.synthetic, "test", a.samples)
     if a.real:
