@@ -14,12 +14,19 @@ import pytest
 os.environ["PCFBENCH_NO_PROGRESS"] = "1"
 # Reports without figures unless a test asks (re-running samples for them would slow every CLI run).
 os.environ["PCFBENCH_FIGURES"] = "0"
-_HOME = Path(tempfile.mkdtemp(prefix="pcfbench-tests-"))
-# Each process that imports this (pytest, every xdist worker) removes its own on exit: left
-# behind, a cache of generated worlds per run filled the CI machine's disk.
-# Only by the process that made it: a forked child that runs atexit must not pull it away.
-_OWNER = os.getpid()
-atexit.register(lambda: os.getpid() == _OWNER and shutil.rmtree(_HOME, ignore_errors=True))
+# One scratch home per test run, removed when the process that made it exits: left behind,
+# a cache of generated worlds per run filled the CI machine's disk. Processes the tests start
+# (workers that import this file, and are often killed rather than exit) inherit its path
+# and use it rather than make their own; only the maker removes it, so a forked child that
+# runs atexit does not pull it away either.
+_HOME_VAR = "PCFBENCH_TESTS_HOME"
+if os.environ.get(_HOME_VAR) and Path(os.environ[_HOME_VAR]).is_dir():
+    _HOME = Path(os.environ[_HOME_VAR])
+else:
+    _HOME = Path(tempfile.mkdtemp(prefix="pcfbench-tests-"))
+    os.environ[_HOME_VAR] = str(_HOME)
+    _OWNER = os.getpid()
+    atexit.register(lambda: os.getpid() == _OWNER and shutil.rmtree(_HOME, ignore_errors=True))
 os.environ["PCFBENCH_CACHE"] = str(_HOME / "cache")
 os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")
 os.environ["RAY_TMPDIR"] = str(_HOME / "ray")  # the local Rays' session folders, else left in /tmp/ray
