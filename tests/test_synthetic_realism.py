@@ -358,6 +358,19 @@ def test_measure_fits_the_ground_drift_against_the_sweep_a_second_later(tmp_path
     assert summary["ground drop with range: elevation error (deg)"] == slope
 
 
+def test_the_ground_drift_figure_takes_sweep_pairs_without_ground(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+
+    ad = KittiOdometry(write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=13))
+    edges = C.beam_edges([0.0, -1.0, -3.0])
+    st = C.measure(ad, "test", 3, "tiny", edges)
+    st.ground_pairs = [(np.zeros(0), np.zeros(0))]  # a pair 1 s apart with no ground judged
+    assert np.isnan(st.summary(edges)["ground drop with range: elevation error (deg)"])
+    names = C._figures(tmp_path, st, st, edges, None, None)
+    assert "ground_drift.png" in names and (tmp_path / "ground_drift.png").stat().st_size > 1000
+
+
 @pytest.mark.slow
 def test_compare_command_statistics_only(tmp_path):
     from conftest import write_tiny_kitti

@@ -797,6 +797,8 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         dr, dz = (np.concatenate(x) for x in zip(*st.ground_pairs))
         keep = np.abs(dz) <= DRIFT_OUTLIER_M
         dr, dz = dr[keep], dz[keep]
+        if not dr.size:  # sweep pairs without a judged ground point between them
+            continue
         bins = np.arange(np.floor(dr.min()), np.ceil(dr.max()) + 1.0, 1.0)
         which = np.digitize(dr, bins)
         mid = [(bins[b - 1] + 0.5, np.median(dz[which == b])) for b in np.unique(which) if (which == b).sum() >= 50]
@@ -807,9 +809,12 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         ax.plot(xs, drift + np.tan(np.deg2rad(slope)) * xs, color=col,
                 label=f"{lab}: fit, {slope:.2f} deg, drift {100 * drift:+.1f} cm")
     ax.axhline(0.0, color="grey", lw=0.5)
+    if not ax.get_legend_handles_labels()[0]:
+        ax.text(0.5, 0.5, f"no ground seen twice {DRIFT_GAP_S:g} s apart", transform=ax.transAxes, ha="center")
     ax.set(xlabel=f"range from the earlier sweep - from the one {DRIFT_GAP_S:g} s later (m)",
            ylabel="later ground height - earlier (m)")
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
     save(fig, "ground_drift.png")
 
     if base_syn and base_real:
