@@ -134,7 +134,8 @@ def test_ground_height_pairs_match_a_brute_force_reference():
 
     rng = np.random.default_rng(5)
     earlier = _ground_grid(step=0.2) + rng.normal(0, [0.03, 0.03, 0.03], (19881, 3))
-    earlier = np.concatenate([earlier, rng.uniform([-14, -14, -1.7], [14, 14, 1.0], (500, 3))])  # some off the ground
+    earlier = np.concatenate([earlier, rng.uniform([-14, -14, -1.7], [14, 14, 1.0], (500, 3)),  # some off the ground
+                              rng.normal([6.0, 0.0, -1.73], [0.15, 0.15, 0.01], (300, 3))])  # a patch dense in a ring
     o = np.array([2.0, 1.0, 0.05])
     later = _ground_grid(step=0.7) + [0.3, 0.2, 0.0] + rng.normal(0, [0.0, 0.0, 0.04], (1681, 3))
     dr, dz = C.ground_height_pairs(earlier, later, o)
@@ -150,6 +151,8 @@ def test_ground_height_pairs_match_a_brute_force_reference():
             want.append((np.linalg.norm(p) - r, p[2] - z.mean()))
     want = np.array(want)
     assert len(want) > 200 and len(want) < (np.linalg.norm(later - o, axis=1) < 12).sum()  # some left out by the span
+    dense = tree.query_ball_point(later[:, :2], 0.3, return_length=True)
+    assert dense.max() > 100  # more earlier points within 0.3 m than a first search of 32 neighbours takes
     order, worder = np.lexsort((dz, dr)), np.lexsort((want[:, 1], want[:, 0]))
     assert np.allclose(dr[order], want[worder, 0]) and np.allclose(dz[order], want[worder, 1])
 

@@ -207,9 +207,13 @@ def ground_height_pairs(earlier: np.ndarray, later: np.ndarray, later_origin: np
     q = later[(rel[:, 2] < below) & (r_later >= ranges[0]) & (r_later < ranges[1])]
     if len(e) < min_points or not len(q):
         return np.zeros(0), np.zeros(0)
-    k = min(32, len(e))
-    dist, idx = cKDTree(e[:, :2]).query(q[:, :2], k=k, distance_upper_bound=radius)
-    dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+    tree, k = cKDTree(e[:, :2]), min(32, len(e))
+    while True:  # every earlier point within the radius: more neighbours while any query gets k of them
+        dist, idx = tree.query(q[:, :2], k=k, distance_upper_bound=radius)
+        dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+        if k == len(e) or not np.isfinite(dist[:, -1]).any():
+            break
+        k = min(4 * k, len(e))
     near = np.isfinite(dist)
     count = near.sum(axis=1)
     enough = count >= min_points
