@@ -96,8 +96,8 @@ class Realism:
     #: per sweep, 1-sigma steps in translation (m, per axis) and rotation (deg, per axis)
     pose_walk: tuple = (0.004, 0.01)
     #: ... and drift apart from the scans upwards at this rate (m/s, world z): registered by
-    #: its poses, the ground a real KITTI sweep sees stands 2.1 cm above where the sweep 1 s
-    #: earlier saw it from the same range (the realism report's ground drift; 0.5 cm without
+    #: its poses, the ground a real KITTI sweep sees stands 2.0 cm above where the sweep 1 s
+    #: earlier saw it from the same range (the realism report's ground drift; 0.4 cm without
     #: a drift), steadily over the drive whatever the speed. It sets the baselines' l1_median
     #: ranking: the forecast ground lies lower than the true one, by 4-8 cm of depth on the
     #: ground 5-10 m away, which the z-buffer's nearer-first splatting absorbs and the fitted
