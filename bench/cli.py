@@ -47,7 +47,7 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     """The methods of ``--method`` (resolved now: an unknown name or option fails before any
     work), else every registered method that is ready to run, with its default options: a
     trained method is ready when its checkpoint for its default training data exists."""
-    from pcfbench.training import find_checkpoint, is_trained, may_have_checkpoint, open_training_data
+    from pcfbench.training import find_checkpoint, is_trained, may_have_checkpoint, open_training_data, shipped_mismatch
     from pcfbench.method import resolve_method
 
     if requested:
@@ -62,10 +62,17 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
         if is_trained(method.cls):
             data = method.cls.default_train_on
             try:
-                if not may_have_checkpoint(method, data) or find_checkpoint(
-                        method, open_training_data(data, plugins=plugins, progress=False).train_on) is None:
-                    click.echo(f"pcfbench: note: {name} is not trained on {data}:train yet "
-                               f"(`pcfbench train {name} --dataset {data}`); left out", err=True)
+                train_on = (open_training_data(data, plugins=plugins, progress=False).train_on
+                            if may_have_checkpoint(method, data) else None)
+                if train_on is None or find_checkpoint(method, train_on) is None:
+                    why = None if train_on is None else shipped_mismatch(method, train_on)
+                    if why:
+                        click.echo(f"pcfbench: warning: {name}'s shipped checkpoint is not for this machine's "
+                                   f"{data}:train: {why} (`pcfbench train {name} --dataset {data}` trains one "
+                                   f"here); left out", err=True)
+                    else:
+                        click.echo(f"pcfbench: note: {name} is not trained on {data}:train yet "
+                                   f"(`pcfbench train {name} --dataset {data}`); left out", err=True)
                     continue
             except PcfbenchError as exc:
                 click.echo(f"pcfbench: warning: skipping {name}: {exc}", err=True)

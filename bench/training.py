@@ -355,20 +355,35 @@ def find_shipped(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
     """The checkpoint of ``spec`` shipped for ``train_on``'s data, verified like any other
     (sha256 of its weights, method, version and options); None when none is shipped, or when
     the local data differs from the data it was trained on (other options, other content)."""
+    return _shipped_for(spec, train_on)[0]
+
+
+def shipped_mismatch(spec: MethodSpec, train_on: TrainOn) -> str | None:
+    """Why the checkpoint of ``spec`` shipped for ``train_on``'s dataset and split is not for
+    this data (other root options, or other bytes), or None when none is shipped or it is."""
+    return _shipped_for(spec, train_on)[1]
+
+
+def _shipped_for(spec: MethodSpec, train_on: TrainOn) -> tuple[Checkpoint | None, str | None]:
     folder = shipped_dir(spec, train_on.dataset, train_on.split)
     if folder is None or not (folder / MANIFEST).is_file():
-        return None
+        return None, None
     ck = Checkpoint.open(folder)
     ck.check_method(spec)
     shipped = ck.manifest.get("shipped")
     if not isinstance(shipped, dict) or "data_sha256" not in shipped:
         raise CheckpointError(f"shipped checkpoint manifest {ck.manifest_path} lacks shipped.data_sha256")
     recorded = ck.manifest["train_on"]
-    if dict(recorded.get("dataset_options") or {}) != json.loads(json.dumps(dict(train_on.dataset_options), default=str)):
-        return None
-    if recorded.get("fingerprint") != train_on.fingerprint and shipped["data_sha256"] != train_on.content_sha256():
-        return None
-    return ck
+    here = json.loads(json.dumps(dict(train_on.dataset_options), default=str))
+    if dict(recorded.get("dataset_options") or {}) != here:
+        return None, f"it was trained with the dataset options {recorded.get('dataset_options') or {}}, here {here}"
+    if recorded.get("fingerprint") != train_on.fingerprint:
+        content = train_on.content_sha256()
+        if shipped["data_sha256"] != content:
+            return None, (f"it was trained on other bytes of {train_on.label} (content sha256 "
+                          f"{shipped['data_sha256'][:12]}, here {content[:12]}; a generated dataset's bytes can "
+                          f"differ from one CPU to another)")
+    return ck, None
 
 
 def retrain_command(spec: MethodSpec, dataset: str, split: str, manifest: Mapping[str, Any]) -> str:

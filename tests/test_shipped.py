@@ -14,7 +14,7 @@ import pytest
 from pcfbench.method import resolve_method
 from pcfbench.training import (
     SHIPPED_LIMIT_BYTES, Checkpoint, CheckpointError, TrainingRun, checkpoint_dir, checkpoint_for, find_checkpoint,
-    may_have_checkpoint, open_training_data, ship, shipped_dir,
+    may_have_checkpoint, open_training_data, ship, shipped_dir, shipped_mismatch,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -96,12 +96,17 @@ def test_shipped_checkpoint_matches_local_data_by_content_not_file_times(toy):
     os.utime(first, ns=(1, 1))  # the same bytes, another time: another fingerprint, the same data
     again = open_training_data(toy.data, "train", toy.plugins, False).train_on
     assert again.fingerprint != toy.source.train_on.fingerprint
-    assert find_checkpoint(toy.spec, again) is not None
+    assert find_checkpoint(toy.spec, again) is not None and shipped_mismatch(toy.spec, again) is None
+    before = toy.source.train_on.content_sha256()  # what the shipped manifest records
     data = bytearray(first.read_bytes())
     data[0] ^= 1  # other data: the shipped checkpoint is not for it
     first.write_bytes(bytes(data))
     other = open_training_data(toy.data, "train", toy.plugins, False).train_on
     assert find_checkpoint(toy.spec, other) is None
+    why = shipped_mismatch(toy.spec, other)  # the default run says which data the shipped one is for
+    assert why == (f"it was trained on other bytes of kitti:train (content sha256 "
+                   f"{before[:12]}, here {other.content_sha256()[:12]}; "
+                   f"a generated dataset's bytes can differ from one CPU to another)")
     assert not may_have_checkpoint(resolve_method("toy-trained:lr=0.2", toy.plugins), "kitti")
     with pytest.raises(CheckpointError, match="no checkpoint of toy-trained trained on kitti:train"):
         checkpoint_for(toy.spec, train_on=toy.data, plugins=toy.plugins, progress=False)

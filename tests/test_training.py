@@ -414,6 +414,32 @@ def test_default_run_includes_a_trained_method_only_with_its_checkpoint(env, mon
     assert "toy-trained" in [m.name for m in _selected_methods(env.plugins, ())]
 
 
+def test_default_run_says_when_the_shipped_checkpoint_is_for_other_bytes(env, monkeypatch, capsys):
+    """A shipped checkpoint whose data differ from this machine's (a generated dataset's bytes
+    can differ by CPU) is left out with the reason, not as "not trained yet"."""
+    from pcfbench.cli import _selected_methods
+    from pcfbench.method import resolve_method
+    from pcfbench.training import Checkpoint, checkpoint_dir, open_training_data, ship
+
+    monkeypatch.setenv("PCFBENCH_DATASET_KITTI", str(env.root))
+    monkeypatch.setattr(ToyTrained, "shipped_checkpoints", env.tmp / "shipped")
+    _train(env)
+    spec = resolve_method("toy-trained", env.plugins)
+    source = open_training_data(f"kitti={env.root}", "train", env.plugins, False)
+    ck = Checkpoint.open(checkpoint_dir(spec, source.train_on))
+    ship(spec, ck, source.train_on, "retrain", log=lambda *a: None)
+    for f in ck.dir.iterdir():
+        f.unlink()
+    capsys.readouterr()
+    assert "toy-trained" in [m.name for m in _selected_methods(env.plugins, ())]  # the shipped one
+    first = sorted(Path(env.root).rglob("*.bin"))[0]
+    first.write_bytes(bytes([first.read_bytes()[0] ^ 1]) + first.read_bytes()[1:])
+    assert "toy-trained" not in [m.name for m in _selected_methods(env.plugins, ())]
+    err = capsys.readouterr().err
+    assert "toy-trained's shipped checkpoint is not for this machine's kitti:train: it was trained on other bytes" in err
+    assert "not trained on kitti:train yet" not in err
+
+
 @dataclass(frozen=True)
 class ToyInferenceOptions(ToyOptions):
     offset: float = pcfbench.option(0.0, help="added to every forecast depth")
