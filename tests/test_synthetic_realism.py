@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 
 import numpy as np
 import pytest
@@ -611,7 +612,11 @@ def test_physics_1_output_is_unchanged_and_the_realistic_domain_is_opt_in():
     for p, lab in zip(seq.points, seq.labels):
         h.update(p.tobytes())
         h.update(lab.tobytes())
-    assert h.hexdigest() == GOLDEN_TINY_V1
+    cpu = next((ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name")), "?") \
+        if os.path.exists("/proc/cpuinfo") else "?"
+    assert h.hexdigest() in GOLDEN_TINY_V1, (
+        f"physics-1 bytes changed, or this host ({cpu}) casts rays differently from every host recorded: "
+        f"{h.hexdigest()} not in {sorted(GOLDEN_TINY_V1)}")
     ds = get_plugins().datasets
     assert ds.get("synthetic-town").embedded and not ds.get("synthetic-town-realistic").embedded
 
@@ -664,7 +669,16 @@ def test_poles_and_trunks_stay_off_every_carriageway_from_physics_3(monkeypatch)
         assert all(np.array_equal(a, b) for a, b in zip(soup1.merged(cls), soup3.merged(cls)))
 
 
-GOLDEN_TINY_V1 = "b50ddcca7dfc9329fbdb164954da2bc09560e65e70cb02aac482454a5ee0ead2"
+#: sha256 of the tiny physics-1 generation, by the host that made it. The same code gives
+#: another digest on another CPU: found 2026-11-27 on an AMD EPYC host with AVX2 and no
+#: AVX-512, after CI had passed on the first digest for days. numpy's own SIMD level does
+#: not change it (the same digest with its AVX2 paths switched off); Open3D's ray casting
+#: (Embree) picks its code by CPU, the likely cause, not proven. So physics-1 bytes are not
+#: the same on every machine (docs/realism.md, "The default stays on physics 1").
+GOLDEN_TINY_V1 = {
+    "b50ddcca7dfc9329fbdb164954da2bc09560e65e70cb02aac482454a5ee0ead2": "the hosts of CI up to 2026-11-26",
+    "594010b92063ea2d97d098ca10a78e108fcf7c7269f9a2376d28eee5748122b7": "AMD EPYC, AVX2, no AVX-512",
+}
 
 
 def test_trunks_are_solid_from_physics_4_and_crowns_return_from_inside():
