@@ -455,6 +455,135 @@ def test_compare_command_with_baselines_on_tiny_data(tmp_path):
     assert means(json.loads((out / "realism.json").read_text())["baselines"]) == means(base)
 
 
+def _base(per_sequence: dict, samples: dict | None = None) -> dict:
+    """A ``baseline_means``-shaped dict from {method: {sequence: {metric: (flat mean, rows)}}},
+    pooled by hand: every row weighs the same."""
+    out = {}
+    for m, seqs in per_sequence.items():
+        row = {"per_sequence": {}, "samples": 0}
+        for seq, vals in seqs.items():
+            n = (samples or {}).get(seq, 1)
+            row["per_sequence"][seq] = {"samples": n, **{k: v[0] for k, v in vals.items()},
+                                        "rows": {k: v[1] for k, v in vals.items()}}
+            row["samples"] += n
+        for k in C.RANK_METRICS:
+            tot = sum(v[k][0] * v[k][1] for v in seqs.values())
+            row[k] = tot / sum(v[k][1] for v in seqs.values())
+        out[m] = row
+    return out
+
+
+def test_sequence_rankings_and_agreement_between_sequences_hand_case():
+    one = {k: None for k in C.RANK_METRICS}
+
+    def seq(*means):  # the same mean for every metric, 10 rows each
+        return {k: (x, 10) for k, x in zip(one, means)}
+    # three methods; sequence a ranks them 1 < 2 < 3, b the same, c reversed
+    syn = _base({"m1": {"a": seq(1, 1, 1), "b": seq(1, 1, 1), "c": seq(3, 3, 3)},
+                 "m2": {"a": seq(2, 2, 2), "b": seq(2, 2, 2), "c": seq(2, 2, 2)},
+                 "m3": {"a": seq(3, 3, 3), "b": seq(4, 4, 4), "c": seq(1, 1, 1)}})
+    real = _base({"m1": {"r": seq(1, 5, 1)}, "m2": {"r": seq(2, 4, 2)}, "m3": {"r": seq(3, 3, 3)}})
+    # pooled by hand: m1 (1+1+3)/3, m2 2, m3 (3+4+1)/3 -> 1.67 < 2 < 2.67: the real ranking on metric 0
+    assert syn["m1"]["chamfer_nf"] == pytest.approx(5 / 3) and syn["m3"]["chamfer_nf"] == pytest.approx(8 / 3)
+    by = C.sequence_rankings(syn, real)
+    assert by["a"] == by["b"] == {"chamfer_nf": 1.0, "l1_median": -1.0, "l1_mean": 1.0}
+    assert by["c"] == {"chamfer_nf": -1.0, "l1_median": 1.0, "l1_mean": -1.0}
+    assert C.sequence_rankings(real, syn) == {"r": {"chamfer_nf": 1.0, "l1_median": -1.0, "l1_mean": 1.0}}
+    agree = C.between_sequences(syn)
+    # pairs (a, b) +1, (a, c) -1, (b, c) -1
+    assert agree["chamfer_nf"] == {"mean": pytest.approx(-1 / 3), "lowest": -1.0, "pairs": 3}
+    assert C.between_sequences(real) == {}  # one sequence: nothing to agree with
+    # a method without a scored sample in a sequence: that sequence has no ranking
+    del syn["m2"]["per_sequence"]["c"]
+    assert set(C.sequence_rankings(syn, real)) == {"a", "b"}
+    assert C.between_sequences(syn)["l1_mean"]["pairs"] == 1
+
+
+class _Splits:
+    name, root = "fake", "/nowhere"
+    default_split = "test"
+
+    def splits(self):
+        return ("train", "val", "test")
+
+    def sequence_names(self, split):
+        return {"train": ["00", "01"], "val": ["01"], "test": ["05"]}[split]
+
+
+def test_several_splits_are_checked_before_anything_runs():
+    assert C.split_list("train, test") == ("train", "test") and C.split_list(["val"]) == ("val",)
+    with pytest.raises(PcfbenchError, match="names a split twice"):
+        C.split_list("test,test")
+    with pytest.raises(PcfbenchError, match="expected NAME"):
+        C.split_list("train,,test")
+    assert C.default_split(_Splits(), "train,test") == "train,test"
+    with pytest.raises(PcfbenchError, match="has no split 'tset' .it has: train, val, test"):
+        C.default_split(_Splits(), "train,tset")
+    with pytest.raises(PcfbenchError, match="sequence 01 is in split 'train' and in 'val'"):
+        C.default_split(_Splits(), "train,val")
+    assert C.default_split(_Splits(), None) == "test"
+
+
+def test_baselines_pool_several_splits_row_by_row(tmp_path):
+    from pcfbench.store import Cell, iter_cells
+
+    syn = tmp_path / "syn"
+    dom = dataclasses.replace(_tiny_domain(azimuths=120), splits={"train": (("00", 19),), "test": (("05", 20),)})
+    generate_domain(dom, syn, progress=False)
+    store = tmp_path / "store"
+    one = {sp: C.baseline_means("synthetic-town", str(syn), sp, "kitti-1s", store, None, methods=("copy-last",))
+           for sp in ("train", "test")}
+    both = C.baseline_means("synthetic-town", str(syn), "train,test", "kitti-1s", store, None, methods=("copy-last",))
+    b, (tr, te) = both["copy-last"], (one["train"]["copy-last"], one["test"]["copy-last"])
+    assert (tr["samples"], te["samples"]) == (1, 2) and b["samples"] == 3  # kitti-1s spans 19 sweeps
+    assert b["per_sample"]["sample_id"] == tr["per_sample"]["sample_id"] + te["per_sample"]["sample_id"]
+    assert b["per_sequence"] == {**tr["per_sequence"], **te["per_sequence"]}
+    # the pooled flat mean is over every (sample, future sweep) row of both cells
+    cells = [Cell.at(store, d.relative_to(store)) for d, _ in iter_cells(store)]
+    assert len(cells) == 2
+    rows = np.concatenate([c.read_rows().query("status == 'ok'")["chamfer_nf"].to_numpy(float) for c in cells])
+    assert b["chamfer_nf"] == pytest.approx(np.nanmean(rows))
+    assert b["per_sequence"]["05"]["rows"]["chamfer_nf"] == 5 * te["samples"]  # 5 future sweeps a sample
+
+
+@pytest.mark.slow
+def test_compare_command_pools_several_splits_with_a_table_per_sequence(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.cli import build_cli
+
+    syn = tmp_path / "syn"
+    dom = dataclasses.replace(_tiny_domain(azimuths=120), splits={"train": (("00", 19),), "test": (("05", 19),)})
+    generate_domain(dom, syn, progress=False)  # one kitti-1s sample a town
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=19)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(build_cli(), [
+        "synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}", "--out", str(out),
+        "--sweeps", "2", "--split", "train,test", "--real-split", "test", "-q", "--threads", "1"])
+    assert res.exit_code == 0, res.output
+    assert "synthetic sequences against each other (mean kendall tau over 1 pair): chamfer_nf" in res.output
+    data = json.loads((out / "realism.json").read_text())
+    assert data["meta"]["synthetic_split"] == "train,test"
+    base = data["baselines"]
+    syn_b, real_b = base["synthetic"], base["real"]
+    for k in C.RANK_METRICS:
+        for seq in ("00", "05"):  # each town ranked on its own, against the real ranking
+            want = C.kendall_tau([real_b[m][k] for m in C.BASELINES], [syn_b[m]["per_sequence"][seq][k] for m in C.BASELINES])
+            assert base["kendall_tau_per_sequence"]["synthetic"][seq][k] == pytest.approx(want)
+        pair = C.kendall_tau(*([syn_b[m]["per_sequence"][s][k] for m in C.BASELINES] for s in ("00", "05")))
+        assert base["between_sequences"]["synthetic"][k] == {"mean": pytest.approx(pair), "lowest": pytest.approx(pair),
+                                                             "pairs": 1}
+        # one sample a town, as many future sweeps each: the pooled mean is the towns' mean
+        for m in C.BASELINES:
+            assert syn_b[m][k] == pytest.approx(np.mean([syn_b[m]["per_sequence"][s][k] for s in ("00", "05")]))
+    assert base["between_sequences"]["real"] == {}
+    assert all(syn_b[m]["samples"] == 2 for m in C.BASELINES)
+    md = (out / "realism.md").read_text()
+    assert "## Sequence by sequence" in md and "| synthetic | all 2 pooled | 2 |" in md and "| real | 08 | 1 |" in md
+    rows = {r.split(",")[0]: r.split(",")[1:] for r in (out / "realism.csv").read_text().splitlines()[1:]}
+    assert float(rows["synthetic sequence 05 copy-last l1_mean"][0]) == pytest.approx(
+        syn_b["copy-last"]["per_sequence"]["05"]["l1_mean"])
+
+
 # --- world physics version 2 --------------------------------------------------------------------
 
 def _value_noise_reference(p, wavelength, salt=0):

@@ -46,10 +46,16 @@ def add_commands(cli: click.Group) -> None:
     @click.option("--sweeps", type=click.IntRange(1), default=12, show_default=True,
                   help="Sweeps of each side (each with its successor, and the sweeps 0.5 s and 1 s later where there are) for the statistics.")
     @click.option("--setting", default="kitti-1s", show_default=True, help="Setting of the baselines' runs.")
-    @click.option("--limit", type=click.IntRange(1), default=None, help="Synthetic samples for the baselines (default: all).")
-    @click.option("--real-limit", type=click.IntRange(1), default=None, help="Real samples for the baselines (default: all).")
-    @click.option("--split", "synthetic_split", default=None, help="Synthetic split (default: the adapter's evaluation split).")
-    @click.option("--real-split", default=None, help="Real split (default: the adapter's evaluation split, else the first with sequences).")
+    @click.option("--limit", type=click.IntRange(1), default=None,
+                  help="Synthetic samples for the baselines, per split (default: all).")
+    @click.option("--real-limit", type=click.IntRange(1), default=None,
+                  help="Real samples for the baselines, per split (default: all).")
+    @click.option("--split", "synthetic_split", default=None, metavar="SPLIT[,SPLIT...]",
+                  help="Synthetic split, or several pooled (train,val,test: every town; the report adds a table "
+                       "per sequence). Default: the adapter's evaluation split.")
+    @click.option("--real-split", default=None, metavar="SPLIT[,SPLIT...]",
+                  help="Real split, or several pooled. Default: the adapter's evaluation split, else the first "
+                       "with sequences.")
     @click.option("--store", type=click.Path(file_okay=False), default=None,
                   help="Results store for the baselines' cells (default: OUT/store; reused when run again).")
     @click.option("--no-baselines", is_flag=True, help="Statistics only (no method runs).")
@@ -58,6 +64,7 @@ def add_commands(cli: click.Group) -> None:
     def compare(real, domain, out, sweeps, setting, limit, real_limit, synthetic_split, real_split, store, no_baselines,
                 threads, quiet):
         """Realism report: a generated domain beside a real dataset (ratios synthetic / real)."""
+        from pcfbench.datasets.synthetic.compare import RANK_METRICS as RANK, pairs_phrase
         from pcfbench.datasets.synthetic.compare import compare as run_compare
         from pcfbench.protocol import get_setting
 
@@ -75,4 +82,8 @@ def add_commands(cli: click.Group) -> None:
                 f"{k} {t:+.2f}" + (f" (95 % interval {trust[k]['interval'][0]:+.2f} .. {trust[k]['interval'][1]:+.2f})"
                                    if k in trust else "")
                 for k, t in res["baselines"]["kendall_tau"].items()))
+            for side, agree in res["baselines"]["between_sequences"].items():
+                if agree:
+                    click.echo(f"{side} sequences against each other (mean kendall tau over "
+                               f"{pairs_phrase(agree[RANK[0]]['pairs'])}): " + ", ".join(f"{k} {a['mean']:+.2f}" for k, a in agree.items()))
         click.echo(f"report: {Path(out) / 'realism.md'}")

@@ -33,6 +33,12 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
   so blocks, not single samples) gives the tau's 95 % interval and the share of draws that
   reach 0.8, and the real ranking's agreement with itself when only its samples are redrawn.
 
+Either side may pool several splits (``--split train,val,test``): the statistics read sweeps
+spread over all of them, the baselines run a cell per split and pool every (sample, future
+sweep) alike, and the report ranks each sequence on its own too (its tau against the other
+side's pooled ranking, and the sequences' taus against each other): a ranking the sequences
+of one side disagree on belongs to the scene, not to the dataset.
+
 Both clouds are thinned to one point per ``VOXEL_M`` cube before the plane fits, so the
 neighbourhoods have the same size whatever the sensor's point density.
 """
@@ -480,12 +486,25 @@ def _moving_mask(adapter, seq_name: str, index: int, n: int) -> np.ndarray | Non
     return lab >= SEMANTIC_KITTI_MOVING
 
 
-def pick_sweeps(adapter, split: str, count: int) -> list[tuple[str, int]]:
-    """``count`` (sequence, index) pairs spread evenly over the split (each has a next sweep)."""
+def split_list(split) -> tuple[str, ...]:
+    """``"test"`` or ``"train,val,test"`` (or a sequence of names) -> the split names, checked:
+    none empty, none twice (its samples would count twice)."""
+    parts = tuple(p.strip() for p in split.split(",")) if isinstance(split, str) else tuple(split)
+    if not parts or not all(parts):
+        raise PcfbenchError(f"split {split!r}: expected NAME or NAME,NAME,...")
+    if len(set(parts)) != len(parts):
+        raise PcfbenchError(f"split {split!r} names a split twice: its samples would count twice")
+    return parts
+
+
+def pick_sweeps(adapter, split, count: int) -> list[tuple[str, int]]:
+    """``count`` (sequence, index) pairs spread evenly over the split, or over several splits'
+    sequences in turn (each pair has a next sweep)."""
     pairs = []
-    for name in adapter.sequence_names(split):
-        n = len(adapter.sequence(name))
-        pairs += [(name, i) for i in range(n - 1)]
+    for sp in split_list(split):
+        for name in adapter.sequence_names(sp):
+            n = len(adapter.sequence(name))
+            pairs += [(name, i) for i in range(n - 1)]
     if not pairs:
         raise PcfbenchError(f"dataset {adapter.name} split {split!r} has no two consecutive sweeps to compare")
     take = np.unique(np.linspace(0, len(pairs) - 1, min(count, len(pairs))).round().astype(int))
@@ -579,34 +598,79 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
 
 # --- the baselines -----------------------------------------------------------------------------
 
-def baseline_means(dataset: str, root: str, split: str, setting: str, store: Path, limit: int | None,
+def baseline_means(dataset: str, root: str, split, setting: str, store: Path, limit: int | None,
                    methods=BASELINES, metrics=RANK_METRICS, progress: bool = False, threads: int | None = None) -> dict:
     """method -> {metric: flat mean over (sample, future sweep), "per_sample": {"sample_id": [...],
-    metric: [...]}} (each sample's mean over its future sweeps, in drive order); cells run (or
-    resumed) in ``store``."""
+    metric: [...]}} (each sample's mean over its future sweeps, in drive order, sequence by
+    sequence), "per_sequence": {sequence: {"samples": n, metric: flat mean, "rows": {metric: n}}}};
+    cells run (or resumed) in ``store``. ``split`` may name several splits (``"train,val,test"``):
+    one cell each (``limit`` samples each), pooled so that every (sample, future sweep) weighs
+    the same."""
+    import pandas as pd
+
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
     from pcfbench.runner import default_metrics, run_cell
     from pcfbench.store import Cell, CellSpec
 
+    splits = split_list(split)
     plugins = get_plugins()
     names = default_metrics(plugins)
     out = {}
     for m in methods:
         spec_m = resolve_method(m, plugins)
-        spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, split, setting,
-                        "full-context", limit, names)
         t0 = time.perf_counter()
-        res = run_cell(spec, store, progress=progress, plugins=plugins, threads=threads)
-        df = Cell(store, spec).read_rows()
+        frames, samples = [], 0
+        for sp in splits:
+            spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, sp, setting,
+                            "full-context", limit, names)
+            samples += run_cell(spec, store, progress=progress, plugins=plugins, threads=threads).samples
+            frames.append(Cell(store, spec).read_rows())
+        df = pd.concat(frames, ignore_index=True)
         ok = df[df["status"] == "ok"]
         row = {k: float(np.nanmean(ok[k].to_numpy(float))) for k in metrics}
         by = ok.groupby(["sequence", "ref_index"], sort=True)
         row["per_sample"] = {"sample_id": by["sample_id"].first().tolist(),
                              **{k: by[k].mean().astype(float).tolist() for k in metrics}}
-        row["samples"] = res.samples
+        row["per_sequence"] = {
+            str(seq): {"samples": int(g["sample_id"].nunique()),
+                       **{k: float(np.nanmean(g[k].to_numpy(float))) for k in metrics},
+                       "rows": {k: int(np.isfinite(g[k].to_numpy(float)).sum()) for k in metrics}}
+            for seq, g in ok.groupby("sequence", sort=True)}
+        row["samples"] = samples
         row["seconds"] = time.perf_counter() - t0
         out[m] = row
+    return out
+
+
+def sequence_rankings(base: dict, against: dict, metrics=RANK_METRICS) -> dict:
+    """Each sequence of ``base`` (``baseline_means``' output) ranked on its own: {sequence:
+    {metric: Kendall tau of its flat means against ``against``'s pooled flat means}}; the
+    methods are ``against``'s."""
+    methods = list(against)
+    seqs = sorted(set().union(*(base[m]["per_sequence"] for m in methods)))
+    out = {}
+    for seq in seqs:
+        if not all(seq in base[m]["per_sequence"] for m in methods):
+            continue  # a method without a scored sample there: no ranking
+        out[seq] = {k: kendall_tau([against[m][k] for m in methods], [base[m]["per_sequence"][seq][k] for m in methods])
+                    for k in metrics}
+    return out
+
+
+def between_sequences(base: dict, metrics=RANK_METRICS) -> dict:
+    """How far a side's sequences agree with each other: {metric: {"mean": mean Kendall tau over
+    every pair of sequences, "lowest": the lowest, "pairs": how many}}; empty with fewer than
+    two sequences. A low mean says the ranking belongs to the scene, not to the dataset."""
+    methods = list(base)
+    seqs = sorted(set.intersection(*(set(base[m]["per_sequence"]) for m in methods)))
+    if len(seqs) < 2:
+        return {}
+    out = {}
+    for k in metrics:
+        means = {s: [base[m]["per_sequence"][s][k] for m in methods] for s in seqs}
+        taus = [kendall_tau(means[a], means[b]) for i, a in enumerate(seqs) for b in seqs[i + 1:]]
+        out[k] = {"mean": float(np.mean(taus)), "lowest": float(min(taus)), "pairs": len(taus)}
     return out
 
 
@@ -638,6 +702,48 @@ def _score_matrix(base: dict, metric: str) -> np.ndarray:
     return np.array(cols, float).T.reshape(len(order), len(base))
 
 
+def pairs_phrase(n: int) -> str:
+    return f"{n} pair" + ("" if n == 1 else "s")
+
+
+def _several_sequences(base_syn: dict, base_real: dict) -> bool:
+    return any(len(next(iter(b.values()))["per_sequence"]) > 1 for b in (base_syn, base_real))
+
+
+def _at_col(head: list, value, col: int) -> list:
+    """A csv row with ``value`` in column ``col`` (1 synthetic, 2 real) of the report's four."""
+    row = head + ["", "", ""]
+    row[col] = value
+    return row
+
+
+def _sequence_section(base_syn: dict, base_real: dict, by_seq: dict, agree: dict) -> list[str]:
+    """realism.md's tables of each sequence's flat means and ranking, metric by metric."""
+    methods = list(base_syn)
+    lines = ["## Sequence by sequence", "",
+             "Each sequence's flat means, and the Kendall tau of its ranking against the other side's "
+             "(all its sequences pooled). Where a side's sequences disagree with each other, the ranking "
+             "belongs to the scene, not to the dataset, and one sequence a side cannot set it.", ""]
+    for k in RANK_METRICS:
+        lines += [f"### {k}", "", "| side | sequence | samples | " + " | ".join(methods) + " | tau against the other side |",
+                  "|---|---|---|" + "---|" * (len(methods) + 1)]
+        for side, base, other in (("real", base_real, base_syn), ("synthetic", base_syn, base_real)):
+            for seq, tk in by_seq[side].items():
+                ps = [base[m]["per_sequence"][seq] for m in methods]
+                lines.append(f"| {side} | {seq} | {ps[0]['samples']} | " + " | ".join(_fmt(p[k]) for p in ps)
+                             + f" | {tk[k]:+.2f} |")
+            n = len(by_seq[side])
+            if n > 1:
+                pooled = [base[m][k] for m in methods]
+                lines.append(f"| {side} | all {n} pooled | {base[methods[0]]['samples']} | "
+                             + " | ".join(_fmt(x) for x in pooled)
+                             + f" | {kendall_tau([other[m][k] for m in methods], pooled):+.2f} |")
+        said = [f"{side} mean tau {a[k]['mean']:+.2f} over {pairs_phrase(a[k]['pairs'])} (lowest {a[k]['lowest']:+.2f})"
+                for side, a in agree.items() if a]
+        lines += ["", "Sequences against each other: " + "; ".join(said) + ".", ""]
+    return lines
+
+
 def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, base_syn: dict | None,
                  base_real: dict | None, meta: dict) -> dict:
     """realism.md, realism.csv, realism.json and the figures under ``out``; returns the numbers."""
@@ -658,8 +764,11 @@ def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, 
             taus[k] = kendall_tau([base_real[m][k] for m in base_syn], [base_syn[m][k] for m in base_syn])
         if min(len(_score_matrix(b, RANK_METRICS[0])) for b in (base_real, base_syn)) >= 2:  # else nothing to redraw
             trust = {k: tau_bootstrap(_score_matrix(base_real, k), _score_matrix(base_syn, k)) for k in RANK_METRICS}
+        by_seq = {"synthetic": sequence_rankings(base_syn, base_real), "real": sequence_rankings(base_real, base_syn)}
+        agree = {"synthetic": between_sequences(base_syn), "real": between_sequences(base_real)}
         result["baselines"] = {"synthetic": base_syn, "real": base_real, "kendall_tau": taus,
-                               "kendall_tau_bootstrap": trust}
+                               "kendall_tau_bootstrap": trust, "kendall_tau_per_sequence": by_seq,
+                               "between_sequences": agree}
     with open(out / "realism.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["statistic", "synthetic", "real", "ratio_synthetic_over_real"])
@@ -681,6 +790,15 @@ def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, 
             w.writerow([f"kendall tau {k} share of draws >= {TAU_BAR}", b["share_at_bar"], "", ""])
             w.writerow([f"kendall tau {k} real against itself, share of draws >= {TAU_BAR}", "",
                         b["real_self_share_at_bar"], ""])
+        if base_rows and _several_sequences(base_syn, base_real):
+            for side, base, col in (("synthetic", base_syn, 1), ("real", base_real, 2)):
+                for seq, tk in by_seq[side].items():
+                    for k in RANK_METRICS:
+                        for m in base_syn:
+                            w.writerow(_at_col([f"{side} sequence {seq} {m} {k}"], base[m]["per_sequence"][seq][k], col))
+                        w.writerow(_at_col([f"{side} sequence {seq} kendall tau {k}"], tk[k], col))
+                for k, a in agree[side].items():
+                    w.writerow(_at_col([f"{side} sequences against each other: mean kendall tau {k}"], a["mean"], col))
     (out / "realism.json").write_text(json.dumps(result, indent=1, default=float) + "\n")
     figures = _figures(out, syn, real, edges, base_syn, base_real)
     lines = [f"# Realism report: {meta['synthetic']} vs {meta['real']}", "",
@@ -713,6 +831,8 @@ def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, 
                       f"{b['share_at_bar']:.0%} | {b['real_self_median']:+.2f} | {b['real_self_share_at_bar']:.0%} |"
                       for k, b in trust.items()]
             lines += [""]
+        if _several_sequences(base_syn, base_real):
+            lines += _sequence_section(base_syn, base_real, by_seq, agree)
     lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     (out / "realism.md").write_text("\n".join(lines))
     return result
@@ -851,9 +971,21 @@ def open_side(spec: str, progress: bool = True):
 
 
 def default_split(adapter, preferred: str | None) -> str:
-    """``preferred``, else the adapter's default split if it has sequences, else the first that has."""
+    """``preferred`` (one split or several, comma-separated; each checked against the adapter's
+    splits, and no sequence in two of them), else the adapter's default split if it has
+    sequences, else the first that has."""
     if preferred:
-        return preferred
+        seen = {}
+        for sp in split_list(preferred):
+            if sp not in adapter.splits():
+                raise PcfbenchError(f"dataset {adapter.name} under {adapter.root} has no split {sp!r} "
+                                    f"(it has: {', '.join(adapter.splits())})")
+            for name in adapter.sequence_names(sp):
+                if name in seen:
+                    raise PcfbenchError(f"dataset {adapter.name}: sequence {name} is in split {seen[name]!r} and in "
+                                        f"{sp!r}: pooled, its samples would count twice")
+                seen[name] = sp
+        return ",".join(split_list(preferred))
     for sp in (adapter.default_split, *adapter.splits()):
         if sp in adapter.splits() and adapter.sequence_names(sp):
             return sp
