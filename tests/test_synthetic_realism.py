@@ -95,6 +95,44 @@ def test_free_space_violations_match_a_brute_force_reference():
     assert viol.sum() > 10 and (judged & ~viol).sum() > 10  # the random case holds both kinds
 
 
+def test_parallax_bleed_hand_case():
+    # the later sweep (bins of 0.2 x 0.4 deg): a car side 5 m away at azimuths 0.1 and 0.3 deg,
+    # a wall 15 m away at 0.5 deg (too far to judge), the ground 8 m away at 0.9 deg (too low)
+    later = np.concatenate([_at([0.1, 0.1], [0.1, 0.3], r=5.0), _at([0.1], [0.5], r=15.0),
+                            [[8.0 * np.cos(np.deg2rad(0.9)), 8.0 * np.sin(np.deg2rad(0.9)), -1.5]]])
+    later = np.concatenate([later, _at([0.1], [0.1], r=9.0)])  # behind the car in its bin: the car is that bin's return
+    earlier = np.concatenate([
+        _at([0.1, 0.1], [0.1, 0.15], r=[12.0, 6.5]),  # two points behind the car in one bin: the bin bleeds once
+        _at([0.1], [0.3], r=5.5),    # 0.5 m behind: within the margin
+        _at([0.1], [0.5], r=30.0),   # behind the far wall: its bin is not judged
+        _at([0.1], [0.9], r=20.0),   # behind the ground: not judged
+    ])
+    assert C.parallax_bleed(earlier, later) == (1, 2)
+    assert C.parallax_bleed(earlier, later, margin=0.4) == (2, 2)
+    assert C.parallax_bleed(earlier, later, near_m=20.0) == (2, 3)
+    assert C.parallax_bleed(np.zeros((0, 3)), later) == (0, 2)
+
+
+def test_parallax_bleed_matches_a_brute_force_reference():
+    rng = np.random.default_rng(4)
+    later = _at(rng.uniform(-3, 3, 600), rng.uniform(-6, 6, 600), r=rng.uniform(2, 25, 600))
+    earlier = _at(rng.uniform(-3, 3, 600), rng.uniform(-6, 6, 600), r=rng.uniform(2, 40, 600))
+    later[::7, 2] -= 1.0  # some returns low enough to be ground
+    bled, judged = C.parallax_bleed(earlier, later)
+    key = lambda p: (int(np.floor((C.azimuth_deg(p[None])[0] + 180) / C.FREE_AZ_DEG)),
+                     int(np.floor((C.elevation_deg(p[None])[0] - C.FREE_EL_DEG_RANGE[0]) / C.FREE_EL_DEG)))
+    nearest = {}
+    for p in later:  # each bin's nearest return, the slow way
+        k, r = key(p), float(np.linalg.norm(p))
+        if k not in nearest or r < np.linalg.norm(nearest[k]):
+            nearest[k] = p
+    near = {k for k, p in nearest.items() if np.hypot(p[0], p[1]) < C.BLEED_NEAR_M and p[2] > C.FREE_ABOVE_M}
+    want = {key(q) for q in earlier if key(q) in near
+            and np.linalg.norm(q) >= np.linalg.norm(nearest[key(q)]) + C.FREE_MARGIN_M}
+    assert (bled, judged) == (len(want), len(near))
+    assert 10 < bled < judged  # the random case holds both kinds
+
+
 def _ground_grid(step=0.1, half=14.0, z=-1.73):
     g = np.arange(-half, half + 1e-9, step)
     x, y = np.meshgrid(g, g)
@@ -396,6 +434,8 @@ def test_compare_command_statistics_only(tmp_path):
     for side in ("synthetic", "real"):  # both sides judged, labelled or not
         assert 0 <= data[side]["free-space violations at 0.5 s (fraction)"] < 0.5
         assert 0 <= data[side]["mixed pixels: depth jumps with a return in between (share)"] <= 1
+        assert 0 <= data[side]["parallax: near above-ground bins with a return 0.5 s earlier behind them (share)"] <= 1
+        assert data[side]["near above-ground range-image bins per sweep"] > 0
         assert abs(data[side]["ground drift: height of the ground seen 1 s later at the same range (m)"]) < 0.1
     assert 0 <= data["synthetic"]["free-space violations on labelled moving objects (share)"] <= 1
     assert np.isnan(data["real"]["free-space violations on labelled moving objects (share)"])

@@ -22,6 +22,12 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
   of every return of sweep i around their direction, in space sweep i saw empty. Still
   surfaces seldom do that; moving objects do. It estimates how much moves without labels
   (where labels exist, the report gives how many of the violations are on moving objects);
+* parallax: of the range-image bins of the sweep ``MOVING_GAP_S`` later whose nearest return
+  is near (within ``BLEED_NEAR_M`` horizontally) and above the ground, the share holding a
+  point of sweep i (registered into the later frame) ``FREE_MARGIN_M`` or more behind that
+  return: background seen past a near surface's edge, which a forecast without occlusion
+  (4D-Occ's nearest point in angle) can read as the depth; and how many such near bins a
+  sweep has (how much of the view near surfaces fill);
 * mixed pixels: along each beam of a range image, the share of depth jumps (the two
   neighbours of a return more than ``JUMP_M`` apart) whose middle return lies in between,
   more than ``BETWEEN_M`` from both: a return from neither surface;
@@ -74,6 +80,7 @@ FREE_RANGE_M = (3.0, 40.0)  # later points judged: range from sweep i's sensor
 FREE_ABOVE_M = -1.2  # ... and z above this in sweep i's sensor frame (off the ground near the car)
 FREE_AZ_DEG, FREE_EL_DEG = 0.2, 0.4  # range-image bins (the HDL-64E's column and beam spacing)
 FREE_EL_DEG_RANGE = (-30.0, 10.0)
+BLEED_NEAR_M = 10.0  # parallax: later returns judged within this horizontal range (and above FREE_ABOVE_M)
 DRIFT_GAP_S = 1.0  # ground drift: the later sweep is the one nearest this long after sweep i
 DRIFT_BELOW_M = -1.3  # ground: z below this in its own sweep's sensor frame
 DRIFT_RANGE_M = (4.0, 12.0)  # later ground points judged: range from their own sensor
@@ -188,6 +195,33 @@ def free_space_violations(earlier: np.ndarray, later: np.ndarray, margin: float 
     seen = near[ja, je]
     judged = ok & (r >= ranges[0]) & (r < ranges[1]) & (later[:, 2] > above) & np.isfinite(seen)
     return judged, judged & (r <= seen - margin)
+
+
+def parallax_bleed(earlier: np.ndarray, later: np.ndarray, margin: float = FREE_MARGIN_M, near_m: float = BLEED_NEAR_M,
+                   above: float = FREE_ABOVE_M, az_res: float = FREE_AZ_DEG, el_res: float = FREE_EL_DEG,
+                   el_range=FREE_EL_DEG_RANGE) -> tuple[int, int]:
+    """Near surfaces in front of what an earlier sweep saw. ``later`` is a sweep in its own
+    sensor frame, ``earlier`` an earlier sweep registered into that frame. A bin of the later
+    sweep's range image (``az_res`` x ``el_res`` degrees) is judged when its nearest return is
+    within ``near_m`` horizontally and its z above ``above``; it bleeds when an earlier point in
+    the same bin lies ``margin`` or more behind that return: background the earlier sensor saw
+    past the surface's edge. A forecast that answers a ray with the past point nearest in
+    angle, with no occlusion (4D-Occ's ray casting), can read such a point as the depth.
+    Returns (bleeding bins, judged bins)."""
+    n_az = int(round(360 / az_res))
+    n_el = int(round((el_range[1] - el_range[0]) / el_res))
+    ia, ie, ok = range_image_bins(later, az_res, el_res, el_range)
+    r = np.linalg.norm(later, axis=1)
+    first = np.full(n_az * n_el, np.inf)  # each bin's nearest return: its range, and whether it is judged
+    near = np.zeros(n_az * n_el, bool)
+    by_far = np.flatnonzero(ok)[np.argsort(-r[ok], kind="stable")]  # the last write of a bin is its nearest
+    cell = ia[by_far] * n_el + ie[by_far]
+    first[cell] = r[by_far]
+    near[cell] = (np.linalg.norm(later[by_far, :2], axis=1) < near_m) & (later[by_far, 2] > above)
+    ea, ee, eok = range_image_bins(earlier, az_res, el_res, el_range)
+    ecell = ea * n_el + ee
+    behind = eok & near[ecell] & (np.linalg.norm(earlier, axis=1) >= first[ecell] + margin)
+    return int(len(np.unique(ecell[behind]))), int(near.sum())
 
 
 def ground_height_pairs(earlier: np.ndarray, later: np.ndarray, later_origin: np.ndarray,
@@ -411,6 +445,7 @@ class SideStats:
     moving: list = field(default_factory=list)  # (moving points, labelled points) per sweep
     free_space: list = field(default_factory=list)  # (violating, judged) later points per sweep pair
     free_space_moving: list = field(default_factory=list)  # (violating on labelled moving objects, violating)
+    bleed: list = field(default_factory=list)  # (bleeding, judged) near bins of the later sweep per sweep pair
     mixed: list = field(default_factory=list)  # (jumps with a return in between, jumps) per sweep
     ground_pairs: list = field(default_factory=list)  # (r_i - r_j, z_j - z_i) arrays per sweep pair DRIFT_GAP_S apart
     seconds: float = 0.0
@@ -449,6 +484,10 @@ class SideStats:
             "moving-object points (fraction)": _share(self.moving),
             f"free-space violations at {MOVING_GAP_S:g} s (fraction)": _share(self.free_space),
             "free-space violations on labelled moving objects (share)": _share(self.free_space_moving),
+            f"parallax: near above-ground bins with a return {MOVING_GAP_S:g} s earlier behind them (share)":
+                _share(self.bleed),
+            "near above-ground range-image bins per sweep": (float(np.mean([b for _, b in self.bleed]))
+                                                             if self.bleed else float("nan")),
             "mixed pixels: depth jumps with a return in between (share)": _share(self.mixed),
             f"ground drift: height of the ground seen {DRIFT_GAP_S:g} s later at the same range (m)": drift,
             "ground drop with range: elevation error (deg)": slope,
@@ -581,6 +620,7 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
             T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
             judged, viol = free_space_violations(pts, transform_points(T, later_raw[keep_later]))
             st.free_space.append((int(viol.sum()), int(judged.sum())))
+            st.bleed.append(parallax_bleed(transform_points(np.linalg.inv(T), pts), later_raw[keep_later]))
             later_moving = _moving_mask(adapter, name, j, len(later_raw))
             if later_moving is not None:
                 st.free_space_moving.append((int((viol & later_moving[keep_later]).sum()), int(viol.sum())))
@@ -897,9 +937,11 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         ax.legend()
         save(fig, name)
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3))
     for x, (st, lab, col) in enumerate(sides):
-        fs, mixed = _share(st.free_space), _share(st.mixed)
+        fs, mixed, bleed = _share(st.free_space), _share(st.mixed), _share(st.bleed)
+        if np.isfinite(bleed):
+            axes[2].bar(x, bleed, color=col)
         if np.isfinite(fs):
             axes[0].bar(x, fs, color=col)
             on = _share(st.free_space_moving)
@@ -912,6 +954,7 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         ax.set_xticks([0, 1], ["synthetic", "real"])
     axes[0].set_ylabel(f"free-space violations at {MOVING_GAP_S:g} s")
     axes[1].set_ylabel("depth jumps with a return in between")
+    axes[2].set_ylabel(f"near bins with a return {MOVING_GAP_S:g} s earlier behind")
     save(fig, "free_space_and_mixed_pixels.png")
 
     fig, ax = plt.subplots(figsize=(6, 3.2))
