@@ -726,7 +726,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 5 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 6 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -796,7 +796,7 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
     realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
     one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
-    assert realistic["physics"] == 5 and "physics" not in one
+    assert realistic["physics"] == 6 and "physics" not in one
     assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
@@ -931,7 +931,33 @@ def test_traffic_is_a_share_of_the_towns_from_physics_5(monkeypatch):
     monkeypatch.setattr(G, "make_agents", lambda style, *a: seen.append(style) or real_make_agents(style, *a))
     for name in ("synthetic-town-realistic", "synthetic-town"):
         simulate_sequence(_tiny_domain(name, sweeps=1, azimuths=60), "05")
-    assert seen == [R.with_traffic(get_domain("synthetic-town").style, R.REALISM), get_domain("synthetic-town").style]
+    town = get_domain("synthetic-town").style
+    assert seen == [R.with_traffic(R.street_style(town, R.REALISM), R.REALISM), town]
+
+
+def test_the_sidewalk_narrows_and_hedges_line_the_yards_from_physics_6(monkeypatch):
+    from pcfbench.datasets.synthetic import generate as G
+    from pcfbench.datasets.synthetic.world import TOWN, VEGETATION
+
+    assert R.REALISM.sidewalk_m == 2.0 and R.REALISM.shrubs_per_100m == (12.0, 6.0)
+    assert R.street_style(TOWN, R.REALISM) == dataclasses.replace(TOWN, sidewalk_m=2.0)
+    assert R.street_style(TOWN, dataclasses.replace(R.REALISM, sidewalk_m=None)) is TOWN  # physics 5's street
+    seen, added = [], []
+    real_static, real_shrubs = G.build_static, R.add_shrubs
+    monkeypatch.setattr(G, "build_static", lambda style, *a, **k: seen.append(style) or real_static(style, *a, **k))
+
+    def shrubs(soup, style, *a):
+        before = len(soup.parts.get(VEGETATION, []))
+        real_shrubs(soup, style, *a)
+        added.append((style.sidewalk_m, len(soup.parts.get(VEGETATION, [])) - before))
+    monkeypatch.setattr(R, "add_shrubs", shrubs)
+    realistic = _tiny_domain("synthetic-town-realistic", sweeps=1, azimuths=60)
+    for dom in (realistic, _tiny_domain("synthetic-town", sweeps=1, azimuths=60),
+                dataclasses.replace(realistic, realism=dataclasses.replace(R.REALISM, shrubs_per_100m=(4.0, 6.0)))):
+        simulate_sequence(dom, "05")
+    assert [st.sidewalk_m for st in seen] == [2.0, 3.5, 2.0]  # the whole street moves, physics 1 stays as it was
+    assert [a[0] for a in added] == [2.0, 2.0]  # shrubs only in the realistic domain, on its street
+    assert added[0][1] > added[1][1] + 20  # three times the hedges of physics 5 (the same bushes)
 
 
 def test_the_realism_knobs_are_pinned_to_their_physics_version():
@@ -941,7 +967,8 @@ def test_the_realism_knobs_are_pinned_to_their_physics_version():
     knobs = dataclasses.asdict(R.REALISM)
     digest = hashlib.sha256(json.dumps(knobs, sort_keys=True).encode()).hexdigest()
     pinned = {4: "241122b6bd805adc66a99c0909e7b1484f1c65d4788caed725ed19fbd517dbe2",
-              5: "d524ce43893fddd53f30f3aaf0f3e1cf5057baf7f60d34e4dc9a58ecad800cae"}
+              5: "d524ce43893fddd53f30f3aaf0f3e1cf5057baf7f60d34e4dc9a58ecad800cae",
+              6: "ec1e81e325f7a7999c13fc75f03c10b7110926f76ee2b4d2854c62066ea5f1d4"}
     assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
     assert digest == pinned[R.REALISM.version], (
         f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")

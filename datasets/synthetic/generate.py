@@ -81,6 +81,10 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
     seeds = np.random.SeedSequence([domain.seed, index]).spawn(5)
     rng_world, rng_ego, rng_static, rng_agents, rng_sensor = (np.random.default_rng(s) for s in seeds)
     style = domain.style
+    if domain.realism is not None:  # physics 6 narrows the sidewalk; physics 1 keeps the style as it is
+        from pcfbench.datasets.synthetic import realism as physics2
+
+        style = physics2.street_style(style, domain.realism)
     duration = (num - 1) / domain.rate_hz
     graph = make_road_graph(style, rng_world)
     ground = Ground(style, graph, rng_world)
@@ -97,8 +101,6 @@ def simulate_sequence(domain: Domain, name: str, progress: Callable[[int], None]
                         clearance=None if domain.realism is None else domain.realism.clearance_m,
                         trunk_class=trunk_class(domain))
     if domain.realism is not None:  # its own stream: physics 1 draws stay as they were
-        from pcfbench.datasets.synthetic import realism as physics2
-
         physics2.add_shrubs(soup, style, graph, ground, np.random.default_rng([domain.seed, index, 2]), lo, hi, domain.realism)
     static = StaticScene(soup)
     traffic = style if domain.realism is None else physics2.with_traffic(style, domain.realism)
