@@ -534,6 +534,9 @@ def test_sequence_rankings_and_agreement_between_sequences_hand_case():
     assert agree["chamfer_nf"] == {"mean": pytest.approx(-1 / 3), "lowest": -1.0, "pairs": 3}
     assert C.between_sequences(real) == {}  # one sequence: nothing to agree with
     # a method without a scored sample in a sequence: that sequence has no ranking
+    nan = {m: {**row, "per_sequence": {**row["per_sequence"], "b": {**row["per_sequence"]["b"], "l1_mean": np.nan}}}
+           for m, row in syn.items()}  # every score NaN there: no ranking, not a tie
+    assert set(C.sequence_rankings(nan, real)) == {"a", "c"} and C.between_sequences(nan)["l1_mean"]["pairs"] == 1
     del syn["m2"]["per_sequence"]["c"]
     assert set(C.sequence_rankings(syn, real)) == {"a", "b"}
     assert C.between_sequences(syn)["l1_mean"]["pairs"] == 1

@@ -688,14 +688,19 @@ def sequence_rankings(base: dict, against: dict, metrics=RANK_METRICS) -> dict:
     {metric: Kendall tau of its flat means against ``against``'s pooled flat means}}; the
     methods are ``against``'s."""
     methods = list(against)
-    seqs = sorted(set().union(*(base[m]["per_sequence"] for m in methods)))
     out = {}
-    for seq in seqs:
-        if not all(seq in base[m]["per_sequence"] for m in methods):
-            continue  # a method without a scored sample there: no ranking
+    for seq in _ranked_sequences(base, methods, metrics):
         out[seq] = {k: kendall_tau([against[m][k] for m in methods], [base[m]["per_sequence"][seq][k] for m in methods])
                     for k in metrics}
     return out
+
+
+def _ranked_sequences(base: dict, methods, metrics) -> list[str]:
+    """The sequences where every method has a finite flat mean of every metric: elsewhere a
+    missing or NaN score would count as a tie and lower a tau without a word."""
+    seqs = sorted(set().union(*(base[m]["per_sequence"] for m in methods)))
+    return [s for s in seqs if all(s in base[m]["per_sequence"]
+                                   and all(np.isfinite(base[m]["per_sequence"][s][k]) for k in metrics) for m in methods)]
 
 
 def between_sequences(base: dict, metrics=RANK_METRICS) -> dict:
@@ -703,7 +708,7 @@ def between_sequences(base: dict, metrics=RANK_METRICS) -> dict:
     every pair of sequences, "lowest": the lowest, "pairs": how many}}; empty with fewer than
     two sequences. A low mean says the ranking belongs to the scene, not to the dataset."""
     methods = list(base)
-    seqs = sorted(set.intersection(*(set(base[m]["per_sequence"]) for m in methods)))
+    seqs = _ranked_sequences(base, methods, metrics)
     if len(seqs) < 2:
         return {}
     out = {}
