@@ -729,7 +729,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 6 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 7 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -799,7 +799,7 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
     realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
     one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
-    assert realistic["physics"] == 6 and "physics" not in one
+    assert realistic["physics"] == 7 and "physics" not in one
     assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
@@ -889,6 +889,51 @@ def test_trunks_are_solid_from_physics_4_and_crowns_return_from_inside():
     assert np.all(depth >= 0) and 0.5 * quiet.crown_depth_m < depth.mean() < 2 * quiet.crown_depth_m
 
 
+def test_mixed_pixels_return_from_between_at_their_rate():
+    """A ray whose azimuth neighbour on its beam lies more than ``mixed_gap_m`` farther or nearer
+    returns, with probability ``mixed_prob``, from a point in between; every other ray is
+    untouched. Physics 7 sets the rate to 0.04 (from 0.35): a fence of posts in a room gives a
+    few thousand such rays in one sweep."""
+    from pcfbench.datasets.synthetic.lidar import StaticScene
+    from pcfbench.datasets.synthetic.world import STRUCTURE, MeshSoup, box
+
+    assert R.REALISM.mixed_prob == 0.04
+    sensor = dataclasses.replace(get_domain("synthetic-town-realistic").sensor, azimuth_steps=2048, min_range_m=0.1)
+    soup = MeshSoup()
+    soup.add(STRUCTURE, *box(0.0, 0.0, -10.0, 40.0, 40.0, 30.0, 0.0))  # a room around the sensor
+    for y in np.arange(-6.0, 6.01, 0.3):  # posts 0.1 m wide, 0.3 m apart, 6 m ahead
+        soup.add(STRUCTURE, *box(6.0, y, -10.0, 0.1, 0.1, 30.0, 0.0))
+    scene = StaticScene(soup)
+
+    class Flat:
+        def undulation(self, x, y):
+            return np.zeros_like(np.asarray(x, float))
+
+    def ranges(prob):
+        quiet = dataclasses.replace(R.REALISM, beam_bias_deg=0.0, jitter_deg=0.0, range_bias_m=0.0, range_noise_m=0.0,
+                                    roughness=(), mixed_prob=prob, specular_drop=0.0, base_drop=0.0, r50_m=1e6,
+                                    elevation_error_deg=0.0)
+        tau = R.column_times(sensor, quiet)
+        cal = (np.zeros(sensor.beams), np.zeros(sensor.beams))
+        res = R.cast_sweep_realistic(sensor, scene, [], Flat(), 0.0, np.tile(np.eye(4), (len(tau), 1, 1)),
+                                     np.random.default_rng(0), cal, quiet)
+        assert len(res.points) == sensor.beams * sensor.azimuth_steps  # every ray returns: a full range image
+        return np.linalg.norm(res.points.astype(np.float64), axis=1).reshape(sensor.beams, sensor.azimuth_steps)
+
+    clean = ranges(0.0)
+    nxt = np.roll(clean, -1, axis=1)
+    gap = np.abs(nxt - clean) > R.REALISM.mixed_gap_m
+    assert gap.sum() > 2000
+    for prob in (1.0, R.REALISM.mixed_prob):
+        img = ranges(prob)
+        moved = np.abs(img - clean) > 1e-4
+        assert not (moved & ~gap).any()  # only rays at a discontinuity
+        lo, hi = np.minimum(clean, nxt)[moved], np.maximum(clean, nxt)[moved]
+        assert np.all((img[moved] > lo) & (img[moved] < hi))  # in between the two surfaces
+        n, k = gap.sum(), moved.sum()
+        assert abs(k - prob * n) <= 4 * np.sqrt(n * prob * (1 - prob)) + 1e-3 * n
+
+
 def test_the_roof_hides_the_steepest_beams_from_physics_4():
     """Physics 4 lowers the roof under the sensor to 0.35 m: more of the steepest beams end on
     the ego vehicle (and are removed), none that physics 1's roof hid comes back, and the
@@ -971,7 +1016,8 @@ def test_the_realism_knobs_are_pinned_to_their_physics_version():
     digest = hashlib.sha256(json.dumps(knobs, sort_keys=True).encode()).hexdigest()
     pinned = {4: "241122b6bd805adc66a99c0909e7b1484f1c65d4788caed725ed19fbd517dbe2",
               5: "d524ce43893fddd53f30f3aaf0f3e1cf5057baf7f60d34e4dc9a58ecad800cae",
-              6: "ec1e81e325f7a7999c13fc75f03c10b7110926f76ee2b4d2854c62066ea5f1d4"}
+              6: "ec1e81e325f7a7999c13fc75f03c10b7110926f76ee2b4d2854c62066ea5f1d4",
+              7: "f1ec0218493655896703006d19289f453b4a991c038768e1473f752ef515bf5a"}
     assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
     assert digest == pinned[R.REALISM.version], (
         f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")
