@@ -49,6 +49,34 @@ def evenly_spaced(dataset: str, root: str, split_name: str, samples: int, method
     return ad, setting, builder, keys, {m: resolve_method(m).create() for m in method_names}
 
 
+def forecasts_of(builder, keys, methods):
+    """Per sample key: (sequence name, reference index, the sample, its truth, each method's
+    validated forecast)."""
+    for seq, ref in keys:
+        sample, truth = builder.build(seq, ref)
+        yield seq, ref, sample, truth, {m: validate_forecast(sample, x.forecast(sample.for_method()))
+                                        for m, x in methods.items()}
+
+
+def nearest_labels(sequence, root: str, seq: str, ref: int, j: int, points_ref: np.ndarray) -> np.ndarray:
+    """The label (class id) of the raw point of generated sweep ``j`` nearest to each of
+    ``points_ref`` (in sweep ``ref``'s frame)."""
+    raw = transform_points(np.linalg.inv(sequence.T_world_sensor[ref]) @ sequence.T_world_sensor[j],
+                           np.asarray(sequence.load_points(j), np.float64))
+    lab = np.fromfile(f"{root}/sequences/{seq}/labels/{j:06d}.label", np.uint32) & 0xFFFF
+    return lab[cKDTree(raw).query(points_ref)[1]]
+
+
+def run_sides(doc: str, measure) -> None:
+    """Parse the shared command line and run ``measure(dataset, root, split, samples, labels)``
+    on the generated side (split test) and the real one (split train, no labels)."""
+    a = parse_sides(doc, labels=True)
+    if a.synthetic:
+        measure(a.domain, a.synthetic, "test", a.samples, a.labels)
+    if a.real:
+        measure("kitti", a.real, "train", a.samples, False)
+
+
 def split(dataset: str, root: str, split_name: str, samples: int, labels: bool) -> None:
     ad, setting, builder, keys, methods = evenly_spaced(dataset, root, split_name, samples)
     gp = {m: np.zeros(len(GROUPS)) for m in methods}
@@ -57,9 +85,7 @@ def split(dataset: str, root: str, split_name: str, samples: int, labels: bool) 
     by_cls = {m: np.zeros((n_cls, len(BANDS) + 1)) for m in methods}
     share_cls = np.zeros((n_cls, len(BANDS) + 1))
     sweeps = 0
-    for seq, ref in keys:
-        sample, truth = builder.build(seq, ref)
-        forecasts = {m: validate_forecast(sample, x.forecast(sample.for_method())) for m, x in methods.items()}
+    for seq, ref, sample, truth, forecasts in forecasts_of(builder, keys, methods):
         sequence = ad.sequence(seq)
         for k in range(setting.future):
             T_f = sample.future_T_ref_sensor[k]
@@ -68,10 +94,7 @@ def split(dataset: str, root: str, split_name: str, samples: int, labels: bool) 
             cls = None
             if labels:
                 j = ref + (k + 1) * setting.stride
-                raw = transform_points(np.linalg.inv(sequence.T_world_sensor[ref]) @ sequence.T_world_sensor[j],
-                                       np.asarray(sequence.load_points(j), np.float64))
-                lab = np.fromfile(f"{root}/sequences/{seq}/labels/{j:06d}.label", np.uint32) & 0xFFFF
-                cls = np.minimum(lab[cKDTree(raw).query(G)[1]], n_cls - 1)
+                cls = np.minimum(nearest_labels(sequence, root, seq, ref, j, G), n_cls - 1)
                 np.add.at(share_cls, (cls, g_of_G // 2), 1.0 / len(G))
             for m, fc in forecasts.items():
                 P = roimod.ROI.crop(fc.points_ref[k])
@@ -114,11 +137,7 @@ def parse_sides(doc: str, labels: bool = False) -> argparse.Namespace:
 
 
 def main() -> None:
-    a = parse_sides(__doc__, labels=True)
-    if a.synthetic:
-        split(a.domain, a.synthetic, "test", a.samples, a.labels)
-    if a.real:
-        split("kitti", a.real, "train", a.samples, False)
+    run_sides(__doc__, split)
 
 
 if __name__ == "__main__":

@@ -19,8 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from pcfbench.metrics.base import SweepContext
-from pcfbench.validate import validate_forecast
-from realism_chamfer_split import evenly_spaced, parse_sides  # this folder is on the path when a script here runs
+from realism_chamfer_split import evenly_spaced, forecasts_of, parse_sides  # this folder is on the path when a script here runs
 
 METHODS = ("copy-last", "raycast-zbuffer", "raycast-freespace", "raycast-voxel")
 RANGES = (5.0, 10.0, 20.0)  # bands 0-5, 5-10, 10-20, 20+ m from the future sensor
@@ -32,9 +31,7 @@ def signed_errors(dataset: str, root: str, split_name: str, samples: int):
     _, setting, builder, keys, methods = evenly_spaced(dataset, root, split_name, samples, METHODS)
     errs = {m: [] for m in methods}
     ranges, heights = [], []
-    for seq, ref in keys:
-        sample, truth = builder.build(seq, ref)
-        forecasts = {m: validate_forecast(sample, x.forecast(sample.for_method())) for m, x in methods.items()}
+    for _, _, sample, truth, forecasts in forecasts_of(builder, keys, methods):
         for k in range(setting.future):
             gt = truth.future_points_ref[k]
             for m, fc in forecasts.items():

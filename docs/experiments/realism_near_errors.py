@@ -17,11 +17,10 @@ FOLDER, splits=("test",))``).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from pcfbench.geometry import transform_points
-from pcfbench.validate import validate_forecast
-from realism_chamfer_split import GROUPS, evenly_spaced, group_of, parse_sides  # this folder is on the path
+from realism_chamfer_split import (  # this folder is on the path when a script here runs
+    GROUPS, evenly_spaced, forecasts_of, group_of, nearest_labels, run_sides,
+)
 
 METHODS = ("raycast-4docc", "raycast-freespace", "raycast-voxel", "raycast-zbuffer")
 THRESHOLD_M = 0.1
@@ -36,9 +35,7 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
     long_ = {m: np.zeros(N_CLASSES) for m in methods}
     short = {m: np.zeros(N_CLASSES) for m in methods}
     sweeps = 0
-    for seq, ref in keys:
-        sample, truth = builder.build(seq, ref)
-        forecasts = {m: validate_forecast(sample, x.forecast(sample.for_method())) for m, x in methods.items()}
+    for seq, ref, sample, truth, forecasts in forecasts_of(builder, keys, methods):
         sequence = ad.sequence(seq)
         for k in range(setting.future):
             G = truth.future_points_ref[k]
@@ -52,10 +49,7 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
             cls = None
             if labels:
                 j = ref + (k + 1) * setting.stride
-                raw = transform_points(np.linalg.inv(sequence.T_world_sensor[ref]) @ sequence.T_world_sensor[j],
-                                       np.asarray(sequence.load_points(j), np.float64))
-                lab = np.fromfile(f"{root}/sequences/{seq}/labels/{j:06d}.label", np.uint32) & 0xFFFF
-                cls = np.minimum(lab[cKDTree(raw).query(G[near])[1]], N_CLASSES - 1)
+                cls = np.minimum(nearest_labels(sequence, root, seq, ref, j, G[near]), N_CLASSES - 1)
                 cls_share += np.bincount(cls, minlength=N_CLASSES) / len(G)
             for m, fc in forecasts.items():
                 e = np.asarray(fc.depths[k], np.float64) - true_range
@@ -72,7 +66,7 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
     if labels:
         from pcfbench.datasets.synthetic.world import CLASS_NAMES
 
-        print(f"rays 0-10 m above the ground by labelled class: share, then each method's too long / too short")
+        print("rays 0-10 m above the ground by labelled class: share, then each method's too long / too short")
         for c in range(N_CLASSES):
             if cls_share[c] / sweeps < 0.002:
                 continue
@@ -82,11 +76,7 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
 
 
 def main() -> None:
-    a = parse_sides(__doc__, labels=True)
-    if a.synthetic:
-        near_errors(a.domain, a.synthetic, "test", a.samples, a.labels)
-    if a.real:
-        near_errors("kitti", a.real, "train", a.samples, False)
+    run_sides(__doc__, near_errors)
 
 
 if __name__ == "__main__":
