@@ -1,5 +1,5 @@
 """The realism report's statistics (hand-computed cases), its command on tiny inputs, and
-world physics versions 2-5 (deterministic, opt-in, physics 1 untouched)."""
+world physics versions 2-7 (deterministic, opt-in, physics 1 untouched)."""
 
 from __future__ import annotations
 
