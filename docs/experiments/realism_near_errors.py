@@ -5,7 +5,10 @@ true return (range from the future sensor 0-10 / 10-20 / 20-40 / 40+ m, above th
 than 1.3 m below the sensor) the share of all of a sweep's rays that err by more than 0.1 m,
 averaged over sweeps. With ``--labels`` (a generated root) the rays 0-10 m away above the
 ground are also split by the labelled class of the true return (the label of its nearest raw
-point), into too long and too short.
+point), into too long and too short. Those near rays are also split, on both sides and
+without labels, by the true return's height above or below the sensor (from -1.3 m, bands at
+-1.0, -0.6, -0.3 and 0 m): each method's share of all rays too long by more than 0.1 m, by more
+than 1 m (through or past what the ray meets), and too short by more than 0.1 m.
 
     .venv/bin/python docs/experiments/realism_near_errors.py \\
         --synthetic FOLDER --real ../shared/realdata/kitti-seq00-frames040-099 --samples 8 --labels
@@ -24,7 +27,10 @@ from realism_chamfer_split import (  # this folder is on the path when a script 
 
 METHODS = ("raycast-4docc", "raycast-freespace", "raycast-voxel", "raycast-zbuffer")
 THRESHOLD_M = 0.1
+FAR_M = 1.0
 N_CLASSES = 16
+HEIGHTS = (-1.0, -0.6, -0.3, 0.0)  # m, of the true return above the future sensor (near rays: >= -1.3)
+HEIGHT_NAMES = tuple(f"{a} .. {b}" for a, b in zip((-1.3,) + HEIGHTS[:-1], HEIGHTS)) + ("above 0",)
 
 
 def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: bool) -> None:
@@ -34,6 +40,9 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
     cls_share = np.zeros(N_CLASSES)
     long_ = {m: np.zeros(N_CLASSES) for m in methods}
     short = {m: np.zeros(N_CLASSES) for m in methods}
+    n_h = len(HEIGHT_NAMES)
+    h_share = np.zeros(n_h)
+    h_err = {m: np.zeros((3, n_h)) for m in methods}  # too long, far too long, too short
     sweeps = 0
     for seq, ref, sample, truth, forecasts in forecasts_of(builder, keys, methods):
         sequence = ad.sequence(seq)
@@ -46,6 +55,8 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
             g = group_of(G, T)
             share += np.bincount(g, minlength=len(GROUPS)) / len(G)
             near = g == 0
+            band = np.digitize(G[near, 2] - o[2], HEIGHTS)
+            h_share += np.bincount(band, minlength=n_h) / len(G)
             cls = None
             if labels:
                 j = ref + (k + 1) * setting.stride
@@ -54,6 +65,8 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
             for m, fc in forecasts.items():
                 e = np.asarray(fc.depths[k], np.float64) - true_range
                 wrong[m] += np.bincount(g, weights=np.abs(e) > THRESHOLD_M, minlength=len(GROUPS)) / len(G)
+                for row, hit in enumerate((e[near] > THRESHOLD_M, e[near] > FAR_M, e[near] < -THRESHOLD_M)):
+                    h_err[m][row] += np.bincount(band, weights=hit, minlength=n_h) / len(G)
                 if cls is not None:
                     long_[m] += np.bincount(cls, weights=e[near] > THRESHOLD_M, minlength=N_CLASSES) / len(G)
                     short[m] += np.bincount(cls, weights=e[near] < -THRESHOLD_M, minlength=N_CLASSES) / len(G)
@@ -63,6 +76,11 @@ def near_errors(dataset: str, root: str, split_name: str, samples: int, labels: 
     for gi, name in enumerate(GROUPS):
         print(f"  {name:13s} rays {share[gi] / sweeps:.3f} | "
               + " | ".join(f"{m[8:]} {wrong[m][gi] / sweeps:.3f}" for m in methods))
+    print(f"rays 0-10 m away by the true return's height above the sensor (m): share, then each method's "
+          f"too long by > {THRESHOLD_M} m / by > {FAR_M} m / too short by > {THRESHOLD_M} m")
+    for hi, name in enumerate(HEIGHT_NAMES):
+        print(f"  {name:13s} rays {h_share[hi] / sweeps:.3f} | "
+              + " | ".join(f"{m[8:]} " + " / ".join(f"{v / sweeps:.3f}" for v in h_err[m][:, hi]) for m in methods))
     if labels:
         from pcfbench.datasets.synthetic.world import CLASS_NAMES
 
