@@ -1,5 +1,5 @@
 """The realism report's statistics (hand-computed cases), its command on tiny inputs, and
-world physics versions 2-7 (deterministic, opt-in, physics 1 untouched)."""
+world physics versions 2-8 (deterministic, opt-in, physics 1 untouched)."""
 
 from __future__ import annotations
 
@@ -729,7 +729,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 7 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 8 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -799,7 +799,7 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
     realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
     one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
-    assert realistic["physics"] == 7 and "physics" not in one
+    assert realistic["physics"] == 8 and "physics" not in one
     assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
@@ -1017,7 +1017,8 @@ def test_the_realism_knobs_are_pinned_to_their_physics_version():
     pinned = {4: "241122b6bd805adc66a99c0909e7b1484f1c65d4788caed725ed19fbd517dbe2",
               5: "d524ce43893fddd53f30f3aaf0f3e1cf5057baf7f60d34e4dc9a58ecad800cae",
               6: "ec1e81e325f7a7999c13fc75f03c10b7110926f76ee2b4d2854c62066ea5f1d4",
-              7: "f1ec0218493655896703006d19289f453b4a991c038768e1473f752ef515bf5a"}
+              7: "f1ec0218493655896703006d19289f453b4a991c038768e1473f752ef515bf5a",
+              8: "97af8fa87ab422e2dc7c57d5e67f0e58847742af8e8a2f658d9a90f11d811886"}
     assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
     assert digest == pinned[R.REALISM.version], (
         f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")
