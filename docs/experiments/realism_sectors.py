@@ -5,8 +5,8 @@ sensor), grouped by the true return's azimuth from the future sensor in the refe
 (0 deg: straight ahead, 180: straight behind; left and right alike), whether it lies more than
 1.3 m below the sensor (ground) or not, and its range (0-10 / 10-20 / 20-40 / 40+ m). Per
 group: its share of all rays and each method's median absolute error. Label-free, so it runs
-on both sides. With ``--labels`` (a generated root), the rays of one group (``--cell``, by
-default the rear quarter, 135-165 deg, above the ground, 10-20 m) are also split by the
+on both sides. With ``--labels`` (a generated root), the rays of one group (``CELL``: the
+rear quarter, 135-165 deg, above the ground, 10-20 m) are also split by the
 labelled class of the true return (the label of its nearest raw point), those with at least 1 % of it: share, median error,
 too long and too short by more than 0.1 m.
 
