@@ -95,6 +95,69 @@ def test_free_space_violations_match_a_brute_force_reference():
     assert viol.sum() > 10 and (judged & ~viol).sum() > 10  # the random case holds both kinds
 
 
+def test_sweep_at_finds_the_sweep_nearest_an_offset_either_way():
+    ts = (np.array([0.0, 0.1, 0.2, 0.3, 0.5, 0.62]) * 1e9).astype(np.int64)
+    assert C._sweep_at(ts, 0, 0.5) == 4 and C._sweep_at(ts, 4, -0.5) == 0
+    assert C._sweep_at(ts, 1, 0.5) == 5  # 0.52 s later, within 10 % of 0.5 s
+    assert C._sweep_at(ts, 2, -0.5) is None  # nothing before it near 0.5 s
+    assert C._sweep_at(ts, 2, 0.5) is None  # 0.42 s: more than 10 % off
+    assert C._sweep_at(ts, 5, 0.1) is None and C._sweep_at(ts, 0, -0.1) is None  # the ends
+
+
+def test_moving_evidence_hand_case():
+    # three sweeps 0.5 s apart; the current sensor stands 1 m ahead (+x) of the one before and
+    # 1 m behind the one after. Every sweep sees a wall 20 m ahead of the current sensor.
+    wall = _at([0.1] * 9, [0.1, 0.3, -0.1, 1.1, 1.3, 0.9, 5.1, 5.3, 4.9], r=20.0)
+    T_before_current = np.eye(4)
+    T_before_current[0, 3] = 1.0  # current -> before: 1 m further along x
+    T_after_current = np.eye(4)
+    T_after_current[0, 3] = -1.0
+    car = _at([0.1], [0.1], r=10.0)  # only now: moved in and out again
+    glass = _at([0.1], [1.1], r=10.0)  # seen through before and after, but returned 0.2 m beside it before
+    beside = _at([0.1], [1.1 + np.degrees(0.2 / 10.0)], r=10.0)
+    pane = _at([0.1], [5.1], r=10.0)  # returned from the same place after
+    current = np.concatenate([car, glass, pane, _at([0.1], [0.3], r=20.0)])
+
+    def seen(p, T):  # points given in the current frame, expressed in a neighbour's
+        return p + T[:3, 3]
+    before = np.concatenate([seen(wall, T_before_current), seen(beside, T_before_current)])
+    after = np.concatenate([seen(wall, T_after_current), seen(pane, T_after_current)])
+    judged, moving = C.moving_evidence(current, before, T_before_current, after, T_after_current)
+    assert judged.tolist() == [True, True, True, True]
+    assert moving.tolist() == [True, False, False, False]  # the wall point is still; glass and pane return
+    # the 0.3 m radius: a return 0.35 m beside the glass no longer keeps it still
+    far = _at([0.1], [1.1 + np.degrees(0.35 / 10.0)], r=10.0)
+    before_far = np.concatenate([seen(wall, T_before_current), seen(far, T_before_current)])
+    _, moving = C.moving_evidence(current, before_far, T_before_current, after, T_after_current)
+    assert moving.tolist() == [True, True, False, False]
+
+
+def test_moving_evidence_matches_a_brute_force_reference():
+    from pcfbench.geometry import transform_points
+
+    rng = np.random.default_rng(5)
+
+    def cloud(n, r_lo):
+        return _at(rng.uniform(-3, 3, n), rng.uniform(-8, 8, n), r=rng.uniform(r_lo, 30, n))
+    current, before, after = cloud(300, 3.0), cloud(2000, 12.0), cloud(2000, 12.0)
+    T_b, T_a = np.eye(4), np.eye(4)
+    T_b[:3, 3] = [0.8, 0.1, 0.0]
+    T_a[:3, 3] = [-0.7, 0.05, 0.02]
+    # some of the current points return in the sweep before too, a little beside themselves
+    still = current[:60] + rng.normal(0, 0.3, (60, 3))
+    before = np.concatenate([before, transform_points(T_b, still)])
+    judged, moving = C.moving_evidence(current, before, T_b, after, T_a, still=0.5)
+    jb, vb = C.free_space_violations(before, transform_points(T_b, current))
+    ja, va = C.free_space_violations(after, transform_points(T_a, current))
+    for k, p in enumerate(current):
+        near = [np.min(np.linalg.norm(transform_points(np.linalg.inv(T), s) - p, axis=1)) for s, T in
+                ((before, T_b), (after, T_a))]
+        assert judged[k] == (jb[k] and ja[k]), k
+        assert moving[k] == (vb[k] and va[k] and min(near) > 0.5), k
+    both = vb & va
+    assert moving.sum() > 3 and (both & ~moving).sum() > 3  # the random case holds both kinds
+
+
 def test_parallax_bleed_hand_case():
     # the later sweep (bins of 0.2 x 0.4 deg): a car side 5 m away at azimuths 0.1 and 0.3 deg,
     # a wall 15 m away at 0.5 deg (too far to judge), the ground 8 m away at 0.9 deg (too low)
@@ -378,6 +441,29 @@ def test_measure_judges_free_space_against_the_sweep_half_a_second_later(tmp_pat
     assert np.isnan(summary["free-space violations on labelled moving objects (share)"])
 
 
+def test_measure_finds_moving_evidence_against_the_sweeps_half_a_second_before_and_after(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.protocol import MIN_RANGE_M
+
+    ad = KittiOdometry(write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=12))
+    seq = ad.sequence("08")
+    st = C.measure(ad, "test", 3, "tiny", C.beam_edges([0.0, -1.0, -3.0]))  # sweeps 0, 5, 10: only 5 has both
+    W = seq.T_world_sensor
+
+    def load(i, min_range):
+        p = np.asarray(seq.load_points(i), np.float64)
+        return p[~ad.ego_box.inside(p) & (np.linalg.norm(p, axis=1) > min_range)]
+    judged, moving = C.moving_evidence(load(5, MIN_RANGE_M), load(0, 0.0), np.linalg.inv(W[0]) @ W[5], load(10, 0.0),
+                                       np.linalg.inv(W[10]) @ W[5])
+    assert st.moving_evidence == [(int(moving.sum()), int(judged.sum()))] and judged.sum() > 0
+    assert st.evidence_on_moving == [] and st.moving_caught == []  # no labels
+    summary = st.summary(C.beam_edges([0.0, -1.0, -3.0]))
+    key = "moving evidence: points in space seen empty 0.5 s before and after, no return near them then (fraction)"
+    assert summary[key] == pytest.approx(moving.sum() / judged.sum())
+    assert np.isnan(summary["moving evidence on labelled moving objects (share)"])
+
+
 def test_measure_fits_the_ground_drift_against_the_sweep_a_second_later(tmp_path):
     from conftest import write_tiny_kitti
     from pcfbench.datasets.kitti import KittiOdometry
@@ -438,6 +524,12 @@ def test_compare_command_statistics_only(tmp_path):
         assert data[side]["near above-ground range-image bins per sweep"] > 0
         assert abs(data[side]["ground drift: height of the ground seen 1 s later at the same range (m)"]) < 0.1
     assert 0 <= data["synthetic"]["free-space violations on labelled moving objects (share)"] <= 1
+    for side in ("synthetic", "real"):  # sweep 5 of 12 has a sweep 0.5 s before and after it
+        key = "moving evidence: points in space seen empty 0.5 s before and after, no return near them then (fraction)"
+        assert 0 <= data[side][key] < 0.5
+    for key in ("moving evidence on labelled moving objects (share)", "labelled moving points with moving evidence (share)"):
+        assert np.isnan(data["real"][key])
+        assert not data["synthetic"][key] < 0 and not data["synthetic"][key] > 1  # NaN without evidence or movers
     assert np.isnan(data["real"]["free-space violations on labelled moving objects (share)"])
     rows = {r.split(",")[0]: r.split(",")[1:] for r in (out / "realism.csv").read_text().splitlines()[1:]}
     s, r, q = (float(x) for x in rows["points per sweep"])

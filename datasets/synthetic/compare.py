@@ -19,9 +19,15 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
   SemanticKITTI labels ``>= 252``); and, on both sides whether labelled or not, free-space
   violations: the share of the points of the sweep ``MOVING_GAP_S`` later (above the ground,
   3-40 m), registered into sweep i by the poses, that lie at least ``FREE_MARGIN_M`` in front
-  of every return of sweep i around their direction, in space sweep i saw empty. Still
-  surfaces seldom do that; moving objects do. It estimates how much moves without labels
-  (where labels exist, the report gives how many of the violations are on moving objects);
+  of every return of sweep i around their direction, in space sweep i saw empty. Moving
+  objects do that, and so do still surfaces that rays pass now and then (car glass, hedges,
+  fences): on the KITTI calibration drive nearly all of them recur at the same places as the
+  car passes (where labels exist, the report gives how many are on moving objects);
+* moving evidence, label-free: the share of the points of sweep i (judged as above) in
+  space that the sweeps ``MOVING_GAP_S`` before and after both saw empty, with no return of
+  either within ``STILL_M``: a moving object's place is empty before and after, a see-through
+  still surface returns from it then (where labels exist, the report gives how much of the
+  evidence is on moving objects, and how much of the moving objects it finds);
 * parallax: of the range-image bins of the sweep ``MOVING_GAP_S`` later whose nearest return
   is near (within ``BLEED_NEAR_M`` horizontally) and above the ground, the share holding a
   point of sweep i (registered into the later frame) ``FREE_MARGIN_M`` or more behind that
@@ -80,6 +86,7 @@ FREE_RANGE_M = (3.0, 40.0)  # later points judged: range from sweep i's sensor
 FREE_ABOVE_M = -1.2  # ... and z above this in sweep i's sensor frame (off the ground near the car)
 FREE_AZ_DEG, FREE_EL_DEG = 0.2, 0.4  # range-image bins (the HDL-64E's column and beam spacing)
 FREE_EL_DEG_RANGE = (-30.0, 10.0)
+STILL_M = 0.3  # moving evidence: no return of the sweep before or after within this of the point
 BLEED_NEAR_M = 10.0  # parallax: later returns judged within this horizontal range (and above FREE_ABOVE_M)
 DRIFT_GAP_S = 1.0  # ground drift: the later sweep is the one nearest this long after sweep i
 DRIFT_BELOW_M = -1.3  # ground: z below this in its own sweep's sensor frame
@@ -195,6 +202,33 @@ def free_space_violations(earlier: np.ndarray, later: np.ndarray, margin: float 
     seen = near[ja, je]
     judged = ok & (r >= ranges[0]) & (r < ranges[1]) & (later[:, 2] > above) & np.isfinite(seen)
     return judged, judged & (r <= seen - margin)
+
+
+def moving_evidence(current: np.ndarray, before: np.ndarray, T_before_current: np.ndarray, after: np.ndarray,
+                    T_after_current: np.ndarray, still: float = STILL_M) -> tuple[np.ndarray, np.ndarray]:
+    """Points of ``current`` (its own sensor frame) on something that moved, label-free.
+
+    ``before`` and ``after`` are the sweeps ``MOVING_GAP_S`` earlier and later, each in its own
+    sensor frame; ``T_before_current`` and ``T_after_current`` register ``current`` into them.
+    A point is judged when :func:`free_space_violations` judges it against both; it is moving
+    evidence when it violates the free space of both (the space was seen empty before and
+    after) and neither sweep has a return within ``still`` of it. A still surface that rays
+    pass now and then (car glass, a hedge, a fence) violates free space too, but returns from
+    the same place before or after; a moving object's place is empty both times. Returns
+    (judged, moving), (N,) bool each."""
+    from pcfbench.geometry import transform_points
+
+    jb, vb = free_space_violations(before, transform_points(T_before_current, current))
+    ja, va = free_space_violations(after, transform_points(T_after_current, current))
+    moving = vb & va
+    idx = np.flatnonzero(moving)
+    for sweep, T in ((before, T_before_current), (after, T_after_current)):
+        if idx.size and len(sweep):
+            d, _ = cKDTree(transform_points(np.linalg.inv(T), sweep)).query(current[idx], distance_upper_bound=still)
+            idx = idx[~np.isfinite(d)]
+    moving = np.zeros(len(current), bool)
+    moving[idx] = True
+    return jb & ja, moving
 
 
 def parallax_bleed(earlier: np.ndarray, later: np.ndarray, margin: float = FREE_MARGIN_M, near_m: float = BLEED_NEAR_M,
@@ -445,6 +479,9 @@ class SideStats:
     moving: list = field(default_factory=list)  # (moving points, labelled points) per sweep
     free_space: list = field(default_factory=list)  # (violating, judged) later points per sweep pair
     free_space_moving: list = field(default_factory=list)  # (violating on labelled moving objects, violating)
+    moving_evidence: list = field(default_factory=list)  # (moving evidence, judged) points per sweep
+    evidence_on_moving: list = field(default_factory=list)  # (evidence on labelled moving objects, evidence)
+    moving_caught: list = field(default_factory=list)  # (labelled moving points with evidence, judged labelled moving)
     bleed: list = field(default_factory=list)  # (bleeding, judged) near bins of the later sweep per sweep pair
     mixed: list = field(default_factory=list)  # (jumps with a return in between, jumps) per sweep
     ground_pairs: list = field(default_factory=list)  # (r_i - r_j, z_j - z_i) arrays per sweep pair DRIFT_GAP_S apart
@@ -484,6 +521,10 @@ class SideStats:
             "moving-object points (fraction)": _share(self.moving),
             f"free-space violations at {MOVING_GAP_S:g} s (fraction)": _share(self.free_space),
             "free-space violations on labelled moving objects (share)": _share(self.free_space_moving),
+            f"moving evidence: points in space seen empty {MOVING_GAP_S:g} s before and after, no return near "
+            "them then (fraction)": _share(self.moving_evidence),
+            "moving evidence on labelled moving objects (share)": _share(self.evidence_on_moving),
+            "labelled moving points with moving evidence (share)": _share(self.moving_caught),
             f"parallax: near above-ground bins with a return {MOVING_GAP_S:g} s earlier behind them (share)":
                 _share(self.bleed),
             "near above-ground range-image bins per sweep": (float(np.mean([b for _, b in self.bleed]))
@@ -550,12 +591,35 @@ def pick_sweeps(adapter, split, count: int) -> list[tuple[str, int]]:
     return [pairs[i] for i in take]
 
 
-def _later(ts: np.ndarray, i: int, gap_s: float) -> int | None:
-    """The sweep nearest ``gap_s`` after sweep ``i`` (timestamps ``ts``, ns), if within 10 % of it."""
-    if i + 1 >= len(ts):
+def _sweep_at(ts: np.ndarray, i: int, gap_s: float) -> int | None:
+    """The sweep nearest ``gap_s`` after sweep ``i`` (timestamps ``ts``, ns; ``gap_s`` < 0:
+    before it), if within 10 % of ``|gap_s|`` of it."""
+    side = np.arange(i + 1, len(ts)) if gap_s > 0 else np.arange(i)
+    if not side.size:
         return None
-    j = i + 1 + int(np.argmin(np.abs(ts[i + 1:] - ts[i] - gap_s * 1e9)))
-    return j if abs(ts[j] - ts[i] - gap_s * 1e9) <= 0.1 * gap_s * 1e9 else None
+    j = int(side[np.argmin(np.abs(ts[side] - ts[i] - gap_s * 1e9))])
+    return j if abs(ts[j] - ts[i] - gap_s * 1e9) <= 0.1 * abs(gap_s) * 1e9 else None
+
+
+def sweep_moving_evidence(adapter, seq, i: int, points: np.ndarray | None = None):
+    """:func:`moving_evidence` of sweep ``i`` of ``seq`` (an ``adapter`` sequence) against the
+    sweeps ``MOVING_GAP_S`` before and after it: (judged, moving) over ``points`` (sweep i
+    without the ego box and the points nearer than the protocol's minimum range; read when not
+    given), or None when the sequence has no such sweeps."""
+    from pcfbench.protocol import MIN_RANGE_M
+
+    ts, W = seq.timestamps_ns, seq.T_world_sensor
+    k, j = _sweep_at(ts, i, -MOVING_GAP_S), _sweep_at(ts, i, MOVING_GAP_S)
+    if k is None or j is None:
+        return None
+    if points is None:
+        raw = np.asarray(seq.load_points(i), np.float64)
+        points = raw[~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)]
+
+    def load(n):
+        p = np.asarray(seq.load_points(n), np.float64)
+        return p[~adapter.ego_box.inside(p)]
+    return moving_evidence(points, load(k), np.linalg.inv(W[k]) @ W[i], load(j), np.linalg.inv(W[j]) @ W[i])
 
 
 def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed: int = 0) -> SideStats:
@@ -613,7 +677,7 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
         st.static_residual.append(res[np.isfinite(res)])
         # free space: the sweep MOVING_GAP_S later (when the sequence has it)
         ts = seq.timestamps_ns
-        j = _later(ts, i, MOVING_GAP_S)
+        j = _sweep_at(ts, i, MOVING_GAP_S)
         if j is not None:
             later_raw = np.asarray(seq.load_points(j), np.float64)
             keep_later = ~adapter.ego_box.inside(later_raw)
@@ -624,8 +688,17 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
             later_moving = _moving_mask(adapter, name, j, len(later_raw))
             if later_moving is not None:
                 st.free_space_moving.append((int((viol & later_moving[keep_later]).sum()), int(viol.sum())))
+        # moving evidence: sweep i against the sweeps MOVING_GAP_S before and after it
+        evidence = sweep_moving_evidence(adapter, seq, i, pts)
+        if evidence is not None:
+            judged, moving = evidence
+            st.moving_evidence.append((int(moving.sum()), int(judged.sum())))
+            if mask is not None:
+                m = mask[keep]
+                st.evidence_on_moving.append((int((moving & m).sum()), int(moving.sum())))
+                st.moving_caught.append((int((moving & m).sum()), int((judged & m).sum())))
         # ground drift: the sweep DRIFT_GAP_S later
-        j = _later(ts, i, DRIFT_GAP_S)
+        j = _sweep_at(ts, i, DRIFT_GAP_S)
         if j is not None:
             later_raw = np.asarray(seq.load_points(j), np.float64)
             T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
@@ -646,28 +719,10 @@ def baseline_means(dataset: str, root: str, split, setting: str, store: Path, li
     cells run (or resumed) in ``store``. ``split`` may name several splits (``"train,val,test"``):
     one cell each (``limit`` samples each), pooled so that every (sample, future sweep) weighs
     the same."""
-    import pandas as pd
-
-    from pcfbench.method import resolve_method
-    from pcfbench.plugins import get_plugins
-    from pcfbench.runner import default_metrics, run_cell
-    from pcfbench.store import Cell, CellSpec
-
-    splits = split_list(split)
-    plugins = get_plugins()
-    names = default_metrics(plugins)
     out = {}
     for m in methods:
-        spec_m = resolve_method(m, plugins)
         t0 = time.perf_counter()
-        frames, samples = [], 0
-        for sp in splits:
-            spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, sp, setting,
-                            "full-context", limit, names)
-            samples += run_cell(spec, store, progress=progress, plugins=plugins, threads=threads).samples
-            frames.append(Cell(store, spec).read_rows())
-        df = pd.concat(frames, ignore_index=True)
-        ok = df[df["status"] == "ok"]
+        ok, samples = baseline_rows(dataset, root, split, setting, store, limit, m, progress, threads)
         row = {k: float(np.nanmean(ok[k].to_numpy(float))) for k in metrics}
         by = ok.groupby(["sequence", "ref_index"], sort=True)
         row["per_sample"] = {"sample_id": by["sample_id"].first().tolist(),
@@ -681,6 +736,29 @@ def baseline_means(dataset: str, root: str, split, setting: str, store: Path, li
         row["seconds"] = time.perf_counter() - t0
         out[m] = row
     return out
+
+
+def baseline_rows(dataset: str, root: str, split, setting: str, store: Path, limit: int | None, method: str,
+                  progress: bool = False, threads: int | None = None):
+    """(the per-(sample, future sweep) rows of ``method`` whose status is ok, pooled over the
+    splits ``split`` names, the samples evaluated): its cells run (or resumed) in ``store``."""
+    import pandas as pd
+
+    from pcfbench.method import resolve_method
+    from pcfbench.plugins import get_plugins
+    from pcfbench.runner import default_metrics, run_cell
+    from pcfbench.store import Cell, CellSpec
+
+    plugins = get_plugins()
+    spec_m = resolve_method(method, plugins)
+    frames, samples = [], 0
+    for sp in split_list(split):
+        spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, sp, setting,
+                        "full-context", limit, default_metrics(plugins))
+        samples += run_cell(spec, store, progress=progress, plugins=plugins, threads=threads).samples
+        frames.append(Cell(store, spec).read_rows())
+    df = pd.concat(frames, ignore_index=True)
+    return df[df["status"] == "ok"], samples
 
 
 def sequence_rankings(base: dict, against: dict, metrics=RANK_METRICS) -> dict:
