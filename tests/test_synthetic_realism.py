@@ -1,5 +1,5 @@
 """The realism report's statistics (hand-computed cases), its command on tiny inputs, and
-world physics versions 2-8 (deterministic, opt-in, physics 1 untouched)."""
+world physics versions 2-9 (deterministic, opt-in, physics 1 untouched)."""
 
 from __future__ import annotations
 
@@ -821,7 +821,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 8 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 9 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -891,7 +891,7 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
     realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
     one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
-    assert realistic["physics"] == 8 and "physics" not in one
+    assert realistic["physics"] == 9 and "physics" not in one
     assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
@@ -1064,7 +1064,7 @@ def test_traffic_is_a_share_of_the_towns_from_physics_5(monkeypatch):
     from pcfbench.datasets.synthetic.world import TOWN
 
     fewer = R.with_traffic(TOWN, R.REALISM)
-    assert (fewer.vehicles_per_km, fewer.cyclists_per_km, fewer.pedestrians_per_km) == (8.8, 2.0, 5.6)  # 0.4 of 22, 5, 14
+    assert (fewer.vehicles_per_km, fewer.cyclists_per_km, fewer.pedestrians_per_km) == (1.87, 0.425, 1.19)  # 0.085 of 22, 5, 14
     assert dataclasses.replace(fewer, vehicles_per_km=22.0, cyclists_per_km=5.0, pedestrians_per_km=14.0) == TOWN
     seen = []
     real_make_agents = G.make_agents
@@ -1110,7 +1110,8 @@ def test_the_realism_knobs_are_pinned_to_their_physics_version():
               5: "d524ce43893fddd53f30f3aaf0f3e1cf5057baf7f60d34e4dc9a58ecad800cae",
               6: "ec1e81e325f7a7999c13fc75f03c10b7110926f76ee2b4d2854c62066ea5f1d4",
               7: "f1ec0218493655896703006d19289f453b4a991c038768e1473f752ef515bf5a",
-              8: "97af8fa87ab422e2dc7c57d5e67f0e58847742af8e8a2f658d9a90f11d811886"}
+              8: "97af8fa87ab422e2dc7c57d5e67f0e58847742af8e8a2f658d9a90f11d811886",
+              9: "d0749e12d42649798e90e529bed733fba1e0c61f4b2439cdfe2508c6a1faf232"}
     assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
     assert digest == pinned[R.REALISM.version], (
         f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")
