@@ -927,7 +927,8 @@ def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, 
     lines = [f"# Realism report: {meta['synthetic']} vs {meta['real']}", "",
              f"{syn.sweeps} synthetic sweeps ({meta['synthetic_split']}) and {real.sweeps} real sweeps "
              f"({meta['real_split']}), each with its successor (and the sweeps {MOVING_GAP_S:g} s and "
-             f"{DRIFT_GAP_S:g} s later for the free-space test and the ground drift). Ratios are synthetic / real.", "",
+             f"{DRIFT_GAP_S:g} s later for the free-space test and the ground drift, {MOVING_GAP_S:g} s before "
+             "and after for the moving evidence). Ratios are synthetic / real.", "",
              "| statistic | synthetic | real | ratio |", "|---|---|---|---|"]
     lines += [f"| {k} | {_fmt(a)} | {_fmt(b)} | {_fmt(q)} |" for k, a, b, q in rows]
     lines += ["", f"Range histogram distance: total variation {tv:.3f} (0 same, 1 disjoint), "
