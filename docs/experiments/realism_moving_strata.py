@@ -25,7 +25,8 @@ from pcfbench.datasets.synthetic import compare as C
 
 
 def side(spec: str, split: str, store: Path, setting: str):
-    """(adapter, {method: ok rows}, {(sequence, reference index): (evidence, judged, labelled moving, points)})."""
+    """(dataset name, {method: its ok rows}, {(sequence, reference index): (moving evidence,
+    judged points, share of the sweep's points on labelled moving objects or None)})."""
     name, root, ad = C.open_side(spec, False)
     rows = {m: C.baseline_rows(name, str(root), split, setting, store, None, m)[0] for m in C.BASELINES}
     keys = sorted({(str(s), int(r)) for s, r in zip(rows[C.BASELINES[0]]["sequence"], rows[C.BASELINES[0]]["ref_index"])})
