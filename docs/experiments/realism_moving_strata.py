@@ -26,7 +26,9 @@ from pcfbench.datasets.synthetic import compare as C
 
 def side(spec: str, split: str, store: Path, setting: str):
     """(dataset name, {method: its ok rows}, {(sequence, reference index): (moving evidence,
-    judged points, share of the sweep's points on labelled moving objects or None)})."""
+    judged points, share of the sweep's points on labelled moving objects or None)}, the
+    number of samples in the rows; a sample without sweeps 0.5 s before and after has no
+    evidence)."""
     name, root, ad = C.open_side(spec, False)
     rows = {m: C.baseline_rows(name, str(root), split, setting, store, None, m)[0] for m in C.BASELINES}
     keys = sorted({(str(s), int(r)) for s, r in zip(rows[C.BASELINES[0]]["sequence"], rows[C.BASELINES[0]]["ref_index"])})
@@ -40,7 +42,7 @@ def side(spec: str, split: str, store: Path, setting: str):
         raw_n = len(seq.load_points(ref))
         mask = C._moving_mask(ad, seq_name, ref, raw_n)
         evidence[(seq_name, ref)] = (int(moving.sum()), int(judged.sum()), None if mask is None else float(mask.mean()))
-    return name, rows, evidence
+    return name, rows, evidence, len(keys)
 
 
 def means(rows: dict, keep: set | None) -> np.ndarray:
@@ -76,12 +78,15 @@ def main() -> None:
     ap.add_argument("--real-split", default="train")
     ap.add_argument("--setting", default="kitti-1s")
     a = ap.parse_args()
-    s_name, s_rows, s_ev = side(a.synthetic, a.split, a.store, a.setting)
-    r_name, r_rows, r_ev = side(a.real, a.real_split, a.store, a.setting)
+    s_name, s_rows, s_ev, s_n = side(a.synthetic, a.split, a.store, a.setting)
+    r_name, r_rows, r_ev, r_n = side(a.real, a.real_split, a.store, a.setting)
 
-    def share(ev):
-        return {k: (m / j if j else 0.0) for k, (m, j, _) in ev.items()}
+    def share(ev):  # a sample without judged points has no evidence either way: left out of the strata
+        return {k: m / j for k, (m, j, _) in ev.items() if j}
     s_share, r_share = share(s_ev), share(r_ev)
+    for label, n, sh in ((s_name, s_n, s_share), (r_name, r_n, r_share)):
+        if len(sh) < n:
+            print(f"{label}: {n - len(sh)} of {n} samples without moving evidence either way, left out of the strata")
     top = max(r_share.values())
     for label, sh, ev in ((s_name, s_share, s_ev), (r_name, r_share, r_ev)):
         v = np.array(list(sh.values()))
@@ -89,10 +94,10 @@ def main() -> None:
               f"{np.quantile(v, 0.9):.5f}, max {v.max():.5f}; pooled {sum(m for m, _, _ in ev.values()) / sum(j for _, j, _ in ev.values()):.5f}; "
               f"above the busiest real sample ({top:.5f}): {(v > top).mean():.0%}")
     real = means(r_rows, None)
-    show("every sample", means(s_rows, None), real, len(s_share), len(r_share))
+    show("every sample", means(s_rows, None), real, s_n, r_n)
     quiet = {k for k, v in s_share.items() if v <= top}
     show(f"synthetic samples with no more moving evidence than the busiest real sample ({top:.5f})",
-         means(s_rows, quiet), real, len(quiet), len(r_share))
+         means(s_rows, quiet), real, len(quiet), r_n)
     labelled = [(k, f) for k, (_, _, f) in s_ev.items() if f is not None]
     if labelled:
         q = [f for k, f in labelled if k in quiet]
