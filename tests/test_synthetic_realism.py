@@ -104,6 +104,17 @@ def test_sweep_at_finds_the_sweep_nearest_an_offset_either_way():
     assert C._sweep_at(ts, 5, 0.1) is None and C._sweep_at(ts, 0, -0.1) is None  # the ends
 
 
+def test_evidence_sweeps_are_half_a_second_apart_over_the_whole_split(tmp_path):
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+
+    ad = KittiOdometry(write_tiny_kitti(tmp_path / "kitti", sequences=("08", "09"), num_sweeps=23))
+    # 23 sweeps 0.1 s apart: 5, 10, 15 have sweeps 0.5 s before and after; 20 has none after
+    assert C.evidence_sweeps(ad, "test") == [("08", 5), ("08", 10), ("08", 15), ("09", 5), ("09", 10), ("09", 15)]
+    short = KittiOdometry(write_tiny_kitti(tmp_path / "short", sequences=("08",), num_sweeps=10))
+    assert C.evidence_sweeps(short, "test") == []  # 0.9 s: no sweep has both
+
+
 def test_moving_evidence_hand_case():
     # three sweeps 0.5 s apart; the current sensor stands 1 m ahead (+x) of the one before and
     # 1 m behind the one after. Every sweep sees a wall 20 m ahead of the current sensor.
@@ -448,7 +459,8 @@ def test_measure_finds_moving_evidence_against_the_sweeps_half_a_second_before_a
 
     ad = KittiOdometry(write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=12))
     seq = ad.sequence("08")
-    st = C.measure(ad, "test", 3, "tiny", C.beam_edges([0.0, -1.0, -3.0]))  # sweeps 0, 5, 10: only 5 has both
+    assert C.evidence_sweeps(ad, "test") == [("08", 5)]  # 0.5 s in, and 0.5 s before the end
+    st = C.measure(ad, "test", 1, "tiny", C.beam_edges([0.0, -1.0, -3.0]))  # whatever the other statistics read
     W = seq.T_world_sensor
 
     def load(i, min_range):

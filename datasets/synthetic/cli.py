@@ -44,8 +44,8 @@ def add_commands(cli: click.Group) -> None:
                   help="The generated dataset (synthetic-town, synthetic-town-realistic, ...); default root: the cache.")
     @click.option("--out", "-o", type=click.Path(file_okay=False), required=True, help="Report folder (md, csv, json, png).")
     @click.option("--sweeps", type=click.IntRange(1), default=12, show_default=True,
-                  help="Sweeps of each side (each with its successor, and the sweeps 0.5 s before and 0.5 s and 1 s later where there "
-                       "are) for the statistics.")
+                  help="Sweeps of each side (each with its successor, and the sweeps 0.5 s and 1 s later where there are) for the "
+                       "statistics; the moving evidence reads every sweep 0.5 s apart.")
     @click.option("--setting", default="kitti-1s", show_default=True, help="Setting of the baselines' runs.")
     @click.option("--limit", type=click.IntRange(1), default=None,
                   help="Synthetic samples for the baselines, per split (default: all).")

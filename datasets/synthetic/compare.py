@@ -23,11 +23,13 @@ of each side and writes ``realism.md``, ``realism.csv`` and one figure per stati
   objects do that, and so do still surfaces that rays pass now and then (car glass, hedges,
   fences): on the KITTI calibration drive nearly all of them recur at the same places as the
   car passes (where labels exist, the report gives how many are on moving objects);
-* moving evidence, label-free: the share of the points of sweep i (judged as above) in
+* moving evidence, label-free: the share of the points of a sweep (judged as above) in
   space that the sweeps ``MOVING_GAP_S`` before and after both saw empty, with no return of
   either within ``STILL_M``: a moving object's place is empty before and after, a see-through
-  still surface returns from it then (where labels exist, the report gives how much of the
-  evidence is on moving objects, and how much of the moving objects it finds);
+  still surface returns from it then. It reads every sweep ``MOVING_GAP_S`` apart over the
+  whole split, not the sweeps above: one passing car sets a dozen sweeps' (where labels
+  exist, the report gives how much of the evidence is on moving objects, and how much of the
+  moving objects it finds);
 * parallax: of the range-image bins of the sweep ``MOVING_GAP_S`` later whose nearest return
   is near (within ``BLEED_NEAR_M`` horizontally) and above the ground, the share holding a
   point of sweep i (registered into the later frame) ``FREE_MARGIN_M`` or more behind that
@@ -487,6 +489,11 @@ class SideStats:
     ground_pairs: list = field(default_factory=list)  # (r_i - r_j, z_j - z_i) arrays per sweep pair DRIFT_GAP_S apart
     seconds: float = 0.0
 
+    @property
+    def evidence_sweeps(self) -> int:
+        """How many sweeps the moving evidence read."""
+        return len(self.moving_evidence)
+
     def summary(self, edges: np.ndarray) -> dict:
         beams = self.beam_counts / max(self.sweeps, 1)
         drop, columns = drop_per_beam(beams)
@@ -601,6 +608,21 @@ def _sweep_at(ts: np.ndarray, i: int, gap_s: float) -> int | None:
     return j if abs(ts[j] - ts[i] - gap_s * 1e9) <= 0.1 * abs(gap_s) * 1e9 else None
 
 
+def evidence_sweeps(adapter, split) -> list[tuple[str, int]]:
+    """(sequence, index) of the sweeps the moving evidence reads: in each sequence of the
+    split(s), the first sweep with one ``MOVING_GAP_S`` before it, then each sweep
+    ``MOVING_GAP_S`` after the last chosen, while it has one ``MOVING_GAP_S`` after it."""
+    out = []
+    for sp in split_list(split):
+        for name in adapter.sequence_names(sp):
+            ts = adapter.sequence(name).timestamps_ns
+            i = _sweep_at(ts, 0, MOVING_GAP_S)
+            while i is not None and _sweep_at(ts, i, MOVING_GAP_S) is not None:
+                out.append((name, i))
+                i = _sweep_at(ts, i, MOVING_GAP_S)
+    return out
+
+
 def sweep_moving_evidence(adapter, seq, i: int, points: np.ndarray | None = None):
     """:func:`moving_evidence` of sweep ``i`` of ``seq`` (an ``adapter`` sequence) against the
     sweeps ``MOVING_GAP_S`` before and after it: (judged, moving) over ``points`` (sweep i
@@ -688,15 +710,6 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
             later_moving = _moving_mask(adapter, name, j, len(later_raw))
             if later_moving is not None:
                 st.free_space_moving.append((int((viol & later_moving[keep_later]).sum()), int(viol.sum())))
-        # moving evidence: sweep i against the sweeps MOVING_GAP_S before and after it
-        evidence = sweep_moving_evidence(adapter, seq, i, pts)
-        if evidence is not None:
-            judged, moving = evidence
-            st.moving_evidence.append((int(moving.sum()), int(judged.sum())))
-            if mask is not None:
-                m = mask[keep]
-                st.evidence_on_moving.append((int((moving & m).sum()), int(moving.sum())))
-                st.moving_caught.append((int((moving & m).sum()), int((judged & m).sum())))
         # ground drift: the sweep DRIFT_GAP_S later
         j = _sweep_at(ts, i, DRIFT_GAP_S)
         if j is not None:
@@ -704,6 +717,19 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
             T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
             st.ground_pairs.append(ground_height_pairs(pts, transform_points(T, later_raw[~adapter.ego_box.inside(later_raw)]),
                                                        T[:3, 3]))
+    # moving evidence: not the sweeps above (one passing car sets a dozen's), but every sweep
+    # MOVING_GAP_S apart over the whole split, each against the sweeps that far before and after
+    for name, i in evidence_sweeps(adapter, split):
+        seq = seqs.setdefault(name, adapter.sequence(name))
+        raw = np.asarray(seq.load_points(i), np.float64)
+        keep = ~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)
+        judged, moving = sweep_moving_evidence(adapter, seq, i, raw[keep])
+        st.moving_evidence.append((int(moving.sum()), int(judged.sum())))
+        mask = _moving_mask(adapter, name, i, len(raw))
+        if mask is not None:
+            m = mask[keep]
+            st.evidence_on_moving.append((int((moving & m).sum()), int(moving.sum())))
+            st.moving_caught.append((int((moving & m).sum()), int((judged & m).sum())))
     st.elev_span = (float(np.median(lows)), float(np.median(highs)))
     st.seconds = time.perf_counter() - t0
     return st
@@ -927,8 +953,9 @@ def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, 
     lines = [f"# Realism report: {meta['synthetic']} vs {meta['real']}", "",
              f"{syn.sweeps} synthetic sweeps ({meta['synthetic_split']}) and {real.sweeps} real sweeps "
              f"({meta['real_split']}), each with its successor (and the sweeps {MOVING_GAP_S:g} s and "
-             f"{DRIFT_GAP_S:g} s later for the free-space test and the ground drift, {MOVING_GAP_S:g} s before "
-             "and after for the moving evidence). Ratios are synthetic / real.", "",
+             f"{DRIFT_GAP_S:g} s later for the free-space test and the ground drift); the moving evidence reads "
+             f"every sweep {MOVING_GAP_S:g} s apart over the whole split (synthetic {syn.evidence_sweeps}, real "
+             f"{real.evidence_sweeps}). Ratios are synthetic / real.", "",
              "| statistic | synthetic | real | ratio |", "|---|---|---|---|"]
     lines += [f"| {k} | {_fmt(a)} | {_fmt(b)} | {_fmt(q)} |" for k, a, b, q in rows]
     lines += ["", f"Range histogram distance: total variation {tv:.3f} (0 same, 1 disjoint), "
