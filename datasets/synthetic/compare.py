@@ -623,20 +623,26 @@ def evidence_sweeps(adapter, split) -> list[tuple[str, int]]:
     return out
 
 
+def _kept(adapter, raw: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points of a sweep the statistics read, outside the ego box and beyond the
+    protocol's minimum range."""
+    from pcfbench.protocol import MIN_RANGE_M
+
+    return ~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)
+
+
 def sweep_moving_evidence(adapter, seq, i: int, points: np.ndarray | None = None):
     """:func:`moving_evidence` of sweep ``i`` of ``seq`` (an ``adapter`` sequence) against the
     sweeps ``MOVING_GAP_S`` before and after it: (judged, moving) over ``points`` (sweep i
     without the ego box and the points nearer than the protocol's minimum range; read when not
     given), or None when the sequence has no such sweeps."""
-    from pcfbench.protocol import MIN_RANGE_M
-
     ts, W = seq.timestamps_ns, seq.T_world_sensor
     k, j = _sweep_at(ts, i, -MOVING_GAP_S), _sweep_at(ts, i, MOVING_GAP_S)
     if k is None or j is None:
         return None
     if points is None:
         raw = np.asarray(seq.load_points(i), np.float64)
-        points = raw[~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)]
+        points = raw[_kept(adapter, raw)]
 
     def load(n):
         p = np.asarray(seq.load_points(n), np.float64)
@@ -647,7 +653,6 @@ def sweep_moving_evidence(adapter, seq, i: int, points: np.ndarray | None = None
 def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed: int = 0) -> SideStats:
     """Read ``count`` sweeps (and each one's successor) of ``adapter`` and gather the statistics."""
     from pcfbench.geometry import transform_points
-    from pcfbench.protocol import MIN_RANGE_M
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -661,7 +666,7 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
     for name, i in pick_sweeps(adapter, split, count):
         seq = seqs.setdefault(name, adapter.sequence(name))
         raw = np.asarray(seq.load_points(i), np.float64)
-        keep = ~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)
+        keep = _kept(adapter, raw)
         pts = raw[keep]
         st.sweeps += 1
         st.points.append(len(pts))
@@ -722,7 +727,7 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
     for name, i in evidence_sweeps(adapter, split):
         seq = seqs.setdefault(name, adapter.sequence(name))
         raw = np.asarray(seq.load_points(i), np.float64)
-        keep = ~adapter.ego_box.inside(raw) & (np.linalg.norm(raw, axis=1) > MIN_RANGE_M)
+        keep = _kept(adapter, raw)
         judged, moving = sweep_moving_evidence(adapter, seq, i, raw[keep])
         st.moving_evidence.append((int(moving.sum()), int(judged.sum())))
         mask = _moving_mask(adapter, name, i, len(raw))
