@@ -117,3 +117,31 @@ def test_early_stop_changes_no_depth(micro_model):
         full = march(MICRO, nfg_cl, mk, np.zeros(3), dirs, mlp, samples=32, readout="median", early_stop=False)
         assert stats["stopped"] > 100
         np.testing.assert_array_equal(early, full)
+
+
+def test_threads_change_no_depth(micro_model, monkeypatch):
+    """Marched in pieces over 1, 2 or 3 threads, every ray's depth is the same bit for bit (and
+    so is the early-stop count): a ray's answer does not depend on the piece it is in."""
+    import pcfbench.methods.copilot4d.raymarch as rm
+    from pcfbench.execution import ExecutionContext
+
+    model, codes = micro_model
+    with torch.no_grad():
+        nfg, coarse = decode(model, codes)
+    mask = logistic_noise_mask(MICRO, coarse.float(), noise=False, threshold=0.3)[0].numpy()
+    dec = model.decoder
+    mlp = [t.detach().numpy().copy() for t in (dec.mlp1.weight, dec.mlp1.bias, dec.mlp2.weight, dec.mlp2.bias)]
+    nfg_cl = nfg[0].permute(2, 3, 1, 0).contiguous().numpy()
+    dirs = _rays(1000, 11)
+    origin = np.array([0.7, -0.4, 0.2])
+    whole_stats = {}
+    whole = march(MICRO, nfg_cl, mask, origin, dirs, mlp, samples=32, readout="median", stats=whole_stats,
+                  execution=ExecutionContext(1))
+    monkeypatch.setattr(rm, "CHUNK", 97)  # 11 pieces, the last one short
+    for threads in (1, 2, 3):
+        stats = {}
+        got = march(MICRO, nfg_cl, mask, origin, dirs, mlp, samples=32, readout="median", stats=stats,
+                    execution=ExecutionContext(threads))
+        np.testing.assert_array_equal(got, whole)
+        assert stats == whole_stats
+    assert march(MICRO, nfg_cl, mask, origin, dirs[:0], mlp, samples=32, readout="median").shape == (0,)

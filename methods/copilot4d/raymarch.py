@@ -32,7 +32,11 @@ import math
 import numba as nb
 import numpy as np
 
+from pcfbench.execution import ExecutionContext, current
+
 READOUT_CODES = {"expected": 0, "median": 1}
+#: rays per piece of a march shared out over threads (any value gives the same depths)
+CHUNK = 8192
 
 
 @nb.njit(cache=True, nogil=True)
@@ -187,7 +191,7 @@ def _march(origin, dirs, lo, hi, mask, mask_cell, use_mask, nfg, nfg_cell, w1, b
 
 def march(cfg, nfg_cl: np.ndarray, mask: np.ndarray | None, origin: np.ndarray, dirs: np.ndarray, mlp: tuple,
           *, samples: int, readout: str, far_bound: bool = True, early_stop: bool = True,
-          stats: dict | None = None) -> np.ndarray:
+          stats: dict | None = None, execution: ExecutionContext | None = None) -> np.ndarray:
     """Depth (float32, (R,)) along unit rays ``dirs`` (R, 3) from ``origin`` (3,), both in the
     tokenized sweep's sensor frame, through one decoded token map: ``nfg_cl`` the NFG channels
     last (X, Y, Z, F) float32, ``mask`` the pooled coarse mask (Xc, Yc, Z) bool or None (no
@@ -196,7 +200,12 @@ def march(cfg, nfg_cl: np.ndarray, mask: np.ndarray | None, origin: np.ndarray, 
 
     Rays are marched in order of azimuth (each depth is independent of the order): rays next
     to each other then read the same NFG columns, which keeps them in cache (the NFG is tens
-    of MB; 15 % faster on a synthetic-town sweep, whose rays come beam by beam)."""
+    of MB; 15 % faster on a synthetic-town sweep, whose rays come beam by beam).
+
+    ``execution`` (default: the process's, ``pcfbench.execution.current()``): the azimuth-sorted
+    rays are cut into ``CHUNK``-ray pieces that its threads march as they come free (the kernel
+    releases the GIL). A ray's depth does not depend on the piece it is in, so the depths are
+    the same whatever the thread count."""
     f32 = np.float32
     lo = np.array([cfg.x_range[0], cfg.y_range[0], cfg.z_range[0]], f32)
     hi = np.array([cfg.x_range[1], cfg.y_range[1], cfg.z_range[1]], f32)
@@ -213,13 +222,22 @@ def march(cfg, nfg_cl: np.ndarray, mask: np.ndarray | None, origin: np.ndarray, 
     dirs = np.asarray(dirs, dtype=f32)
     order = np.argsort(np.arctan2(dirs[:, 1], dirs[:, 0]), kind="stable")
     out = np.empty(len(dirs), f32)
-    stopped = np.zeros(1, np.int64)
-    _march(np.ascontiguousarray(origin, dtype=f32), np.ascontiguousarray(dirs[order]), lo, hi,
-           np.ascontiguousarray(mask, dtype=np.bool_), mask_cell, use_mask, np.ascontiguousarray(nfg_cl, dtype=f32),
-           nfg_cell, w1, b1, w2.reshape(-1), f32(b2.reshape(-1)[0]), samples, step, n_cand, READOUT_CODES[readout],
-           far_bound, early_stop, out, stopped)
+    sorted_dirs = np.ascontiguousarray(dirs[order])
+    args = (np.ascontiguousarray(mask, dtype=np.bool_), mask_cell, use_mask, np.ascontiguousarray(nfg_cl, dtype=f32),
+            nfg_cell, w1, b1, w2.reshape(-1), f32(b2.reshape(-1)[0]), samples, step, n_cand, READOUT_CODES[readout],
+            far_bound, early_stop)
+    origin32 = np.ascontiguousarray(origin, dtype=f32)
+
+    def piece(bounds: tuple[int, int]) -> int:  # rays [a, b) of the sorted ones, into out[a:b]
+        a, b = bounds
+        stopped = np.zeros(1, np.int64)
+        _march(origin32, sorted_dirs[a:b], lo, hi, *args, out[a:b], stopped)
+        return int(stopped[0])
+
+    cuts = list(range(0, len(dirs), CHUNK)) + [len(dirs)]
+    stopped = sum((execution or current()).map(piece, zip(cuts[:-1], cuts[1:])))
     if stats is not None:
-        stats["stopped"] = int(stopped[0])
+        stats["stopped"] = stopped
     depth = np.empty_like(out)
     depth[order] = out
     return depth
