@@ -99,17 +99,23 @@ def test_march_matches_the_torch_path(micro_model, readout, skipping):
             np.testing.assert_allclose(fast, ref, rtol=1e-5, atol=1e-3)
 
 
-def test_early_stop_changes_no_depth(micro_model):
-    """The median readout stops a ray once the weight still to come cannot move its answer:
-    marching every ray to its end gives the very same depths, and rays did stop early."""
+def _marcher_inputs(micro_model):
+    """(NFG channels last, the coarse mask at threshold 0.3 without noise, the MLP's four
+    arrays as a list of copies) of the micro model's decoded tokens."""
     model, codes = micro_model
     with torch.no_grad():
         nfg, coarse = decode(model, codes)
     mask = logistic_noise_mask(MICRO, coarse.float(), noise=False, threshold=0.3)[0].numpy()
     dec = model.decoder
     mlp = [t.detach().numpy().copy() for t in (dec.mlp1.weight, dec.mlp1.bias, dec.mlp2.weight, dec.mlp2.bias)]
+    return nfg[0].permute(2, 3, 1, 0).contiguous().numpy(), mask, mlp
+
+
+def test_early_stop_changes_no_depth(micro_model):
+    """The median readout stops a ray once the weight still to come cannot move its answer:
+    marching every ray to its end gives the very same depths, and rays did stop early."""
+    nfg_cl, mask, mlp = _marcher_inputs(micro_model)
     mlp[3] = mlp[3] + 6.0  # opaque surfaces, so that transmittance runs out before the last sample
-    nfg_cl = nfg[0].permute(2, 3, 1, 0).contiguous().numpy()
     dirs = _rays(2000, 7)
     for mk in (mask, None):
         stats = {}
@@ -125,13 +131,7 @@ def test_threads_change_no_depth(micro_model, monkeypatch):
     import pcfbench.methods.copilot4d.raymarch as rm
     from pcfbench.execution import ExecutionContext
 
-    model, codes = micro_model
-    with torch.no_grad():
-        nfg, coarse = decode(model, codes)
-    mask = logistic_noise_mask(MICRO, coarse.float(), noise=False, threshold=0.3)[0].numpy()
-    dec = model.decoder
-    mlp = [t.detach().numpy().copy() for t in (dec.mlp1.weight, dec.mlp1.bias, dec.mlp2.weight, dec.mlp2.bias)]
-    nfg_cl = nfg[0].permute(2, 3, 1, 0).contiguous().numpy()
+    nfg_cl, mask, mlp = _marcher_inputs(micro_model)
     dirs = _rays(1000, 11)
     origin = np.array([0.7, -0.4, 0.2])
     whole_stats = {}
