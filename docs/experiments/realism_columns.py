@@ -11,7 +11,7 @@ instead of 2048, then compare it with the real drive as any generated root::
 SPLITS: comma-separated (default ``test``; ``test,train,val`` for the seven towns).
 
 What the five baselines and the metrics cost per kitti-1s sample on each root, one thread, the
-roots alternated ROUNDS times in one process (the first N test samples, spread evenly; medians
+roots alternated ROUNDS times in one process (N test samples spread evenly over the split; medians
 of the load, forecast and scoring times the runner records)::
 
     .venv/bin/python docs/experiments/realism_columns.py cost N ROUNDS LABEL=DATASET=ROOT ...

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pcfbench.execution import ExecutionContext
 from pcfbench.roi import Box
 from pcfbench.methods.copilot4d.data import SweepSource, in_box, make_batch
 from pcfbench.methods.copilot4d.model import Tokenizer
@@ -57,7 +58,8 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
                  samples: int | None = None, chunk: int = 4096, generator: torch.Generator | None = None,
                  far_bound: bool = True, threshold: float = 0.5, noise: bool = True,
                  origin: np.ndarray | None = None, decoded: tuple | None = None,
-                 readout: str = "expected", torch_path: bool = False) -> np.ndarray:
+                 readout: str = "expected", torch_path: bool = False,
+                 execution: ExecutionContext | None = None) -> np.ndarray:
     """Expected depth (equation 4) along unit rays for one (T, T) token map, from the sensor
     of the tokenized sweep or from ``origin`` (3,), a point in that sensor's frame (the rays'
     directions in the same frame).
@@ -77,8 +79,9 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     them; the median lands on one of the two.
 
     On the CPU the rays are marched by :func:`~.raymarch.march` (the same arithmetic fused per
-    ray, several times faster); ``torch_path`` (and any other device) renders with the
-    differentiable torch functions that training uses, in chunks of ``chunk`` rays."""
+    ray, several times faster, its rays shared out over ``execution``'s threads: a method passes
+    its ``self.execution``; default the process's); ``torch_path`` (and any other device)
+    renders with the differentiable torch functions that training uses, in chunks of ``chunk`` rays."""
     check_readout(readout)
     cfg = model.cfg
     dev = next(model.parameters()).device
@@ -92,7 +95,7 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
         mlp = tuple(t.detach().float().numpy() for t in (dec.mlp1.weight, dec.mlp1.bias, dec.mlp2.weight, dec.mlp2.bias))
         depth = march(cfg, nfg[0].permute(2, 3, 1, 0).contiguous().numpy(), None if mask is None else mask[0].numpy(),
                       np.zeros(3) if origin is None else np.asarray(origin), dirs, mlp, samples=n, readout=readout,
-                      far_bound=far_bound)
+                      far_bound=far_bound, execution=execution)
         return depth.astype(np.float64)
     out = np.empty(len(dirs), dtype=np.float64)
     all_d = torch.from_numpy(np.ascontiguousarray(dirs, dtype=np.float32)).to(dev)

@@ -410,7 +410,8 @@ class Copilot4D(TrainedMethod):
         for f, q in enumerate(sample.queries):
             origin = T_s0_ref[:3, :3] @ q.origin_ref + T_s0_ref[:3, 3]
             dirs = (q.directions_ref.astype(np.float64) @ T_s0_ref[:3, :3].T).astype(np.float32)
-            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen, **self.render))
+            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen,
+                                       execution=self.execution, **self.render))
         return Forecast.from_depths(sample, depths)
 
     def world_inputs(self, sample: Sample):

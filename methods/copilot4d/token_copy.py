@@ -98,5 +98,5 @@ class TokenCopy(TrainedMethod):
             origin = R @ q.origin_ref + t
             dirs = (q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)
             depths.append(render_codes(self.model, codes, dirs, origin=origin, generator=gen, decoded=decoded,
-                                       **self.render))
+                                       execution=self.execution, **self.render))
         return Forecast.from_depths(sample, depths)
