@@ -211,6 +211,9 @@ class DatasetAdapter(ABC):
     ego_box: ClassVar[EgoBox]
     default_settings: ClassVar[tuple[str, ...]] = ()
     default_split: ClassVar[str] = "test"
+    #: the sample policy of the protocol file that ``pcfbench run`` and ``ls samples`` use for
+    #: this dataset when ``--policy`` is not given
+    default_policy: ClassVar[str] = "full-context"
     axes: ClassVar[str] = "x forward, y left, z up"
     #: True for a dataset that makes its own data (generated on first use): the default of
     #: ``pcfbench run`` when no dataset is named.

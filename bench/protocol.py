@@ -106,8 +106,10 @@ class SamplePolicy:
 
     ``full-context``: anchors with every past and future sweep inside the sequence.
     ``every-frame``: every sweep (past and future sweeps outside the sequence are empty).
-    ``subsample``: ``n`` of policy ``of``'s anchors, evenly spaced over the whole split in its
-    stable order (see :func:`evenly_spaced`); every anchor when there are ``n`` or fewer.
+    ``subsample``: policy ``of``'s anchors thinned over the whole split in its stable order:
+    either ``n`` of them evenly spaced (see :func:`evenly_spaced`; every anchor when there are
+    ``n`` or fewer), or ``every``-th one from the first (candidates 0, k, 2k, ...: a share of
+    every split and setting, however many anchors it has).
     """
 
     name: str
@@ -117,6 +119,7 @@ class SamplePolicy:
     description: str = ""
     #: the anchor rule of the candidates: ``kind``, or for ``subsample`` the kind of ``of``
     rule: str = ""
+    every: int | None = None
 
     def __post_init__(self) -> None:
         if not self.rule:
@@ -127,9 +130,15 @@ class SamplePolicy:
     def params(self) -> dict[str, Any]:
         """What the policy selects with (its cell identity): everything but the description."""
         out: dict[str, Any] = {"name": self.name, "kind": self.kind}
-        if self.kind == "subsample":
-            out.update(n=self.n, of=self.of)
+        if self.kind == "subsample":  # an n policy's identity stays as it was before ``every``
+            out.update({"every": self.every} if self.every is not None else {"n": self.n}, of=self.of)
         return out
+
+    def thin(self, count: int) -> list[int]:
+        """Indices of the kept candidates among ``count`` (a subsample policy's thinning)."""
+        if self.every is not None:
+            return list(range(0, count, self.every))
+        return evenly_spaced(count, self.n)
 
 
 def evenly_spaced(count: int, n: int) -> list[int]:
@@ -178,7 +187,7 @@ class Protocol:
 
 _TOP_KEYS = {"version", "min_range_m", "roi", "policies", "settings"}
 _SETTING_KEYS = {"rate_hz", "past", "future", "stride", "description"}
-_POLICY_KEYS = {"kind", "n", "of", "description"}
+_POLICY_KEYS = {"kind", "n", "every", "of", "description"}
 
 
 def _table(value: object, where: str) -> dict:
@@ -244,19 +253,24 @@ def parse_protocol(data: dict, source: str) -> Protocol:
         kind = _require(raw, "kind", where)
         if kind not in POLICY_KINDS:
             raise PcfbenchError(f"{where}: kind must be one of {', '.join(POLICY_KINDS)}, got {kind!r}")
-        n, of = raw.get("n"), raw.get("of")
+        n, of, every = raw.get("n"), raw.get("of"), raw.get("every")
         if kind == "subsample":
-            if not _is_int(n) or n < 1:
-                raise PcfbenchError(f"{where}: a subsample policy needs n, an integer >= 1, got {n!r}")
+            if (n is None) == (every is None):
+                raise PcfbenchError(f"{where}: a subsample policy needs one of n (how many anchors) and every "
+                                    f"(every k-th anchor), got n={n!r}, every={every!r}")
+            if n is not None and (not _is_int(n) or n < 1):
+                raise PcfbenchError(f"{where}: a subsample policy's n must be an integer >= 1, got {n!r}")
+            if every is not None and (not _is_int(every) or every < 1):
+                raise PcfbenchError(f"{where}: a subsample policy's every must be an integer >= 1, got {every!r}")
             base = raw_policies.get(of) if isinstance(of, str) else None
             if not isinstance(base, dict) or base.get("kind") not in ("full-context", "every-frame"):
                 raise PcfbenchError(
                     f"{where}: of must name a full-context or every-frame policy of the file, got {of!r}"
                 )
-        elif n is not None or of is not None:
-            raise PcfbenchError(f"{where}: only a subsample policy takes n and of")
+        elif n is not None or of is not None or every is not None:
+            raise PcfbenchError(f"{where}: only a subsample policy takes n, every and of")
         rule = raw_policies[of]["kind"] if kind == "subsample" else kind
-        policies[name] = SamplePolicy(name, kind, n, of, raw.get("description", ""), rule)
+        policies[name] = SamplePolicy(name, kind, n, of, raw.get("description", ""), rule, every)
     if "full-context" not in policies:
         raise PcfbenchError(f"protocol file {source} has no [policies.full-context] (the default sample policy)")
 
@@ -406,7 +420,7 @@ class SampleBuilder:
             seq = self.sequence(name)
             keys.extend((name, i) for i in anchors(len(seq), self.setting, self.sample_policy))
         if self.sample_policy.kind == "subsample":
-            keys = [keys[i] for i in evenly_spaced(len(keys), self.sample_policy.n)]
+            keys = [keys[i] for i in self.sample_policy.thin(len(keys))]
         return keys
 
     def points_sensor(self, seq: Sequence, index: int) -> np.ndarray:

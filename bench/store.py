@@ -72,6 +72,8 @@ class CellSpec:
     @property
     def label(self) -> str:
         extra = f" limit={self.limit}" if self.limit is not None else ""
+        if self.policy != "full-context":
+            extra = f" ({self.policy}){extra}"
         trained = f" [trained on {self.train_on}]" if self.train_on else ""
         return f"{self.method}{trained} | {self.dataset}:{self.split} | {self.setting}{extra}"
 

@@ -43,7 +43,7 @@ def test_shipped_protocol_has_the_legacy_values_exactly():
     assert [dataclasses.astuple(s) for s in p.settings.values()] == LEGACY_SETTINGS  # order kept too
     assert p.roi.lo == (-70.0, -70.0, -4.5) and p.roi.hi == (70.0, 70.0, 4.5)
     assert p.min_range_m == 0.01 and protocol.MIN_RANGE_M == 0.01
-    assert tuple(p.policies) == ("full-context", "every-frame", "subsample-4000") == protocol.SAMPLE_POLICIES
+    assert tuple(p.policies) == ("full-context", "every-frame", "subsample-4000", "every-third") == protocol.SAMPLE_POLICIES
     assert p.default_policy == "full-context"
 
 
@@ -127,12 +127,16 @@ def test_round_trip_of_the_test_writer(tmp_path):
         (lambda d: d["settings"]["kitti-1s"].update(rate_hz=0.0), r"\[settings.kitti-1s\].*rate_hz must be a positive"),
         (lambda d: d["settings"]["kitti-1s"].pop("future"), r"\[settings.kitti-1s\] is missing 'future'"),
         (lambda d: d["settings"]["kitti-1s"].update(horizon=1), r"\[settings.kitti-1s\] has unknown key\(s\) horizon"),
-        (lambda d: d["policies"]["subsample-4000"].pop("n"), r"\[policies.subsample-4000\]: a subsample policy needs n"),
-        (lambda d: d["policies"]["subsample-4000"].update(n=0), r"needs n, an integer >= 1, got 0"),
+        (lambda d: d["policies"]["subsample-4000"].pop("n"), r"\[policies.subsample-4000\]: a subsample policy needs one of n"),
+        (lambda d: d["policies"]["subsample-4000"].update(n=0), r"n must be an integer >= 1, got 0"),
+        (lambda d: d["policies"]["subsample-4000"].update(every=2), r"needs one of n .* got n=4000, every=2"),
+        (lambda d: d["policies"]["every-third"].update(every=0), r"\[policies.every-third\]: .*every must be an integer >= 1, got 0"),
+        (lambda d: d["policies"]["every-third"].update(every=1.5), r"every must be an integer >= 1, got 1.5"),
         (lambda d: d["policies"]["subsample-4000"].update(of="subsample-4000"), r"of must name a full-context or every-frame"),
         (lambda d: d["policies"]["every-frame"].update(kind="sometimes"), r"kind must be one of .*got 'sometimes'"),
-        (lambda d: d["policies"]["every-frame"].update(n=3), r"only a subsample policy takes n and of"),
-        (lambda d: d["policies"].pop("full-context") and d["policies"].pop("subsample-4000"), r"has no \[policies.full-context\]"),
+        (lambda d: d["policies"]["every-frame"].update(n=3), r"only a subsample policy takes n, every and of"),
+        (lambda d: d["policies"]["every-frame"].update(every=3), r"only a subsample policy takes n, every and of"),
+        (lambda d: [d["policies"].pop(k) for k in ("full-context", "subsample-4000", "every-third")], r"has no \[policies.full-context\]"),
     ],
 )
 def test_bad_protocol_file_is_one_clear_error(tmp_path, edit, message):
@@ -214,6 +218,25 @@ def test_subsample_spans_the_split_in_its_stable_order():
     # the shipped 4,000-frame policy keeps every candidate of a split with fewer
     assert SampleBuilder(adapter, kitti_1s, "subsample-4000").sample_keys("test") == full
     assert anchors(23, kitti_1s, "subsample-4000") == anchors(23, kitti_1s, "full-context") == list(range(8, 13))
+
+
+def test_every_third_keeps_every_third_anchor_of_the_split_from_the_first():
+    kitti_1s = SETTINGS["kitti-1s"]
+    adapter = Lengths({"08": 23, "09": 24})  # 5 + 6 anchors: candidates 0..10
+    full = SampleBuilder(adapter, kitti_1s).sample_keys("test")
+    assert len(full) == 11
+    keys = SampleBuilder(adapter, kitti_1s, "every-third").sample_keys("test")
+    # candidates 0, 3, 6, 9: 08/8, 08/11, then 09's anchors 8..13 are candidates 5..10
+    assert keys == [("08", 8), ("08", 11), ("09", 9), ("09", 12)] == [full[i] for i in range(0, 11, 3)]
+    # a split with fewer than three anchors keeps its first; an every-1 policy keeps all
+    assert SampleBuilder(Lengths({"08": 20}), kitti_1s, "every-third").sample_keys("test") == [("08", 8)]
+    one = SamplePolicy("every-1", "subsample", of="full-context", rule="full-context", every=1)
+    assert SampleBuilder(adapter, kitti_1s, one).sample_keys("test") == full
+    # the identity names every, not n; an n policy's identity is as it was
+    assert active_protocol().policy("every-third").params() == {"name": "every-third", "kind": "subsample", "every": 3,
+                                                                "of": "full-context"}
+    assert active_protocol().policy("subsample-4000").params() == {"name": "subsample-4000", "kind": "subsample",
+                                                                   "n": 4000, "of": "full-context"}
 
 
 def test_subsample_4000_on_a_split_larger_than_4000():
