@@ -134,8 +134,9 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
 @click.option("--split", "splits", multiple=True, help="Split (repeatable); default: the dataset's evaluation split.")
 @click.option("--method", "-m", "methods", multiple=True, metavar="NAME[:k=v,...]", help="Method (repeatable).")
 @click.option("--metric", "metrics", multiple=True, help="Metric (repeatable); default: every registered metric.")
-@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True,
-              help="Sample policy of the protocol file, e.g. subsample-4000 (Copilot4D's Argoverse 2 Table 2).")
+@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default=None,
+              help="Sample policy of the protocol file, e.g. subsample-4000 (Copilot4D's Argoverse 2 Table 2); "
+                   "default: each dataset's own (full-context; synthetic-town-realistic: every-third).")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (partial: kept out of leaderboards).")
 @click.option("--jobs", "-j", type=click.IntRange(min=0), default=0, show_default=True,
               help="Worker processes; 0: one per CPU for cells with enough samples, else serial.")
@@ -188,9 +189,10 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         ds_settings = settings or cls.default_settings
         if not ds_settings:
             raise PcfbenchError(f"dataset {name!r} declares no default settings: pass --setting")
+        ds_policy = policy or cls.default_policy
         for split, setting, method in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
             cells.append(
-                CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, policy, limit,
+                CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, ds_policy, limit,
                          metric_names, **checkpoints.get(method.name, {}))
             )
     failures = failed_cells = 0
@@ -432,8 +434,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
               help="Methods and datasets: each option (NAME:key=value / ROOT?key=value) with its type, default and help.")
 @click.option("--setting", "-s", default=None, help="samples: the setting (required).")
 @click.option("--split", default=None, help="samples: the split (default: the dataset's evaluation split).")
-@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True,
-              help="samples: the sample policy.")
+@click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default=None,
+              help="samples: the sample policy (default: the dataset's own).")
 def ls_cmd(what, dataset, as_json, with_options, setting, split, policy):
     """List registered methods, datasets, metrics or the protocol's settings; ``ls samples
     DATASET --setting S`` lists the valid sample ids (what ``export --sample`` takes)."""
@@ -490,6 +492,7 @@ def _ls_samples(dataset, setting, split, policy, as_json) -> None:
     s = get_setting(setting)
     check_compatible(s, adapter)
     split = split or cls.default_split
+    policy = policy or cls.default_policy
     if split not in adapter.splits():
         from pcfbench.errors import unknown_name
 

@@ -668,7 +668,7 @@ class TrainedMethod(Method):
     """
 
     #: The training data of the default run (an embedded dataset, so it exists everywhere).
-    default_train_on: ClassVar[str] = "synthetic-town"
+    default_train_on: ClassVar[str] = "synthetic-town-realistic"
     #: How long a full training takes, stated for the missing-checkpoint message when no
     #: earlier training on this machine measured it.
     training_time: ClassVar[str] = ""

@@ -151,7 +151,11 @@ def test_generate_command_and_plugin_registration(tmp_path):
     plugins = get_plugins()
     town = plugins.datasets.get("synthetic-town")
     suburb = plugins.datasets.get("synthetic-suburb")
-    assert town.embedded and not suburb.embedded
+    realistic = plugins.datasets.get("synthetic-town-realistic")
+    # the default run's one dataset is the realistic town, scored on every third sample
+    assert [n for n in plugins.datasets.names() if plugins.datasets.get(n).embedded] == ["synthetic-town-realistic"]
+    assert not town.embedded and not suburb.embedded
+    assert realistic.default_policy == "every-third" and town.default_policy == "full-context"
     assert town.default_settings == ("kitti-1s", "kitti-3s") and suburb.default_settings == ("nuscenes-1s", "nuscenes-3s")
     cli = build_cli()
     res = CliRunner().invoke(cli, ["generate", "synthetic-nowhere", "--out", str(tmp_path / "x"), "-q"])
@@ -190,7 +194,7 @@ def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_pa
     import pcfbench.datasets.synthetic.generate as gen
     from pcfbench.cli import build_cli
 
-    dom = tiny(sweeps=56, azimuths=240)
+    dom = tiny("synthetic-town-realistic", sweeps=56, azimuths=240)
     monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
     monkeypatch.setattr(gen, "get_domain", lambda name: dom)
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
@@ -198,10 +202,11 @@ def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_pa
     args = ["run", "--method", "copy-last", "--limit", "2", "--reports", str(tmp_path / "reports"), "-q"]
     first = CliRunner().invoke(cli, args)
     assert first.exit_code == 0, first.output
-    assert "generating synthetic-town" in first.output
-    assert "synthetic-town:test | kitti-1s limit=2: 2 samples (2 now, 0 failed)" in first.output
-    assert "synthetic-town:test | kitti-3s limit=2: 2 samples (2 now, 0 failed)" in first.output
-    root = tmp_path / "cache" / "synthetic" / f"synthetic-town-v{GENERATOR_VERSION}"
+    assert "generating synthetic-town-realistic" in first.output
+    # its default policy: every third of the 38 kitti-1s anchors (13), of the 2 kitti-3s ones the first
+    assert "synthetic-town-realistic:test | kitti-1s (every-third) limit=2: 2 samples (2 now, 0 failed)" in first.output
+    assert "synthetic-town-realistic:test | kitti-3s (every-third) limit=2: 1 samples (1 now, 0 failed)" in first.output
+    root = tmp_path / "cache" / "synthetic" / f"synthetic-town-realistic-v{GENERATOR_VERSION}-physics{dom.physics}"
     assert split_complete(root, "test") and not split_complete(root, "train")
     second = CliRunner().invoke(cli, args)
     assert second.exit_code == 0 and "generating" not in second.output and "nothing to do" in second.output

@@ -894,7 +894,7 @@ def test_physics_1_output_is_unchanged_and_the_realistic_domain_is_opt_in():
         f"physics-1 bytes changed, or this host ({cpu}) casts rays differently from every host recorded: "
         f"{h.hexdigest()} not in {sorted(GOLDEN_TINY_V1)}")
     ds = get_plugins().datasets
-    assert ds.get("synthetic-town").embedded and not ds.get("synthetic-town-realistic").embedded
+    assert ds.get("synthetic-town-realistic").embedded and not ds.get("synthetic-town").embedded
 
 
 def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):

@@ -86,9 +86,7 @@ DOMAINS: dict[str, Domain] = {
 # seen by a sensor and surfaces like real ones, its stored poses drifting from the scans as
 # KITTI's do, with as much moving traffic as SemanticKITTI has (0.085 of the town style's),
 # narrower sidewalks and hedged yards, mixed pixels at the real rate and shallow foliage
-# (docs/realism.md). Not the default
-# until the learned methods' checkpoints are retrained on it: flipping it is making this the
-# embedded dataset.
+# (docs/realism.md). The embedded dataset of the default run.
 _town = DOMAINS["synthetic-town"]
 DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     _town, name="synthetic-town-realistic",
