@@ -170,21 +170,27 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     from pcfbench.report import write_reports
     from pcfbench.runner import default_metrics, run_cell
     from pcfbench.store import Cell, CellLocked, CellSpec
+    from pcfbench.warmup import warm_while_preparing
 
     plugins = get_plugins()
     warn_failed(plugins)
     ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
     for s in settings:
         get_setting(s)
-    method_specs = _selected_methods(plugins, methods)
-    checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, not quiet)
     metric_names = tuple(metrics) or default_metrics(plugins)
     for m in metric_names:
         plugins.metrics.get(m)
+    # data generated now (the embedded dataset's splits) leaves a core idle: the methods' and
+    # metrics' numba kernels compile there meanwhile, not in every worker of the first cells
+    warmup = warm_while_preparing(methods or None, metric_names) if executor == "local" else contextlib.nullcontext()
+    with warmup:
+        method_specs = _selected_methods(plugins, methods)
+        checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, not quiet)
+        roots = _dataset_roots(plugins, datasets, not quiet)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     cells = []
-    for name, root in _dataset_roots(plugins, datasets, not quiet):
+    for name, root in roots:
         cls = plugins.datasets.get(name)
         ds_settings = settings or cls.default_settings
         if not ds_settings:

@@ -193,23 +193,32 @@ def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_pa
     import pcfbench.datasets.synthetic.adapter as adapter_mod
     import pcfbench.datasets.synthetic.generate as gen
     from pcfbench.cli import build_cli
+    from pcfbench.plugins import get_plugins
+    from pcfbench.runner import default_metrics
 
     dom = tiny("synthetic-town-realistic", sweeps=56, azimuths=240)
     monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
     monkeypatch.setattr(gen, "get_domain", lambda name: dom)
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    from pcfbench.warmup import KernelWarmup
+
+    warmups = []  # the run's kernel warm-up starts with the generation, once (tests/test_warmup.py runs it)
+    monkeypatch.setattr(KernelWarmup, "start", lambda self: warmups.append((self.methods, self.metrics)))
     cli = build_cli()
     args = ["run", "--method", "copy-last", "--limit", "2", "--reports", str(tmp_path / "reports"), "-q"]
     first = CliRunner().invoke(cli, args)
     assert first.exit_code == 0, first.output
+    assert warmups and set(warmups) == {(("copy-last",), tuple(default_metrics(get_plugins())))}
     assert "generating synthetic-town-realistic" in first.output
     # its default policy: every third of the 38 kitti-1s anchors (13), of the 2 kitti-3s ones the first
     assert "synthetic-town-realistic:test | kitti-1s (every-third) limit=2: 2 samples (2 now, 0 failed)" in first.output
     assert "synthetic-town-realistic:test | kitti-3s (every-third) limit=2: 1 samples (1 now, 0 failed)" in first.output
     root = tmp_path / "cache" / "synthetic" / f"synthetic-town-realistic-v{GENERATOR_VERSION}-physics{dom.physics}"
     assert split_complete(root, "test") and not split_complete(root, "train")
+    warmups.clear()
     second = CliRunner().invoke(cli, args)
     assert second.exit_code == 0 and "generating" not in second.output and "nothing to do" in second.output
+    assert warmups == []  # nothing generated: no warm-up
 
 
 @pytest.mark.parametrize("layout,domain,adapter_name", [

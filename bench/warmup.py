@@ -1,0 +1,112 @@
+"""Compile a run's numba kernels on the idle core while its data is being generated.
+
+The ray casters and the metrics are numba kernels cached on disk (``cache=True``, next to
+their source files). On a fresh install the first cell that uses one compiles it, in each of
+its worker processes at once: about a minute of the default run went to compiling while
+both cores were meant to forecast. Generating the embedded dataset keeps about one core
+busy, so ``pcfbench run`` registers a warm-up (:func:`warm_while_preparing`) and a dataset
+that is about to generate data for a while calls :func:`preparing_data`: the warm-up then
+starts, in one spawned process on one thread, forecasts a toy sample with each of the run's
+methods that need no checkpoint and scores it with the run's metrics. That compiles (or
+loads) their kernels into numba's on-disk cache, where the workers find them. The run waits
+for it before its first cell, so the two never compete for the cores; when no data is
+generated it never starts.
+
+It changes no result: the kernels are the same functions, compiled from the same source, and
+numba checks its cache against the source file. A warm-up that fails (a method that cannot
+forecast the toy sample) only leaves that kernel to be compiled by the cell, as before; the
+cell then reports any real error.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import sys
+from typing import Iterator
+
+#: the warm-up ``preparing_data`` starts (one at a time: the CLI's run)
+_pending: "KernelWarmup | None" = None
+
+
+class KernelWarmup:
+    """The warm-up of ``methods`` (``NAME`` / ``(NAME, options)``; None: every registered
+    method that needs no checkpoint) and ``metrics`` (names), started at most once."""
+
+    def __init__(self, methods: tuple | None, metrics: tuple[str, ...]) -> None:
+        self.methods = methods
+        self.metrics = tuple(metrics)
+        self.process: multiprocessing.process.BaseProcess | None = None
+
+    def start(self) -> None:
+        if self.process is None:
+            ctx = multiprocessing.get_context("spawn")  # a clean interpreter: no inherited threads or locks
+            self.process = ctx.Process(target=warm, args=(self.methods, self.metrics), daemon=True,
+                                       name="pcfbench-warmup")
+            self.process.start()
+
+    def join(self) -> None:
+        if self.process is not None:
+            self.process.join()
+
+
+@contextlib.contextmanager
+def warm_while_preparing(methods: tuple | None, metrics: tuple[str, ...]) -> Iterator[KernelWarmup]:
+    """Within the block, :func:`preparing_data` starts the warm-up of ``methods`` and
+    ``metrics``; leaving the block waits for it (when it started)."""
+    global _pending
+    warmup = KernelWarmup(methods, metrics)
+    _pending = warmup
+    try:
+        yield warmup
+    finally:
+        _pending = None
+        warmup.join()
+
+
+def preparing_data() -> None:
+    """Say that this process is about to prepare data for a while (generate a split): a
+    registered warm-up starts now, on the core that leaves idle."""
+    if _pending is not None:
+        _pending.start()
+
+
+def warm(methods: tuple | None, metrics: tuple[str, ...]) -> list[str]:
+    """Forecast and score the toy sample with each method on one thread; returns the names of
+    the methods that ran (the process's exit status says nothing: failures are left to the cells)."""
+    from pcfbench.execution import ExecutionContext, applied
+    from pcfbench.method import resolve_method
+    from pcfbench.metrics.base import score_sample
+    from pcfbench.plugins import get_plugins
+    from pcfbench.testing import toy_sample
+    from pcfbench.training import is_trained
+    from pcfbench.validate import validate_forecast
+
+    plugins = get_plugins()
+    if methods is None:
+        methods = tuple(n for n in plugins.methods.names() if not is_trained(plugins.methods.get(n)))
+    done = []
+    one = ExecutionContext(1)
+    with applied(one):
+        try:
+            scorers = [plugins.metrics.get(m) for m in metrics]
+            sample, truth = toy_sample("kitti-1s")
+        except Exception:  # noqa: BLE001 - nothing to warm; the run reports its own errors
+            return done
+        for m in methods:
+            try:
+                spec = resolve_method(m, plugins)
+                if is_trained(spec.cls):
+                    continue  # its weights load in the cell; its kernels are few
+                method = spec.create()
+                method.execution = one
+                forecast = validate_forecast(sample, method.forecast(sample.for_method()))
+                score_sample(sample, truth, forecast, scorers, one)
+                done.append(spec.name)
+            except Exception:  # noqa: BLE001 - the cell compiles what was not warmed, and reports errors
+                continue
+    return done
+
+
+if __name__ == "__main__":  # pragma: no cover - by hand: python -m pcfbench.warmup
+    print(warm(None, tuple(sys.argv[1:]) or ()))

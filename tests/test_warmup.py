@@ -1,0 +1,45 @@
+"""The kernel warm-up of a run that generates data (pcfbench.warmup)."""
+
+from __future__ import annotations
+
+import os
+
+from pcfbench.warmup import KernelWarmup, preparing_data, warm, warm_while_preparing
+
+
+def test_warm_forecasts_and_scores_each_untrained_method_and_skips_the_rest():
+    # every registered method that needs no checkpoint, none of the trained ones
+    assert warm(None, ("chamfer_nf", "l1_median")) == [
+        "copy-last", "raycast-4docc", "raycast-freespace", "raycast-voxel", "raycast-zbuffer"]
+    # options as on the command line; a trained method, an unknown one and a bad option are
+    # left to the cells, which report them
+    assert warm(("raycast-voxel:voxel=0.4", "copilot4d-token-copy", "no-such-method", "copy-last:nope=1"),
+                ("chamfer_nf",)) == ["raycast-voxel"]
+    assert warm(("copy-last",), ("no-such-metric",)) == []
+
+
+def test_the_warm_up_starts_only_when_data_is_prepared_and_is_waited_for():
+    preparing_data()  # no run registered one: nothing happens
+    with warm_while_preparing(("copy-last",), ("chamfer_nf",)) as idle:
+        pass
+    assert idle.process is None  # nothing generated, no process
+    with warm_while_preparing(("copy-last",), ("chamfer_nf",)) as w:
+        preparing_data()
+        first = w.process
+        preparing_data()  # a second split: the same warm-up
+        assert first is not None and w.process is first
+    assert first.exitcode == 0  # the block waited for it
+    preparing_data()  # outside the block again: nothing
+    assert w.process is first
+
+
+def test_the_warm_up_fills_the_numba_cache_the_workers_read(tmp_path, monkeypatch):
+    # numba writes its cache under NUMBA_CACHE_DIR when set; the spawned process inherits it
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    w = KernelWarmup(("copy-last",), ("chamfer_nf",))
+    w.start()
+    w.join()
+    assert w.process.exitcode == 0
+    indexes = [p for p in tmp_path.rglob("*.nbi")]
+    # the metric's nearest-neighbour kernels (bench/metrics/nn.py), compiled and saved
+    assert any(p.name.startswith("nn.") for p in indexes), sorted(os.path.relpath(p, tmp_path) for p in indexes)
