@@ -86,7 +86,8 @@ class Experiment:
     datasets: tuple[tuple[str, str | None], ...]
     settings: tuple[str, ...]
     splits: tuple[str, ...]
-    policy: str
+    #: None: each dataset's ``default_policy``
+    policy: str | None
     metrics: tuple[str, ...]
     train_on: tuple[str, ...]
     train_split: str
@@ -287,8 +288,8 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
             raise reader.error("settings", f"dataset {ds!r} declares no default settings: list them")
     splits = reader.strings(doc["splits"], "splits") if "splits" in doc else ()
 
-    policy = doc.get("policy", "full-context")
-    if policy not in SAMPLE_POLICIES:
+    policy = doc.get("policy")  # None: each dataset's own default policy
+    if policy is not None and policy not in SAMPLE_POLICIES:
         raise reader.wrap("policy", unknown_name("sample policy", str(policy), SAMPLE_POLICIES))
     if "metrics" in doc:
         metrics = reader.strings(doc["metrics"], "metrics")
@@ -474,18 +475,19 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
         for split in splits:
             if split not in adapter.splits():
                 raise reader.wrap("splits", unknown_name(f"split of dataset {name}", split, adapter.splits()))
+        policy = exp.policy or cls.default_policy
         for split, setting in itertools.product(splits, exp.settings or cls.default_settings):
             try:
-                keys = SampleBuilder(adapter, get_setting(setting, plugins), exp.policy).sample_keys(split)
+                keys = SampleBuilder(adapter, get_setting(setting, plugins), policy).sample_keys(split)
             except PcfbenchError as exc:
                 raise reader.wrap("datasets", exc) from None
             if not keys:
                 raise reader.error("settings", f"{name}:{split} (root {root}) has no samples for setting {setting} "
-                                   f"({exp.policy})")
+                                   f"({policy})")
             for v in exp.variants:
                 m = v.method
                 for ck in checkpoints.setdefault(v.key, _checkpoints(exp, v, plugins, progress)):
-                    cells.append(CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, exp.policy,
+                    cells.append(CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, policy,
                                           limit, exp.metrics, **ck))
     return cells
 
