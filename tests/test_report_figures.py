@@ -245,8 +245,8 @@ def _chromium() -> str:
     exe = shutil.which("chromium") or shutil.which("chromium-browser")
     if exe is None:
         if os.environ.get("CI"):
-            pytest.fail("chromium is missing: bash .ci/setup installs it (apt-get install chromium)")
-        pytest.skip("chromium is not installed (bash .ci/setup installs it)")
+            pytest.fail("chromium is missing: bash .ci/setup test installs it (apt-get install chromium)")
+        pytest.skip("chromium is not installed (bash .ci/setup test installs it)")
     return exe
 
 
