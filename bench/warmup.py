@@ -6,7 +6,7 @@ its worker processes at once: about a minute of the default run went to compilin
 both cores were meant to forecast. Generating the embedded dataset keeps about one core
 busy, so ``pcfbench run`` registers a warm-up (:func:`warm_while_preparing`) and a dataset
 that is about to generate data for a while calls :func:`preparing_data`: the warm-up then
-starts, in one spawned process on one thread, forecasts a toy sample with each of the run's
+starts, in one child process on one thread, forecasts a toy sample with each of the run's
 methods that need no checkpoint and scores it with the run's metrics. That compiles (or
 loads) their kernels into numba's on-disk cache, where the workers find them. The run waits
 for it before its first cell, so the two never compete for the cores; when no data is
@@ -21,7 +21,8 @@ cell then reports any real error.
 from __future__ import annotations
 
 import contextlib
-import multiprocessing
+import json
+import subprocess
 import sys
 from typing import Iterator
 
@@ -30,38 +31,52 @@ _pending: "KernelWarmup | None" = None
 
 
 class KernelWarmup:
-    """The warm-up of ``methods`` (``NAME`` / ``(NAME, options)``; None: every registered
-    method that needs no checkpoint) and ``metrics`` (names), started at most once."""
+    """The warm-up of ``methods`` (``NAME`` / ``NAME:k=v`` strings; None: every registered
+    method that needs no checkpoint) and ``metrics`` (names), started at most once.
 
-    def __init__(self, methods: tuple | None, metrics: tuple[str, ...]) -> None:
-        self.methods = methods
+    It runs as ``python -c`` in a child process, not through ``multiprocessing``: a script
+    that calls the CLI without a ``__main__`` guard is then not imported again."""
+
+    def __init__(self, methods: tuple[str, ...] | None, metrics: tuple[str, ...]) -> None:
+        self.methods = None if methods is None else tuple(methods)
         self.metrics = tuple(metrics)
-        self.process: multiprocessing.process.BaseProcess | None = None
+        self.process: subprocess.Popen | None = None
 
     def start(self) -> None:
         if self.process is None:
-            ctx = multiprocessing.get_context("spawn")  # a clean interpreter: no inherited threads or locks
-            self.process = ctx.Process(target=warm, args=(self.methods, self.metrics), daemon=True,
-                                       name="pcfbench-warmup")
-            self.process.start()
+            code = "import json, sys; from pcfbench.warmup import warm; warm(*json.loads(sys.argv[1]))"
+            args = json.dumps([None if self.methods is None else list(self.methods), list(self.metrics)])
+            self.process = subprocess.Popen([sys.executable, "-c", code, args], stdin=subprocess.DEVNULL,
+                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     def join(self) -> None:
         if self.process is not None:
-            self.process.join()
+            self.process.wait()
+
+    def stop(self) -> None:
+        """End it now (the run failed or was interrupted: its error should not wait for this)."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
 
 
 @contextlib.contextmanager
-def warm_while_preparing(methods: tuple | None, metrics: tuple[str, ...]) -> Iterator[KernelWarmup]:
+def warm_while_preparing(methods: tuple[str, ...] | None, metrics: tuple[str, ...]) -> Iterator[KernelWarmup]:
     """Within the block, :func:`preparing_data` starts the warm-up of ``methods`` and
-    ``metrics``; leaving the block waits for it (when it started)."""
+    ``metrics``; leaving the block waits for it (when it started), or ends it when the block
+    raised."""
     global _pending
     warmup = KernelWarmup(methods, metrics)
     _pending = warmup
     try:
         yield warmup
+    except BaseException:
+        warmup.stop()
+        raise
+    else:
+        warmup.join()
     finally:
         _pending = None
-        warmup.join()
 
 
 def preparing_data() -> None:
@@ -71,7 +86,7 @@ def preparing_data() -> None:
         _pending.start()
 
 
-def warm(methods: tuple | None, metrics: tuple[str, ...]) -> list[str]:
+def warm(methods: "list[str] | tuple[str, ...] | None", metrics: "list[str] | tuple[str, ...]") -> list[str]:
     """Forecast and score the toy sample with each method on one thread; returns the names of
     the methods that ran (the process's exit status says nothing: failures are left to the cells)."""
     from pcfbench.execution import ExecutionContext, applied

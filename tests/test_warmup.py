@@ -28,18 +28,29 @@ def test_the_warm_up_starts_only_when_data_is_prepared_and_is_waited_for():
         first = w.process
         preparing_data()  # a second split: the same warm-up
         assert first is not None and w.process is first
-    assert first.exitcode == 0  # the block waited for it
+    assert first.returncode == 0  # the block waited for it
     preparing_data()  # outside the block again: nothing
     assert w.process is first
 
 
+def test_a_failed_preparation_ends_the_warm_up_instead_of_waiting_for_it():
+    import pytest
+
+    with pytest.raises(KeyboardInterrupt):
+        with warm_while_preparing(None, ("chamfer_nf",)) as w:
+            preparing_data()
+            raise KeyboardInterrupt  # as Ctrl-C during the generation
+    assert w.process.returncode is not None and w.process.returncode < 0  # killed, not finished
+    preparing_data()  # and no longer registered
+
+
 def test_the_warm_up_fills_the_numba_cache_the_workers_read(tmp_path, monkeypatch):
-    # numba writes its cache under NUMBA_CACHE_DIR when set; the spawned process inherits it
+    # numba writes its cache under NUMBA_CACHE_DIR when set; the child process inherits it
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     w = KernelWarmup(("copy-last",), ("chamfer_nf",))
     w.start()
     w.join()
-    assert w.process.exitcode == 0
+    assert w.process.returncode == 0
     indexes = [p for p in tmp_path.rglob("*.nbi")]
     # the metric's nearest-neighbour kernels (bench/metrics/nn.py), compiled and saved
     assert any(p.name.startswith("nn.") for p in indexes), sorted(os.path.relpath(p, tmp_path) for p in indexes)
