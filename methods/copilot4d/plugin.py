@@ -54,7 +54,7 @@ def _tokenizer_options(f):
                      help="Checkpoint folder or file (default: the one trained on --train-on).")(f)
     f = click.option("--train-split", default="train", show_default=True)(f)
     f = click.option("--train-on", default=None, metavar="NAME[=ROOT]",
-                     help="The tokenizer trained on this dataset (default: synthetic-town).")(f)
+                     help="The tokenizer trained on this dataset (default: synthetic-town-realistic).")(f)
     f = click.option("--method", "method", default=TOKENIZER, show_default=True, metavar="NAME[:k=v,...]",
                      help="Which tokenizer: its method spec, e.g. copilot4d-token-copy:config=paper.")(f)
     return f

@@ -5,8 +5,8 @@
 tokens with the decoder from each future sensor origin along that future sweep's query rays
 (spatial skipping and the ``readout`` depth of ``options.RenderingOptions``): a world that
 does not change, seen through the tokenizer. It isolates what a world model adds on top of
-the tokenizer. The tiny checkpoint trained on synthetic-town ships in ``checkpoints/``
-(docs/copilot4d.md).
+the tokenizer. Tiny checkpoints trained on synthetic-town-realistic (the default run's) and
+on synthetic-town ship in ``checkpoints/`` (docs/copilot4d.md).
 """
 
 from __future__ import annotations
