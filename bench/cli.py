@@ -184,9 +184,13 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     # metrics' numba kernels compile there meanwhile, not in every worker of the first cells
     warmup = warm_while_preparing(methods or None, metric_names) if executor == "local" else contextlib.nullcontext()
     with warmup:
-        method_specs = _selected_methods(plugins, methods)
-        checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, not quiet)
+        # named methods resolve first and a bad dataset root fails next, before the default
+        # methods' readiness generates their training data
+        method_specs = _selected_methods(plugins, methods) if methods else None
         roots = _dataset_roots(plugins, datasets, not quiet)
+        if method_specs is None:
+            method_specs = _selected_methods(plugins, methods)
+        checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, not quiet)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     cells = []

@@ -134,9 +134,12 @@ def test_unknown_names_are_clear(tmp_path):
     assert r.exit_code != 0 and "unknown method 'copy-lats'; did you mean 'copy-last'" in r.output
 
 
-def test_missing_root_errors(tmp_path):
+def test_missing_root_errors(tmp_path, monkeypatch):
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
     r = CliRunner().invoke(build_cli(), ["run", "--dataset", f"kitti={tmp_path / 'nope'}", "-q"])
     assert r.exit_code != 0 and "does not exist" in r.output
+    # before the default methods' readiness generated their training data (the embedded town's)
+    assert not (tmp_path / "cache").exists()
 
 
 def test_reader_errors_name_file(tmp_path):
