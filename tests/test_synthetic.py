@@ -280,3 +280,18 @@ def test_domains_differ_like_real_datasets():
         stats[style.name] = (np.percentile(tops, 90), len(agents))
     assert stats["town"][0] > 2 * stats["suburb"][0]  # tall town blocks vs low houses
     assert stats["town"][1] > 2 * stats["suburb"][1]  # busier traffic
+
+
+def test_reading_generated_data_does_not_import_open3d():
+    """Every worker of a run imports the synthetic adapter to read its data: open3d (seconds
+    to import, it brings scikit-learn) is only for casting rays, so it is imported then."""
+    import subprocess
+    import sys
+
+    code = ("import sys, pcfbench.datasets.synthetic.adapter, pcfbench.datasets.synthetic.generate, pcfbench.runner; "
+            "print(sorted(m for m in ('open3d', 'sklearn') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+    from pcfbench.datasets.synthetic.lidar import open3d
+
+    assert open3d().t.geometry.RaycastingScene is not None

@@ -12,7 +12,6 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from pcfbench.datasets.synthetic.sensor import LidarConfig
 from pcfbench.datasets.synthetic.world import EGO, STATIC_CLASSES, Agent, MeshSoup, merge, _place
@@ -22,7 +21,17 @@ from pcfbench.datasets.synthetic.world import EGO, STATIC_CLASSES, Agent, MeshSo
 ALBEDO = np.array([0.25, 0.45, 0.6, 0.3, 0.7, 0.7, 0.5, 0.35, 0.5, 0.3], np.float32)
 
 
+def open3d():
+    """open3d, imported on first use: only casting rays needs it. Reading generated data, as
+    every worker of a run does, does not, and importing it takes seconds (it imports
+    scikit-learn)."""
+    import open3d
+
+    return open3d
+
+
 def _tensor_mesh(V: np.ndarray, T: np.ndarray):
+    o3d = open3d()
     return (o3d.core.Tensor(np.ascontiguousarray(V, dtype=np.float32)),
             o3d.core.Tensor(np.ascontiguousarray(T, dtype=np.uint32)))
 
@@ -37,7 +46,7 @@ class StaticScene:
     """The static classes of a :class:`MeshSoup` in one ray-casting scene, built once."""
 
     def __init__(self, soup: MeshSoup):
-        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene = open3d().t.geometry.RaycastingScene()
         self.geometry_class: dict[int, int] = {}
         for cls in STATIC_CLASSES:
             V, T = soup.merged(cls)
@@ -126,7 +135,7 @@ def cast_sweep(sensor: LidarConfig, static: StaticScene, agents: list[Agent], gr
     o = T_world_sensor[:3, 3]
     d_world = _rotate(d_sensor, R)
     rays = np.concatenate([np.broadcast_to(o.astype(np.float32), d_world.shape), d_world], axis=1)
-    rays_t = o3d.core.Tensor(np.ascontiguousarray(rays))
+    rays_t = open3d().core.Tensor(np.ascontiguousarray(rays))
     hit = static.scene.cast_rays(rays_t)
     t_hit = hit["t_hit"].numpy()
     cls = static.class_of_id[np.minimum(hit["geometry_ids"].numpy().astype(np.int64), len(static.class_of_id) - 1)]
@@ -165,6 +174,7 @@ def cast_sweep(sensor: LidarConfig, static: StaticScene, agents: list[Agent], gr
     sel = np.nonzero(np.tile(columns, sensor.beams))[0]  # rays are beam-major
     if parts and len(sel):
         V, T = merge(parts)
+        o3d = open3d()
         dyn = o3d.t.geometry.RaycastingScene()
         dyn.add_triangles(*_tensor_mesh(V, T))
         hd = dyn.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[sel])))

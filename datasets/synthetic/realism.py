@@ -82,9 +82,8 @@ from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
-import open3d as o3d
 
-from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, ALBEDO, SweepResult, _rotate, _tensor_mesh, ego_hits
+from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, ALBEDO, SweepResult, _rotate, _tensor_mesh, ego_hits, open3d
 from pcfbench.datasets.synthetic.sensor import LidarConfig
 from pcfbench.datasets.synthetic.world import (
     EGO, GROUND, PARKED, POLE, STRUCTURE, TRUNK, VEGETATION, VEHICLE, Agent, _place, merge,
@@ -370,7 +369,7 @@ def cast_sweep_realistic(sensor: LidarConfig, static, agents: list[Agent], groun
     o = column_poses[col, :3, 3]
     d_world = np.einsum("nij,nj->ni", R, d_true).astype(np.float32)
     rays = np.concatenate([o.astype(np.float32), d_world], axis=1)
-    hit = static.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+    hit = static.scene.cast_rays(open3d().core.Tensor(np.ascontiguousarray(rays)))
     t_hit = hit["t_hit"].numpy().astype(np.float64)
     cls = static.class_of_id[np.minimum(hit["geometry_ids"].numpy().astype(np.int64), len(static.class_of_id) - 1)]
     normals = hit["primitive_normals"].numpy().astype(np.float64)
@@ -414,6 +413,7 @@ def cast_sweep_realistic(sensor: LidarConfig, static, agents: list[Agent], groun
     sel = np.nonzero(np.tile(columns, n_b))[0]
     if parts and len(sel):
         V, T = merge(parts)
+        o3d = open3d()
         dyn = o3d.t.geometry.RaycastingScene()
         dyn.add_triangles(*_tensor_mesh(V, T))
         hd = dyn.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays[sel])))
