@@ -76,7 +76,7 @@ class ExecutionContext:
         with _POOLS_LOCK:
             pool = _POOLS.get(self.threads)
             if pool is None:
-                pool = _POOLS[self.threads] = ThreadPoolExecutor(
+                pool = _POOLS[self.threads] = _Pool(
                     max_workers=self.threads, thread_name_prefix=f"pcfbench-{self.threads}", initializer=_pin_pool_thread
                 )
             return pool
@@ -99,6 +99,28 @@ class ExecutionContext:
         return list(self.pool().map(fn, items))
 
 
+class _Pool(ThreadPoolExecutor):
+    """A context's pool: each job first pins its worker again when a library with its own
+    OpenMP runtime was imported since the worker was pinned (:func:`libraries_loaded`)."""
+
+    def submit(self, fn, /, *args, **kwargs):
+        return super().submit(_repinned, fn, *args, **kwargs)
+
+
+def _repinned(fn, *args, **kwargs):
+    if getattr(_WORKER, "libraries", None) != _LIBRARIES[0]:
+        _pin_pool_thread()
+    return fn(*args, **kwargs)
+
+
+def libraries_loaded() -> None:
+    """Say that a library with its own OpenMP runtime was imported now (open3d, imported on
+    first use): every pool worker pins it to one thread before its next job, as it did the
+    libraries loaded before the pool was made."""
+    _LIBRARIES[0] += 1
+
+
+_LIBRARIES = [0]
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 _CURRENT: ExecutionContext | None = None
@@ -128,6 +150,7 @@ def _pin_pool_thread() -> None:
     import numba
     from threadpoolctl import threadpool_limits
 
+    _WORKER.libraries = _LIBRARIES[0]
     numba.set_num_threads(1)
     threadpool_limits(1, user_api="openmp")
     _WORKER.active = True

@@ -343,3 +343,26 @@ def test_parallel_work_outside_the_runner_asks_numba_for_openmp_first():
     got = json.loads(out.stdout.strip().splitlines()[-1])
     assert got["layer"] == "omp"
     assert not [w for w in got["warnings"] if "TBB" in w], got["warnings"]
+
+
+def test_a_library_imported_after_the_pool_is_pinned_before_the_next_job():
+    """open3d is imported on first use and brings its own OpenMP runtime; a pool made before
+    pins it to one thread in each worker before the worker's next job."""
+    import subprocess
+    import sys
+
+    code = """
+from threadpoolctl import threadpool_info
+from pcfbench.execution import ExecutionContext
+ctx = ExecutionContext(2)
+omp = lambda _: sorted((i["filepath"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "openmp")
+before = ctx.pool().map(omp, range(4))
+from pcfbench.datasets.synthetic.lidar import open3d
+open3d()
+after = list(ctx.pool().map(omp, range(8)))
+assert len(after[0]) > len(list(before)[0]), after[0]
+assert all(n == 1 for libs in after for _, n in libs), after
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "ok", out.stderr[-2000:]
