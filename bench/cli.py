@@ -47,7 +47,9 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     """The methods of ``--method`` (resolved now: an unknown name or option fails before any
     work), else every registered method that is ready to run, with its default options: a
     trained method is ready when its checkpoint for its default training data exists."""
-    from pcfbench.training import find_checkpoint, is_trained, may_have_checkpoint, open_training_data, shipped_mismatch
+    from pcfbench.training import (
+        find_checkpoint, is_trained, may_have_checkpoint, open_training_data, ready_shipped, shipped_mismatch,
+    )
     from pcfbench.method import resolve_method
 
     if requested:
@@ -62,6 +64,9 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
         if is_trained(method.cls):
             data = method.cls.default_train_on
             try:
+                if ready_shipped(method, data, plugins=plugins) is not None:  # no training data needed
+                    out.append(method)
+                    continue
                 train_on = (open_training_data(data, plugins=plugins, progress=False).train_on
                             if may_have_checkpoint(method, data) else None)
                 if train_on is None or find_checkpoint(method, train_on) is None:

@@ -233,6 +233,16 @@ class DatasetAdapter(ABC):
         )
 
     @classmethod
+    def recipe(cls, split: str) -> dict[str, Any] | None:
+        """What makes ``split`` of the data at :meth:`default_root`, for a dataset that makes
+        its own data: its definition and the generator's version, the very things its cache is
+        keyed by (JSON-able). None (the default): recorded data, known only by its bytes.
+
+        A checkpoint shipped for such a dataset records it (sha256), so a run finds the
+        checkpoint without making the training data (``pcfbench.training.find_shipped``)."""
+        return None
+
+    @classmethod
     def detect(cls, root: Path) -> bool:
         """True when ``root`` looks like this adapter's layout (used by ``datasets check``)."""
         return False

@@ -23,10 +23,13 @@ version or option set: one error naming the file either way.
 Shipped checkpoints travel inside a method's package (package data), in
 ``<package>/checkpoints/<method>/v<version>/<options hash>/<dataset>.<split>/``: the
 manifest of the trained checkpoint (weights in float16, no optimiser state) plus a
-``shipped`` record (the cache checkpoint's sha256, the training data's content sha256, the
-retrain command). :func:`find_checkpoint` falls back to one when the cache holds none for
-that training data and the local data has the same content; it is verified and loaded like
-any checkpoint (float16 tensors cast back to float32). :func:`ship` writes one.
+``shipped`` record (the cache checkpoint's sha256, the training data's content sha256, for
+a dataset that makes its own data the sha256 of its recipe, the retrain command).
+:func:`checkpoint_for` takes one when the cache holds none trained on that dataset and split:
+at once when the dataset, at its default root, is made by the very recipe recorded
+(:func:`find_shipped_by_recipe`; the training data is then never made here), else when the
+local training data has the same content (:func:`find_checkpoint`). It is verified and loaded
+like any checkpoint (float16 tensors cast back to float32). :func:`ship` writes one.
 """
 
 from __future__ import annotations
@@ -77,6 +80,10 @@ class TrainOn:
     #: the split's data files (``adapter.data_files(split)``), for :meth:`content_sha256`;
     #: not part of the identity (the fingerprint is)
     files: tuple[str, ...] = field(default=(), compare=False, repr=False)
+    #: sha256 of the split's recipe (:func:`recipe_sha256`) when the dataset makes its own data
+    #: and no root is configured for it, else None; recorded by :func:`ship`, not part of the
+    #: identity
+    recipe: str | None = field(default=None, compare=False, repr=False)
 
     def content_sha256(self) -> str:
         """sha256 over the split's files (relative path and sha256 of the bytes of each, in
@@ -148,7 +155,28 @@ def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugin
     fp = adapter.fingerprint(split).digest
     opts = options_identity(adapter, config.split_root_options(root)[1])
     files = tuple(str(f) for f in adapter.data_files(split))
-    return TrainSource(adapter, split, TrainOn(name, split, fp, opts, None if root is None else str(root), files))
+    recipe = data_recipe_sha256(dataset, split, plugins)
+    return TrainSource(adapter, split, TrainOn(name, split, fp, opts, None if root is None else str(root), files, recipe))
+
+
+def recipe_sha256(recipe: Mapping[str, Any]) -> str:
+    """sha256 of a dataset's recipe (``DatasetAdapter.recipe``) as sorted JSON."""
+    return hashlib.sha256(json.dumps(recipe, sort_keys=True).encode()).hexdigest()
+
+
+def data_recipe_sha256(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugins | None = None) -> str | None:
+    """The sha256 of the recipe that makes ``split`` of ``dataset`` (``NAME``), without making
+    or reading any data; None for recorded data, for a root given or configured (its bytes
+    may come from anywhere: ``NAME=ROOT``, the environment, the config file) and for a split
+    the dataset does not have."""
+    from pcfbench import config
+    from pcfbench.plugins import get_plugins
+
+    names, roots = config.parse_dataset_args((dataset,))
+    if len(names) != 1 or roots or config.dataset_root(names[0], {}) is not None:
+        return None
+    recipe = (plugins or get_plugins()).datasets.get(names[0]).recipe(split)
+    return None if recipe is None else recipe_sha256(recipe)
 
 
 # -- checkpoints --------------------------------------------------------------------------------
@@ -314,12 +342,23 @@ def find_checkpoint(spec: MethodSpec, train_on: TrainOn) -> Checkpoint | None:
     return ck
 
 
+def ready_shipped(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT,
+                  plugins: Plugins | None = None) -> Checkpoint | None:
+    """The shipped checkpoint :func:`find_shipped_by_recipe` finds, unless the cache holds one
+    trained here on that dataset and split (:func:`find_checkpoint` then picks by the data)."""
+    from pcfbench import config
+
+    names, _ = config.parse_dataset_args((dataset,))
+    if len(names) != 1 or trained_here(spec, names[0], split):
+        return None
+    return find_shipped_by_recipe(spec, dataset, split, plugins)
+
+
 def may_have_checkpoint(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> bool:
     """Whether any checkpoint of ``spec`` trained on ``dataset``/``split`` exists (in the cache
     or shipped), without opening the data (so a default run does not prepare training data
     for an untrained method)."""
-    folder = checkpoint_dir_base(spec)
-    if any(folder.glob(f"{dataset}.{split}.*/{MANIFEST}")):
+    if trained_here(spec, dataset, split):
         return True
     shipped = shipped_dir(spec, dataset, split)
     return shipped is not None and (shipped / MANIFEST).is_file()
@@ -365,14 +404,10 @@ def shipped_mismatch(spec: MethodSpec, train_on: TrainOn) -> str | None:
 
 
 def _shipped_for(spec: MethodSpec, train_on: TrainOn) -> tuple[Checkpoint | None, str | None]:
-    folder = shipped_dir(spec, train_on.dataset, train_on.split)
-    if folder is None or not (folder / MANIFEST).is_file():
+    ck = _open_shipped(spec, train_on.dataset, train_on.split)
+    if ck is None:
         return None, None
-    ck = Checkpoint.open(folder)
-    ck.check_method(spec)
-    shipped = ck.manifest.get("shipped")
-    if not isinstance(shipped, dict) or "data_sha256" not in shipped:
-        raise CheckpointError(f"shipped checkpoint manifest {ck.manifest_path} lacks shipped.data_sha256")
+    shipped = ck.manifest["shipped"]
     recorded = ck.manifest["train_on"]
     here = json.loads(json.dumps(dict(train_on.dataset_options), default=str))
     if dict(recorded.get("dataset_options") or {}) != here:
@@ -384,6 +419,50 @@ def _shipped_for(spec: MethodSpec, train_on: TrainOn) -> tuple[Checkpoint | None
                           f"{shipped['data_sha256'][:12]}, here {content[:12]}; a generated dataset's bytes can "
                           f"differ from one CPU to another)")
     return ck, None
+
+
+def _open_shipped(spec: MethodSpec, dataset: str, split: str) -> Checkpoint | None:
+    """The checkpoint of ``spec`` shipped for ``dataset``/``split``, verified (weights sha256,
+    method, version, options), or None when none is shipped."""
+    folder = shipped_dir(spec, dataset, split)
+    if folder is None or not (folder / MANIFEST).is_file():
+        return None
+    ck = Checkpoint.open(folder)
+    ck.check_method(spec)
+    shipped = ck.manifest.get("shipped")
+    if not isinstance(shipped, dict) or "data_sha256" not in shipped:
+        raise CheckpointError(f"shipped checkpoint manifest {ck.manifest_path} lacks shipped.data_sha256")
+    return ck
+
+
+def find_shipped_by_recipe(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT,
+                           plugins: Plugins | None = None) -> Checkpoint | None:
+    """The checkpoint of ``spec`` shipped for ``dataset`` (``NAME``) and ``split`` when that
+    dataset makes its own data at its default root by the very recipe the checkpoint was
+    trained on (``shipped.data_recipe_sha256``), without making or reading the data; else
+    None (and :func:`find_shipped` matches the data by content).
+
+    The recipe is what the dataset's cache is keyed by, so it names the data as the cache
+    does. Its bytes are not compared: they can differ from one CPU to another in the last
+    bits of a ray cast (docs/realism.md), and the data is not needed to run the checkpoint."""
+    from pcfbench import config
+
+    names, roots = config.parse_dataset_args((dataset,))
+    if len(names) != 1 or roots:
+        return None
+    ck = _open_shipped(spec, names[0], split)
+    if ck is None:
+        return None
+    wanted = ck.manifest["shipped"].get("data_recipe_sha256")
+    if not wanted or ck.manifest["train_on"].get("dataset_options"):
+        return None
+    return ck if data_recipe_sha256(names[0], split, plugins) == wanted else None
+
+
+def trained_here(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> bool:
+    """Whether the cache holds a checkpoint of ``spec`` trained on ``dataset`` (``NAME``) and
+    ``split``, on any data fingerprint: one trained here wins over a shipped one."""
+    return any(checkpoint_dir_base(spec).glob(f"{dataset}.{split}.*/{MANIFEST}"))
 
 
 def retrain_command(spec: MethodSpec, dataset: str, split: str, manifest: Mapping[str, Any]) -> str:
@@ -437,6 +516,8 @@ def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: s
     manifest.update(weights=name, weights_sha256=_sha256(data), weights_dtype="float16", state=None, state_sha256=None)
     manifest["shipped"] = {"from_weights_sha256": checkpoint.sha256, "data_sha256": train_on.content_sha256(),
                            "retrain": retrain, "shipped": time.time()}
+    if train_on.recipe is not None:
+        manifest["shipped"]["data_recipe_sha256"] = train_on.recipe
     atomic_write_json(folder / MANIFEST, manifest)
     log(f"shipped {spec.name} ({len(data):,} bytes of float16 weights) to {folder}")
     return Checkpoint.open(folder)
@@ -505,7 +586,11 @@ def checkpoint_for(spec: MethodSpec, *, checkpoint: str | Path | None = None, tr
         ck = Checkpoint.open(checkpoint)
         ck.check_method(spec)
         return ck
-    source = open_training_data(train_on or spec.cls.default_train_on, split, plugins, progress)
+    data = train_on or spec.cls.default_train_on
+    ck = ready_shipped(spec, data, split, plugins)
+    if ck is not None:
+        return ck
+    source = open_training_data(data, split, plugins, progress)
     ck = find_checkpoint(spec, source.train_on)
     if ck is None:
         raise CheckpointError(missing_checkpoint_message(spec, source.train_on))

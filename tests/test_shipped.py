@@ -162,8 +162,88 @@ def test_every_shipped_checkpoint_verifies_and_loads(manifest_path):
     assert all(v.dtype != torch.float16 for v in ck.load_weights().values())
     method = spec.create()
     method.load(ck)
+    # trained on a dataset that makes its own data: found by its recipe, which is today's, so a
+    # run takes it without making the training data (and whatever bytes this CPU would make)
+    from pcfbench.training import data_recipe_sha256
+
+    recipe = data_recipe_sha256(m["train_on"]["dataset"], m["train_on"]["split"])
+    if recipe is not None:
+        assert m["shipped"].get("data_recipe_sha256") == recipe, (
+            f"{manifest_path} was trained on another recipe of {m['train_on']['dataset']}: retrain it "
+            f"({m['shipped']['retrain']})")
 
 
 def test_shipped_checkpoints_stay_small():
     files = [f for base in PACKAGES.values() for d in base.rglob("checkpoints") for f in d.rglob("*") if f.is_file()]
     assert sum(f.stat().st_size for f in files) <= SHIPPED_LIMIT_BYTES
+
+
+@pytest.fixture
+def made(toy, monkeypatch):
+    """``toy-made``: a dataset that makes its own data (the tiny KITTI root stands for it) by a
+    recipe, with the toy method trained on it and shipped; ``made.roots`` counts the times its
+    data was made or opened at its default root."""
+    import types
+
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.hookspecs import hookimpl
+
+    roots = []
+
+    class Made(KittiOdometry):
+        name = "toy-made"
+        seed = 1
+
+        @classmethod
+        def default_root(cls, progress=True):
+            roots.append(1)
+            return toy.root
+
+        @classmethod
+        def recipe(cls, split):
+            return {"seed": cls.seed, "split": split} if split in ("train", "test") else None
+
+    module = types.ModuleType("pcfb_toy_made")
+    module.register_datasets = hookimpl(lambda register: register("toy-made", Made, "a made toy dataset"))
+    toy.plugins.add_plugin(module, "toy-made")
+    source = open_training_data("toy-made", "train", toy.plugins, False)
+    run = TrainingRun(toy.spec, source.train_on, checkpoint_dir(toy.spec, source.train_on), progress=False)
+    run.save(3, {"a": __import__("torch").zeros(4)}, {"history": []}, config={}, complete=True)
+    shipped = ship(toy.spec, Checkpoint.open(run.out_dir), source.train_on, "retrain", log=lambda *a: None)
+    for f in run.out_dir.iterdir():
+        f.unlink()
+    run.out_dir.rmdir()
+    roots.clear()
+    return types.SimpleNamespace(cls=Made, roots=roots, shipped=shipped, source=source)
+
+
+def test_shipped_checkpoint_of_a_made_dataset_is_found_by_its_recipe_without_making_the_data(toy, made):
+    from pcfbench.cli import _selected_methods
+    from pcfbench.training import find_shipped_by_recipe, recipe_sha256
+
+    m = json.loads((made.shipped.dir / "manifest.json").read_text())
+    assert m["shipped"]["data_recipe_sha256"] == recipe_sha256({"seed": 1, "split": "train"}) == made.source.train_on.recipe
+    found = checkpoint_for(toy.spec, train_on="toy-made", plugins=toy.plugins, progress=False)
+    assert found.sha256 == made.shipped.sha256 and made.roots == []  # no data made or read
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(toy.spec.cls, "default_train_on", "toy-made")
+        assert "toy-trained" in [s.name for s in _selected_methods(toy.plugins, ())] and made.roots == []
+    # the bytes are not compared on this path (they can differ by CPU): a flipped bit still finds it
+    first = sorted(toy.root.rglob("*.bin"))[0]
+    first.write_bytes(bytes([first.read_bytes()[0] ^ 1]) + first.read_bytes()[1:])
+    assert find_shipped_by_recipe(toy.spec, "toy-made", "train", toy.plugins).sha256 == made.shipped.sha256
+    # a root given, or another recipe: the data is opened and matched by content, which now differs
+    assert find_shipped_by_recipe(toy.spec, f"toy-made={toy.root}", "train", toy.plugins) is None
+    made.cls.seed = 2
+    assert find_shipped_by_recipe(toy.spec, "toy-made", "train", toy.plugins) is None
+    with pytest.raises(CheckpointError, match="no checkpoint of toy-trained trained on toy-made:train"):
+        checkpoint_for(toy.spec, train_on="toy-made", plugins=toy.plugins, progress=False)
+    assert made.roots  # it had to open the data to say so
+
+
+def test_a_checkpoint_trained_here_wins_over_the_shipped_one_found_by_recipe(toy, made):
+    source = open_training_data("toy-made", "train", toy.plugins, False)
+    run = TrainingRun(toy.spec, source.train_on, checkpoint_dir(toy.spec, source.train_on), progress=False)
+    run.save(5, {"a": __import__("torch").ones(4)}, {"history": []}, config={}, complete=True)
+    here = Checkpoint.open(run.out_dir)
+    assert checkpoint_for(toy.spec, train_on="toy-made", plugins=toy.plugins, progress=False).sha256 == here.sha256

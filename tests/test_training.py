@@ -485,3 +485,21 @@ def test_inference_options_are_left_out_of_the_checkpoint_identity(env):
 
     with pytest.raises(PcfbenchError, match="inference_options names offest"):
         checkpoint_options_hash(_spec(Broken))
+
+
+def test_a_shipped_checkpoint_is_refused_on_its_own_training_split_made_elsewhere(env, monkeypatch):
+    """A shipped checkpoint records the fingerprint (file sizes and times) of the machine it
+    was trained on, never this one's: the same dataset and split is still its training data."""
+    from pcfbench.training import Checkpoint, ship
+
+    monkeypatch.setattr(ToyTrained, "shipped_checkpoints", env.tmp / "shipped")
+    ck = _train(env)
+    shipped = ship(resolve_method("toy-trained", env.plugins), ck, open_training_data(env.data, "train", env.plugins, False).train_on,
+                   "retrain", log=lambda *a: None)
+    m = json.loads((shipped.dir / "manifest.json").read_text())
+    m["train_on"]["fingerprint"] = "0" * 16  # as made on another machine
+    (shipped.dir / "manifest.json").write_text(json.dumps(m))
+    elsewhere = Checkpoint.open(shipped.dir)
+    with pytest.raises(PcfbenchError, match=r"was trained on this very data \(kitti:train"):
+        _cell(env, elsewhere, split="train")
+    assert json.loads((_cell(env, elsewhere).path / "cell.json").read_text())["evaluated_on_training_data"] is False

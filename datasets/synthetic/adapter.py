@@ -7,6 +7,7 @@ afterwards. Only ``synthetic-town`` is ``embedded`` (the default of ``pcfbench r
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -36,6 +37,19 @@ class SyntheticKitti(KittiOdometry):
     def default_root(cls, progress: bool = True) -> Path:
         """The cache copy, with the evaluation split generated now; other splits on first use."""
         return ensure_domain(cls.domain, splits=(cls.default_split,), progress=progress)
+
+    @classmethod
+    def recipe(cls, split: str) -> dict | None:
+        """The domain's definition that makes ``split`` (sensor, town style, world physics,
+        seed, rate, the split's sequences) and the generator's version; its name, description
+        and settings left out (they make no data). None for a split the domain does not have."""
+        d = get_domain(cls.domain)
+        if split not in d.splits:
+            return None
+        return {"domain": d.name, "generator_version": GENERATOR_VERSION, "physics": d.physics, "seed": d.seed,
+                "rate_hz": d.rate_hz, "sensor": dataclasses.asdict(d.sensor), "style": dataclasses.asdict(d.style),
+                "realism": None if d.realism is None else dataclasses.asdict(d.realism), "split": split,
+                "sequences": [list(s) for s in d.splits[split]]}
 
     @classmethod
     def detect(cls, root: Path) -> bool:
