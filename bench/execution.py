@@ -100,27 +100,20 @@ class ExecutionContext:
 
 
 class _Pool(ThreadPoolExecutor):
-    """A context's pool: each job first pins its worker again when a library with its own
-    OpenMP runtime was imported since the worker was pinned (:func:`libraries_loaded`)."""
+    """A context's pool: each job first pins its worker again when modules were imported
+    since the worker was pinned. A library imported later (torch, open3d: each imported on
+    first use) may bring its own OpenMP runtime, which the worker had not pinned."""
 
     def submit(self, fn, /, *args, **kwargs):
         return super().submit(_repinned, fn, *args, **kwargs)
 
 
 def _repinned(fn, *args, **kwargs):
-    if getattr(_WORKER, "libraries", None) != _LIBRARIES[0]:
+    if getattr(_WORKER, "modules", None) != len(sys.modules):
         _pin_pool_thread()
     return fn(*args, **kwargs)
 
 
-def libraries_loaded() -> None:
-    """Say that a library with its own OpenMP runtime was imported now (open3d, imported on
-    first use): every pool worker pins it to one thread before its next job, as it did the
-    libraries loaded before the pool was made."""
-    _LIBRARIES[0] += 1
-
-
-_LIBRARIES = [0]
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 _CURRENT: ExecutionContext | None = None
@@ -150,7 +143,7 @@ def _pin_pool_thread() -> None:
     import numba
     from threadpoolctl import threadpool_limits
 
-    _WORKER.libraries = _LIBRARIES[0]
+    _WORKER.modules = len(sys.modules)
     numba.set_num_threads(1)
     threadpool_limits(1, user_api="openmp")
     _WORKER.active = True

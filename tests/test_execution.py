@@ -346,8 +346,8 @@ def test_parallel_work_outside_the_runner_asks_numba_for_openmp_first():
 
 
 def test_a_library_imported_after_the_pool_is_pinned_before_the_next_job():
-    """open3d is imported on first use and brings its own OpenMP runtime; a pool made before
-    pins it to one thread in each worker before the worker's next job."""
+    """open3d (like torch) is imported on first use and brings its own OpenMP runtime; a pool
+    made before pins it to one thread in each worker before the worker's next job."""
     import subprocess
     import sys
 

@@ -24,16 +24,9 @@ ALBEDO = np.array([0.25, 0.45, 0.6, 0.3, 0.7, 0.7, 0.5, 0.35, 0.5, 0.3], np.floa
 def open3d():
     """open3d, imported on first use: only casting rays needs it. Reading generated data, as
     every worker of a run does, does not, and importing it takes seconds (it imports
-    scikit-learn). Its OpenMP runtime comes with it: the thread pools pin it too."""
-    import sys
-
-    first = "open3d" not in sys.modules
+    scikit-learn)."""
     import open3d
 
-    if first:
-        from pcfbench.execution import libraries_loaded
-
-        libraries_loaded()
     return open3d
 
 
