@@ -41,8 +41,9 @@ class SyntheticKitti(KittiOdometry):
     @classmethod
     def recipe(cls, split: str) -> dict | None:
         """The domain's definition that makes ``split`` (sensor, town style, world physics,
-        seed, rate, the split's sequences) and the generator's version; its name, description
-        and settings left out (they make no data). None for a split the domain does not have."""
+        seed, rate, the split's sequences), its name and the generator's version; its
+        description and settings left out (they make no data). None for a split the domain
+        does not have."""
         d = get_domain(cls.domain)
         if split not in d.splits:
             return None
