@@ -43,7 +43,7 @@ def test_shipped_protocol_has_the_legacy_values_exactly():
     assert [dataclasses.astuple(s) for s in p.settings.values()] == LEGACY_SETTINGS  # order kept too
     assert p.roi.lo == (-70.0, -70.0, -4.5) and p.roi.hi == (70.0, 70.0, 4.5)
     assert p.min_range_m == 0.01 and protocol.MIN_RANGE_M == 0.01
-    assert tuple(p.policies) == ("full-context", "every-frame", "subsample-4000", "every-third") == protocol.SAMPLE_POLICIES
+    assert tuple(p.policies) == ("full-context", "every-frame", "subsample-4000", "subsample-500", "every-third") == protocol.SAMPLE_POLICIES
     assert p.default_policy == "full-context"
 
 
@@ -136,7 +136,7 @@ def test_round_trip_of_the_test_writer(tmp_path):
         (lambda d: d["policies"]["every-frame"].update(kind="sometimes"), r"kind must be one of .*got 'sometimes'"),
         (lambda d: d["policies"]["every-frame"].update(n=3), r"only a subsample policy takes n, every and of"),
         (lambda d: d["policies"]["every-frame"].update(every=3), r"only a subsample policy takes n, every and of"),
-        (lambda d: [d["policies"].pop(k) for k in ("full-context", "subsample-4000", "every-third")], r"has no \[policies.full-context\]"),
+        (lambda d: [d["policies"].pop(k) for k in ("full-context", "subsample-4000", "subsample-500", "every-third")], r"has no \[policies.full-context\]"),
     ],
 )
 def test_bad_protocol_file_is_one_clear_error(tmp_path, edit, message):
@@ -248,6 +248,17 @@ def test_subsample_4000_on_a_split_larger_than_4000():
     # candidates floor(1.5 i): 0, 1, 3, 4, 6 -> anchors 8, 9, 11, 12, 14; the last pick is 5998 (log 039, anchor 156)
     assert keys[:5] == [("000", 8), ("000", 9), ("000", 11), ("000", 12), ("000", 14)]
     assert keys[-1] == ("039", 156)
+
+
+def test_subsample_500_spreads_a_whole_kitti_sequence():
+    # KITTI sequence 08's 4071 sweeps: kitti-1s anchors 8 .. 4060 (4053); 500 of them, 8 or 9 apart
+    keys = SampleBuilder(Lengths({"08": 4071}), SETTINGS["kitti-1s"], "subsample-500").sample_keys("test")
+    assert len(keys) == 500 and keys[0] == ("08", 8)
+    assert keys == [("08", 8 + i * 4053 // 500) for i in range(500)]
+    assert {b[1] - a[1] for a, b in zip(keys, keys[1:])} == {8, 9}
+    assert keys[-1] == ("08", 8 + 499 * 4053 // 500) == ("08", 4052)
+    short = SampleBuilder(Lengths({"08": 60}), SETTINGS["kitti-1s"], "subsample-500").sample_keys("test")
+    assert short == SampleBuilder(Lengths({"08": 60}), SETTINGS["kitti-1s"]).sample_keys("test")  # 42: all of them
 
 
 def test_subsample_policy_is_offered_on_the_command_line():

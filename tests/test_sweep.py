@@ -311,7 +311,7 @@ BAD = [
     ("datasets = ['synthetic-town']\nsplits = ['tset']\n[[methods]]\nname = 'copy-last'", "splits",
      "unknown split of dataset synthetic-town 'tset'"),
     ("metrics = ['chamfre']\n[[methods]]\nname = 'copy-last'", "metrics", "unknown metric 'chamfre'; did you mean"),
-    ("policy = 'subsample'\n[[methods]]\nname = 'copy-last'", "policy", "did you mean 'subsample-4000'"),
+    ("policy = 'subsample'\n[[methods]]\nname = 'copy-last'", "policy", "did you mean 'subsample-500' or 'subsample-4000'"),
     ("limit = 0\n[[methods]]\nname = 'copy-last'", "limit", "positive integer"),
     ("jobs = -1\n[[methods]]\nname = 'copy-last'", "jobs", "integer >= 0"),
     ("train_on = ['synthetic-suburb']\n[[methods]]\nname = 'copy-last'", "train_on", "trained method"),

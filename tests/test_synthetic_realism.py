@@ -574,10 +574,13 @@ def test_compare_command_with_baselines_on_tiny_data(tmp_path):
     real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=20)
     out = tmp_path / "out"
     args = ["synthetic", "compare", "--real", f"kitti={real}", "--domain", f"synthetic-town={syn}", "--out", str(out),
-            "--sweeps", "2", "--limit", "1", "--real-limit", "1", "--real-split", "test", "-q", "--threads", "1"]
+            "--sweeps", "2", "--limit", "1", "--real-limit", "1", "--real-split", "test", "-q", "--threads", "1",
+            "--real-policy", "every-third"]
     res = CliRunner().invoke(cli, args)
     assert res.exit_code == 0, res.output
     data = json.loads((out / "realism.json").read_text())
+    assert (data["meta"]["policy"], data["meta"]["real_policy"]) == ("full-context", "every-third")
+    assert "real 1 (every-third, the first 1 of each split), synthetic 1 (the first 1" in (out / "realism.md").read_text()
     base = data["baselines"]
     assert set(base["synthetic"]) == set(C.BASELINES) == set(base["real"])
     for k in C.RANK_METRICS:
@@ -597,6 +600,27 @@ def test_compare_command_with_baselines_on_tiny_data(tmp_path):
         return {side: {m: {k: v for k, v in row.items() if k != "seconds"} for m, row in b[side].items()}
                 for side in ("synthetic", "real")}
     assert means(json.loads((out / "realism.json").read_text())["baselines"]) == means(base)
+
+
+def test_baselines_follow_the_sample_policy_over_a_long_split(tmp_path):
+    """--real-policy: on a long real split the baselines' samples are spread over it (every third
+    full-context anchor here), where --real-limit would take the first ones."""
+    from conftest import write_tiny_kitti
+    from pcfbench.datasets.kitti import KittiOdometry
+    from pcfbench.protocol import SampleBuilder, get_setting, sample_id
+
+    real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=30)
+    every = SampleBuilder(KittiOdometry(real), get_setting("kitti-1s"), "full-context").sample_keys("test")
+    assert len(every) >= 9
+    base = C.baseline_means("kitti", str(real), "test", "kitti-1s", tmp_path / "store", None, methods=("copy-last",),
+                            policy="every-third", threads=1)
+    assert base["copy-last"]["per_sample"]["sample_id"] == [sample_id(q, i) for q, i in every[::3]]
+    assert base["copy-last"]["samples"] == len(every[::3])
+    cells = list((tmp_path / "store").rglob("cell.json"))
+    assert len(cells) == 1 and json.loads(cells[0].read_text())["sample_policy"]["name"] == "every-third"
+    assert C._samples_phrase("every-third", None) == " (every-third)"
+    assert C._samples_phrase("full-context", 40) == " (the first 40 of each split)"
+    assert C._samples_phrase("full-context", None) == ""
 
 
 def _base(per_sequence: dict, samples: dict | None = None) -> dict:

@@ -8,6 +8,8 @@ import click
 
 
 def add_commands(cli: click.Group) -> None:
+    from pcfbench.protocol import SAMPLE_POLICIES
+
     @cli.command()
     @click.argument("domain", default="synthetic-town")
     @click.option("--out", "-o", type=click.Path(file_okay=False), default=None,
@@ -51,6 +53,11 @@ def add_commands(cli: click.Group) -> None:
                   help="Synthetic samples for the baselines, per split (default: all).")
     @click.option("--real-limit", type=click.IntRange(1), default=None,
                   help="Real samples for the baselines, per split (default: all).")
+    @click.option("--policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True,
+                  help="Sample policy of the synthetic baselines' cells.")
+    @click.option("--real-policy", type=click.Choice(SAMPLE_POLICIES), default="full-context", show_default=True,
+                  help="Sample policy of the real baselines' cells: subsample-500 or every-third spread the samples "
+                       "over a long split (where --real-limit takes its first ones).")
     @click.option("--split", "synthetic_split", default=None, metavar="SPLIT[,SPLIT...]",
                   help="Synthetic split, or several pooled (train,val,test: every town; the report adds a table "
                        "per sequence). Default: the adapter's evaluation split.")
@@ -62,8 +69,8 @@ def add_commands(cli: click.Group) -> None:
     @click.option("--no-baselines", is_flag=True, help="Statistics only (no method runs).")
     @click.option("--threads", type=click.IntRange(1), default=None, help="Thread budget of the baselines' runs.")
     @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
-    def compare(real, domain, out, sweeps, setting, limit, real_limit, synthetic_split, real_split, store, no_baselines,
-                threads, quiet):
+    def compare(real, domain, out, sweeps, setting, limit, real_limit, policy, real_policy, synthetic_split, real_split,
+                store, no_baselines, threads, quiet):
         """Realism report: a generated domain beside a real dataset (ratios synthetic / real)."""
         from pcfbench.datasets.synthetic.compare import RANK_METRICS as RANK, pairs_phrase
         from pcfbench.datasets.synthetic.compare import compare as run_compare
@@ -72,7 +79,7 @@ def add_commands(cli: click.Group) -> None:
         get_setting(setting)
         res = run_compare(real, domain, out, sweeps=sweeps, setting=setting, limit=limit, real_limit=real_limit,
                           baselines=not no_baselines, store=store, real_split=real_split, synthetic_split=synthetic_split,
-                          progress=not quiet, threads=threads)
+                          progress=not quiet, threads=threads, policy=policy, real_policy=real_policy)
         s, r = res["synthetic"], res["real"]
         for k in ("points per sweep", "static-scene residual median (m)", "roughness median (m)"):
             click.echo(f"{k}: synthetic {s[k]:.4g}, real {r[k]:.4g}, ratio {s[k] / r[k]:.3g}")

@@ -62,6 +62,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -650,11 +651,19 @@ def sweep_moving_evidence(adapter, seq, i: int, points: np.ndarray | None = None
     return moving_evidence(points, load(k), np.linalg.inv(W[k]) @ W[i], load(j), np.linalg.inv(W[j]) @ W[i])
 
 
-def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed: int = 0) -> SideStats:
-    """Read ``count`` sweeps (and each one's successor) of ``adapter`` and gather the statistics."""
+def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed: int = 0,
+            progress: bool = False) -> SideStats:
+    """Read ``count`` sweeps (and each one's successor) of ``adapter`` and gather the statistics
+    (a progress bar over them and the moving evidence's sweeps when ``progress``: on a long real
+    split the evidence alone reads thousands, about 0.2 s each on a 2-core machine)."""
+    from tqdm import tqdm
+
     from pcfbench.geometry import transform_points
 
     t0 = time.perf_counter()
+    picked, evidence = pick_sweeps(adapter, split, count), evidence_sweeps(adapter, split)
+    bar = tqdm(total=len(picked) + len(evidence), desc=f"statistics {label}", unit="sweep", leave=True,
+               dynamic_ncols=True, file=sys.stderr, disable=not progress or None)
     rng = np.random.default_rng(seed)
     st = SideStats(label)
     st.beam_counts = np.zeros(len(edges) - 1)
@@ -663,7 +672,8 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
     st.az_hist = np.zeros(180)
     lows, highs = [], []
     seqs = {}
-    for name, i in pick_sweeps(adapter, split, count):
+    for name, i in picked:
+        bar.update(1)
         seq = seqs.setdefault(name, adapter.sequence(name))
         raw = np.asarray(seq.load_points(i), np.float64)
         keep = _kept(adapter, raw)
@@ -724,7 +734,8 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
                                                        T[:3, 3]))
     # moving evidence: not the sweeps above (one passing car sets a dozen's), but every sweep
     # MOVING_GAP_S apart over the whole split, each against the sweeps that far before and after
-    for name, i in evidence_sweeps(adapter, split):
+    for name, i in evidence:
+        bar.update(1)
         seq = seqs.setdefault(name, adapter.sequence(name))
         raw = np.asarray(seq.load_points(i), np.float64)
         keep = _kept(adapter, raw)
@@ -735,6 +746,7 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
             m = mask[keep]
             st.evidence_on_moving.append((int((moving & m).sum()), int(moving.sum())))
             st.moving_caught.append((int((moving & m).sum()), int((judged & m).sum())))
+    bar.close()
     st.elev_span = (float(np.median(lows)), float(np.median(highs)))
     st.seconds = time.perf_counter() - t0
     return st
@@ -743,17 +755,19 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
 # --- the baselines -----------------------------------------------------------------------------
 
 def baseline_means(dataset: str, root: str, split, setting: str, store: Path, limit: int | None,
-                   methods=BASELINES, metrics=RANK_METRICS, progress: bool = False, threads: int | None = None) -> dict:
+                   methods=BASELINES, metrics=RANK_METRICS, progress: bool = False, threads: int | None = None,
+                   policy: str = "full-context") -> dict:
     """method -> {metric: flat mean over (sample, future sweep), "per_sample": {"sample_id": [...],
     metric: [...]}} (each sample's mean over its future sweeps, in drive order, sequence by
     sequence), "per_sequence": {sequence: {"samples": n, metric: flat mean, "rows": {metric: n}}}};
     cells run (or resumed) in ``store``. ``split`` may name several splits (``"train,val,test"``):
     one cell each (``limit`` samples each), pooled so that every (sample, future sweep) weighs
-    the same."""
+    the same. ``policy`` is the protocol's sample policy of the cells (``every-third``,
+    ``subsample-500``: samples spread over a long split, where ``limit`` takes its first ones)."""
     out = {}
     for m in methods:
         t0 = time.perf_counter()
-        ok, samples = baseline_rows(dataset, root, split, setting, store, limit, m, progress, threads)
+        ok, samples = baseline_rows(dataset, root, split, setting, store, limit, m, progress, threads, policy)
         row = {k: float(np.nanmean(ok[k].to_numpy(float))) for k in metrics}
         by = ok.groupby(["sequence", "ref_index"], sort=True)
         row["per_sample"] = {"sample_id": by["sample_id"].first().tolist(),
@@ -770,7 +784,7 @@ def baseline_means(dataset: str, root: str, split, setting: str, store: Path, li
 
 
 def baseline_rows(dataset: str, root: str, split, setting: str, store: Path, limit: int | None, method: str,
-                  progress: bool = False, threads: int | None = None):
+                  progress: bool = False, threads: int | None = None, policy: str = "full-context"):
     """(the per-(sample, future sweep) rows of ``method`` whose status is ok, pooled over the
     splits ``split`` names, the samples evaluated): its cells run (or resumed) in ``store``."""
     import pandas as pd
@@ -785,7 +799,7 @@ def baseline_rows(dataset: str, root: str, split, setting: str, store: Path, lim
     frames, samples = [], 0
     for sp in split_list(split):
         spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, sp, setting,
-                        "full-context", limit, default_metrics(plugins))
+                        policy, limit, default_metrics(plugins))
         samples += run_cell(spec, store, progress=progress, plugins=plugins, threads=threads).samples
         frames.append(Cell(store, spec).read_rows())
     df = pd.concat(frames, ignore_index=True)
@@ -858,6 +872,14 @@ def _score_matrix(base: dict, metric: str) -> np.ndarray:
 
 def pairs_phrase(n: int) -> str:
     return f"{n} pair" + ("" if n == 1 else "s")
+
+
+def _samples_phrase(policy: str | None, limit: int | None) -> str:
+    """How a side's samples were chosen, for the report: `` (every-third, the first 40 of each
+    split)``; empty for every full-context sample."""
+    said = [p for p in (policy if policy != "full-context" else None,
+                        f"the first {limit} of each split" if limit else None) if p]
+    return f" ({', '.join(said)})" if said else ""
 
 
 def _several_sequences(base_syn: dict, base_real: dict) -> bool:
@@ -972,8 +994,10 @@ def write_report(out: Path, syn: SideStats, real: SideStats, edges: np.ndarray, 
         for m, *vals in base_rows:
             lines.append(f"| {m} | " + " | ".join(f"{_fmt(a)} | {_fmt(b)} | {_fmt(q)}" for a, b, q in vals) + " |")
         lines += ["", "Kendall tau between the rankings: " + ", ".join(f"{k} {t:+.2f}" for k, t in taus.items()),
-                  f"(samples: real {next(iter(base_real.values()))['samples']}, "
-                  f"synthetic {next(iter(base_syn.values()))['samples']})", ""]
+                  f"(samples: real {next(iter(base_real.values()))['samples']}"
+                  f"{_samples_phrase(meta.get('real_policy'), meta.get('real_limit'))}, "
+                  f"synthetic {next(iter(base_syn.values()))['samples']}"
+                  f"{_samples_phrase(meta.get('policy'), meta.get('limit'))})", ""]
         b0 = next(iter(trust.values()), None)
         if b0 is None:
             lines += ["Too few samples on one side (fewer than 2) to say how far the taus can be trusted.", ""]
@@ -1154,28 +1178,32 @@ def default_split(adapter, preferred: str | None) -> str:
 def compare(real: str, domain: str, out: Path, sweeps: int = 12, setting: str = "kitti-1s",
             limit: int | None = None, real_limit: int | None = None, baselines: bool = True,
             store: Path | None = None, real_split: str | None = None, synthetic_split: str | None = None,
-            progress: bool = True, threads: int | None = None) -> dict:
-    """Measure both sides and write the report; returns its numbers (also in realism.json)."""
+            progress: bool = True, threads: int | None = None, policy: str = "full-context",
+            real_policy: str = "full-context") -> dict:
+    """Measure both sides and write the report; returns its numbers (also in realism.json).
+    ``policy`` / ``real_policy``: the sample policy of each side's baseline cells."""
     from pcfbench.datasets.synthetic.sensor import HDL64
 
     s_name, s_root, s_ad = open_side(domain, progress)
     r_name, r_root, r_ad = open_side(real, progress)
     s_split, r_split = default_split(s_ad, synthetic_split), default_split(r_ad, real_split)
     edges = beam_edges(HDL64.elevations_deg)
-    syn = measure(s_ad, s_split, sweeps, s_name, edges)
-    rea = measure(r_ad, r_split, sweeps, r_name, edges)
+    syn = measure(s_ad, s_split, sweeps, s_name, edges, progress=progress)
+    rea = measure(r_ad, r_split, sweeps, r_name, edges, progress=progress)
     base_syn = base_real = None
     t_base = {}
     if baselines:
         store = Path(store) if store is not None else Path(out) / "store"
         t0 = time.perf_counter()
-        base_syn = baseline_means(s_name, s_root, s_split, setting, store, limit, progress=progress, threads=threads)
+        base_syn = baseline_means(s_name, s_root, s_split, setting, store, limit, progress=progress, threads=threads,
+                                  policy=policy)
         t_base["synthetic"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        base_real = baseline_means(r_name, r_root, r_split, setting, store, real_limit, progress=progress, threads=threads)
+        base_real = baseline_means(r_name, r_root, r_split, setting, store, real_limit, progress=progress,
+                                   threads=threads, policy=real_policy)
         t_base["real"] = time.perf_counter() - t0
     meta = {"synthetic": s_name, "synthetic_root": s_root, "synthetic_split": s_split, "real": r_name,
             "real_root": r_root, "real_split": r_split, "setting": setting, "sweeps": sweeps, "limit": limit,
-            "real_limit": real_limit, "statistics_seconds": {"synthetic": syn.seconds, "real": rea.seconds},
+            "real_limit": real_limit, "policy": policy, "real_policy": real_policy, "statistics_seconds": {"synthetic": syn.seconds, "real": rea.seconds},
             "baseline_seconds": t_base}
     return write_report(Path(out), syn, rea, edges, base_syn, base_real, meta)
