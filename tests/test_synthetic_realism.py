@@ -270,6 +270,46 @@ def test_ground_height_pairs_match_a_brute_force_reference():
     assert np.allclose(dr[order], want[worder, 0]) and np.allclose(dz[order], want[worder, 1])
 
 
+def test_far_views_closing_hand_case():
+    from pcfbench.roi import Box
+
+    roi = Box((-70.0, -70.0, -4.5), (70.0, 70.0, 4.5))
+    o = np.array([8.0, 0.0, 0.1])  # the later sensor, 8 m ahead
+    earlier = np.array([
+        [58.0, 0.0, 1.0],    # 50 m from o, a later return 1.5 m away: still seen
+        [8.0, 45.0, 2.0],    # 45 m from o, nothing later within 2 m: closes
+        [-35.0, 0.0, 0.5],   # 43 m from o, the later return 2.5 m away: closes
+        [30.0, 5.0, 1.0],    # 22.6 m from o: near, not judged
+        [60.0, 10.0, -1.6],  # far but on the ground: not judged
+        [75.0, 0.0, 1.0],    # outside the ROI: not counted at all
+        [8.0, 39.0, 1.0],    # 39 m from o: not judged (40 m or more is)
+    ])
+    later = np.array([[58.0, 1.5, 1.0], [-35.0, 0.0, 3.0], [20.0, 0.0, 0.0]])
+    assert C.far_views_closing(earlier, later, o, roi=roi) == (2, 3, 6)
+    assert C.far_views_closing(earlier, later, o, gone_m=3.0, roi=roi) == (1, 3, 6)
+    assert C.far_views_closing(earlier, np.zeros((0, 3)), o, roi=roi) == (3, 3, 6)
+    assert C.far_views_closing(earlier[3:5], later, o, roi=roi) == (0, 0, 2)
+    assert C.far_views_closing(earlier, later, o) == (2, 3, 6)  # the protocol's ROI is this box
+
+
+def test_far_views_closing_matches_a_brute_force_reference():
+    rng = np.random.default_rng(11)
+    earlier = rng.uniform([-80, -80, -3], [80, 80, 5], (3000, 3))
+    later = rng.uniform([-80, -80, -3], [80, 80, 5], (20000, 3))
+    o = np.array([6.0, -1.0, 0.0])
+    closed = judged = in_roi = 0
+    for p in earlier:
+        if not (np.all(np.abs(p[:2]) <= 70.0) and abs(p[2]) <= 4.5):
+            continue
+        in_roi += 1
+        if np.hypot(p[0] - o[0], p[1] - o[1]) < 40.0 or p[2] <= -1.3:
+            continue
+        judged += 1
+        closed += bool(np.min(np.linalg.norm(later - p, axis=1)) > 2.0)
+    assert 0 < closed < judged < in_roi
+    assert C.far_views_closing(earlier, later, o) == (closed, judged, in_roi)
+
+
 def test_mixed_pixel_share_hand_case():
     edges = C.beam_edges([0.0, -1.0, -3.0])
     az = (np.arange(12) + 0.5) * 30.0 - 180.0  # 12 columns of 30 deg, one point in the middle of each
@@ -535,6 +575,9 @@ def test_compare_command_statistics_only(tmp_path):
         assert 0 <= data[side]["parallax: near above-ground bins with a return 0.5 s earlier behind them (share)"] <= 1
         assert data[side]["near above-ground range-image bins per sweep"] > 0
         assert abs(data[side]["ground drift: height of the ground seen 1 s later at the same range (m)"]) < 0.1
+        far = data[side]["far views: points 40 m or more from the sensor 1 s later, off the ground (share of the ROI's points)"]
+        closing = data[side]["far views that close: far points with no return 1 s later within 2 m (share)"]
+        assert 0 <= far < 0.5 and (0 <= closing <= 1 if far > 0 else np.isnan(closing)), (far, closing)
     assert 0 <= data["synthetic"]["free-space violations on labelled moving objects (share)"] <= 1
     for side in ("synthetic", "real"):  # sweep 5 of 12 has a sweep 0.5 s before and after it
         key = "moving evidence: points in space seen empty 0.5 s before and after, no return near them then (fraction)"

@@ -99,6 +99,8 @@ DRIFT_RADIUS_M = 0.3  # earlier ground points within this horizontal distance gi
 DRIFT_MIN = 3  # ... at least this many
 DRIFT_FLAT_M = 0.15  # ... spanning at most this in z (not a curb or an object's foot)
 DRIFT_OUTLIER_M = 0.15  # pairs whose heights differ by more are left out of the fit
+FAR_M = 40.0  # far views: points of sweep i this far (horizontally) from the sensor DRIFT_GAP_S later
+FAR_GONE_M = 2.0  # ... that close: no return of that later sweep within this of the point
 JUMP_M = 1.0  # mixed pixels: a depth jump between the two neighbours of a return along its beam
 BETWEEN_M = 0.3  # ... and the return lies this far from both of them, in between
 #: SemanticKITTI classes of moving objects (moving-car ... moving-other-vehicle)
@@ -304,6 +306,33 @@ def ground_height_pairs(earlier: np.ndarray, later: np.ndarray, later_origin: np
     return dr, q[:, 2] - z_mean
 
 
+def far_views_closing(earlier: np.ndarray, later: np.ndarray, later_origin: np.ndarray, far_m: float = FAR_M,
+                      gone_m: float = FAR_GONE_M, above: float = DRIFT_BELOW_M, roi=None) -> tuple[int, int, int]:
+    """Far structure a later sweep no longer sees: (closed, judged, in the ROI) points of ``earlier``.
+
+    ``earlier`` in its own sensor frame; ``later`` registered into it by the poses, its sensor
+    at ``later_origin``. The points of ``earlier`` inside the protocol's ROI box (``roi``;
+    default the active protocol's) count; of those, the ones ``far_m`` or more horizontally
+    from ``later_origin`` and with z above ``above`` (off the ground near the car) are judged,
+    and one closes when no point of ``later`` lies within ``gone_m`` of it: a view down a
+    street or through a gap that the later position no longer has. Copying the earlier sweep
+    keeps such points, and so does a forecast that answers rays with past points (4D-Occ's);
+    near-field Chamfer charges them their whole distance to what the later sweep sees."""
+    from scipy.spatial import cKDTree
+
+    if roi is None:
+        from pcfbench.roi import ROI as roi
+    in_roi = roi.contains(earlier)
+    judged = in_roi & (np.hypot(earlier[:, 0] - later_origin[0], earlier[:, 1] - later_origin[1]) >= far_m) \
+        & (earlier[:, 2] > above)
+    if not judged.any():
+        return 0, 0, int(in_roi.sum())
+    if not len(later):
+        return int(judged.sum()), int(judged.sum()), int(in_roi.sum())
+    d = cKDTree(later).query(earlier[judged], distance_upper_bound=gone_m)[0]
+    return int(np.isinf(d).sum()), int(judged.sum()), int(in_roi.sum())
+
+
 def fit_ground_drift(dr: np.ndarray, dz: np.ndarray, outlier: float = DRIFT_OUTLIER_M) -> tuple[float, float]:
     """Least-squares ``dz = slope * dr + drift`` over the pairs with |dz| <= ``outlier``:
     (slope in degrees, the elevation error's effect; drift in metres, the height the later
@@ -488,6 +517,7 @@ class SideStats:
     bleed: list = field(default_factory=list)  # (bleeding, judged) near bins of the later sweep per sweep pair
     mixed: list = field(default_factory=list)  # (jumps with a return in between, jumps) per sweep
     ground_pairs: list = field(default_factory=list)  # (r_i - r_j, z_j - z_i) arrays per sweep pair DRIFT_GAP_S apart
+    far_views: list = field(default_factory=list)  # (closed, judged, in the ROI) per sweep pair DRIFT_GAP_S apart
     seconds: float = 0.0
 
     @property
@@ -540,6 +570,10 @@ class SideStats:
             "mixed pixels: depth jumps with a return in between (share)": _share(self.mixed),
             f"ground drift: height of the ground seen {DRIFT_GAP_S:g} s later at the same range (m)": drift,
             "ground drop with range: elevation error (deg)": slope,
+            f"far views: points {FAR_M:g} m or more from the sensor {DRIFT_GAP_S:g} s later, off the ground "
+            "(share of the ROI's points)": _share([(j, n) for _, j, n in self.far_views]),
+            f"far views that close: far points with no return {DRIFT_GAP_S:g} s later within {FAR_GONE_M:g} m "
+            "(share)": _share([(c, j) for c, j, _ in self.far_views]),
         }
 
 
@@ -730,8 +764,9 @@ def measure(adapter, split: str, count: int, label: str, edges: np.ndarray, seed
         if j is not None:
             later_raw = np.asarray(seq.load_points(j), np.float64)
             T = np.linalg.inv(seq.T_world_sensor[i]) @ seq.T_world_sensor[j]
-            st.ground_pairs.append(ground_height_pairs(pts, transform_points(T, later_raw[~adapter.ego_box.inside(later_raw)]),
-                                                       T[:3, 3]))
+            later = transform_points(T, later_raw[~adapter.ego_box.inside(later_raw)])
+            st.ground_pairs.append(ground_height_pairs(pts, later, T[:3, 3]))
+            st.far_views.append(far_views_closing(pts, later, T[:3, 3]))
     # moving evidence: not the sweeps above (one passing car sets a dozen's), but every sweep
     # MOVING_GAP_S apart over the whole split, each against the sweeps that far before and after
     for name, i in evidence:
@@ -1077,9 +1112,12 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
         ax.legend()
         save(fig, name)
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3))
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3))
     for x, (st, lab, col) in enumerate(sides):
         fs, mixed, bleed = _share(st.free_space), _share(st.mixed), _share(st.bleed)
+        closing = _share([(c, j) for c, j, _ in st.far_views])
+        if np.isfinite(closing):
+            axes[3].bar(x, closing, color=col)
         if np.isfinite(bleed):
             axes[2].bar(x, bleed, color=col)
         if np.isfinite(fs):
@@ -1095,6 +1133,7 @@ def _figures(out: Path, syn: SideStats, real: SideStats, edges, base_syn, base_r
     axes[0].set_ylabel(f"free-space violations at {MOVING_GAP_S:g} s")
     axes[1].set_ylabel("depth jumps with a return in between")
     axes[2].set_ylabel(f"near bins with a return {MOVING_GAP_S:g} s earlier behind")
+    axes[3].set_ylabel(f"far points unseen {DRIFT_GAP_S:g} s later")
     save(fig, "free_space_and_mixed_pixels.png")
 
     fig, ax = plt.subplots(figsize=(6, 3.2))
