@@ -248,38 +248,29 @@ def add_shrubs(soup, style, graph, ground, rng: np.random.Generator, lo: np.ndar
                realism: Realism) -> None:
     """Hedges (long low boxes) and bushes (ellipsoids) in the yards beyond the sidewalks, as
     vegetation: rays into them return from inside (``cast_sweep_realistic``)."""
-    from pcfbench.datasets.synthetic.world import _resample, box, ellipsoid
+    from pcfbench.datasets.synthetic.world import box, ellipsoid, road_sides
 
     edge_band = ground.half_road + style.sidewalk_m
     hedges, bushes = realism.shrubs_per_100m
-    for poly in graph.polylines:
-        mid = poly[len(poly) // 2]
-        if not (lo[0] - 150 <= mid[0] <= hi[0] + 150 and lo[1] - 150 <= mid[1] <= hi[1] + 150):
-            continue
-        line = _resample(poly, 0.5)
-        seg = np.gradient(line, axis=0)
-        tangent = seg / (np.linalg.norm(seg, axis=1, keepdims=True) + 1e-12)
-        total = (len(line) - 1) * 0.5
-        for side in (-1.0, 1.0):
-            normal = side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-            for _ in range(int(rng.poisson(hedges * total / 100))):
-                length = rng.uniform(3.0, 12.0)
-                s = rng.uniform(6.0, max(total - 6.0 - length, 6.5))
-                i = min(int((s + length / 2) / 0.5), len(line) - 1)
-                depth = rng.uniform(0.6, 1.2)
-                c = line[i] + normal[i] * (edge_band + 0.2 + depth / 2)
-                if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]:
-                    yaw = np.arctan2(tangent[i, 1], tangent[i, 0])
-                    z = float(ground.height(c[0], c[1])) - 0.1
-                    soup.add(VEGETATION, *box(c[0], c[1], z, length, depth, rng.uniform(0.7, 1.7), yaw))
-            for _ in range(int(rng.poisson(bushes * total / 100))):
-                s = rng.uniform(4.0, max(total - 4.0, 4.5))
-                i = min(int(s / 0.5), len(line) - 1)
-                r = rng.uniform(0.4, 1.1)
-                c = line[i] + normal[i] * (edge_band + r + rng.uniform(0.0, 2.0))
-                if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]:
-                    z = float(ground.height(c[0], c[1]))
-                    soup.add(VEGETATION, *ellipsoid(c[0], c[1], z + r * 0.6, r, r * rng.uniform(0.8, 1.3), r * 0.8))
+    for line, tangent, normal, total in road_sides(graph, lo, hi):
+        for _ in range(int(rng.poisson(hedges * total / 100))):
+            length = rng.uniform(3.0, 12.0)
+            s = rng.uniform(6.0, max(total - 6.0 - length, 6.5))
+            i = min(int((s + length / 2) / 0.5), len(line) - 1)
+            depth = rng.uniform(0.6, 1.2)
+            c = line[i] + normal[i] * (edge_band + 0.2 + depth / 2)
+            if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]:
+                yaw = np.arctan2(tangent[i, 1], tangent[i, 0])
+                z = float(ground.height(c[0], c[1])) - 0.1
+                soup.add(VEGETATION, *box(c[0], c[1], z, length, depth, rng.uniform(0.7, 1.7), yaw))
+        for _ in range(int(rng.poisson(bushes * total / 100))):
+            s = rng.uniform(4.0, max(total - 4.0, 4.5))
+            i = min(int(s / 0.5), len(line) - 1)
+            r = rng.uniform(0.4, 1.1)
+            c = line[i] + normal[i] * (edge_band + r + rng.uniform(0.0, 2.0))
+            if lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]:
+                z = float(ground.height(c[0], c[1]))
+                soup.add(VEGETATION, *ellipsoid(c[0], c[1], z + r * 0.6, r, r * rng.uniform(0.8, 1.3), r * 0.8))
 
 
 def beam_calibration(sensor: LidarConfig, realism: Realism, seed: int) -> tuple[np.ndarray, np.ndarray]:

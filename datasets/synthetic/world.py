@@ -243,6 +243,22 @@ class Route:
         return xy, self.yaw[i] + dyaw * w[..., 0]
 
 
+def road_sides(graph, lo: np.ndarray, hi: np.ndarray, margin: float = 150.0):
+    """Each road's two sides near [lo, hi] (its midpoint within ``margin``): (line resampled
+    every 0.5 m, unit tangents, unit normals towards that side, length in m), road by road, the
+    left side (-1) first: the frontage along which yards, hedges and trees are placed."""
+    for poly in graph.polylines:
+        mid = poly[len(poly) // 2]
+        if not (lo[0] - margin <= mid[0] <= hi[0] + margin and lo[1] - margin <= mid[1] <= hi[1] + margin):
+            continue
+        line = _resample(poly, 0.5)
+        seg = np.gradient(line, axis=0)
+        tangent = seg / (np.linalg.norm(seg, axis=1, keepdims=True) + 1e-12)
+        total = (len(line) - 1) * 0.5
+        for side in (-1.0, 1.0):
+            yield line, tangent, side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1), total
+
+
 def _resample(pts: np.ndarray, step: float) -> np.ndarray:
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     keep = np.concatenate([[True], seg > 1e-6])
