@@ -45,6 +45,26 @@ def test_generation_is_deterministic_byte_for_byte(tmp_path):
     assert c["sequences/05/velodyne/000000.bin"] != a["sequences/05/velodyne/000000.bin"]
 
 
+def test_generating_a_split_into_a_folder_keeps_its_other_splits_of_the_same_world(tmp_path):
+    import json
+
+    from pcfbench.datasets.synthetic.adapter import SyntheticTown
+
+    dom = tiny(sweeps=3)
+    generate_domain(dom, tmp_path, progress=False, splits=("test",))
+    generate_domain(dom, tmp_path, progress=False, splits=("train",))  # before: the manifest forgot test
+    adapter = SyntheticTown(tmp_path)
+    assert adapter.sequence_names("test") == ["05"] and adapter.sequence_names("train") == ["00"]
+    assert set(json.loads((tmp_path / "synthetic.json").read_text())["sequences"]) == {"00", "05"}
+    before = tree_digest(tmp_path)
+    other = dataclasses.replace(dom, seed=dom.seed + 1)  # another world: refused before anything is written
+    with pytest.raises(PcfbenchError, match=r"holds split\(s\) train of another world \(seed .* generating test into"):
+        generate_domain(other, tmp_path, progress=False, splits=("test",))
+    assert tree_digest(tmp_path) == before
+    generate_domain(other, tmp_path / "all", progress=False)  # every split at once: a folder of its own
+    generate_domain(other, tmp_path / "all", progress=False)  # and again over itself, all splits: fine
+
+
 def test_adapter_reads_generated_kitti_layout_and_builds_samples(tmp_path):
     from pcfbench.datasets.synthetic.adapter import SyntheticTown
 

@@ -231,6 +231,7 @@ def generate_domain(domain: Domain | str, out: str | Path, layout: str = "kitti"
     }
     if domain.realism is not None:  # physics version 1 manifests stay as they were
         manifest["physics"] = domain.physics
+    kept = _splits_kept(out, manifest, layout, splits)
     started = time.perf_counter()
     held = []  # other layouts write all sequences at once
     with _progress_bar(sum(k for _, _, k in todo), f"generating {domain.name}", progress) as bar:
@@ -244,8 +245,36 @@ def generate_domain(domain: Domain | str, out: str | Path, layout: str = "kitti"
     if held:
         manifest["written_as"] = write_other_layout(layout, out, held, domain)
     manifest["seconds"] = round(time.perf_counter() - started, 2)
-    (out / MANIFEST).write_text(json.dumps({k: v for k, v in manifest.items() if k != "seconds"}, indent=1, sort_keys=True) + "\n")
+    if kept:  # the folder's other splits stay listed (same world, generated before)
+        _merge_manifest(out, manifest)
+    else:
+        (out / MANIFEST).write_text(json.dumps({k: v for k, v in manifest.items() if k != "seconds"}, indent=1, sort_keys=True) + "\n")
     return manifest
+
+
+#: What makes a folder's sweeps one world: generating some splits into a folder that holds
+#: others keeps them only when these agree (else the folder would mix two worlds).
+WORLD_KEYS = ("domain", "generator_version", "seed", "layout", "sensor", "beams", "rate_hz", "physics")
+
+
+def _splits_kept(out: Path, manifest: dict, layout: str, splits: tuple[str, ...] | None) -> bool:
+    """Whether ``out`` already holds other splits of the same world (KITTI layout), to be kept in
+    its manifest beside the ones generated now. A folder that holds another world's splits is
+    refused before anything is written."""
+    path = out / MANIFEST
+    if splits is None or layout != "kitti" or not path.is_file():
+        return False
+    old = json.loads(path.read_text())
+    others = {n: m for n, m in old.get("sequences", {}).items() if m.get("split") not in splits}
+    if not others:
+        return False
+    differ = [k for k in WORLD_KEYS if old.get(k) != manifest.get(k)]
+    if differ:
+        raise PcfbenchError(
+            f"{out} holds split(s) {', '.join(sorted({m['split'] for m in others.values()}))} of another world "
+            f"({'; '.join(f'{k} {old.get(k)!r} there, {manifest.get(k)!r} now' for k in differ)}): generating "
+            f"{', '.join(splits)} into it would mix the two; use an empty folder or generate every split")
+    return True
 
 
 # --- the cache ---------------------------------------------------------------------------------

@@ -172,7 +172,7 @@ def yard_trees(per_100m: float):
     R.add_shrubs = add
 
 
-def probe(out: str, style: dict, trees: float = 0.0) -> None:
+def probe(out: str, style: dict, trees: float = 0.0, splits: tuple[str, ...] = ("test",)) -> None:
     from pcfbench.datasets.synthetic.domains import get_domain
     from pcfbench.datasets.synthetic.generate import generate_domain
 
@@ -181,7 +181,7 @@ def probe(out: str, style: dict, trees: float = 0.0) -> None:
     d = get_domain("synthetic-town-realistic")
     d = dataclasses.replace(d, style=dataclasses.replace(
         d.style, **{k: tuple(v) if isinstance(v, list) else v for k, v in style.items()}))
-    m = generate_domain(d, out, progress=False, splits=("test",))
+    m = generate_domain(d, out, progress=False, splits=splits)
     print(f"generated {out} in {m['seconds']:.1f} s; read it as synthetic-town-realistic={out}")
 
 
@@ -200,13 +200,14 @@ def main() -> None:
     c.add_argument("out")
     c.add_argument("--style", default="{}", help="JSON of TownStyle fields")
     c.add_argument("--yard-trees", type=float, default=0.0, help="trees per 100 m of frontage in the yards behind")
+    c.add_argument("--splits", default="test", help="splits to generate, comma-separated (train,val,test: every town)")
     args = ap.parse_args()
     if args.cmd == "split":
         split(args.dataset, args.split, args.sequence)
     elif args.cmd == "why":
         why(args.dataset, args.split, args.labels)
     else:
-        probe(args.out, json.loads(args.style), args.yard_trees)
+        probe(args.out, json.loads(args.style), args.yard_trees, tuple(args.splits.split(",")))
 
 
 if __name__ == "__main__":
