@@ -82,6 +82,7 @@ def why(spec: str, split_name: str, labels: bool) -> None:
             return (np.fromfile(f"{root}/sequences/{q}/labels/{i:06d}.label", np.uint32) & 0xFFFF)[keep]
     kinds = dict.fromkeys(("occluded", "nothing in the bin", "farther", "about as far"), 0)
     occ_range, closing_cls, occ_cls = [], {}, {}
+    by_azimuth = np.zeros(8)  # closing points by azimuth from the later sensor, 45-degree bins from -180
     judged = closing = 0
     for sp in C.split_list(split_name):
         for q in ad.sequence_names(sp):
@@ -114,6 +115,7 @@ def why(spec: str, split_name: str, labels: bool) -> None:
                             np.linalg.norm(v, axis=1))
                 az_b, el_b, r_b = angles(b)
                 az_c, el_c, r_c = angles(a[gone])
+                by_azimuth += np.histogram(az_c * C.FREE_AZ_DEG, bins=8, range=(-180.0, 180.0))[0]
                 dist, idx = cKDTree(np.stack([az_b, el_b], 1)).query(np.stack([az_c, el_c], 1), k=4,
                                                                      distance_upper_bound=1.5)
                 lb = lab(q, j, kb) if labels else None
@@ -137,6 +139,8 @@ def why(spec: str, split_name: str, labels: bool) -> None:
     print("  why:", {k: round(v / max(closing, 1), 3) for k, v in kinds.items()})
     if occ_range:
         print("  occluder range, 10/50/90 %:", np.quantile(occ_range, [0.1, 0.5, 0.9]).round(1))
+    print("  closing points by azimuth from the later sensor (0 ahead, 90 left; 45-degree bins from -180):",
+          (by_azimuth / max(closing, 1)).round(2))
     for title, counts in (("closing points' class", closing_cls), ("occluders' class", occ_cls)):
         if counts:
             tot = sum(counts.values())
