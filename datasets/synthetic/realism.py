@@ -252,7 +252,7 @@ def add_shrubs(soup, style, graph, ground, rng: np.random.Generator, lo: np.ndar
 
     edge_band = ground.half_road + style.sidewalk_m
     hedges, bushes = realism.shrubs_per_100m
-    for line, tangent, normal, total in road_sides(graph, lo, hi):
+    for _, line, tangent, normal, total in road_sides(graph, lo, hi):
         for _ in range(int(rng.poisson(hedges * total / 100))):
             length = rng.uniform(3.0, 12.0)
             s = rng.uniform(6.0, max(total - 6.0 - length, 6.5))

@@ -244,9 +244,9 @@ class Route:
 
 
 def road_sides(graph, lo: np.ndarray, hi: np.ndarray, margin: float = 150.0):
-    """Each road's two sides near [lo, hi] (its midpoint within ``margin``): (line resampled
-    every 0.5 m, unit tangents, unit normals towards that side, length in m), road by road, the
-    left side (-1) first: the frontage along which yards, hedges and trees are placed."""
+    """Each road's two sides near [lo, hi] (its midpoint within ``margin``): (side, -1 or 1; the
+    line resampled every 0.5 m; unit tangents; unit normals towards that side; length in m),
+    road by road, side -1 first: the frontage along which buildings, yards and trees stand."""
     for poly in graph.polylines:
         mid = poly[len(poly) // 2]
         if not (lo[0] - margin <= mid[0] <= hi[0] + margin and lo[1] - margin <= mid[1] <= hi[1] + margin):
@@ -256,7 +256,7 @@ def road_sides(graph, lo: np.ndarray, hi: np.ndarray, margin: float = 150.0):
         tangent = seg / (np.linalg.norm(seg, axis=1, keepdims=True) + 1e-12)
         total = (len(line) - 1) * 0.5
         for side in (-1.0, 1.0):
-            yield line, tangent, side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1), total
+            yield side, line, tangent, side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1), total
 
 
 def _resample(pts: np.ndarray, step: float) -> np.ndarray:
@@ -437,90 +437,82 @@ def build_static(style: TownStyle, graph: RoadGraph, ground: Ground, rng: np.ran
             return False
         return all((x - ox) ** 2 + (y - oy) ** 2 > (r + orad) ** 2 for ox, oy, orad in occupied[-400:])
 
-    for e, poly in enumerate(graph.polylines):
-        if not inside(*poly[len(poly) // 2], margin=150.0):
-            continue
-        line = _resample(poly, 0.5)
-        seg = np.gradient(line, axis=0)
-        tangent = seg / (np.linalg.norm(seg, axis=1, keepdims=True) + 1e-12)
-        total = (len(line) - 1) * 0.5
-        for side in (-1.0, 1.0):
-            normal = side * np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-            # Buildings (or fences and walls in the gaps) along the frontage.
-            s = rng.uniform(6.0, 12.0)
-            while s < total - 10.0:
-                front = rng.uniform(*style.building_frontage_m)
-                depth = rng.uniform(*style.building_depth_m)
-                setback = rng.uniform(*style.building_setback_m)
-                j = min(int((s + front / 2) / 0.5), len(line) - 1)
-                yaw = np.arctan2(tangent[j, 1], tangent[j, 0])
-                c = line[j] + normal[j] * (edge_band + setback + depth / 2)
-                r = 0.5 * np.hypot(front, depth)
-                if inside(*c) and free(c[0], c[1], r * 0.8):
-                    h = rng.uniform(*style.building_height_m)
-                    z0 = float(ground.undulation(c[0], c[1])) - 0.5
-                    soup.add(STRUCTURE, *box(c[0], c[1], z0, front, depth, h + 0.5, yaw))
-                    if rng.random() < 0.3:  # a lower annex or roof structure
-                        soup.add(STRUCTURE, *box(c[0], c[1], z0 + h + 0.5, front * 0.4, depth * 0.5, rng.uniform(1.5, 3.5), yaw))
-                    occupied.append((c[0], c[1], r * 0.8))
-                gap = rng.uniform(*style.building_gap_m)
-                if gap > 3.0 and rng.random() < style.fence_prob:
-                    k = min(int((s + front + gap / 2) / 0.5), len(line) - 1)
-                    f = line[k] + normal[k] * (edge_band + 0.3)
-                    if inside(*f):
-                        yawk = np.arctan2(tangent[k, 1], tangent[k, 0])
-                        wall = rng.random() < 0.4
-                        height = rng.uniform(1.8, 2.6) if wall else rng.uniform(0.9, 1.5)
-                        soup.add(STRUCTURE, *box(f[0], f[1], float(ground.height(f[0], f[1])) - 0.1, gap, 0.25 if wall else 0.08, height, yawk))
-                s += front + gap
-            # Poles (street lights) and signs along the sidewalk.
-            s = rng.uniform(3.0, style.pole_spacing_m)
-            while s < total - 3.0:
-                i = int(s / 0.5)
-                p = line[i] + normal[i] * (half + 0.6)
+    for side, line, tangent, normal, total in road_sides(graph, lo, hi):
+        # Buildings (or fences and walls in the gaps) along the frontage.
+        s = rng.uniform(6.0, 12.0)
+        while s < total - 10.0:
+            front = rng.uniform(*style.building_frontage_m)
+            depth = rng.uniform(*style.building_depth_m)
+            setback = rng.uniform(*style.building_setback_m)
+            j = min(int((s + front / 2) / 0.5), len(line) - 1)
+            yaw = np.arctan2(tangent[j, 1], tangent[j, 0])
+            c = line[j] + normal[j] * (edge_band + setback + depth / 2)
+            r = 0.5 * np.hypot(front, depth)
+            if inside(*c) and free(c[0], c[1], r * 0.8):
+                h = rng.uniform(*style.building_height_m)
+                z0 = float(ground.undulation(c[0], c[1])) - 0.5
+                soup.add(STRUCTURE, *box(c[0], c[1], z0, front, depth, h + 0.5, yaw))
+                if rng.random() < 0.3:  # a lower annex or roof structure
+                    soup.add(STRUCTURE, *box(c[0], c[1], z0 + h + 0.5, front * 0.4, depth * 0.5, rng.uniform(1.5, 3.5), yaw))
+                occupied.append((c[0], c[1], r * 0.8))
+            gap = rng.uniform(*style.building_gap_m)
+            if gap > 3.0 and rng.random() < style.fence_prob:
+                k = min(int((s + front + gap / 2) / 0.5), len(line) - 1)
+                f = line[k] + normal[k] * (edge_band + 0.3)
+                if inside(*f):
+                    yawk = np.arctan2(tangent[k, 1], tangent[k, 0])
+                    wall = rng.random() < 0.4
+                    height = rng.uniform(1.8, 2.6) if wall else rng.uniform(0.9, 1.5)
+                    soup.add(STRUCTURE, *box(f[0], f[1], float(ground.height(f[0], f[1])) - 0.1, gap, 0.25 if wall else 0.08, height, yawk))
+            s += front + gap
+        # Poles (street lights) and signs along the sidewalk.
+        s = rng.uniform(3.0, style.pole_spacing_m)
+        while s < total - 3.0:
+            i = int(s / 0.5)
+            p = line[i] + normal[i] * (half + 0.6)
+            if inside(*p):
+                z = float(ground.height(p[0], p[1]))
+                height = rng.uniform(6.0, 8.5)
+                if off_the_road(p, 0.12):
+                    soup.add(POLE, *cylinder(p[0], p[1], z, 0.12, height))
+            s += style.pole_spacing_m * rng.uniform(0.8, 1.2)
+        for end in (8.0, total - 8.0):  # a sign near each intersection
+            if rng.random() < 0.5:
+                i = int(end / 0.5)
+                p = line[i] + normal[i] * (half + 0.4)
+                if inside(*p) and off_the_road(p, 0.04):
+                    z = float(ground.height(p[0], p[1]))
+                    soup.add(POLE, *cylinder(p[0], p[1], z, 0.04, 2.6))
+                    yaw = np.arctan2(tangent[i, 1], tangent[i, 0]) + np.pi / 2
+                    soup.add(POLE, *box(p[0], p[1], z + 2.1, 0.7, 0.04, 0.6, yaw))
+        # Trees in the sidewalk strip and front yards.
+        s = rng.uniform(2.0, style.tree_spacing_m)
+        while s < total - 4.0:
+            i = int(s / 0.5)
+            off = half + style.sidewalk_m * 0.6 + (rng.uniform(0, style.building_setback_m[0]) if rng.random() < 0.5 else 0)
+            p = line[i] + normal[i] * off
+            if inside(*p) and rng.random() < 0.8:
+                z = float(ground.height(p[0], p[1]))
+                trunk = rng.uniform(1.8, 3.2)
+                crown = rng.uniform(1.3, 3.0)
+                radius = rng.uniform(0.12, 0.3)
+                squash = rng.uniform(0.8, 1.3)
+                if off_the_road(p, radius):
+                    soup.add(trunk_class, *cylinder(p[0], p[1], z, radius, trunk + crown * 0.5))
+                    soup.add(VEGETATION, *ellipsoid(p[0], p[1], z + trunk + crown * 0.8, crown, crown, crown * squash))
+            s += style.tree_spacing_m * rng.uniform(0.6, 1.4)
+        # Parked vehicles in the parking strip, away from intersections.
+        s = 14.0
+        while s < total - 14.0:
+            i = int(s / 0.5)
+            if rng.random() < style.parked_prob:
+                p = line[i] + normal[i] * (style.lane_width_m + style.parking_width_m * 0.45 + 0.2)
                 if inside(*p):
-                    z = float(ground.height(p[0], p[1]))
-                    height = rng.uniform(6.0, 8.5)
-                    if off_the_road(p, 0.12):
-                        soup.add(POLE, *cylinder(p[0], p[1], z, 0.12, height))
-                s += style.pole_spacing_m * rng.uniform(0.8, 1.2)
-            for end in (8.0, total - 8.0):  # a sign near each intersection
-                if rng.random() < 0.5:
-                    i = int(end / 0.5)
-                    p = line[i] + normal[i] * (half + 0.4)
-                    if inside(*p) and off_the_road(p, 0.04):
-                        z = float(ground.height(p[0], p[1]))
-                        soup.add(POLE, *cylinder(p[0], p[1], z, 0.04, 2.6))
-                        yaw = np.arctan2(tangent[i, 1], tangent[i, 0]) + np.pi / 2
-                        soup.add(POLE, *box(p[0], p[1], z + 2.1, 0.7, 0.04, 0.6, yaw))
-            # Trees in the sidewalk strip and front yards.
-            s = rng.uniform(2.0, style.tree_spacing_m)
-            while s < total - 4.0:
-                i = int(s / 0.5)
-                off = half + style.sidewalk_m * 0.6 + (rng.uniform(0, style.building_setback_m[0]) if rng.random() < 0.5 else 0)
-                p = line[i] + normal[i] * off
-                if inside(*p) and rng.random() < 0.8:
-                    z = float(ground.height(p[0], p[1]))
-                    trunk = rng.uniform(1.8, 3.2)
-                    crown = rng.uniform(1.3, 3.0)
-                    radius = rng.uniform(0.12, 0.3)
-                    squash = rng.uniform(0.8, 1.3)
-                    if off_the_road(p, radius):
-                        soup.add(trunk_class, *cylinder(p[0], p[1], z, radius, trunk + crown * 0.5))
-                        soup.add(VEGETATION, *ellipsoid(p[0], p[1], z + trunk + crown * 0.8, crown, crown, crown * squash))
-                s += style.tree_spacing_m * rng.uniform(0.6, 1.4)
-            # Parked vehicles in the parking strip, away from intersections.
-            s = 14.0
-            while s < total - 14.0:
-                i = int(s / 0.5)
-                if rng.random() < style.parked_prob:
-                    p = line[i] + normal[i] * (style.lane_width_m + style.parking_width_m * 0.45 + 0.2)
-                    if inside(*p):
-                        yaw = np.arctan2(tangent[i, 1], tangent[i, 0]) + (np.pi if side > 0 else 0.0)
-                        z = float(ground.undulation(p[0], p[1]))
-                        for v, t in vehicle_parts(rng.uniform(3.9, 4.9), rng.uniform(1.7, 1.95), rng.uniform(1.4, 1.7)):
-                            soup.add(PARKED, *_place(v, t, p[0], p[1], z, yaw))
-                s += rng.uniform(5.5, 8.0)
+                    yaw = np.arctan2(tangent[i, 1], tangent[i, 0]) + (np.pi if side > 0 else 0.0)
+                    z = float(ground.undulation(p[0], p[1]))
+                    for v, t in vehicle_parts(rng.uniform(3.9, 4.9), rng.uniform(1.7, 1.95), rng.uniform(1.4, 1.7)):
+                        soup.add(PARKED, *_place(v, t, p[0], p[1], z, yaw))
+            s += rng.uniform(5.5, 8.0)
     return soup
 
 

@@ -160,7 +160,7 @@ def yard_trees(per_100m: float):
     def add(soup, style, graph, ground, rng, lo, hi, realism):
         original(soup, style, graph, ground, rng, lo, hi, realism)
         edge_band = ground.half_road + style.sidewalk_m
-        for line, _, normal, total in road_sides(graph, lo, hi):
+        for _, line, _, normal, total in road_sides(graph, lo, hi):
             for _ in range(int(rng.poisson(per_100m * total / 100))):
                 i = min(int(rng.uniform(0.0, total) / 0.5), len(line) - 1)
                 c = line[i] + normal[i] * (edge_band + rng.uniform(12.0, 28.0))
