@@ -61,6 +61,10 @@ def test_generating_a_split_into_a_folder_keeps_its_other_splits_of_the_same_wor
     with pytest.raises(PcfbenchError, match=r"holds split\(s\) train of another world \(seed .* generating test into"):
         generate_domain(other, tmp_path, progress=False, splits=("test",))
     assert tree_digest(tmp_path) == before
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "synthetic.json").write_text("{not json")
+    with pytest.raises(PcfbenchError, match=r"synthetic.json: not a readable synthetic manifest"):
+        generate_domain(dom, tmp_path / "bad", progress=False, splits=("test",))
     generate_domain(other, tmp_path / "all", progress=False)  # every split at once: a folder of its own
     generate_domain(other, tmp_path / "all", progress=False)  # and again over itself, all splits: fine
 

@@ -264,8 +264,12 @@ def _splits_kept(out: Path, manifest: dict, layout: str, splits: tuple[str, ...]
     path = out / MANIFEST
     if splits is None or layout != "kitti" or not path.is_file():
         return False
-    old = json.loads(path.read_text())
-    others = {n: m for n, m in old.get("sequences", {}).items() if m.get("split") not in splits}
+    try:
+        old = json.loads(path.read_text())
+        others = {n: m for n, m in old.get("sequences", {}).items() if m.get("split") not in splits}
+    except (OSError, ValueError, AttributeError) as exc:
+        raise PcfbenchError(f"{path}: not a readable synthetic manifest ({exc}); generating into {out} would "
+                            "leave its splits unlisted: use an empty folder") from None
     if not others:
         return False
     differ = [k for k in WORLD_KEYS if old.get(k) != manifest.get(k)]
