@@ -11,7 +11,7 @@ def register_datasets(register):
     register("mcap", "pcfbench.datasets.mcap:McapRecording", "MCAP recordings: ROS 2 PointCloud2 or foxglove.PointCloud + TF")
     register("synthetic-town", "pcfbench.datasets.synthetic.adapter:SyntheticTown", "Generated town, 64-beam LiDAR, 512 columns, clean surfaces (world physics v1), 10 Hz: fast, for tests")
     register("synthetic-town-realistic", "pcfbench.datasets.synthetic.adapter:SyntheticTownRealistic",
-             "synthetic-town with a realistic sensor, surfaces, poses and traffic (world physics v9), 10 Hz (embedded default, every third sample)")
+             "synthetic-town with a realistic sensor, surfaces, poses and traffic (world physics v10), 10 Hz (embedded default, every third sample)")
     register("synthetic-suburb", "pcfbench.datasets.synthetic.adapter:SyntheticSuburb", "Generated suburb, 32-beam LiDAR, 2 Hz keyframes")
 
 

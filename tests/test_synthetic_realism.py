@@ -900,7 +900,7 @@ def test_physics_2_is_deterministic_and_differs_from_physics_1():
     assert np.abs(a.T_world_sensor - one.T_world_sensor).max() < 0.02
     assert not np.array_equal(a.T_world_sensor[1:], one.T_world_sensor[1:])
     assert not np.array_equal(a.points[0], one.points[0])
-    assert d2.physics == R.REALISM.version == 9 and d1.physics == 1
+    assert d2.physics == R.REALISM.version == 10 and d1.physics == 1
 
 
 def test_motion_distortion_shifts_points_by_the_ego_motion():
@@ -970,7 +970,7 @@ def test_realistic_manifest_records_physics_and_v1_does_not(tmp_path):
     generate_domain(_tiny_domain(sweeps=2, azimuths=120), tmp_path / "o", progress=False, splits=("test",))
     realistic = json.loads((tmp_path / "r" / "synthetic.json").read_text())
     one = json.loads((tmp_path / "o" / "synthetic.json").read_text())
-    assert realistic["physics"] == 9 and "physics" not in one
+    assert realistic["physics"] == 10 and "physics" not in one
     assert realistic["classes"][-1] == "trunk" and "trunk" not in one["classes"]  # physics 1's manifest as it was
 
 
@@ -1190,7 +1190,8 @@ def test_the_realism_knobs_are_pinned_to_their_physics_version():
               6: "ec1e81e325f7a7999c13fc75f03c10b7110926f76ee2b4d2854c62066ea5f1d4",
               7: "f1ec0218493655896703006d19289f453b4a991c038768e1473f752ef515bf5a",
               8: "97af8fa87ab422e2dc7c57d5e67f0e58847742af8e8a2f658d9a90f11d811886",
-              9: "d0749e12d42649798e90e529bed733fba1e0c61f4b2439cdfe2508c6a1faf232"}
+              9: "d0749e12d42649798e90e529bed733fba1e0c61f4b2439cdfe2508c6a1faf232",
+              10: "3a2476f560d9501207fe3a399a4ecf797dec32b81fa8bd00a502bd38ec79f8b5"}
     assert R.REALISM.version in pinned, f"physics {R.REALISM.version}: pin its knobs' digest {digest}"
     assert digest == pinned[R.REALISM.version], (
         f"the knobs of physics {R.REALISM.version} changed (digest {digest}): bump Realism.version")
@@ -1199,24 +1200,25 @@ def test_the_realism_knobs_are_pinned_to_their_physics_version():
 
 
 
-def test_physics_9_output_is_unchanged_up_to_the_rounding_of_ray_casts():
+def test_physics_10_output_is_unchanged_up_to_the_rounding_of_ray_casts():
     """The realistic town's data is named by its recipe (its definition and the generator's
     version, ``DatasetAdapter.recipe``): the cache and the shipped checkpoints key on it, so
     its output must not change without a new physics version. Its bytes differ from one CPU
     to another in the last bits of the ray casts (``GOLDEN_TINY_V1``), so this compares a tiny
     generation (test sequence 05, 120 columns, one sweep) point by point with the one recorded
-    in ``tests/data/physics9-tiny-05.npz`` (2026-11-27, AMD EPYC, AVX2, no AVX-512): at most
+    in ``tests/data/physics10-tiny-05.npz`` (2026-11-28, AMD EPYC, AVX2, no AVX-512): at most
     0.5 % of the points may lie more than 0.1 mm from every recorded one of their class (a ray
-    that grazes an edge). A tenth more of any of three knobs of the world moves far more."""
+    that grazes an edge). A tenth more of any of three knobs of the world moves far more. With
+    no yard trees it is physics 9's world, recorded in ``physics9-tiny-05.npz`` (2026-11-27):
+    the yard trees' draws come after every other draw of the static world."""
     import dataclasses as dc
     from pathlib import Path
 
     from scipy.spatial import cKDTree
 
-    ref = np.load(Path(__file__).parent / "data" / "physics9-tiny-05.npz")
-    trees = {c: cKDTree(ref["points"][ref["labels"] == c]) for c in np.unique(ref["labels"])}
-
-    def moved(realism) -> float:
+    def moved(realism, recorded: str) -> float:
+        ref = np.load(Path(__file__).parent / "data" / recorded)
+        trees = {c: cKDTree(ref["points"][ref["labels"] == c]) for c in np.unique(ref["labels"])}
         dom = _tiny_domain("synthetic-town-realistic", sweeps=1, azimuths=120)
         seq = simulate_sequence(dc.replace(dom, realism=realism), "05")
         pts, cls = seq.points[0][:, :3], (seq.labels[0] & 0xFFFF).astype(np.uint8)
@@ -1227,8 +1229,11 @@ def test_physics_9_output_is_unchanged_up_to_the_rounding_of_ray_casts():
                 far[sel] = tree.query(pts[sel])[0] > 1e-4
         return float(far.mean())
 
-    here = moved(R.REALISM)
-    assert here <= 0.005, (f"physics-9 output changed ({here:.1%} of the points moved): "
+    here = moved(R.REALISM, "physics10-tiny-05.npz")
+    assert here <= 0.005, (f"physics-10 output changed ({here:.1%} of the points moved): "
                            "bump realism.REALISM.version (and record its tiny generation anew)")
-    for knob in ("range_noise_m", "range_bias_m", "jitter_deg"):
-        assert moved(dc.replace(R.REALISM, **{knob: getattr(R.REALISM, knob) * 1.1})) > 0.05, knob
+    for knob in ("range_noise_m", "range_bias_m", "jitter_deg", "yard_trees_per_100m"):
+        assert moved(dc.replace(R.REALISM, **{knob: getattr(R.REALISM, knob) * 1.1}), "physics10-tiny-05.npz") > 0.05, knob
+    bare = dc.replace(R.REALISM, yard_trees_per_100m=0.0)
+    assert moved(bare, "physics9-tiny-05.npz") <= 0.005
+    assert moved(bare, "physics10-tiny-05.npz") > 0.05  # the yard trees are in the recorded sweep

@@ -82,20 +82,20 @@ DOMAINS: dict[str, Domain] = {
     )
 }
 
-# Physics version 9 of the town (realism.REALISM.version): the same towns, splits and seed,
+# Physics version 10 of the town (realism.REALISM.version): the same towns, splits and seed,
 # seen by a sensor and surfaces like real ones, its stored poses drifting from the scans as
 # KITTI's do, with as much moving traffic as SemanticKITTI has (0.085 of the town style's),
-# narrower sidewalks and hedged yards, mixed pixels at the real rate and shallow foliage
+# narrower sidewalks, hedged yards with trees in them, mixed pixels at the real rate and shallow foliage
 # (docs/realism.md). The embedded dataset of the default run.
 _town = DOMAINS["synthetic-town"]
 DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     _town, name="synthetic-town-realistic",
     sensor=dataclasses.replace(HDL64, name="hdl64-realistic", azimuth_steps=2048),
     realism=REALISM,
-    description="synthetic-town with world physics v9: 2048 columns (~0.18 deg, ~110k points), beam "
+    description="synthetic-town with world physics v10: 2048 columns (~0.18 deg, ~110k points), beam "
                 "calibration and jitter, rough surfaces, shallow vegetation volumes with solid trunks, mixed pixels at the real rate, "
                 "reflectance-dependent ray drop, street furniture off the road, stored poses drifting 1.6 cm/s "
-                "upwards from the scans, 0.085 of the town's moving traffic (SemanticKITTI's share of moving points), 2 m sidewalks and hedged yards (motion "
+                "upwards from the scans, 0.085 of the town's moving traffic (SemanticKITTI's share of moving points), 2 m sidewalks, hedged yards with trees behind the buildings (motion "
                 "distortion available, off: "
                 "KITTI's scans are de-skewed)",
 )

@@ -11,6 +11,7 @@ near-field Chamfer comes from, and why the far points they keep are not seen a s
     # a probe: the test split regenerated with town-style fields changed, into FOLDER
     .venv/bin/python docs/experiments/realism_far_views.py probe FOLDER --style '{"fence_prob": 1.0}'
     .venv/bin/python docs/experiments/realism_far_views.py probe FOLDER --yard-trees 12
+    # physics 9's bare yards in physics 10's town: --yard-trees 0
 
 ``split`` prints, per method (copy-last, raycast-4docc, raycast-freespace), chamfer_nf as the
 sum of three parts: forecast -> true for forecast points 40 m or more from the future sensor
@@ -147,44 +148,19 @@ def why(spec: str, split_name: str, labels: bool) -> None:
             print(f"  {title}:", {k: round(v / tot, 3) for k, v in sorted(counts.items(), key=lambda x: -x[1])})
 
 
-def yard_trees(per_100m: float):
-    """A stand-in for ``realism.add_shrubs`` that also plants ``per_100m`` trees per 100 m of
-    frontage in the yards behind the buildings, 12-28 m beyond the sidewalk and a crown's width
-    off every road (a probe; its draws come after the shrubs', from the same generator, so the
-    rest of the world is unchanged)."""
-    from pcfbench.datasets.synthetic import realism as R
-    from pcfbench.datasets.synthetic.world import TRUNK, VEGETATION, cylinder, ellipsoid, road_sides
-
-    original = R.add_shrubs
-
-    def add(soup, style, graph, ground, rng, lo, hi, realism):
-        original(soup, style, graph, ground, rng, lo, hi, realism)
-        edge_band = ground.half_road + style.sidewalk_m
-        for _, line, _, normal, total in road_sides(graph, lo, hi):
-            for _ in range(int(rng.poisson(per_100m * total / 100))):
-                i = min(int(rng.uniform(0.0, total) / 0.5), len(line) - 1)
-                c = line[i] + normal[i] * (edge_band + rng.uniform(12.0, 28.0))
-                if not (lo[0] <= c[0] <= hi[0] and lo[1] <= c[1] <= hi[1]):
-                    continue
-                trunk, crown, radius = rng.uniform(2.0, 4.0), rng.uniform(2.0, 4.0), rng.uniform(0.15, 0.35)
-                if float(ground.road_distance(np.array(c[0]), np.array(c[1]))) < edge_band + crown:
-                    continue  # near a crossing road: not on it, nor over it
-                z = float(ground.height(c[0], c[1]))
-                soup.add(TRUNK, *cylinder(c[0], c[1], z, radius, trunk + crown * 0.5))
-                soup.add(VEGETATION, *ellipsoid(c[0], c[1], z + trunk + crown * 0.8, crown, crown,
-                                                crown * rng.uniform(0.8, 1.3)))
-    R.add_shrubs = add
-
-
-def probe(out: str, style: dict, trees: float = 0.0, splits: tuple[str, ...] = ("test",)) -> None:
+def probe(out: str, style: dict, trees: float | None = None, splits: tuple[str, ...] = ("test",)) -> None:
+    """The realistic town's ``splits`` regenerated into ``out`` with town-style fields changed
+    and, where ``trees`` is given, that many yard trees per 100 m of frontage (physics 10's
+    ``yard_trees_per_100m``; 0: physics 9's bare yards). The manifest names the domain's own
+    physics version: read the folder as a probe, not as that physics."""
     from pcfbench.datasets.synthetic.domains import get_domain
     from pcfbench.datasets.synthetic.generate import generate_domain
 
-    if trees:
-        yard_trees(trees)
     d = get_domain("synthetic-town-realistic")
     d = dataclasses.replace(d, style=dataclasses.replace(
         d.style, **{k: tuple(v) if isinstance(v, list) else v for k, v in style.items()}))
+    if trees is not None:
+        d = dataclasses.replace(d, realism=dataclasses.replace(d.realism, yard_trees_per_100m=trees))
     m = generate_domain(d, out, progress=False, splits=splits)
     print(f"generated {out} in {m['seconds']:.1f} s; read it as synthetic-town-realistic={out}")
 
@@ -203,7 +179,8 @@ def main() -> None:
     c = sub.add_parser("probe")
     c.add_argument("out")
     c.add_argument("--style", default="{}", help="JSON of TownStyle fields")
-    c.add_argument("--yard-trees", type=float, default=0.0, help="trees per 100 m of frontage in the yards behind")
+    c.add_argument("--yard-trees", type=float, default=None,
+                   help="trees per 100 m of frontage in the yards behind (default: the physics's own; 0: none)")
     c.add_argument("--splits", default="test", help="splits to generate, comma-separated (train,val,test: every town)")
     args = ap.parse_args()
     if args.cmd == "split":
