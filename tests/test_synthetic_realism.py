@@ -1,5 +1,5 @@
 """The realism report's statistics (hand-computed cases), its command on tiny inputs, and
-world physics versions 2-9 (deterministic, opt-in, physics 1 untouched)."""
+world physics versions 2-10 (deterministic, opt-in, physics 1 untouched)."""
 
 from __future__ import annotations
 
@@ -1177,6 +1177,53 @@ def test_the_sidewalk_narrows_and_hedges_line_the_yards_from_physics_6(monkeypat
     assert [st.sidewalk_m for st in seen] == [2.0, 3.5, 2.0]  # the whole street moves, physics 1 stays as it was
     assert [a[0] for a in added] == [2.0, 2.0]  # shrubs only in the realistic domain, on its street
     assert added[0][1] > added[1][1] + 20  # three times the hedges of physics 5 (the same bushes)
+
+
+def test_yard_trees_stand_in_the_yards_off_every_road_from_physics_10():
+    """Hand case: a straight road 200 m along x and a crossing one at x = 100. Every yard tree
+    stands 12-28 m beyond the edge band from the road whose side it was drawn for, none
+    nearer than the edge band plus its crown to either road; a trunk (solid from physics 4)
+    under each crown; about 20 per 100 m of frontage; at 0 nothing is drawn."""
+    from types import SimpleNamespace
+
+    from pcfbench.datasets.synthetic.world import TOWN, TRUNK, VEGETATION, Ground, MeshSoup
+
+    along = np.array([[0.0, 0.0], [200.0, 0.0]])
+    across = np.array([[100.0, -100.0], [100.0, 100.0]])
+    graph = SimpleNamespace(polylines=[along, across])
+    ground = Ground(TOWN, graph, np.random.default_rng(0))
+    lo, hi = np.array([-500.0, -500.0]), np.array([500.0, 500.0])
+    edge = ground.half_road + 2.0
+    assert R.REALISM.yard_trees_per_100m == 20.0 and R.REALISM.version == 10
+
+    soup = MeshSoup()
+    R.add_yard_trees(soup, ground, graph, np.random.default_rng(1), lo, hi, edge, R.REALISM)
+    trunks, crowns = soup.parts[TRUNK], soup.parts[VEGETATION]
+    assert len(trunks) == len(crowns)
+    frontage = 2 * 200.0 + 2 * 200.0  # two sides of each road
+    assert 0.6 * 0.2 * frontage < len(trunks) <= 0.2 * frontage * 1.4  # some fall near the crossing
+    near_across = 0
+    for (tv, _), (cv, _) in zip(trunks, crowns):
+        cx, cy = tv[:, :2].mean(0)
+        radius = np.hypot(*(tv[0, :2] - tv[-2, :2]))  # a ring vertex against the bottom cap's centre
+        crown = (cv[:, 0].max() - cv[:, 0].min()) / 2
+        assert 0.15 <= radius <= 0.35 and 2.0 <= crown <= 4.0
+        assert np.allclose(cv[:, :2].mean(0), (cx, cy), atol=1e-6)  # the crown over its trunk
+        d_along, d_across = abs(cy) if 0 <= cx <= 200 else np.inf, abs(cx - 100.0) if abs(cy) <= 100 else np.inf
+        assert min(d_along, d_across) >= edge + crown - 1e-9  # off every road by a crown's width
+        from_along = edge + 12.0 <= d_along <= edge + 28.0 + 1e-9
+        from_across = edge + 12.0 <= d_across <= edge + 28.0 + 1e-9
+        assert from_along or from_across
+        near_across += from_across and not from_along
+    assert near_across > 5  # the crossing road's yards have theirs too
+
+    bare, rng = MeshSoup(), np.random.default_rng(1)
+    R.add_yard_trees(bare, ground, graph, rng, lo, hi, edge, dataclasses.replace(R.REALISM, yard_trees_per_100m=0.0))
+    assert bare.parts == {} and rng.random() == np.random.default_rng(1).random()  # no draws: physics 9's world
+    hollow = MeshSoup()
+    R.add_yard_trees(hollow, ground, graph, np.random.default_rng(1), lo, hi, edge,
+                     dataclasses.replace(R.REALISM, solid_trunks=False))
+    assert TRUNK not in hollow.parts and len(hollow.parts[VEGETATION]) == 2 * len(trunks)
 
 
 def test_the_realism_knobs_are_pinned_to_their_physics_version():
