@@ -69,6 +69,16 @@ class SyntheticKitti(KittiOdometry):
                 raise DataError(f"synthetic manifest {self.root / MANIFEST} is not valid JSON: {exc}") from None
             if manifest.get("domain") != self.name:
                 raise DataError(f"{self.root} holds synthetic domain {manifest.get('domain')!r}, not {self.name!r}")
+            # A folder made by another generator or physics version is another dataset under the
+            # same name: read as today's, its results would carry today's recipe.
+            made = (str(manifest.get("generator_version")), manifest.get("physics", 1))
+            today = (GENERATOR_VERSION, get_domain(self.domain).physics)
+            if made != today:
+                raise DataError(
+                    f"{self.root / MANIFEST}: {self.name} made by generator version {made[0]}, world physics "
+                    f"{made[1]}; this pcfbench makes version {today[0]}, physics {today[1]}, and would record "
+                    f"results on it as that: generate it again (pcfbench generate {self.name} --out DIR) or "
+                    "read it with the pcfbench that made it")
 
     def splits(self) -> tuple[str, ...]:
         return tuple(self._splits)
