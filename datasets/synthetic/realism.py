@@ -123,7 +123,8 @@ class Realism:
     #: trees in the yards behind the buildings per 100 m of frontage, 12-28 m beyond the
     #: sidewalk, a crown's width off every road (physics 10: 20, from none; the blocks'
     #: interiors were bare, and the far facades seen through every gap closed a second later
-    #: 3.3x as often as on the real drive: docs/realism.md, "Physics 10")
+    #: 3.3x as often as on the real drive: docs/realism.md, "Physics 10"). Drawn without regard
+    #: to the buildings: 40 % stand inside one (most hidden, 2 % with a crown through the roof)
     yard_trees_per_100m: float = 20.0
     #: the sidewalk's width (m; None: the town style's 3.5 m), which sets where the yards, their
     #: hedges and fences and the buildings begin: at 2.0 m the first yard edge stands 6 m from
