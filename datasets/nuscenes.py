@@ -40,7 +40,7 @@ POINT_COLUMNS = 5  # x, y, z, intensity, ring
 
 def official_splits() -> dict[str, list[str]]:
     """The official scene lists (train 700, val 150, test 150, mini_train 8, mini_val 2)."""
-    data = json.loads(resources.files("datasets").joinpath("nuscenes_splits.json").read_text())
+    data = json.loads(resources.files(__package__).joinpath("nuscenes_splits.json").read_text())
     return {k: v for k, v in data.items() if isinstance(v, list)}
 
 

@@ -5,10 +5,18 @@ from __future__ import annotations
 import atexit
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
 import pytest
+
+# The tests import only the installed pcfbench, as a user does: `python -m pytest` from the
+# checkout puts its root on sys.path, where bench/, methods/ and datasets/ would import as
+# top-level names and resources would resolve from the source folders (a path that breaks once
+# installed would pass here). .ci/test runs from a scratch folder; this covers the other ways.
+_REPO = Path(__file__).resolve().parent.parent
+sys.path[:] = [p for p in sys.path if Path(p or os.getcwd()).resolve() != _REPO]
 
 # Hermetic: no test reads the user's config or dataset roots or writes into their cache.
 os.environ["PCFBENCH_NO_PROGRESS"] = "1"

@@ -164,3 +164,26 @@ def test_datasets_check_cli_names_layout_splits_and_problems(tmp_path):
     res = CliRunner().invoke(build_cli(), ["datasets", "check", f"{root}?version=v1.0-trainval", "--layout", "nuscenes"])
     assert res.exit_code == 1
     assert "sensor.json" in res.output and "log.json" in res.output
+
+
+def test_installed_command_checks_and_runs_the_fixture_from_outside_the_checkout(tmp_path):
+    """The installed `pcfbench` command, started in a folder outside the checkout, as a user
+    runs it: `datasets check` and `run` read the split list from the installed package (a
+    resource path that resolves only from the repository fails here)."""
+    import os
+    import subprocess
+    import sys
+
+    root = write_tiny_nuscenes(tmp_path / "nusc", names=("scene-0003",), n=16)
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    exe = [sys.executable, "-m", "pcfbench"]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    check = subprocess.run([*exe, "datasets", "check", str(root)], cwd=work, env=env, capture_output=True, text=True)
+    assert check.returncode == 0, check.stdout + check.stderr
+    assert "split val: 1 sequence(s)" in check.stdout
+    run = subprocess.run([*exe, "run", "-d", f"nuscenes={root}", "-s", "nuscenes-1s", "-m", "copy-last",
+                          "--reports", str(tmp_path / "reports"), "-q"], cwd=work, env=env, capture_output=True,
+                         text=True)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "nuscenes / val / nuscenes-1s" in (tmp_path / "reports" / "leaderboard.md").read_text()

@@ -12,7 +12,7 @@ from pcfbench.methods.copilot4d.evaluate import decode, render_codes, tokenize_s
 from pcfbench.methods.copilot4d.model import Tokenizer
 from pcfbench.methods.copilot4d.raymarch import march
 from pcfbench.methods.copilot4d.render import logistic_noise_mask
-from tests.test_copilot4d import MICRO
+from test_copilot4d import MICRO
 
 
 @pytest.fixture(scope="module")
