@@ -84,14 +84,44 @@ def test_installed_package_resolves_outside_the_checkout(tmp_path):
     import json
 
     info = json.loads(out.stdout)
-    assert Path(info["pcfbench"]).parent == ROOT / "bench"
-    assert Path(info["methods"]).parent == ROOT / "methods"
-    assert Path(info["datasets"]).parent == ROOT / "datasets"
+    package = Path(info["pcfbench"]).parent
+    if package == ROOT / "bench":  # editable: the folders are mapped
+        assert Path(info["methods"]).parent == ROOT / "methods"
+        assert Path(info["datasets"]).parent == ROOT / "datasets"
+    else:  # a wheel (CI): one tree, outside the checkout
+        assert ROOT not in package.parents, package
+        assert Path(info["methods"]).parent == package / "methods"
+        assert Path(info["datasets"]).parent == package / "datasets"
     assert info["top"] == {"bench": False, "methods": False, "datasets": False}
     version = subprocess.run(
         [sys.executable, "-m", "pcfbench", "--version"], cwd=tmp_path, capture_output=True, text=True, check=True
     )
     assert "pcfbench" in version.stdout
+
+
+def test_the_tests_cannot_import_the_source_folders():
+    """However pytest was started (`python -m pytest` from the checkout puts its root on
+    sys.path), the suite sees the installed package only: conftest.py drops the root."""
+    import importlib.util
+
+    assert importlib.util.find_spec("bench") is None
+    assert importlib.util.find_spec("methods") is None
+    spec = importlib.util.find_spec("datasets")  # may be Hugging Face's, never ours
+    assert spec is None or ROOT not in Path(spec.origin or "").parents
+    assert all(Path(p or os.getcwd()).resolve() != ROOT for p in sys.path), sys.path
+
+
+def _source_files() -> list[tuple[str, Path]]:
+    """(package, file) for every tracked file of the package folders (every file there when
+    this is not a git checkout)."""
+    out = subprocess.run(["git", "-C", str(ROOT), "ls-files", "-z", *FOLDERS.values()], capture_output=True)
+    if out.returncode == 0 and out.stdout:
+        paths = [ROOT / p for p in out.stdout.decode().split("\0") if p]
+    else:
+        paths = [p for f in FOLDERS.values() for p in (ROOT / f).rglob("*")
+                 if p.is_file() and "__pycache__" not in p.parts]
+    folder_to_package = {f: p for p, f in FOLDERS.items()}
+    return [(folder_to_package[p.relative_to(ROOT).parts[0]], p) for p in paths]
 
 
 def _build_wheel(out: Path) -> Path:
@@ -137,12 +167,15 @@ def test_wheel_has_one_top_level_name_and_installs_beside_a_datasets_package(tmp
         top_txt = [n for n in names if n.endswith(".dist-info/top_level.txt")]
         for t in top_txt:
             assert zf.read(t).decode().split() == ["pcfbench"]
-        # every shipped checkpoint file is package data of the wheel (docs/training.md)
-        for folder, package in ((ROOT / f, p) for p, f in FOLDERS.items()):
-            for path in folder.rglob("checkpoints/**/*"):
-                if path.is_file() and "__pycache__" not in path.parts:
-                    rel = path.relative_to(folder).as_posix()
-                    assert f"{package.replace('.', '/')}/{rel}" in names, f"shipped {rel} missing from the wheel"
+        # every file of the package folders is in the wheel: the modules and every resource
+        # the code reads (protocol and presets TOML, nuScenes' split list, the metric
+        # changelog, the shipped checkpoints: docs/training.md)
+        missing = []
+        for package, path in _source_files():
+            rel = path.relative_to(ROOT / FOLDERS[package]).as_posix()
+            if f"{package.replace('.', '/')}/{rel}" not in names:
+                missing.append(path.relative_to(ROOT).as_posix())
+        assert not missing, f"in the package folders but not in the wheel (pyproject.toml package-data): {missing}"
 
     # A fresh environment: the wheel and a distribution with a top-level ``datasets`` package,
     # both installed there; the project's dependencies come from this test's environment as a
@@ -181,6 +214,17 @@ def test_wheel_has_one_top_level_name_and_installs_beside_a_datasets_package(tmp
         errors = {n: i.error for n, i in plugins.info.items() if i.error}
         assert not errors, errors
         plugins.datasets.get("kitti"); plugins.methods.get("raycast-voxel")
+        # every resource the code reads, read from the wheel alone
+        from pcfbench.datasets.nuscenes import official_splits
+        from pcfbench.docs import read_changelog
+        from pcfbench.method import resolve_method
+        from pcfbench.protocol import load_protocol
+        from pcfbench.tables import load_presets
+        from pcfbench.training import shipped_dir
+        assert len(official_splits()["train"]) == 700
+        assert load_protocol().settings and load_presets() and read_changelog()
+        shipped = shipped_dir(resolve_method("copilot4d-token-copy"), "synthetic-town-realistic", "train")
+        assert shipped.is_relative_to(SITE) and (shipped / "manifest.json").is_file(), shipped
         print("ok", datasets.__file__, pcfbench.__file__)
         """
     ).replace("SITE", repr(str(site)))
