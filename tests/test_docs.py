@@ -54,7 +54,7 @@ def test_readme_keeps_the_two_commands_and_is_short():
     first_sh = _blocks(README, "sh")[0].splitlines()
     assert first_sh == [  # .ci/run executes the second line; a new user runs the first
         "bash .ci/setup && .venv/bin/pcfbench run",
-        'bash .ci/setup test && .venv/bin/python -m pytest -m "slow or not slow"',
+        'bash .ci/setup test && bash .ci/test -m "slow or not slow"',
     ]
     assert len(README.read_text(encoding="utf-8").splitlines()) <= 160
 
