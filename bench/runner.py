@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import platform
-import subprocess
 import sys
 import time
 import traceback
@@ -20,6 +18,7 @@ from pcfbench import config
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
+from pcfbench.provenance import environment, git_commit
 from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
@@ -39,34 +38,6 @@ def _progress_disabled() -> bool | None:
     if os.environ.get("CI") or os.environ.get("PCFBENCH_NO_PROGRESS"):
         return True
     return None  # tqdm: disabled when not a terminal
-
-
-def git_commit() -> str | None:
-    here = Path(pcfbench.__file__).resolve().parent.parent
-    try:
-        out = subprocess.run(
-            ["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() or None
-
-
-def environment() -> dict[str, Any]:
-    import pandas
-    import pyarrow
-
-    env = {
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "numpy": np.__version__,
-        "pandas": pandas.__version__,
-        "pyarrow": pyarrow.__version__,
-        "cpus": os.cpu_count(),
-    }
-    if "torch" in sys.modules:
-        env["torch"] = sys.modules["torch"].__version__
-    return env
 
 
 @dataclass

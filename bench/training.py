@@ -693,7 +693,7 @@ class TrainingRun:
         (e.g. its network sizes)."""
         import torch
 
-        from pcfbench.runner import git_commit
+        from pcfbench.provenance import git_commit
         from pcfbench.store import atomic_write_bytes, atomic_write_json
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
