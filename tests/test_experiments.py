@@ -42,6 +42,8 @@ def test_the_folder_holds_the_scripts_tested_here():
     assert SCRIPTS == ["copilot4d_gpu.py", "copilot4d_gpu_stage.py", "copilot4d_replay.py",
                        "realism_far_views.py", "realism_yard_trees_inside.py"], (
         "a script added to docs/experiments/ needs a smoke test here (or a journal entry and no script)")
+    assert sorted(p.name for p in EXPERIMENTS.glob("*.sh")) == ["copilot4d_gpu.sh"], (
+        "a script added to docs/experiments/ needs a smoke test here (or a journal entry and no script)")
 
 
 @pytest.mark.parametrize("name", SCRIPTS)
