@@ -226,7 +226,8 @@ def _anchors(path: Path) -> set[str]:
 
 
 def test_every_relative_link_resolves():
-    pages = [README, *sorted(DOCS.glob("*.md"))]
+    pages = [README, *sorted(DOCS.glob("*.md")), *sorted((DOCS / "journal").glob("*.md")),
+             REPO / "datasets" / "synthetic" / "CHANGELOG.md"]
     assert len(pages) >= 8
     checked = 0
     for page in pages:
@@ -246,3 +247,11 @@ def test_code_cites_the_protocol_in_the_repository():
     stale = [f"{p.relative_to(REPO)}" for folder in ("bench", "methods", "datasets") for p in (REPO / folder).rglob("*")
              if p.suffix in (".py", ".md", ".toml") and "PROTOCOL.md" in p.read_text(encoding="utf-8")]
     assert not stale, f"cite docs/protocol.md, not PROTOCOL.md: {stale}"
+
+
+def test_every_world_physics_version_has_a_changelog_entry():
+    from pcfbench.datasets.synthetic.realism import REALISM
+
+    text = (REPO / "datasets" / "synthetic" / "CHANGELOG.md").read_text(encoding="utf-8")
+    missing = [v for v in range(1, REALISM.version + 1) if f"\n- physics {v}: " not in text]
+    assert not missing, f"datasets/synthetic/CHANGELOG.md has no entry for physics {missing}"

@@ -1017,7 +1017,7 @@ def test_poles_and_trunks_stay_off_every_carriageway_from_physics_3(monkeypatch)
 #: AVX-512, after CI had passed on the first digest for days. numpy's own SIMD level does
 #: not change it (the same digest with its AVX2 paths switched off); Open3D's ray casting
 #: (Embree) picks its code by CPU, the likely cause, not proven. So physics-1 bytes are not
-#: the same on every machine (docs/realism.md, "The default stays on physics 1").
+#: the same on every machine (docs/journal/realism-2026-11.md, "Physics 1's bytes depend on the host").
 GOLDEN_TINY_V1 = {
     "b50ddcca7dfc9329fbdb164954da2bc09560e65e70cb02aac482454a5ee0ead2": "the hosts of CI up to 2026-11-26",
     "594010b92063ea2d97d098ca10a78e108fcf7c7269f9a2376d28eee5748122b7": "AMD EPYC, AVX2, no AVX-512",

@@ -1,85 +1,28 @@
-"""World physics versions 2-10 ("realism"): a sensor and surfaces closer to real LiDAR.
+"""World physics 10 ("realism"): a sensor and surfaces closer to real LiDAR.
 
-Version 1 (every domain's default) casts clean rays at ideal surfaces: planes stay planes,
-each sweep is an instant, returns drop only at grazing angles and long range. The realism
-report (``pcfbench synthetic compare``) shows what that leaves out against real KITTI
-sweeps: about a quarter of the points, a third of the static-scene residual and of the local
-roughness, and baselines ranked differently. Version 2 adds, all of it physics or
+Physics 1 (every domain's default) casts clean rays at ideal surfaces. ``REALISM``, the
+knobs below, is physics 10, the world of ``synthetic-town-realistic``; each knob is physics or
 statistics of the world and the sensor, none of it tied to a scene:
 
-* **Real azimuth resolution**: 2048 columns a revolution (HDL-64E at 10 Hz: ~0.17 deg).
-* **Beam calibration and jitter**: each beam's true elevation is off its nominal one by the
-  sensor's intrinsic error (``elevation_error_deg``, as KITTI's) plus a fixed offset per
-  beam (1-sigma ``beam_bias_deg``), each shot by a random jitter
-  (``jitter_deg``); the point is reported along the nominal direction, as a real sensor
-  does, so rings on the ground wave. Range noise: a fixed bias per beam plus Gaussian noise.
-* **Rough surfaces**: every static surface is displaced along its normal by smooth value
-  noise of world position (the same in every sweep: it is the surface, not the sensor),
-  amplitude and wavelength by class (ground: asphalt, curbs and grass; walls; vegetation).
-* **Vegetation as a volume**: a ray into a tree crown returns from a random depth inside it
-  (exponential), different every sweep, as leaves do.
-* **Mixed pixels**: a ray at a depth discontinuity (its azimuth neighbour more than
-  ``mixed_gap_m`` away) returns, with probability ``mixed_prob``, from between the two.
-* **A spinning sensor** (``motion_distortion=True``): each column is fired at its own time
-  over the 0.1 s revolution (clockwise from above, the sweep's timestamp when facing
-  forward) from the ego pose at that time and stored without de-skewing. Off in the town:
-  KITTI's odometry scans come de-skewed, so its sweeps are too.
-* **Estimated poses**: the stored poses are the true ones off by a random walk of a few
-  millimetres and a hundredth of a degree per sweep, as SLAM poses are, and (physics 5)
-  rising away from the scans by ``pose_drift_m_s``, as KITTI's do against its sweeps.
-* **Traffic** (physics 5; set anew in physics 9): ``traffic_share`` of the town style's
-  moving agents, so that about as many of the points are on moving objects as over
-  SemanticKITTI's labelled sequences.
-* **Returns that fade**: a return is detected with probability ``1 / (1 + (r / r50)^6)``
-  where ``r50`` grows with the surface's reflectance and incidence (dark asphalt at grazing
-  incidence fades first); car bodies add a specular drop.
+* **the sensor**: 2048 columns a revolution (HDL-64E at 10 Hz); each beam's true elevation off
+  its nominal one by the sensor's intrinsic error plus a fixed offset per beam, each shot by a
+  random jitter, the point reported along the nominal direction as a real sensor does; range
+  noise as a per-beam bias plus Gaussian noise; returns that fade with range, reflectance and
+  incidence (detection probability ``1 / (1 + (r / r50)^6)``), car bodies with a specular
+  drop; mixed pixels at depth discontinuities at the real rate; optionally a spinning sensor
+  (``motion_distortion``, off: KITTI's odometry scans come de-skewed); the ego roof hiding the
+  steepest beams' returns;
+* **the surfaces**: every static surface displaced along its normal by smooth value noise of
+  world position, amplitude and wavelength by class; vegetation a volume a ray returns from
+  inside (an exponential depth, new every sweep); solid tree trunks (class TRUNK);
+* **the poses**: the stored poses are estimates, the true ones off by a random walk and
+  drifting upwards from the scans, as KITTI's do against its sweeps;
+* **the town**: 2 m sidewalks with hedged yards, trees in the yards behind the buildings,
+  street furniture kept off the carriageways, and the moving traffic SemanticKITTI's labelled
+  sequences have.
 
-Version 3 keeps street furniture off the road: a pole or tree placed along one road could
-stand inside a crossing road's carriageway near the junction (one trunk 0.9 m from a drive
-of test sequence 05), which version 1 keeps (its bytes are frozen) and 3 leaves out
-(``clearance_m``).
-
-Version 4 makes tree trunks solid: up to version 3 they were VEGETATION like the crowns, so
-a ray at a trunk returned from up to a metre inside it (the crown's exponential depth) and
-its points smeared behind a 0.12-0.3 m wide trunk. They are now their own class, TRUNK
-(SemanticKITTI's "trunk"), a surface with the roughness of bark (``solid_trunks``). And the
-roof under the sensor is 0.35 m below it, not 0.45 (``roof_below_sensor_m``), so that it
-hides the steepest beams' returns as the real roof-rack mount does.
-
-Version 6 moves the street's edge nearer: the sidewalk is 2.0 m wide, not the town style's
-3.5 m (``sidewalk_m``), and hedges line most yards at its back (``shrubs_per_100m``: 12 per
-100 m of frontage, not 4). The realism report's label-free near-road statistics (parallax
-behind near surfaces, near bins per sweep, the share of vertical planes, roughness) all said
-the real street's near surfaces stand nearer and closer together than the town's, and they
-all moved towards real with it (docs/realism.md, "Parallax").
-
-Version 7 takes mixed pixels down to the real rate: a ray at a depth discontinuity returns
-from in between with probability 0.04, not 0.35 (``mixed_prob``). The realism report's
-mixed-pixel statistic was 1.57x the real drive's and is 1.17x; the in-between returns float in
-free space, where the voxel caster stopped on them and carving cleared them, so they ranked
-the casters as the real drive does not (docs/realism.md, "Physics 7").
-
-Version 8 makes foliage shallower: a return from inside a tree crown, hedge or bush comes from
-0.1 m inside it on average, not 0.35 (``crown_depth_m``). The realism report's roughness p90
-(the rough tail of the local plane fits) was 1.24x the real drive's and is 1.05x. In the deep
-crowns 4docc, which answers with a past return from some other depth in them, erred as on no
-real surface and ranked last on l1_median, where the real drive has it third
-(docs/realism.md, "Physics 8").
-
-Version 9 has 0.085 of the town style's moving traffic, from 0.4: SemanticKITTI's labelled
-sequences have 0.24 % of their points on moving objects, physics 8's towns 1.12 %. Physics 5
-had set 0.4 by matching the free-space violations, but on the calibration drive those are
-still surfaces seen through, which the report's label-free moving evidence tells apart
-(docs/realism.md, "Moving evidence" and "Physics 9").
-
-Version 10 plants trees in the yards behind the buildings, 20 per 100 m of frontage
-(``yard_trees_per_100m``), 12-28 m beyond the sidewalk. Up to version 9 the blocks' interiors
-were bare ground, so through every gap between buildings the next row stood in view at
-40-65 m, and the sensor a second on, with a near building now in the way, no longer saw it:
-the realism report's "far views that close" was 3.3x the real drive's, and copy-last and
-4docc, which keep such far points, had 1.4x and 1.7x its near-field Chamfer. Real residential
-blocks have trees in their yards. At 20 per 100 m the closing share is 2.6x real and every
-baseline's chamfer_nf 0.90-1.15x (docs/realism.md, "Physics 10").
+What each version changed and why: ``datasets/synthetic/CHANGELOG.md``; how the world compares
+with real sweeps and how to measure it: docs/realism.md.
 
 Generation stays deterministic: the noise fields are functions of position, the random
 draws come from the sequence's sensor generator.
@@ -118,12 +61,12 @@ class Realism:
     #: shrubs: hedges along the yards and bushes, (hedges per 100 m of frontage, bushes per 100 m).
     #: Physics 6: 12 hedges (3-12 m long) per 100 m, from 4, and ``sidewalk_m`` below: hedges
     #: line most yards at the back of the sidewalk, as the realism report's label-free near-road
-    #: statistics say the real street's do (docs/realism.md, "Parallax")
+    #: statistics say the real street's do (CHANGELOG.md, physics 6)
     shrubs_per_100m: tuple = (12.0, 6.0)
     #: trees in the yards behind the buildings per 100 m of frontage, 12-28 m beyond the
     #: sidewalk, a crown's width off every road (physics 10: 20, from none; the blocks'
     #: interiors were bare, and the far facades seen through every gap closed a second later
-    #: 3.3x as often as on the real drive: docs/realism.md, "Physics 10"). Drawn without regard
+    #: 3.3x as often as on the real drive: CHANGELOG.md, physics 10). Drawn without regard
     #: to the buildings: 40 % stand inside one (most hidden, 2 % with a crown through the roof)
     yard_trees_per_100m: float = 20.0
     #: the sidewalk's width (m; None: the town style's 3.5 m), which sets where the yards, their
@@ -132,13 +75,13 @@ class Realism:
     sidewalk_m: float | None = 2.0
     #: mean depth (m) a return comes from inside a tree crown, hedge or bush (an exponential
     #: draw, new every sweep). Physics 8: 0.1, from 0.35, where the realism report's roughness
-    #: p90 is 1.05x the real drive's, from 1.24x (docs/realism.md, "Physics 8")
+    #: p90 is 1.05x the real drive's, from 1.24x (CHANGELOG.md, physics 8)
     crown_depth_m: float = 0.1
     mixed_gap_m: float = 0.5
     #: the share of such rays that return from in between. Physics 7: 0.04, from 0.35, where
     #: the realism report's mixed-pixel statistic (depth jumps along a beam with a return in
     #: between) is 1.17x the real drive's, from 1.57x: the floating in-between returns were
-    #: what the voxel caster stopped on and carving cleared (docs/realism.md, "Physics 7")
+    #: what the voxel caster stopped on and carving cleared (CHANGELOG.md, physics 7)
     mixed_prob: float = 0.04
     r50_m: float = 110.0  # range at which a white, head-on target is detected half the time
     specular_drop: float = 0.12  # extra drop on car bodies
@@ -163,7 +106,7 @@ class Realism:
     #: of SemanticKITTI's labelled sequences (the class content its API publishes); 0.4 of the
     #: traffic put 1.12 % of the seven towns' points on moving objects. Physics 5-8 had 0.4, set
     #: by the free-space violations, which on the real drive are mostly still surfaces seen
-    #: through, not traffic (docs/realism.md, "Moving evidence")
+    #: through, not traffic (CHANGELOG.md, physics 9)
     traffic_share: float = 0.085
     #: poles and tree trunks stand at least this far outside every carriageway (m): placed
     #: along one road, some stood in a crossing road near its junction, and a drive passed a

@@ -1,4 +1,5 @@
-"""Far views that close (docs/realism.md, "Far views that close"): where copy-last's and 4docc's
+"""Far views that close (docs/realism.md, "Reproduce"; the measurements that chose physics 10:
+docs/journal/realism-2026-11.md, "Far views that close"): where copy-last's and 4docc's
 near-field Chamfer comes from, and why the far points they keep are not seen a second later.
 
     # the split of chamfer_nf (every kitti-1s sample of the named sequences; all when none named)
@@ -24,23 +25,27 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from realism_chamfer_split import forecasts_of  # noqa: E402
-
-from pcfbench.datasets.synthetic import compare as C  # noqa: E402
-from pcfbench.geometry import transform_points  # noqa: E402
-from pcfbench.method import resolve_method  # noqa: E402
-from pcfbench.protocol import SampleBuilder, get_setting  # noqa: E402
-from pcfbench.roi import ROI  # noqa: E402
+from pcfbench.datasets.synthetic import compare as C
+from pcfbench.geometry import transform_points
+from pcfbench.method import resolve_method
+from pcfbench.protocol import SampleBuilder, get_setting
+from pcfbench.roi import ROI
+from pcfbench.validate import validate_forecast
 
 METHODS = ("copy-last", "raycast-4docc", "raycast-freespace")
+
+
+def forecasts_of(builder, keys, methods):
+    """Per sample key: (sequence name, reference index, the sample, its truth, each method's
+    validated forecast)."""
+    for seq, ref in keys:
+        sample, truth = builder.build(seq, ref)
+        yield seq, ref, sample, truth, {m: validate_forecast(sample, x.forecast(sample.for_method()))
+                                        for m, x in methods.items()}
 
 
 def far_part(points_ref: np.ndarray, T_ref_future: np.ndarray) -> np.ndarray:

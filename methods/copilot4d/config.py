@@ -109,7 +109,7 @@ PAPER = TokenizerConfig(
 # 256 x 256 x 16 x 8 (0.625 m cells), candidate points every 0.5 m for spatial skipping (its
 # cells are 5 m wide), 1200 steps (docs/copilot4d.md: what was measured). 32 x 32 tokens
 # (5 m, patch 4; version 2) reconstructed about 5x worse than copy-last's forecast error: 9 bits
-# per 25 m^2 column cannot hold the scene.
+# per 25 m^2 column cannot hold the scene (docs/journal/copilot4d-2026-11.md).
 TINY = TokenizerConfig(
     name="tiny",
     x_range=(-80.0, 80.0), y_range=(-80.0, 80.0), z_range=(-4.5, 4.5),

@@ -266,8 +266,7 @@ class Copilot4D(TrainedMethod):
     version = "1"
     Options = WorldOptions
     variant_name = "copilot4d"
-    # Both threads of the idle 2-core machine (2026-11-26): the 216 windows tokenized in 254 s, then
-    # 1.9-2.2 s a step (600 steps on one thread beside other jobs: 2605 s in all)
+    # the measurements behind it: docs/journal/copilot4d-2026-11.md, "Training times"
     training_time = ("about 25 min for the tiny configuration on a 2-core CPU (4 min of tokenizing, 600 steps "
                      "at about 2 s), plus its tokenizer's training")
     inference_options = ("cfg_weight", "sampling_steps", "seed", *(f.name for f in fields(RenderingOptions)))

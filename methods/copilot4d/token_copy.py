@@ -38,8 +38,7 @@ class TokenCopy(TrainedMethod):
     version = "3"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m); 3: tiny has 64 x 64 tokens (2.5 m)
     Options = TokenCopyOptions
     inference_options = tuple(f.name for f in fields(RenderingOptions))
-    # Measured on the idle 2-core development machine (tiny config, synthetic-town train, both
-    # threads, 2026-11-26): 1200 steps in 966 s; on one thread beside another job, 1641 s.
+    # the measurements behind it: docs/journal/copilot4d-2026-11.md, "Training times"
     training_time = "about 16 min for the tiny configuration on a 2-core CPU (1200 steps, 966 s measured)"
 
     def __init__(self, options: TokenCopyOptions | None = None) -> None:

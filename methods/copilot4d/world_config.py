@@ -94,9 +94,9 @@ PAPER = WorldModelConfig(
 
 # CPU scale: the tiny tokenizer's grid and codebook, the paper's block layout at an eighth to a
 # fifth of its widths (still 32 dimensions per head) and a batch of one sequence: about 0.35 s
-# per training step (10 frames) on an idle 2-core CPU; 3.75 s measured on the shared one (load
-# average 10) with the MaskGIT variant training beside it, so 600 steps (the schedule decays
-# over them) are what fits the 45 minutes the world model may take there.
+# per training step (10 frames) on an idle 2-core CPU. 600 steps (the schedule decays over them)
+# fit the 45 minutes the world model may take on a busy one (docs/journal/copilot4d-2026-11.md,
+# "Training times").
 TINY = WorldModelConfig(
     name="tiny",
     codebook_size=TINY_TOKENIZER.codebook_size, token_grid=TINY_TOKENIZER.bev_tokens,
