@@ -7,7 +7,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 #: the folders of the installed package (pyproject.toml: bench -> pcfbench, methods, datasets)
 SOURCES = ("bench", "methods", "datasets")
 

@@ -117,7 +117,7 @@ def test_docs_trust_lists_the_baselines_ranges_as_declared(plugins):
     import re
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parent.parent / "docs" / "trust.md").read_text(encoding="utf-8")
+    text = (Path(__file__).resolve().parents[2] / "docs" / "trust.md").read_text(encoding="utf-8")
     rows = re.findall(r"^  \| (raycast[^|]*) \| (\w+) \| ([^|]+) \|$", text, re.M)
     assert len(rows) >= 12
     for methods, name, valid in rows:

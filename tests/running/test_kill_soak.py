@@ -19,7 +19,7 @@ from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
 from pcfbench.store import Cell, CellSpec
 from tests_helpers import write_kitti_tree
-from test_trust_isolation import _alive, _descendants
+from test_isolation import _alive, _descendants
 
 #: kills per soak (PCFBENCH_SOAK_KILLS=10 for the issue's closing note)
 KILLS = int(os.environ.get("PCFBENCH_SOAK_KILLS", 5))
@@ -44,9 +44,9 @@ def plugins():
 
 _RUN = """
 import sys
-sys.path.insert(0, {tests!r})
+sys.path[:0] = {tests!r}
 import pcfbench.plugins
-from test_trust_soak import plugins
+from test_kill_soak import plugins
 pcfbench.plugins._PLUGINS = plugins()
 from pcfbench.cli import main
 sys.argv = ["pcfbench", "run", "-d", "kitti={root}", "-s", "kitti-1s", "-m", "dawdles", "-j", "2", "--store", {store!r},
@@ -56,7 +56,7 @@ main()
 
 
 def _start(root, store):
-    code = textwrap.dedent(_RUN).format(tests=str(Path(__file__).parent), root=root, store=str(store),
+    code = textwrap.dedent(_RUN).format(tests=[str(Path(__file__).parent), str(Path(__file__).parents[1])], root=root, store=str(store),
                                         metrics=[a for m in METRICS for a in ("--metric", m)])
     env = {**os.environ, "PCFBENCH_CHUNK_SAMPLES": "3", "PCFBENCH_NO_PROGRESS": "1"}
     return subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

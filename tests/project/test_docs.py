@@ -22,7 +22,7 @@ from pcfbench.metrics.base import Metric
 from pcfbench.options import describe_options
 from pcfbench.plugins import load_plugins
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 README = REPO / "README.md"
 DOCS = REPO / "docs"
 VENV_BIN = Path(sys.executable).parent

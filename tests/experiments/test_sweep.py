@@ -25,7 +25,7 @@ from pcfbench.store import Cell
 from pcfbench.sweep import EXPERIMENT_KEYS, METHOD_KEYS, TABLE_KEYS, load_experiment, plan, run_sweep
 from tests_helpers import write_kitti_tree
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = REPO / "docs" / "experiments"
 RAYCAST = EXAMPLES / "raycast-voxel-size.toml"
 PCFBENCH = str(Path(sys.executable).parent / "pcfbench")

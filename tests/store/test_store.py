@@ -157,9 +157,9 @@ def test_a_locked_cell_is_refused_or_waited_for(tiny_kitti, store):
 
 _RUN = """
 import sys
-sys.path.insert(0, {tests!r})
+sys.path[:0] = {tests!r}
 import pcfbench.plugins
-from test_trust_store import plugins
+from test_store import plugins
 pcfbench.plugins._PLUGINS = plugins()
 from pcfbench.cli import main
 sys.argv = ["pcfbench", "run", "-d", "kitti={root}", "-s", "kitti-1s", "--metric", "chamfer", "--store", {store!r},
@@ -173,7 +173,7 @@ def test_two_runs_on_one_store_compute_each_cell_once(tiny_kitti, tmp_path):
     store = str(tmp_path / "store")
 
     def start(*methods):
-        code = textwrap.dedent(_RUN).format(tests=str(Path(__file__).parent), root=tiny_kitti, store=store,
+        code = textwrap.dedent(_RUN).format(tests=[str(Path(__file__).parent), str(Path(__file__).parents[1])], root=tiny_kitti, store=store,
                                             methods=[a for m in methods for a in ("-m", m)])
         return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

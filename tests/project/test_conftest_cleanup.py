@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-HERE = Path(__file__).parent
+HERE = Path(__file__).resolve().parents[1]  # conftest.py
 IMPORT = "import os, sys; sys.path.insert(0, sys.argv[1]); import conftest\n"
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_metrics import close, fast, slow, suite
 
-CHANGELOG = Path(__file__).resolve().parent.parent / "bench" / "metrics" / "CHANGELOG.md"
+CHANGELOG = Path(__file__).resolve().parents[2] / "bench" / "metrics" / "CHANGELOG.md"
 
 #: name -> (version, value on the point forecast, value on the depth forecast)
 GOLDEN = {

@@ -179,7 +179,7 @@ def test_ctrl_c_in_a_sweep_says_the_same(tmp_path, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(pcfbench.sweep, "run_sweep", interrupted)
-    exp = Path(__file__).resolve().parent.parent / "docs" / "experiments" / "raycast-voxel-size.toml"
+    exp = Path(__file__).resolve().parents[2] / "docs" / "experiments" / "raycast-voxel-size.toml"
     res = CliRunner().invoke(build_cli(), ["sweep", str(exp), "--store", str(tmp_path / "s"), "-q"])
     assert res.exit_code == 130, res.output
     assert "pcfbench: interrupted: the finished work is kept in the store" in res.output

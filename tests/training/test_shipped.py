@@ -17,7 +17,7 @@ from pcfbench.training import (
     may_have_checkpoint, open_training_data, ship, shipped_dir, shipped_mismatch,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = {"pcfbench": ROOT / "bench", "pcfbench.methods": ROOT / "methods", "pcfbench.datasets": ROOT / "datasets"}
 
 

@@ -153,8 +153,8 @@ def _alive(pid: int) -> bool:
 def test_no_orphan_workers_after_the_driver_is_sigkilled(tiny_kitti, tmp_path):
     script = textwrap.dedent(f"""
         import sys
-        sys.path.insert(0, {str(Path(__file__).parent)!r})
-        from test_trust_isolation import plugins, _spec
+        sys.path[:0] = {[str(Path(__file__).parent), str(Path(__file__).parents[1])]!r}
+        from test_isolation import plugins, _spec
         from pcfbench.runner import run_cell
         run_cell(_spec({str(tiny_kitti)!r}, "slow"), {str(tmp_path / "store")!r}, plugins=plugins(), progress=False,
                  jobs=2, timeout=600)

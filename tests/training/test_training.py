@@ -23,6 +23,7 @@ from pcfbench.method import resolve_method
 from pcfbench.training import Checkpoint, CheckpointError, checkpoint_for, open_training_data, train
 
 HERE = Path(__file__).resolve().parent
+TESTS = HERE.parent  # conftest.py, tests_helpers.py
 
 
 @dataclass(frozen=True)
@@ -144,7 +145,7 @@ def test_sigkill_mid_training_then_resume_continues_the_same_curve(env, tmp_path
     straight = _train(env, spec)  # uninterrupted reference, in its own cache
     reference = straight.load_state()["history"]
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache-killed"))
-    script = (f"import sys; sys.path.insert(0, {str(HERE)!r}); from test_training import toy_plugins; "
+    script = (f"import sys; sys.path[:0] = {[str(HERE), str(TESTS)]!r}; from test_training import toy_plugins; "
               "from pcfbench.method import resolve_method; from pcfbench.training import train; "
               f"p = toy_plugins(); train(resolve_method({spec!r}, p), {env.data!r}, plugins=p, progress=False)")
     proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "TOY_STEP_SLEEP": "0.2"},

@@ -16,7 +16,8 @@ import pytest
 from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext, applied, available_cpus, current, pool_sizes, thread_limits
 
-TESTS = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parent
+TESTS = HERE.parent  # conftest.py, tests_helpers.py
 
 
 # -- the context -----------------------------------------------------------------------------
@@ -279,7 +280,7 @@ def _probe_env(tmp_path: Path) -> dict[str, str]:
     (site / "thread_probe_plugin.py").write_text(_PROBE)
     out = tmp_path / "records"
     out.mkdir()
-    path = [str(site), str(TESTS)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])
+    path = [str(site), str(HERE), str(TESTS)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(path), PCFBENCH_PLUGINS="thread-probe",
                THREAD_PROBE_OUT=str(out), PCFBENCH_NO_PROGRESS="1")
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):

@@ -1264,7 +1264,7 @@ def test_physics_10_output_is_unchanged_up_to_the_rounding_of_ray_casts():
     from scipy.spatial import cKDTree
 
     def moved(realism, recorded: str) -> float:
-        ref = np.load(Path(__file__).parent / "data" / recorded)
+        ref = np.load(Path(__file__).resolve().parents[1] / "data" / recorded)
         trees = {c: cKDTree(ref["points"][ref["labels"] == c]) for c in np.unique(ref["labels"])}
         dom = _tiny_domain("synthetic-town-realistic", sweeps=1, azimuths=120)
         seq = simulate_sequence(dc.replace(dom, realism=realism), "05")
