@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-EXPERIMENTS = Path(__file__).resolve().parent.parent / "docs" / "experiments"
+EXPERIMENTS = Path(__file__).resolve().parents[2] / "docs" / "experiments"
 SCRIPTS = sorted(p.name for p in EXPERIMENTS.glob("*.py"))
 
 
