@@ -17,7 +17,7 @@ Importing a pcfbench module changes no thread setting; before its first parallel
 (``map``, ``pool``, ``apply``) pcfbench asks numba for its OpenMP layer (``_prefer_omp``).
 
 Results must not depend on the number of threads: work is cut into pieces whose answers do
-not depend on the cut (tests/test_execution.py compares 1, 2 and 3 threads bit for bit).
+not depend on the cut (tests/running/test_execution.py compares 1, 2 and 3 threads bit for bit).
 """
 
 from __future__ import annotations

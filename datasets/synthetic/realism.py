@@ -149,7 +149,7 @@ def _lattice(ix, iy, iz, salt):
 @nb.njit(cache=True, nogil=True)
 def _value_noise_kernel(p, wavelength, salt):
     """``value_noise`` one point at a time: the same float64 operations in the same order as the
-    array form it replaced (tests/test_synthetic_realism.py keeps that form as the reference
+    array form it replaced (tests/synthetic/test_synthetic_realism.py keeps that form as the reference
     and checks bit equality), without its eight corners' temporaries (12x faster on 110k points)."""
     out = np.zeros(p.shape[0])
     for n in range(p.shape[0]):

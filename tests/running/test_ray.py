@@ -74,7 +74,7 @@ class RayProbe(CopyLast):
 
 @pcfbench.hookimpl
 def register_methods(register):
-    register("ray-probe", RayProbe, "copy-last recording its calls (tests/test_ray.py)")
+    register("ray-probe", RayProbe, "copy-last recording its calls (tests/running/test_ray.py)")
 '''
 
 
@@ -117,7 +117,7 @@ class RayToy(pcfbench.TrainedMethod):
 
 @pcfbench.hookimpl
 def register_methods(register):
-    register("ray-toy", RayToy, "a toy trained method (tests/test_ray.py)")
+    register("ray-toy", RayToy, "a toy trained method (tests/running/test_ray.py)")
 '''
 
 

@@ -252,7 +252,7 @@ def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_pa
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
     from pcfbench.warmup import KernelWarmup
 
-    warmups = []  # the run's kernel warm-up starts with the generation, once (tests/test_warmup.py runs it)
+    warmups = []  # the run's kernel warm-up starts with the generation, once (tests/running/test_warmup.py runs it)
     monkeypatch.setattr(KernelWarmup, "start", lambda self: warmups.append((self.methods, self.metrics)))
     cli = build_cli()
     args = ["run", "--method", "copy-last", "--limit", "2", "--reports", str(tmp_path / "reports"), "-q"]
