@@ -129,6 +129,7 @@ def _cli(args, site):
     return subprocess.run([str(VENV_BIN / "pcfbench"), *args], capture_output=True, text=True, env=env, timeout=300)
 
 
+@pytest.mark.third_party_plugins
 def test_readme_plugin_installed_appears_on_the_leaderboard(readme_distribution, tiny_kitti, tmp_path):
     listing = _cli(["ls", "methods"], readme_distribution)
     assert listing.returncode == 0, listing.stderr

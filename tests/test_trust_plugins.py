@@ -26,7 +26,8 @@ class Marker(CopyLast):
 @pytest.fixture
 def third_party(monkeypatch, tmp_path):
     """Add ``name -> module`` entry points of a third-party distribution ``evil`` beside the
-    installed ones."""
+    installed ones, and let third-party plugins load (the tests' default allow-list holds none)."""
+    monkeypatch.delenv("PCFBENCH_PLUGINS", raising=False)
     real = list(importlib.metadata.entry_points(group="pcfbench"))
     dist = _dist(tmp_path, "evil")
     added = []
