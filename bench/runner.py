@@ -324,6 +324,7 @@ def run_cell(
             "environment": environment(),
             "samples": len(ids),
             "metric_units": {m.name: m.unit for m in res.metrics},
+            "metric_higher_is_better": {m.name: m.higher_is_better for m in res.metrics},
             "created": (meta or {}).get("created", time.time()),
         }
         cell.write_meta(meta)
