@@ -10,7 +10,6 @@ import pytest
 
 from pcfbench.errors import PluginError, UnknownNameError
 from pcfbench.hookspecs import hookimpl
-from pcfbench.method import Method
 from pcfbench.plugins import Plugins, load_plugins
 
 VENV_BIN = Path(sys.executable).parent
