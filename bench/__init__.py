@@ -55,6 +55,10 @@ _EXPORTS: dict[str, str | None] = {
     # metrics
     "Metric": "pcfbench.metrics.base",
     "SweepContext": "pcfbench.metrics.base",
+    # the closed sets of words (StrEnums: each member is its string)
+    "Needs": "pcfbench.kinds",
+    "Better": "pcfbench.kinds",
+    "PolicyKind": "pcfbench.kinds",
     # protocol
     "Setting": "pcfbench.protocol",
     "SamplePolicy": "pcfbench.protocol",
@@ -96,4 +100,5 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench.options import option
     from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
     from pcfbench.metrics.base import Metric, SweepContext
+    from pcfbench.kinds import Better, Needs, PolicyKind
     from pcfbench.protocol import Protocol, SamplePolicy, Setting, active_protocol

@@ -94,7 +94,9 @@ metric. A leaderboard cell is the flat mean over all scored (sample, future swee
 (the median metrics too: a mean of per-sweep medians); `reports/leaderboard_by_step.csv`
 breaks every metric down by future step. A metric's `version` changes whenever what it
 computes changes, and `pcfbench report` refuses to put two versions in one column. Fractions
-(AbsRel) are printed as percentages in the leaderboards.
+(AbsRel) are printed as percentages in the leaderboards. `better` is which way a metric
+improves (`Metric.higher_is_better`, which every metric must set): the leaderboards take their
+arrows, ranks and bold best values from it, never from the table presets.
 """
 
 
@@ -114,15 +116,16 @@ def metrics_markdown(metrics: list | None = None, changelog: list[ChangelogLine]
         )
 
     out = [_INTRO, "## Summary", "",
-           "| metric | version | unit | needs | description |", "|---|---|---|---|---|"]
+           "| metric | version | unit | better | needs | description |", "|---|---|---|---|---|---|"]
     for m in metrics:
         out.append(f"| [`{m.name}`](#{_anchor(m.name)}) | {m.version} | {_cell(m.unit or '-')} | "
-                   f"{m.needs} | {_cell(m.description)} |")
+                   f"{m.better} | {m.needs} | {_cell(m.description)} |")
     out.append("")
     for m in metrics:
         out += [f"## {m.name}", "",
                 f"- version: {m.version}",
                 f"- unit: {m.unit or '-'}",
+                f"- better: {m.better} (higher_is_better = {m.higher_is_better})",
                 f"- forecast must carry: {m.needs}",
                 f"- empty policy: {m.empty_policy or '-'}",
                 f"- reference: {m.reference or '-'}",

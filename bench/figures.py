@@ -168,14 +168,16 @@ def sweep_errors(step: int, gt: np.ndarray, query, pred_points, pred_depths) -> 
     return SweepErrors(step, ctx.gt_ranges[ctx.ray_kept], l1, absrel, ctx.pred_points, pred_err, gt)
 
 
-def choose_samples(rows: pd.DataFrame, metric: str | None, n: int) -> list[str]:
-    """``n`` sample ids of a cell's ok rows: ranked by their mean of ``metric``; the median and
-    the worst for n = 2, else evenly spaced ranks from the best to the worst."""
+def choose_samples(rows: pd.DataFrame, metric: str | None, n: int, higher_is_better: bool = False) -> list[str]:
+    """``n`` sample ids of a cell's ok rows: ranked by their mean of ``metric``, best first
+    (``higher_is_better``: the metric's direction); the median and the worst for n = 2, else
+    evenly spaced ranks from the best to the worst."""
     ok = rows[rows["status"] == "ok"]
     if not len(ok) or n < 1:
         return []
     if metric is not None and metric in ok:
-        score = ok.groupby("sample_id")[metric].mean().fillna(np.inf)
+        score = ok.groupby("sample_id")[metric].mean() * (-1.0 if higher_is_better else 1.0)
+        score = score.fillna(np.inf)
     else:
         score = ok.groupby("sample_id")["step"].count() * 0.0
     order = score.sort_values(kind="stable").index.tolist()
@@ -518,7 +520,7 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
         from pcfbench.store import Cell
 
         rows = Cell.at(store_root, base["cell_dir"]).read_rows()
-        ids = choose_samples(rows, rank, samples)
+        ids = choose_samples(rows, rank, samples, any(c.metric == rank and c.better == "higher" for c in columns))
         if not ids:
             continue
         run = rerun(store_root, g, ids, plugins)

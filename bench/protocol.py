@@ -39,6 +39,7 @@ from pcfbench.data import GroundTruth, RayQuery, Sample
 from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.errors import PcfbenchError, unknown_name
 from pcfbench.geometry import invert, rotate_vectors, transform_points
+from pcfbench.kinds import PolicyKind, parse
 from pcfbench.roi import Box
 from pcfbench.validate import validate_sweep
 
@@ -97,7 +98,9 @@ class Setting:
 
 
 #: The anchor rules a policy can use; ``subsample`` thins another policy's anchors.
-POLICY_KINDS = ("full-context", "every-frame", "subsample")
+POLICY_KINDS = tuple(k.value for k in PolicyKind)
+#: the kinds whose anchors a ``subsample`` policy can thin
+_ANCHOR_RULES = (PolicyKind.FULL_CONTEXT, PolicyKind.EVERY_FRAME)
 
 
 @dataclass(frozen=True)
@@ -113,24 +116,27 @@ class SamplePolicy:
     """
 
     name: str
-    kind: str
+    kind: PolicyKind
     n: int | None = None
     of: str | None = None
     description: str = ""
     #: the anchor rule of the candidates: ``kind``, or for ``subsample`` the kind of ``of``
-    rule: str = ""
+    rule: PolicyKind | str = ""
     every: int | None = None
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "kind", parse(PolicyKind, self.kind, f"sample policy {self.name!r}: kind"))
         if not self.rule:
             object.__setattr__(self, "rule", self.kind)
-        if self.rule not in ("full-context", "every-frame"):
+        if self.rule not in _ANCHOR_RULES:
             raise PcfbenchError(f"sample policy {self.name!r}: candidates must follow full-context or every-frame, not {self.rule!r}")
+        object.__setattr__(self, "rule", PolicyKind(self.rule))
 
     def params(self) -> dict[str, Any]:
-        """What the policy selects with (its cell identity): everything but the description."""
-        out: dict[str, Any] = {"name": self.name, "kind": self.kind}
-        if self.kind == "subsample":  # an n policy's identity stays as it was before ``every``
+        """What the policy selects with (its cell identity): everything but the description.
+        The kind is its plain string, as cell.json has always held it."""
+        out: dict[str, Any] = {"name": self.name, "kind": self.kind.value}
+        if self.kind == PolicyKind.SUBSAMPLE:  # an n policy's identity stays as it was before ``every``
             out.update({"every": self.every} if self.every is not None else {"n": self.n}, of=self.of)
         return out
 
@@ -250,11 +256,9 @@ def parse_protocol(data: dict, source: str) -> Protocol:
         where = f"protocol file {source} [policies.{name}]"
         raw = _table(raw, where)
         _no_extra(raw, _POLICY_KEYS, where)
-        kind = _require(raw, "kind", where)
-        if kind not in POLICY_KINDS:
-            raise PcfbenchError(f"{where}: kind must be one of {', '.join(POLICY_KINDS)}, got {kind!r}")
+        kind = parse(PolicyKind, _require(raw, "kind", where), f"{where}: kind")
         n, of, every = raw.get("n"), raw.get("of"), raw.get("every")
-        if kind == "subsample":
+        if kind == PolicyKind.SUBSAMPLE:
             if (n is None) == (every is None):
                 raise PcfbenchError(f"{where}: a subsample policy needs one of n (how many anchors) and every "
                                     f"(every k-th anchor), got n={n!r}, every={every!r}")
@@ -263,7 +267,7 @@ def parse_protocol(data: dict, source: str) -> Protocol:
             if every is not None and (not _is_int(every) or every < 1):
                 raise PcfbenchError(f"{where}: a subsample policy's every must be an integer >= 1, got {every!r}")
             base = raw_policies.get(of) if isinstance(of, str) else None
-            if not isinstance(base, dict) or base.get("kind") not in ("full-context", "every-frame"):
+            if not isinstance(base, dict) or base.get("kind") not in _ANCHOR_RULES:
                 raise PcfbenchError(
                     f"{where}: of must name a full-context or every-frame policy of the file, got {of!r}"
                 )
@@ -361,7 +365,7 @@ def anchors(num_sweeps: int, setting: Setting, policy: str | SamplePolicy) -> li
     itself spans the whole split (:meth:`SampleBuilder.sample_keys`).
     """
     p = _policy(policy)
-    if p.rule == "full-context":
+    if p.rule == PolicyKind.FULL_CONTEXT:
         first = (setting.past - 1) * setting.stride
         last = num_sweeps - 1 - setting.future * setting.stride
         return list(range(first, last + 1))
@@ -419,7 +423,7 @@ class SampleBuilder:
         for name in self.adapter.sequence_names(split):
             seq = self.sequence(name)
             keys.extend((name, i) for i in anchors(len(seq), self.setting, self.sample_policy))
-        if self.sample_policy.kind == "subsample":
+        if self.sample_policy.kind == PolicyKind.SUBSAMPLE:
             keys = [keys[i] for i in self.sample_policy.thin(len(keys))]
         return keys
 

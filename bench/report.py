@@ -77,6 +77,9 @@ class Leaderboard:
     #: cells whose samples did not all score (failed, or rows missing): never ranked; one row
     #: each with ``coverage`` ("80/84"), ``expected`` and ``missing`` (sample ids without rows)
     incomplete: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: metric -> ``Metric.higher_is_better`` (from the cells' cell.json, else the registry);
+    #: a metric neither knows is absent, and its columns are shown lower-is-better
+    higher_is_better: dict[str, bool] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -216,6 +219,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
     rows, step_rows, sums, notes = [], [], [], []
     versions = {False: {}, True: {}}
     units: dict[str, str] = {}
+    directions: dict[str, bool] = {}
     for cell_dir, meta in iter_cells(store_root):
         if meta.get("status") != "complete" or (cells is not None and cell_dir.resolve() not in cells):
             continue
@@ -227,6 +231,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
         cov = coverage(meta, df)  # from the rows: a deleted chunk cannot claim its samples
         metric_versions = meta.get("metric_versions", {})
         units.update(meta.get("metric_units", {}))
+        directions.update(meta.get("metric_higher_is_better", {}))
         base = {
             "dataset": spec.dataset, "split": spec.split, "setting": spec.setting, "policy": spec.policy,
             "method": spec.method, "method_version": meta.get("method_version"),
@@ -298,9 +303,31 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
         complete, partial_t = table[~table["partial"]], table[table["partial"]]
     else:
         complete, partial_t = table, table
+    directions = metric_directions(metric_cols, directions, notes)
     return Leaderboard(complete.reset_index(drop=True), pd.DataFrame(step_rows), metric_cols, units,
                        partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)),
-                       incomplete=incomplete.reset_index(drop=True))
+                       incomplete=incomplete.reset_index(drop=True), higher_is_better=directions)
+
+
+def metric_directions(names: list[str], recorded: dict[str, bool], notes: list[str] | None = None) -> dict[str, bool]:
+    """``Metric.higher_is_better`` of each metric of ``names``: as the cells recorded it
+    (``metric_higher_is_better`` in cell.json), else from the metric registry (cells written
+    before the direction was recorded). A metric neither knows (its plugin is not installed)
+    is left out, with a line in ``notes``."""
+    out = {n: bool(recorded[n]) for n in names if n in recorded}
+    missing = [n for n in names if n not in out]
+    if missing:
+        from pcfbench.plugins import get_plugins
+
+        registry = get_plugins().metrics
+        for name in missing:
+            try:
+                out[name] = bool(registry.get(name).higher_is_better)
+            except PcfbenchError:  # not registered, or its plugin fails to load
+                if notes is not None:
+                    notes.append(f"metric {name!r}: which way is better is neither recorded in its cells nor known "
+                                 "to an installed plugin; its columns are shown lower-is-better")
+    return out
 
 
 def _compare_groups(table: pd.DataFrame, sums: list, reference: str, resampling: stats.Resampling,

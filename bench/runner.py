@@ -8,7 +8,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable
 
 import numpy as np
 from tqdm import tqdm
@@ -295,6 +295,7 @@ def run_cell(
             "environment": environment(),
             "samples": len(ids),
             "metric_units": {m.name: m.unit for m in res.metrics},
+            "metric_higher_is_better": {m.name: m.higher_is_better for m in res.metrics},
             "created": (meta or {}).get("created", time.time()),
         }
         cell.write_meta(meta)

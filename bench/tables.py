@@ -1,11 +1,13 @@
 """Table presets (data, in tables.toml) and the renderers of a leaderboard in their layout.
 
-A preset names the metric columns of a table, their headers and whether lower or higher is
-better; :func:`build` turns the analysed leaderboard (``pcfbench.report.collect``) into
-row groups per (dataset, split, setting, policy[, limit]) ranked best first, and
-:func:`markdown`, :func:`latex`, :func:`html_table` and :func:`text` print it. Every value is
-the flat mean of the leaderboard; the ± (or [lo, hi]) is its bootstrap interval, and the
-relative change is against the group's reference cell (``pcfbench.stats``).
+A preset names the metric columns of a table and their headers; which way each column is
+better comes from its metric (``Metric.higher_is_better``, recorded in every cell.json), and
+a preset that still says ``better`` must agree with it. :func:`build` turns the analysed
+leaderboard (``pcfbench.report.collect``) into row groups per (dataset, split, setting,
+policy[, limit]) ranked best first, and :func:`markdown`, :func:`latex`, :func:`html_table`
+and :func:`text` print it. Every value is the flat mean of the leaderboard; the ± (or
+[lo, hi]) is its bootstrap interval, and the relative change is against the group's
+reference cell (``pcfbench.stats``).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pathlib import Path
 import pandas as pd
 
 from pcfbench.errors import PcfbenchError, unknown_name
+from pcfbench.kinds import Better, parse
 
 PRESETS_FILE = "tables.toml"
 CI_STYLES = ("pm", "interval", "none")
@@ -39,7 +42,8 @@ _FOOTNOTE_SCALE = 8 / 9  # \footnotesize (8 pt) against \small (9 pt)
 class Column:
     metric: str
     label: str
-    better: str = "lower"
+    #: None: the metric's own direction; else a claim :func:`build` checks against it
+    better: Better | None = None
 
 
 @dataclass(frozen=True)
@@ -74,11 +78,11 @@ def _parse_preset(name: str, data: object, source: str) -> Preset:
             if not isinstance(c, dict) or not isinstance(c.get("metric"), str) or set(c) - _COLUMN_KEYS:
                 raise PcfbenchError(
                     f"{where}: column {i + 1} must be a table {{metric = \"name\", label = \"header\", "
-                    f"better = \"lower\"|\"higher\"}}, got {c!r}"
+                    f"better = \"lower\"|\"higher\" (optional: the metric's own)}}, got {c!r}"
                 )
-            better = c.get("better", "lower")
-            if better not in ("lower", "higher"):
-                raise PcfbenchError(f"{where}: column {c['metric']!r}: better must be \"lower\" or \"higher\", got {better!r}")
+            better = c.get("better")
+            if better is not None:
+                better = parse(Better, better, f"{where}: column {c['metric']!r}: better")
             label = c.get("label", c["metric"])
             if not isinstance(label, str) or not label:
                 raise PcfbenchError(f"{where}: column {c['metric']!r}: label must be a non-empty string")
@@ -128,7 +132,7 @@ def get_preset(name: str, presets: dict[str, Preset]) -> Preset:
 class ShownColumn:
     metric: str
     label: str
-    better: str
+    better: Better
     unit: str
 
 
@@ -189,7 +193,7 @@ def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | No
         if order is not None:  # a sweep's rows in the experiment's order
             g = g.assign(_row=g["variant"].map({v: i for i, v in enumerate(order)})).sort_values("_row").drop(columns="_row")
         elif rank is not None:
-            sign = 1.0 if rank.better == "lower" else -1.0
+            sign = 1.0 if rank.better == Better.LOWER else -1.0
             score = (sign * g[rank.metric]).fillna(math.inf) if rank.metric in g else pd.Series(0.0, index=g.index)
             g = g.assign(_score=score).sort_values(["_score", "variant"]).drop(columns="_score")
         first = g.iloc[0].copy()
@@ -203,10 +207,26 @@ def _groups(df: pd.DataFrame, columns: list[ShownColumn], rank: ShownColumn | No
         for c in columns:
             vals = g[c.metric].dropna() if c.metric in g else pd.Series(dtype=float)
             if len(vals):
-                best[c.metric] = float(vals.min() if c.better == "lower" else vals.max())
+                best[c.metric] = float(vals.min() if c.better == Better.LOWER else vals.max())
         ref = g.loc[g["is_reference"], "variant"]
         out.append(Group(title, g.reset_index(drop=True), ref.iloc[0] if len(ref) else None, best))
     return out
+
+
+def column_better(preset: Preset, column: Column, higher_is_better: bool | None) -> Better:
+    """Which way ``column`` of ``preset`` is better: its metric's direction (``higher_is_better``;
+    None where neither the store nor the registry knows it), which a ``better`` the preset
+    states must match; lower where nothing says."""
+    if higher_is_better is None:
+        return column.better or Better.LOWER
+    metric = Better.of(higher_is_better)
+    if column.better is not None and column.better != metric:
+        raise PcfbenchError(
+            f"{preset.source or 'table presets'}: preset {preset.name!r}: column {column.metric!r} says better = "
+            f"\"{column.better}\", but metric {column.metric!r} is {metric}-is-better (Metric.higher_is_better = "
+            f"{higher_is_better}); drop `better` from the column: the metric's own direction is used"
+        )
+    return metric
 
 
 def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
@@ -219,14 +239,16 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
         raise unknown_name("interval style", ci, CI_STYLES)
     notes = []
     if preset.columns is None:
-        wanted = [Column(m, m, "lower") for m in lb.metric_columns]
+        wanted = [Column(m, m) for m in lb.metric_columns]
     else:
         wanted = list(preset.columns)
     have = set(lb.metric_columns)
     missing = [c.metric for c in wanted if c.metric not in have]
     if missing and (len(lb.table) or len(lb.partial)):
         notes.append(f"no cell in the store has {', '.join(missing)}: column(s) left out of preset {preset.name!r}")
-    columns = [ShownColumn(c.metric, c.label, c.better, lb.units.get(c.metric, "")) for c in wanted if c.metric in have]
+    directions = getattr(lb, "higher_is_better", {})
+    columns = [ShownColumn(c.metric, c.label, column_better(preset, c, directions.get(c.metric)),
+                           lb.units.get(c.metric, "")) for c in wanted if c.metric in have]
     rank_name = preset.rank_by or (wanted[0].metric if wanted else None)
     rank = next((c for c in columns if c.metric == rank_name), columns[0] if columns else None)
     legend = [
@@ -302,7 +324,7 @@ def cell_parts(row: pd.Series, col: ShownColumn, best: dict[str, float], ci: str
 
 
 def _header_label(c: ShownColumn) -> str:
-    arrow = "↓" if c.better == "lower" else "↑"
+    arrow = "↓" if c.better == Better.LOWER else "↑"
     u = unit_text(c.unit)
     return f"{c.label} {arrow}" + (f" ({u})" if u else "")
 
@@ -428,7 +450,7 @@ def _tex_cell(p: Parts) -> tuple[str, float]:
 
 def _tex_head(c: ShownColumn) -> tuple[str, int]:
     """A column header on two lines (split at the space nearest the middle) with its arrow."""
-    arrow = r" $\downarrow$" if c.better == "lower" else r" $\uparrow$"
+    arrow = r" $\downarrow$" if c.better == Better.LOWER else r" $\uparrow$"
     words = c.label.split(" ")
     if len(words) == 1:
         return tex_text(c.label) + arrow, len(c.label) + 2

@@ -15,7 +15,6 @@ one ``DataError`` naming the log and the gap, never read with its later sweeps s
 
 from __future__ import annotations
 
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np

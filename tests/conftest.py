@@ -40,6 +40,31 @@ os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")
 os.environ["RAY_TMPDIR"] = str(_HOME / "ray")  # the local Rays' session folders, else left in /tmp/ray
 for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + ["PCFBENCH_CONFIG", "PCFBENCH_STORE", "PCFBENCH_REPORTS", "PCFBENCH_PLUGINS", "PCFBENCH_BLOCK_PLUGINS"]:
     os.environ.pop(_var, None)
+# Only the built-ins: a third-party plugin installed in the environment (a user's, another
+# project's) must not change what the tests see. A test that installs plugins of its own
+# opts in with @pytest.mark.third_party_plugins (every allowed, or only the names given);
+# processes the tests start inherit the empty allow-list unless they set their own.
+os.environ["PCFBENCH_PLUGINS"] = ""
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers",
+        "third_party_plugins(*names): let third-party pcfbench plugins load (all, or only the entry "
+        "points named); without it the tests load the built-ins only",
+    )
+
+
+@pytest.fixture(autouse=True)
+def _third_party_plugins(request, monkeypatch):
+    """Lift the empty plugin allow-list for a test marked ``third_party_plugins``."""
+    marker = request.node.get_closest_marker("third_party_plugins")
+    if marker is None:
+        return
+    if marker.args:
+        monkeypatch.setenv("PCFBENCH_PLUGINS", ",".join(marker.args))
+    else:
+        monkeypatch.delenv("PCFBENCH_PLUGINS", raising=False)
 
 
 def write_tiny_kitti(root: Path, sequences=("08",), num_sweeps: int = 24, beams: int = 16, azimuths: int = 360) -> Path:

@@ -9,7 +9,9 @@ from typing import Callable
 import numpy as np
 
 from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
+from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext
+from pcfbench.kinds import Better, Needs, parse
 from pcfbench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
 from pcfbench.protocol import MIN_RANGE_M
 from pcfbench.roi import ROI, Box, ray_box_interval
@@ -22,6 +24,11 @@ class Metric:
     ``fn(ctx)`` returns a float, or NaN when the sweep is skipped under the metric's empty
     policy (skipped sweeps are counted, never averaged). ``version`` changes whenever what
     the metric computes changes.
+
+    ``higher_is_better`` has no default: every metric says which way it improves (False for
+    an error such as a distance, True for a score such as an IoU), and the tables rank, bold
+    and draw arrows from it. A default would rank a forgotten score backwards without a word,
+    so a metric built without it is refused (:class:`~pcfbench.errors.PcfbenchError`).
     """
 
     name: str
@@ -31,8 +38,24 @@ class Metric:
     reference: str = ""
     unit: str = ""
     empty_policy: str = ""
-    #: "points", "depths" or "either": what the forecast must carry for this metric.
-    needs: str = "either"
+    #: what the forecast must carry for this metric (a :class:`~pcfbench.kinds.Needs`; the
+    #: strings "points", "depths" and "either" are accepted)
+    needs: Needs = Needs.EITHER
+    #: True: a larger value is better (a score); False: a smaller one is (an error). Required.
+    higher_is_better: bool = None  # type: ignore[assignment] - None is refused in __post_init__
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.higher_is_better, bool):
+            raise PcfbenchError(
+                f"metric {self.name!r} must say which way is better: higher_is_better=False for an error "
+                f"(lower is better, like every built-in metric) or True for a score; got {self.higher_is_better!r}"
+            )
+        object.__setattr__(self, "needs", parse(Needs, self.needs, f"metric {self.name!r}: needs"))
+
+    @property
+    def better(self) -> Better:
+        """``Better.HIGHER`` or ``Better.LOWER``, from ``higher_is_better``."""
+        return Better.of(self.higher_is_better)
 
     def __call__(self, ctx: "SweepContext") -> float:
         return float(self.fn(ctx))
@@ -249,7 +272,7 @@ def score_sample(
         for metric in metrics:
             if gt.shape[0] == 0:
                 row[metric.name] = float("nan")  # sweeps without ground truth are skipped
-            elif metric.needs == "depths" and forecast.depths is None:
+            elif metric.needs == Needs.DEPTHS and forecast.depths is None:
                 row[metric.name] = float("nan")
             else:
                 row[metric.name] = metric(ctx)

@@ -49,6 +49,7 @@ CHAMFER = Metric(
     description="Chamfer distance (CD): mean squared NN distance each way, the two means averaged; no crop",
     reference="4D-Occ (Khurana et al. 2023), docs/protocol.md section 4",
     unit="m^2",
+    higher_is_better=False,
     empty_policy="empty prediction: sweep skipped (NaN, counted)",
 )
 
@@ -59,6 +60,7 @@ CHAMFER_NF = Metric(
     description="Near-field Chamfer (NFCD): CD after cropping P and G to the ROI independently",
     reference="published tables' 'Chamfer' column (4D-Occ, Copilot4D); corrected empty policy",
     unit="m^2",
+    higher_is_better=False,
     empty_policy="empty crop of P or G: sweep skipped (NaN, counted)",
 )
 
@@ -69,5 +71,6 @@ CHAMFER_NF_4DOCC = Metric(
     description="NFCD as the 4D-Occ reference code averages it: an empty crop scores 0 and counts",
     reference="4D-Occ reference evaluation code (Khurana et al. 2023)",
     unit="m^2",
+    higher_is_better=False,
     empty_policy="empty crop of P or G: 0, counted in the mean",
 )

@@ -35,7 +35,7 @@ from dataclasses import dataclass, replace
 import numba as nb
 import numpy as np
 
-from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, ALBEDO, SweepResult, _rotate, _tensor_mesh, ego_hits, open3d
+from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, ALBEDO, SweepResult, _tensor_mesh, ego_hits, open3d
 from pcfbench.datasets.synthetic.sensor import LidarConfig
 from pcfbench.datasets.synthetic.world import (
     EGO, GROUND, PARKED, POLE, STRUCTURE, TRUNK, VEGETATION, VEHICLE, Agent, _place, merge,

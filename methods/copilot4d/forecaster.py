@@ -69,7 +69,6 @@ def sample_seed(sample_id: str, seed: int) -> int:
 def tensor_digest(state: dict) -> str:
     """sha256 over the names, shapes and values of a state dict's tensors, floating-point ones
     rounded to float16 (so the fp16 copy of float32 weights has the digest of the original)."""
-    import torch
 
     h = hashlib.sha256()
     for k in sorted(state):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pcfbench.errors import DataError
-from pcfbench.geometry import invert, transform_points
+from pcfbench.geometry import transform_points
 from pcfbench.testing import check_adapter, toy_world_sweeps
 from pcfbench.datasets.layout import STANDARD_AXES, SequenceData, change_axes
 from pcfbench.datasets.nuscenes import NuScenes, official_splits, write_nuscenes

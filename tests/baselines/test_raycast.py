@@ -338,9 +338,9 @@ def test_slab_field_matches_brute_force():
     a, b, c = (grid.ukeys // (grid.dims[0, 1] * grid.dims[0, 2])), (grid.ukeys // grid.dims[0, 2]) % grid.dims[0, 1], grid.ukeys % grid.dims[0, 2]
     occ[a >> 1, b >> 1, c >> 1] = True
     want = np.full((nx, ny, nz), 255)
-    I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     for i, j, k in zip(*np.nonzero(occ)):
-        want[:, :, k] = np.minimum(want[:, :, k], np.maximum(np.abs(I - i), np.abs(J - j)))
+        want[:, :, k] = np.minimum(want[:, :, k], np.maximum(np.abs(ii - i), np.abs(jj - j)))
     assert np.array_equal(grid.field.reshape(nx, ny, nz), want)
 
 

@@ -14,7 +14,7 @@ from pcfbench import config
 from pcfbench.cli import cli
 from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.method import MethodSpec, options_hash, parse_method_spec, resolve_method
-from pcfbench.options import HELP, NoOptions, describe_options, option, parse_options, type_name
+from pcfbench.options import HELP, NoOptions, describe_options, option, type_name
 from pcfbench.plugins import load_plugins
 
 #: options_hash of each built-in method's default options, computed from the code before the

@@ -26,7 +26,8 @@ class Marker(CopyLast):
 @pytest.fixture
 def third_party(monkeypatch, tmp_path):
     """Add ``name -> module`` entry points of a third-party distribution ``evil`` beside the
-    installed ones."""
+    installed ones, and let third-party plugins load (the tests' default allow-list holds none)."""
+    monkeypatch.delenv("PCFBENCH_PLUGINS", raising=False)
     real = list(importlib.metadata.entry_points(group="pcfbench"))
     dist = _dist(tmp_path, "evil")
     added = []
@@ -120,7 +121,7 @@ def test_docs_metrics_page_takes_builtins_by_distribution_not_name(third_party):
     from pcfbench import docs
     from pcfbench.metrics.base import Metric
 
-    rogue = Metric("rogue", "1", lambda ctx: 0.0, "a third-party metric")
+    rogue = Metric("rogue", "1", lambda ctx: 0.0, "a third-party metric", higher_is_better=False)
     third_party("builtin-rogue", register_metrics=lambda register: register("rogue", rogue))
     assert "rogue" in load_plugins().metrics  # it is loaded (no allow-list)...
     names = [m.name for m in docs.builtin_metrics()]

@@ -10,7 +10,6 @@ import pytest
 
 from pcfbench.errors import PluginError, UnknownNameError
 from pcfbench.hookspecs import hookimpl
-from pcfbench.method import Method
 from pcfbench.plugins import Plugins, load_plugins
 
 VENV_BIN = Path(sys.executable).parent
@@ -126,6 +125,7 @@ def _cli(args, site, **env):
     return subprocess.run([str(VENV_BIN / "pcfbench"), *args], capture_output=True, text=True, env=full_env, timeout=300)
 
 
+@pytest.mark.third_party_plugins
 def test_external_plugin_via_entry_point(external_plugin, tiny_kitti, tmp_path):
     out = _cli(["ls", "methods"], external_plugin)
     assert out.returncode == 0, out.stderr
@@ -142,6 +142,7 @@ def test_external_plugin_via_entry_point(external_plugin, tiny_kitti, tmp_path):
     assert "shifted-copy" in md and "copy-last" in md
 
 
+@pytest.mark.third_party_plugins
 def test_allow_and_block_lists(external_plugin):
     only_builtins = _cli(["plugins", "--json"], external_plugin, PCFBENCH_PLUGINS="")
     names = {p["name"] for p in json.loads(only_builtins.stdout)}
@@ -170,8 +171,11 @@ def _registering(*names, fail=None):
 
 @pytest.fixture
 def fake_entry_points(monkeypatch):
-    """Add modules as entry points of the pcfbench group, beside the installed ones."""
+    """Add modules as entry points of the pcfbench group, beside the installed ones, and let
+    third-party plugins load (the tests' default allow-list holds none)."""
     import importlib.metadata
+
+    monkeypatch.delenv("PCFBENCH_PLUGINS", raising=False)
 
     real = importlib.metadata.entry_points(group="pcfbench")
     added = []
@@ -263,3 +267,35 @@ def test_register_commands_ordering_lets_a_plugin_extend_anothers_group():
     assert set(group.commands["grp"].commands) == {"sub"}
     assert plugins.info["aa-ext"].error is None
     assert plugins.info["mm-broken"].error == "register_commands: RuntimeError: no commands today"
+
+
+def _uninvited(monkeypatch):
+    """An installed third-party entry point ``uninvited`` that registers the method ``uninvited``."""
+    import importlib.metadata
+
+    real = list(importlib.metadata.entry_points(group="pcfbench"))
+    mod = _plugin_module("pcfb_uninvited", register_methods=_registering("uninvited"))
+    monkeypatch.setitem(sys.modules, mod.__name__, mod)
+    ep = importlib.metadata.EntryPoint("uninvited", mod.__name__, "pcfbench")
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group: [*real, ep] if group == "pcfbench" else [])
+
+
+def test_tests_load_no_third_party_plugin_unless_they_ask(monkeypatch):
+    _uninvited(monkeypatch)
+    assert os.environ["PCFBENCH_PLUGINS"] == ""  # conftest: the built-ins only
+    plugins = load_plugins()
+    assert "uninvited" not in plugins.methods and "uninvited" not in plugins.info
+    assert "copy-last" in plugins.methods
+
+
+@pytest.mark.third_party_plugins("uninvited")
+def test_a_test_marked_third_party_plugins_loads_the_ones_it_names(monkeypatch):
+    _uninvited(monkeypatch)
+    assert load_plugins().methods.entries["uninvited"].plugin == "uninvited"
+
+
+@pytest.mark.third_party_plugins
+def test_a_test_marked_third_party_plugins_without_names_loads_every_one(monkeypatch):
+    _uninvited(monkeypatch)
+    assert "PCFBENCH_PLUGINS" not in os.environ
+    assert "uninvited" in load_plugins().methods

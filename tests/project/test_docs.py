@@ -129,6 +129,7 @@ def _cli(args, site):
     return subprocess.run([str(VENV_BIN / "pcfbench"), *args], capture_output=True, text=True, env=env, timeout=300)
 
 
+@pytest.mark.third_party_plugins
 def test_readme_plugin_installed_appears_on_the_leaderboard(readme_distribution, tiny_kitti, tmp_path):
     listing = _cli(["ls", "methods"], readme_distribution)
     assert listing.returncode == 0, listing.stderr
@@ -200,14 +201,15 @@ def test_metrics_doc_lists_every_metric_with_its_changelog():
 
 def test_a_new_metric_or_version_changes_the_page_and_needs_a_changelog_line(tmp_path):
     new = Metric(name="toy", version="2", fn=lambda ctx: 0.0, description="a toy metric", unit="m",
-                 empty_policy="never skipped", reference="nowhere")
+                 empty_policy="never skipped", reference="nowhere", higher_is_better=True)
     log = tmp_path / "CHANGELOG.md"
     log.write_text("# log\n\n## 2026-01-01\n\n- `toy` 1: first version.\n")
     with pytest.raises(PcfbenchError, match="no line for metric version.*toy 2"):
         docs.metrics_markdown([new], docs.read_changelog(log))
     log.write_text("# log\n\n## 2026-01-01\n\n- `toy` 1: first version.\n\n## 2026-02-01\n\n- `toy` 2: now zero.\n")
     text = docs.metrics_markdown([new], docs.read_changelog(log))
-    assert "| [`toy`](#toy) | 2 | m | either | a toy metric |" in text
+    assert "| [`toy`](#toy) | 2 | m | higher | either | a toy metric |" in text
+    assert "- better: higher (higher_is_better = True)" in text
     assert "- 2026-01-01, version 1: first version.\n- 2026-02-01, version 2: now zero." in text
     log.write_text("## 2026-01-01\n\n- toy 1 first version\n")
     with pytest.raises(PcfbenchError, match=r"CHANGELOG\.md:3: expected"):

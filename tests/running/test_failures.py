@@ -2,10 +2,8 @@
 complete ones (its coverage is shown), ``pcfbench run`` exits non-zero when samples failed,
 and a cell with a chunk deleted is found incomplete on read."""
 
-import json
 
 import pandas as pd
-import pytest
 from click.testing import CliRunner
 
 import pcfbench.plugins

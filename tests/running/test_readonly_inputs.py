@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pcfbench.data import Forecast, read_only_copy
-from pcfbench.method import Method, options_hash
+from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
 from pcfbench.runner import run_cell

@@ -15,7 +15,6 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-import pcfbench.plugins
 from pcfbench.cli import cli
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import options_hash

@@ -193,8 +193,11 @@ def test_parallax_bleed_matches_a_brute_force_reference():
     earlier = _at(rng.uniform(-3, 3, 600), rng.uniform(-6, 6, 600), r=rng.uniform(2, 40, 600))
     later[::7, 2] -= 1.0  # some returns low enough to be ground
     bled, judged = C.parallax_bleed(earlier, later)
-    key = lambda p: (int(np.floor((C.azimuth_deg(p[None])[0] + 180) / C.FREE_AZ_DEG)),
-                     int(np.floor((C.elevation_deg(p[None])[0] - C.FREE_EL_DEG_RANGE[0]) / C.FREE_EL_DEG)))
+
+    def key(p):
+        return (int(np.floor((C.azimuth_deg(p[None])[0] + 180) / C.FREE_AZ_DEG)),
+                int(np.floor((C.elevation_deg(p[None])[0] - C.FREE_EL_DEG_RANGE[0]) / C.FREE_EL_DEG)))
+
     nearest = {}
     for p in later:  # each bin's nearest return, the slow way
         k, r = key(p), float(np.linalg.norm(p))
