@@ -84,7 +84,10 @@ def _poses(table: pa.Table, path: Path, key: str) -> tuple[np.ndarray, np.ndarra
     norms = np.linalg.norm(q, axis=1)
     if (norms < 1e-12).any() or not (np.isfinite(q).all() and np.isfinite(t).all()):
         i = int(np.argmax((norms < 1e-12) | ~np.isfinite(norms) | ~np.isfinite(t).all(axis=1)))
-        raise DataError(f"Argoverse 2 pose file {path} row {i} ({key} {keys[i]}): quaternion (qw, qx, qy, qz) {list(q[i])} has zero norm or a non-finite value (expected a unit quaternion)")
+        raise DataError(
+            f"Argoverse 2 pose file {path} row {i} ({key} {keys[i]}): quaternion (qw, qx, qy, qz) {list(q[i])} "
+            "has zero norm or a non-finite value (expected a unit quaternion)"
+        )
     T = np.tile(np.eye(4), (len(q), 1, 1))
     T[:, :3, :3] = quat_wxyz_to_rotation(q)
     T[:, :3, 3] = t
@@ -145,12 +148,18 @@ class Argoverse2(DatasetAdapter):
         keys = keys.astype(np.int64)
         if np.any(np.diff(keys) <= 0):
             i = int(np.argmax(np.diff(keys) <= 0)) + 1
-            raise DataError(f"Argoverse 2 pose file {pose_path}: timestamp_ns {keys[i]} at row {i} is not after {keys[i - 1]} (expected strictly increasing timestamps)")
+            raise DataError(
+                f"Argoverse 2 pose file {pose_path}: timestamp_ns {keys[i]} at row {i} is not after {keys[i - 1]} "
+                "(expected strictly increasing timestamps)"
+            )
         idx = np.searchsorted(keys, ts)
         found = (idx < len(keys)) & (keys[np.minimum(idx, len(keys) - 1)] == ts) if len(keys) else np.zeros(len(ts), bool)
         if not found.all():
             missing = ts[~found][:3]
-            raise DataError(f"Argoverse 2 pose file {pose_path} has no pose at timestamp_ns {', '.join(map(str, missing))} (the sweeps {', '.join(f'{m}.feather' for m in missing)} need one each)")
+            raise DataError(
+                f"Argoverse 2 pose file {pose_path} has no pose at timestamp_ns {', '.join(map(str, missing))} "
+                f"(the sweeps {', '.join(f'{m}.feather' for m in missing)} need one each)"
+            )
         files = [lidar / f"{t}.feather" for t in ts]
         return Sequence(name=name, T_world_sensor=T[idx], timestamps_ns=ts, loader=lambda _s, i: read_lidar(files[i]))
 

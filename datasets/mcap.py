@@ -76,7 +76,10 @@ class _Decoder:
             else:
                 fn = next((f for f in (fac.decoder_for(channel.message_encoding, schema) for fac in _factories()) if f), None)
                 if fn is None:
-                    raise DataError(f"topic {channel.topic}: cannot decode message encoding {channel.message_encoding!r} with schema {schema.name if schema else None!r}")
+                    raise DataError(
+                        f"topic {channel.topic}: cannot decode message encoding {channel.message_encoding!r} "
+                        f"with schema {schema.name if schema else None!r}"
+                    )
             self._cache[schema.id if schema else -1] = fn
         return fn(message.data)
 
@@ -129,7 +132,10 @@ def _slerp_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
 def cloud_points(msg, schema_name: str, where: str) -> np.ndarray:
     """(N, 3) float32 points of a decoded PointCloud2 / foxglove.PointCloud in its frame."""
     if schema_name == "sensor_msgs/msg/PointCloud2":
-        fields = {_get(f, "name"): (int(_get(f, "offset")), ROS_TYPES.get(int(_get(f, "datatype"))), int(_get(f, "count", 1) or 1)) for f in _get(msg, "fields")}
+        fields = {
+            _get(f, "name"): (int(_get(f, "offset")), ROS_TYPES.get(int(_get(f, "datatype"))), int(_get(f, "count", 1) or 1))
+            for f in _get(msg, "fields")
+        }
         step, width, height = int(_get(msg, "point_step")), int(_get(msg, "width")), int(_get(msg, "height"))
         row_step, data = int(_get(msg, "row_step")), _get(msg, "data")
         order = ">" if _get(msg, "is_bigendian") else "<"
@@ -150,7 +156,10 @@ def cloud_points(msg, schema_name: str, where: str) -> np.ndarray:
             raise DataError(f"{where}: field {name!r} has an unknown datatype")
         size = np.dtype(code).itemsize * count
         if offset + size > step:
-            raise DataError(f"{where}: point_step {step} is smaller than field {name!r} (offset {offset} + {size} bytes); expected point_step >= {offset + size}")
+            raise DataError(
+                f"{where}: point_step {step} is smaller than field {name!r} (offset {offset} + {size} bytes); "
+                f"expected point_step >= {offset + size}"
+            )
     if row_step < width * step:
         raise DataError(f"{where}: row_step {row_step} is smaller than width {width} x point_step {step}")
     data = bytes(data) if not isinstance(data, (bytes, bytearray, memoryview)) else data
@@ -216,7 +225,10 @@ class _Recording:
                     raise DataError(f"MCAP file {path} has no point-cloud topic (expected a channel with schema {' or '.join(CLOUD_SCHEMAS)})")
                 if topic is None:
                     if len(self.cloud_topics) > 1:
-                        raise DataError(f"MCAP file {path} has several point-cloud topics ({', '.join(sorted(self.cloud_topics))}): pick one with the option topic=...")
+                        raise DataError(
+                            f"MCAP file {path} has several point-cloud topics ({', '.join(sorted(self.cloud_topics))}): "
+                            "pick one with the option topic=..."
+                        )
                     topic = next(iter(self.cloud_topics))
                 elif topic not in self.cloud_topics:
                     raise DataError(f"MCAP file {path} has no point-cloud topic {topic!r} (found: {', '.join(sorted(self.cloud_topics)) or 'none'})")
@@ -289,13 +301,19 @@ class _Recording:
         while f != world:
             link = self._link_arrays.get(f)
             if link is None:
-                raise DataError(f"MCAP file {self.path} topic {self.topic} cloud at {stamp} ns: no transform from {world!r} to {frame!r} (frame {f!r} has no parent; frames known: {', '.join(sorted(self.frames())) or 'none'})")
+                raise DataError(
+                    f"MCAP file {self.path} topic {self.topic} cloud at {stamp} ns: no transform from {world!r} to {frame!r} "
+                    f"(frame {f!r} has no parent; frames known: {', '.join(sorted(self.frames())) or 'none'})"
+                )
             parent, times, Ts, static = link
             if static:
                 T_link = Ts[-1]
             else:
                 if stamp < times[0] - tolerance_ns or stamp > times[-1] + tolerance_ns:
-                    raise DataError(f"MCAP file {self.path} topic {self.topic} cloud at {stamp} ns: no transform {parent} -> {f} available at that time (samples from {times[0]} to {times[-1]} ns)")
+                    raise DataError(
+                        f"MCAP file {self.path} topic {self.topic} cloud at {stamp} ns: no transform {parent} -> {f} "
+                        f"available at that time (samples from {times[0]} to {times[-1]} ns)"
+                    )
                 k = int(np.searchsorted(times, stamp))
                 if k <= 0:
                     T_link = Ts[0]
@@ -393,7 +411,11 @@ class McapRecording(DatasetAdapter):
             return (snap[0] if snap else round(native, 2)), 1
         stride = max(1, int(round(native / target)))
         if abs(native / stride - target) > 0.02 * target:
-            raise DataError(f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz: keeping every k-th sweep cannot give {target:g} Hz (rates reachable: {', '.join(f'{native / k:.2f}' for k in range(1, 6))} Hz)")
+            raise DataError(
+                f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz: "
+                f"keeping every k-th sweep cannot give {target:g} Hz "
+                f"(rates reachable: {', '.join(f'{native / k:.2f}' for k in range(1, 6))} Hz)"
+            )
         return target, stride
 
     def splits(self) -> tuple[str, ...]:
@@ -410,7 +432,11 @@ class McapRecording(DatasetAdapter):
         if len(stamps_all) > 1:
             native = 1e9 / float(np.median(np.diff(stamps_all)))
             if abs(native / self.stride - self.rate_hz) > 0.02 * self.rate_hz:
-                raise DataError(f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz, but this dataset runs at {self.rate_hz:g} Hz (every {self.stride} sweep(s), from its first recording): one rate per dataset, or open the file alone")
+                raise DataError(
+                    f"MCAP file {rec.path} topic {rec.topic} is recorded at {native:.2f} Hz, "
+                    f"but this dataset runs at {self.rate_hz:g} Hz (every {self.stride} sweep(s), from its first recording): "
+                    "one rate per dataset, or open the file alone"
+                )
         logged: dict[int, int] = {}
         for k, (_stamp, log_time, _frame) in enumerate(rec.clouds):
             if log_time in logged:
@@ -422,7 +448,10 @@ class McapRecording(DatasetAdapter):
         bad = np.flatnonzero(np.diff(stamps) <= 0)
         if bad.size:
             i = int(bad[0]) + 1
-            raise DataError(f"MCAP file {rec.path} topic {rec.topic}: cloud {i} has timestamp {stamps[i]} ns, not after the previous cloud's {stamps[i - 1]} ns (expected increasing header stamps)")
+            raise DataError(
+                f"MCAP file {rec.path} topic {rec.topic}: cloud {i} has timestamp {stamps[i]} ns, "
+                f"not after the previous cloud's {stamps[i - 1]} ns (expected increasing header stamps)"
+            )
         if len(stamps_all) > 1:
             native = 1e9 / float(np.median(np.diff(stamps_all)))
             check_sweep_times(stamps_all, native, f"MCAP file {rec.path} topic {rec.topic} (header stamps)")
@@ -476,7 +505,11 @@ class McapRecording(DatasetAdapter):
             report.found[f"{name}: point-cloud topics"] = ", ".join(f"{t} ({s})" for t, s in sorted(rec.cloud_topics.items()))
             report.found[f"{name}: transform topics"] = ", ".join(f"{t} ({s})" for t, s in sorted(rec.tf_topics.items())) or "none"
             cloud_frames = sorted({c[2] for c in rec.clouds})
-            report.found[f"{name}: frames"] = f"clouds in {', '.join(cloud_frames) or '?'}; tree roots {', '.join(sorted({rec.root_of(f) for f in rec.frames()})) or 'none'}; all: {', '.join(sorted(rec.frames()))}"
+            report.found[f"{name}: frames"] = (
+                f"clouds in {', '.join(cloud_frames) or '?'}; "
+                f"tree roots {', '.join(sorted({rec.root_of(f) for f in rec.frames()})) or 'none'}; "
+                f"all: {', '.join(sorted(rec.frames()))}"
+            )
         base = DatasetAdapter.check(self)
         report.found.update(base.found)
         report.problems.extend(p for p in base.problems if p not in report.problems)

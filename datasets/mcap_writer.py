@@ -217,9 +217,13 @@ def write_foxglove_recording(path: str | Path, seq: SequenceData, encoding: str 
         w.add_message(tf_ch, log_time=t0, publish_time=t0, data=json.dumps(tf_json(base_frame, sensor_frame, T_base_sensor, t0)).encode())
         for i in range(len(seq)):
             ts = int(seq.timestamps_ns[i])
-            w.add_message(tf_ch, log_time=ts, publish_time=ts, data=json.dumps(tf_json(world_frame, base_frame, seq.T_world_sensor[i] @ T_sensor_base, ts)).encode())
+            w.add_message(
+                tf_ch, log_time=ts, publish_time=ts,
+                data=json.dumps(tf_json(world_frame, base_frame, seq.T_world_sensor[i] @ T_sensor_base, ts)).encode(),
+            )
             pts = np.ascontiguousarray(np.asarray(seq.load(i), np.float32)[:, :3]).astype("<f4")
-            cloud = {"timestamp": _time(ts), "frame_id": sensor_frame, "pose": {"position": {"x": 0, "y": 0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
+            cloud = {"timestamp": _time(ts), "frame_id": sensor_frame,
+                     "pose": {"position": {"x": 0, "y": 0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
                      "point_stride": 12, "fields": [{"name": c, "offset": 4 * k, "type": 7} for k, c in enumerate("xyz")],
                      "data": base64.b64encode(pts.tobytes()).decode()}
             w.add_message(cloud_ch, log_time=ts, publish_time=ts, data=json.dumps(cloud).encode())

@@ -68,9 +68,15 @@ def _pose(record: dict, table_path: Path) -> np.ndarray:
     except (KeyError, TypeError, ValueError):
         raise DataError(f"nuScenes table {table_path} token {record.get('token')}: expected 'rotation' [w, x, y, z] and 'translation' [x, y, z]") from None
     if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(q).all() and np.isfinite(t).all()):
-        raise DataError(f"nuScenes table {table_path} token {record.get('token')}: rotation must be 4 finite numbers [w, x, y, z] and translation 3, got {record['rotation']} / {record['translation']}")
+        raise DataError(
+            f"nuScenes table {table_path} token {record.get('token')}: rotation must be 4 finite numbers [w, x, y, z] "
+            f"and translation 3, got {record['rotation']} / {record['translation']}"
+        )
     if np.linalg.norm(q) < 1e-12:
-        raise DataError(f"nuScenes table {table_path} token {record.get('token')}: rotation quaternion {list(q)} has zero norm (expected a unit quaternion [w, x, y, z])")
+        raise DataError(
+            f"nuScenes table {table_path} token {record.get('token')}: rotation quaternion {list(q)} has zero norm "
+            "(expected a unit quaternion [w, x, y, z])"
+        )
     T = np.eye(4)
     T[:3, :3] = quat_wxyz_to_rotation(q)
     T[:3, 3] = t
@@ -191,9 +197,15 @@ class NuScenes(DatasetAdapter):
         while token:
             rec = t["sample"].get(token)
             if rec is None:
-                raise DataError(f"nuScenes table {sample_path}: scene {name} links to sample token {token} (next of {prev or 'first_sample_token'}) which does not exist: the prev/next chain is broken")
+                raise DataError(
+                    f"nuScenes table {sample_path}: scene {name} links to sample token {token} "
+                    f"(next of {prev or 'first_sample_token'}) which does not exist: the prev/next chain is broken"
+                )
             if rec.get("prev", "") != prev:
-                raise DataError(f"nuScenes table {sample_path}: sample {token} of scene {name} has prev {rec.get('prev')!r}, expected {prev!r}: the prev/next chain is broken")
+                raise DataError(
+                    f"nuScenes table {sample_path}: sample {token} of scene {name} has prev {rec.get('prev')!r}, "
+                    f"expected {prev!r}: the prev/next chain is broken"
+                )
             if rec.get("scene_token") != scene["token"]:
                 raise DataError(f"nuScenes table {sample_path}: sample {token} reached from scene {name} belongs to scene token {rec.get('scene_token')}")
             chain.append(rec)
@@ -201,7 +213,10 @@ class NuScenes(DatasetAdapter):
                 raise DataError(f"nuScenes table {sample_path}: the next chain of scene {name} loops")
             prev, token = token, rec.get("next", "")
         if not chain or chain[-1]["token"] != scene.get("last_sample_token"):
-            raise DataError(f"nuScenes table {self._path('scene')}: scene {name}'s next chain ends at {prev or 'nothing'}, expected last_sample_token {scene.get('last_sample_token')}")
+            raise DataError(
+                f"nuScenes table {self._path('scene')}: scene {name}'s next chain ends at {prev or 'nothing'}, "
+                f"expected last_sample_token {scene.get('last_sample_token')}"
+            )
         if scene.get("nbr_samples") not in (None, len(chain)):
             raise DataError(f"nuScenes table {self._path('scene')}: scene {name} says nbr_samples {scene['nbr_samples']} but its chain has {len(chain)}")
         poses, stamps, files = [], [], []
@@ -212,7 +227,10 @@ class NuScenes(DatasetAdapter):
             ego = t["ego_pose"].get(sd.get("ego_pose_token"))
             cs = t["calibrated_sensor"].get(sd.get("calibrated_sensor_token"))
             if cs is None:
-                raise DataError(f"nuScenes table {self._path('calibrated_sensor')} has no token {sd.get('calibrated_sensor_token')} (calibration of sample_data {sd['token']})")
+                raise DataError(
+                    f"nuScenes table {self._path('calibrated_sensor')} has no token {sd.get('calibrated_sensor_token')} "
+                    f"(calibration of sample_data {sd['token']})"
+                )
             if ego is None:
                 raise DataError(f"nuScenes table {self._path('ego_pose')} has no token {sd.get('ego_pose_token')} (ego pose of sample_data {sd['token']})")
             poses.append(_pose(ego, self._path("ego_pose")) @ _pose(cs, self._path("calibrated_sensor")))
@@ -222,7 +240,10 @@ class NuScenes(DatasetAdapter):
         bad = np.flatnonzero(np.diff(ts) <= 0)
         if bad.size:
             i = int(bad[0]) + 1
-            raise DataError(f"nuScenes table {self._path('sample_data')}: scene {name} keyframe {chain[i]['token']} has timestamp {ts[i] // 1000} us, not after the previous keyframe's {ts[i - 1] // 1000} us")
+            raise DataError(
+                f"nuScenes table {self._path('sample_data')}: scene {name} keyframe {chain[i]['token']} "
+                f"has timestamp {ts[i] // 1000} us, not after the previous keyframe's {ts[i - 1] // 1000} us"
+            )
 
         def load(_seq: str, index: int) -> np.ndarray:
             return read_pcd_bin(files[index])[:, :3]

@@ -38,7 +38,9 @@ else:
 os.environ["PCFBENCH_CACHE"] = str(_HOME / "cache")
 os.environ["XDG_CONFIG_HOME"] = str(_HOME / "config")
 os.environ["RAY_TMPDIR"] = str(_HOME / "ray")  # the local Rays' session folders, else left in /tmp/ray
-for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + ["PCFBENCH_CONFIG", "PCFBENCH_STORE", "PCFBENCH_REPORTS", "PCFBENCH_PLUGINS", "PCFBENCH_BLOCK_PLUGINS"]:
+for _var in [v for v in os.environ if v.startswith("PCFBENCH_DATASET_")] + [
+    "PCFBENCH_CONFIG", "PCFBENCH_STORE", "PCFBENCH_REPORTS", "PCFBENCH_PLUGINS", "PCFBENCH_BLOCK_PLUGINS",
+]:
     os.environ.pop(_var, None)
 # Only the built-ins: a third-party plugin installed in the environment (a user's, another
 # project's) must not change what the tests see. A test that installs plugins of its own

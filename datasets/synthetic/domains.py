@@ -92,12 +92,12 @@ DOMAINS["synthetic-town-realistic"] = dataclasses.replace(
     _town, name="synthetic-town-realistic",
     sensor=dataclasses.replace(HDL64, name="hdl64-realistic", azimuth_steps=2048),
     realism=REALISM,
-    description="synthetic-town with world physics v10: 2048 columns (~0.18 deg, ~110k points), beam "
-                "calibration and jitter, rough surfaces, shallow vegetation volumes with solid trunks, mixed pixels at the real rate, "
-                "reflectance-dependent ray drop, street furniture off the road, stored poses drifting 1.6 cm/s "
-                "upwards from the scans, 0.085 of the town's moving traffic (SemanticKITTI's share of moving points), 2 m sidewalks, hedged yards with trees behind the buildings (motion "
-                "distortion available, off: "
-                "KITTI's scans are de-skewed)",
+    description="synthetic-town with world physics v10: 2048 columns (~0.18 deg, ~110k points), beam calibration and "
+                "jitter, rough surfaces, shallow vegetation volumes with solid trunks, mixed pixels at the real rate, "
+                "reflectance-dependent ray drop, street furniture off the road, stored poses drifting 1.6 cm/s upwards "
+                "from the scans, 0.085 of the town's moving traffic (SemanticKITTI's share of moving points), 2 m "
+                "sidewalks, hedged yards with trees behind the buildings (motion distortion available, off: KITTI's "
+                "scans are de-skewed)",
 )
 
 

@@ -676,7 +676,8 @@ class VoxelGrid:
         center = origin if cone_center is None else np.asarray(cone_center, dtype=np.float64)
         directions = np.ascontiguousarray(directions, dtype=np.float64)
         return _cast(
-            origin, directions, np.asarray(self.box.lo, np.float64), np.asarray(self.box.hi, np.float64), self.occ, self.offs, self.dims, self.lo, self.voxel, float(cone),
+            origin, directions, np.asarray(self.box.lo, np.float64), np.asarray(self.box.hi, np.float64),
+            self.occ, self.offs, self.dims, self.lo, self.voxel, float(cone),
             int(min(max_level, len(self.offs) - 1)), self.ukeys, self.col_start, self.means, center, self.field, self.ftop,
             self.planes, bool(surface),
         )

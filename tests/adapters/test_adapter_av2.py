@@ -24,7 +24,8 @@ def _log(name: str = LOG, split: str = "val", n: int = 12, seed: int = 0) -> Seq
 
 
 def write_tiny_av2(root: Path, layout: str = "lidar", n: int = 12) -> Path:
-    write_av2(root, [_log(n=n), _log("1f2e3d4c-0000-4000-8000-000000000001", "val", n, seed=1), _log("aaaa0000-0000-4000-8000-000000000002", "train", n, seed=2)], layout=layout)
+    write_av2(root, [_log(n=n), _log("1f2e3d4c-0000-4000-8000-000000000001", "val", n, seed=1),
+                     _log("aaaa0000-0000-4000-8000-000000000002", "train", n, seed=2)], layout=layout)
     return root
 
 
@@ -83,7 +84,12 @@ def test_bad_inputs_each_named(tmp_path):
 
     write_tiny_av2(tmp_path / "c", n=4)
     pose = tmp_path / "c" / "val" / LOG / "city_SE3_egovehicle.feather"
-    _rewrite(pose, lambda t: t.set_column(1, "qw", pa.array(np.zeros(t.num_rows))).set_column(2, "qx", pa.array(np.zeros(t.num_rows))).set_column(3, "qy", pa.array(np.zeros(t.num_rows))).set_column(4, "qz", pa.array(np.zeros(t.num_rows))))
+    _rewrite(pose, lambda t: (
+        t.set_column(1, "qw", pa.array(np.zeros(t.num_rows)))
+        .set_column(2, "qx", pa.array(np.zeros(t.num_rows)))
+        .set_column(3, "qy", pa.array(np.zeros(t.num_rows)))
+        .set_column(4, "qz", pa.array(np.zeros(t.num_rows)))
+    ))
     with pytest.raises(DataError, match=r"city_SE3_egovehicle.feather row 0 \(timestamp_ns \d+\): quaternion .* zero norm"):
         Argoverse2(tmp_path / "c").sequence(f"val/{LOG}")
 

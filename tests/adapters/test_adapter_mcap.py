@@ -231,5 +231,6 @@ if given is not None:
         data = b"".join(raw[r * width * step:(r + 1) * width * step] + b"\xff" * row_pad for r in range(height))
         types = {"f4": 7, "f8": 8}
         msg = {"height": height, "width": width, "point_step": step, "row_step": width * step + row_pad, "is_bigendian": big, "data": data,
-               "fields": [{"name": n if n != "i" else "intensity", "offset": offsets[n], "datatype": types[coord] if n != "i" else 7, "count": 1} for n in order]}
+               "fields": [{"name": n if n != "i" else "intensity", "offset": offsets[n],
+                           "datatype": types[coord] if n != "i" else 7, "count": 1} for n in order]}
         np.testing.assert_array_equal(cloud_points(msg, "sensor_msgs/msg/PointCloud2", "test"), pts)

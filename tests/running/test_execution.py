@@ -258,7 +258,8 @@ _PROBE = _SNAPSHOT + textwrap.dedent('''
         def forecast(self, sample):
             import torch  # first imported here, after the worker was pinned
             import multiprocessing
-            record = {"pid": os.getpid(), "worker": multiprocessing.parent_process() is not None, "context": self.execution.threads, "current": current().threads,
+            record = {"pid": os.getpid(), "worker": multiprocessing.parent_process() is not None,
+                      "context": self.execution.threads, "current": current().threads,
                       **thread_limits(), "torch": torch.get_num_threads(),
                       "pool_jobs": self.execution.map(_inside, range(4 * self.execution.threads))}
             with open(os.path.join(os.environ["THREAD_PROBE_OUT"], f"{os.getpid()}.jsonl"), "a") as f:
