@@ -257,7 +257,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
 def cell_label(spec) -> str:
     """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the cell with its options."""
-    from pcfbench.sweep import cell_label as label
+    from pcfbench.labels import cell_label as label
 
     return label(spec)
 
@@ -411,7 +411,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
           shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
-    from pcfbench.sweep import cell_label, load_experiment, plan, run_sweep
+    from pcfbench.labels import cell_label
+    from pcfbench.sweep import load_experiment, plan, run_sweep
 
     plugins = get_plugins()
     warn_failed(plugins)

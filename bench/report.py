@@ -25,6 +25,7 @@ import pandas as pd
 
 from pcfbench import stats, tables
 from pcfbench.errors import PcfbenchError, unknown_name
+from pcfbench.labels import cell_label, method_label, trained_label  # noqa: F401 - re-exported
 from pcfbench.store import Cell, iter_cells, spec_from_meta
 
 #: Columns in the order of the published tables; other metrics follow alphabetically.
@@ -142,22 +143,6 @@ def provenance(meta: dict) -> dict[str, str]:
         "prov_checkpoint_sha256": str(meta.get("checkpoint_sha256") or (meta.get("spec") or {}).get("checkpoint_sha256") or ""),
         "prov_date": date,
     }
-
-
-def method_label(method: str, options: dict) -> str:
-    """A readable variant label: ``raycast-voxel (voxel=0.2, k=3)``; the bare name without options."""
-    if not options:
-        return method
-    return f"{method} (" + ", ".join(f"{k}={v}" for k, v in sorted(options.items())) + ")"
-
-
-def trained_label(spec, meta: dict) -> str:
-    """A trained method's row names its training data and checkpoint (two checkpoints side by
-    side stay two rows), and says so when it was scored on that very data."""
-    if not spec.train_on:
-        return ""
-    mark = ", ON ITS TRAINING DATA" if meta.get("evaluated_on_training_data") else ""
-    return f" [trained on {spec.train_on}, ck {str(spec.checkpoint_sha256)[:8]}{mark}]"
 
 
 def _step_seconds(setting: str, steps: np.ndarray, notes: list[str]) -> np.ndarray:
@@ -509,8 +494,6 @@ def failures(store_root: Path) -> pd.DataFrame:
     """Every failed sample of the store: one row per (cell, sample) with ``cell`` (its label,
     options included), ``cell_dir``, ``sample_id``, ``error`` (the exception's first line) and
     ``traceback``, cells in store order, samples in sample order."""
-    from pcfbench.sweep import cell_label
-
     out = []
     for cell_dir, meta in iter_cells(store_root):
         spec = spec_from_meta(meta)
