@@ -1,5 +1,8 @@
 """Leaderboards regenerated from the store: paper-layout tables with intervals and comparisons.
 
+A report reads the store only: no method runs (the figures' data is stored at run time,
+``pcfbench.figures``), except the gallery, drawn only when asked for (``ReportOptions.gallery``).
+
 :func:`collect` reads every complete cell: the flat mean over (sample, future sweep) of each
 metric (the point estimate; skipped sweeps are counted, never averaged), its bootstrap
 interval over samples, and, per (dataset, split, setting, policy[, limit]) group, a paired
@@ -14,6 +17,7 @@ column never mixes metric versions. :func:`write_reports` renders the tables of
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -53,7 +57,10 @@ class ReportOptions:
     #: write reports/figures/ (and embed them in leaderboard.html); default: yes, unless the
     #: environment has PCFBENCH_FIGURES=0 (the test suite's quick runs)
     figures: bool = field(default_factory=lambda: os.environ.get("PCFBENCH_FIGURES", "1") != "0")
-    #: samples re-run per group for the error-vs-range and gallery figures (0: those are left out)
+    #: also draw the gallery of forecasts (``pcfbench report --gallery``): the one figure not
+    #: drawn from the store, as it re-runs every method on ``figure_samples`` samples per group
+    gallery: bool = False
+    #: samples re-run per group for the gallery (0: no gallery)
     figure_samples: int = 2
 
 
@@ -370,6 +377,12 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     rel: dict[str, Path] = {}  # key -> path relative to out_dir
+    if options.figures:  # a cell whose range bins the store lacks: the tables say so too
+        from pcfbench.figures import range_gaps
+
+        gaps = range_gaps(lb, store_root)
+        if gaps:
+            lb = dataclasses.replace(lb, notes=sorted(set(lb.notes) | set(gaps)))
     try:
         def render(preset, stem: Path, key: str | None, page: bool = False) -> tables.Table:
             t = tables.build(lb, preset, options.ci)
@@ -387,7 +400,7 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
             from pcfbench.figures import FIGURES_DIR, write_figures
 
             figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR,
-                                    samples=options.figure_samples, plugins=plugins)
+                                    samples=options.figure_samples, plugins=plugins, gallery=options.gallery)
             for name, p in figures.items():
                 rel[f"figures/{name}"] = p.relative_to(stage)
         from pcfbench.htmlreport import page
