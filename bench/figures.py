@@ -269,11 +269,13 @@ def range_profile(sweeps: list[SweepErrors], bin_m: float = RANGE_BIN_M) -> pd.D
 class StoredRanges:
     """The range profiles of a group's cells, read from the store: ``profiles[variant]``
     (:func:`pcfbench.ranges.profile`), ``sweeps[variant]`` the scored sweeps pooled, and
-    ``missing[variant]`` the cell folder of each cell whose range bins the store lacks."""
+    ``missing[variant]`` the cell folder of each cell whose range bins the store lacks, and
+    ``why[variant]`` why it lacks them."""
 
     profiles: dict[str, pd.DataFrame] = field(default_factory=dict)
     sweeps: dict[str, int] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
+    why: dict[str, str] = field(default_factory=dict)
 
 
 def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
@@ -286,9 +288,14 @@ def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
     out = StoredRanges()
     for _, row in cells.iterrows():
         cell = Cell.at(store_root, row["cell_dir"])
-        rows, stored = cell.read_rows(), cell.read_ranges()
-        if ranges.missing(cell.read_meta() or {}, rows, stored):
+        rows, stored, meta = cell.read_rows(), cell.read_ranges(), cell.read_meta() or {}
+        gaps = ranges.missing(meta, rows, stored)
+        if gaps:
             out.missing[row["variant"]] = str(row["cell_dir"])
+            ok = int((rows["status"] == "ok").sum())
+            out.why[row["variant"]] = (
+                "it scores neither l1_mean nor absrel_mean" if not ranges.records(meta.get("metric_versions") or {})
+                else "made before the store kept them" if gaps == ok else f"{gaps} of its {ok} scored sweeps have none")
             continue
         ok = rows[rows["status"] == "ok"]
         keys = set(zip(ok["sample_id"], ok["step"].astype(int)))
@@ -306,7 +313,7 @@ def range_gaps(lb, store_root: Path) -> list[str]:
     if not len(lb.table):
         return []
     found = stored_ranges(store_root, lb.table)
-    return [f"{variant}: no range bins in the store for cell {cell_dir} (made before the store kept them), "
+    return [f"{variant}: no range bins in the store for cell {cell_dir} ({found.why[variant]}), "
             f"so the error-by-range figure leaves it out; `{ranges.BACKFILL_COMMAND} --store {store_root}` "
             "recomputes them (it re-runs the method)" for variant, cell_dir in found.missing.items()]
 

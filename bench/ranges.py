@@ -23,8 +23,6 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from pcfbench.errors import PcfbenchError
-
 #: bin width (m) of the ground-truth range
 RANGE_BIN_M = 10.0
 #: changes whenever what is stored changes; cell.json's ``range_bins`` says which a cell has

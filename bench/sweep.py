@@ -34,7 +34,7 @@ from pcfbench import config
 from pcfbench.errors import PcfbenchError, UnknownNameError, unknown_name
 from pcfbench.method import MethodSpec, resolve_method
 from pcfbench.plugins import Plugins, get_plugins
-from pcfbench.labels import cell_label, method_label  # noqa: F401 - cell_label re-exported
+from pcfbench.labels import cell_label, method_label
 from pcfbench.store import CellSpec, atomic_write_bytes
 
 __all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "load_experiment", "plan", "run_sweep", "ablation_tables"]

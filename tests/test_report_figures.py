@@ -473,6 +473,48 @@ def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(ma
     assert ranges.backfill(store, _plugins(), log=lambda s: None)[0]["status"] == "has ranges"  # nothing left to do
 
 
+def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(made, tmp_path, monkeypatch):
+    """`pcfbench backfill-ranges` recomputes a cell's missing bins; a cell whose re-run gives
+    other numbers than its rows is named, left without bins, and the command exits 1."""
+    import json
+    import shutil
+
+    from click.testing import CliRunner
+
+    from pcfbench import ranges
+    from pcfbench.cli import build_cli
+
+    store = tmp_path / "store"
+    shutil.copytree(made[0], store)
+    lb = collect(store)
+
+    def strip(variant):
+        cell = Cell.at(store, lb.table[lb.table["variant"] == variant].iloc[0]["cell_dir"])
+        kept = cell.read_ranges()
+        shutil.rmtree(cell.dir / "ranges")
+        meta = json.loads((cell.dir / "cell.json").read_text())
+        del meta["range_bins"]
+        (cell.dir / "cell.json").write_text(json.dumps(meta))
+        return cell, kept
+
+    cell, kept = strip("copy-last")
+    res = CliRunner().invoke(build_cli(), ["backfill-ranges", "--store", str(store)])
+    assert res.exit_code == 0, res.output
+    assert f"{cell.dir}: recomputed 1 chunk(s)" in res.output and "1 cell(s) recomputed, 0 left as they are" in res.output
+    pd.testing.assert_frame_equal(cell.read_ranges(), kept)
+
+    cell, _ = strip("shifted (dx=1.5)")
+    monkeypatch.setattr(Shifted, "forecast", lambda self, sample: Forecast(points_ref=tuple(
+        sample.past_points_ref[-1] + np.float32(2.0) for _ in range(sample.num_future))))
+    done = [d for d in ranges.backfill(store, _plugins(), log=lambda s: None) if d["cell"] == str(cell.dir)]
+    assert done[0]["status"].startswith(f"not recomputed: re-running shifted does not give back its stored rows")
+    assert not (cell.dir / "ranges").exists() and "range_bins" not in json.loads((cell.dir / "cell.json").read_text())
+    note = figures.range_gaps(collect(store), store)
+    assert note == [f"shifted (dx=1.5): no range bins in the store for cell {cell.dir} (made before the store kept "
+                    f"them), so the error-by-range figure leaves it out; `pcfbench backfill-ranges --store {store}` "
+                    "recomputes them (it re-runs the method)"]
+
+
 def test_gallery_is_drawn_only_when_asked_for(made, tmp_path):
     store = made[0]
     paths = write_reports(store, tmp_path / "rep", ReportOptions(figures=True, gallery=True), plugins=_plugins())
