@@ -342,9 +342,9 @@ def range_figure(found: StoredRanges, title: str):
         sweeps = sorted(set(found.sweeps.values()))
         note = (f"every scored sweep pooled ({'/'.join(map(str, sweeps))} per cell)" if sweeps
                 else "no cell with range bins")
-        if found.missing:
-            note += (f"; not in the store for {', '.join(found.missing)}: "
-                     f"`{ranges.BACKFILL_COMMAND}` recomputes them")
+        if found.missing:  # a line of its own: the title stays within the figure
+            note += (f")\nleft out, no range bins in the store: {', '.join(found.missing)} "
+                     f"(`{ranges.BACKFILL_COMMAND}` recomputes them")
         fig.suptitle(f"{title}: error vs range ({note})")
     return fig
 

@@ -459,7 +459,7 @@ def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(ma
     assert "figures/range-kitti_test_kitti-1s.png" in paths
     assert found.missing == {"shifted (dx=0.5)": old["cell_dir"]} and "shifted (dx=0.5)" not in found.profiles
     title = figures.range_figure(found, "t").get_suptitle()
-    assert "not in the store for shifted (dx=0.5)" in title and "pcfbench backfill-ranges" in title
+    assert "\nleft out, no range bins in the store: shifted (dx=0.5) (`pcfbench backfill-ranges`" in title
     md = paths["md"].read_text()
     assert f"no range bins in the store for cell {old['cell_dir']}" in md and "pcfbench backfill-ranges" in md
 
