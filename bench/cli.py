@@ -257,7 +257,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
 def cell_label(spec) -> str:
     """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the cell with its options."""
-    from pcfbench.sweep import cell_label as label
+    from pcfbench.labels import cell_label as label
 
     return label(spec)
 
@@ -345,12 +345,16 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
 @click.option("--resamples", type=click.IntRange(min=100), default=2000, show_default=True)
 @click.option("--seed", type=int, default=17, show_default=True, help="Bootstrap seed (output is deterministic).")
 @click.option("--no-figures", is_flag=True, help="Leave out reports/figures/ (and the page's figures).")
-def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed, no_figures):
-    """Regenerate the leaderboard tables (reports/leaderboard.*, reports/tables/) from the store."""
+@click.option("--gallery", is_flag=True, help="Also draw the gallery of forecasts (reports/figures/gallery-*), "
+              "which re-runs every method on 2 samples per group: the one figure not drawn from the store.")
+def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed, no_figures, gallery):
+    """Regenerate the leaderboard tables (reports/leaderboard.*, reports/tables/) and figures
+    from the store alone: no method runs (but with --gallery)."""
     from pcfbench.report import ReportOptions, collect, summary, write_reports
     from pcfbench.stats import Resampling
 
-    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed))
+    options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed),
+                            gallery=gallery)
     if no_figures:  # otherwise the default: figures unless PCFBENCH_FIGURES=0, as for run and sweep
         options = dataclasses.replace(options, figures=False)
     reports_path = config.reports_dir(reports)
@@ -358,9 +362,36 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
     board = collect(store_path, options.resampling, options.reference)
     paths = write_reports(store_path, reports_path, options, leaderboard=board)
     click.echo(summary(store_path, options, leaderboard=board))
+    if options.figures:
+        from pcfbench.figures import range_gaps
+
+        for note in range_gaps(board, store_path):
+            click.echo(f"pcfbench: note: {note}", err=True)
     for p in paths.values():
         click.echo(str(p))
     click.echo(paths["tex"].read_text().splitlines()[0].lstrip("% "))
+
+
+@cli.command("backfill-ranges")
+@click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
+@click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
+def backfill_ranges(store, reports):
+    """Recompute the range bins of the error-by-range figure for the complete cells made before
+    the store kept them, by re-running their methods (a cell whose re-run does not give back
+    its stored rows is named and left as it is); then `pcfbench report` draws them."""
+    from pcfbench.ranges import backfill
+
+    store_path = config.store_dir(store, config.reports_dir(reports))
+    if not store_path.is_dir():
+        raise PcfbenchError(f"results store {store_path} does not exist (pcfbench run writes it)")
+    plugins = get_plugins()
+    warn_failed(plugins)
+    done = backfill(store_path, plugins, log=lambda line: click.echo(line))
+    n = sum(r["status"].startswith("recomputed") for r in done)
+    refused = sum(r["status"].startswith("not recomputed") for r in done)
+    click.echo(f"{n} cell(s) recomputed, {refused} left as they are, {len(done) - n - refused} had their range bins")
+    if refused:
+        sys.exit(1)
 
 
 @cli.command()
@@ -411,7 +442,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
           shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
-    from pcfbench.sweep import cell_label, load_experiment, plan, run_sweep
+    from pcfbench.labels import cell_label
+    from pcfbench.sweep import load_experiment, plan, run_sweep
 
     plugins = get_plugins()
     warn_failed(plugins)

@@ -1,22 +1,24 @@
 """Figures of a leaderboard (matplotlib, Agg), each written as PNG and SVG under ``reports/figures/``.
 
+Every figure but the gallery is drawn from the store alone: no method runs in a report.
+
 - ``horizon-<group>``: each preset column against the forecast time in seconds, one line per
   method variant, the band its 95 % bootstrap interval (the per-step rows of
   ``pcfbench.report.collect``, resampling samples).
-- ``range-<group>``: L1 and AbsRel against the ground-truth range, per 10 m bin. The store keeps
-  per-sweep means only, so these come from a few **re-run samples** (``figure_samples`` per
-  group, chosen below): their forecasts are computed again and every kept ray's error is
-  binned by its ground-truth range, pooled over the samples' future sweeps. The errors are
-  those of ``SweepContext.ray_errors_wrapped``, the very errors ``l1_mean``/``absrel_mean``
-  average, so a bin's count-weighted mean over one sweep is that sweep's stored value; a
-  method whose re-run does not reproduce its stored rows is named on the figure.
-- ``gallery-<group>``: bird's-eye views of the same samples: the past sweeps, the ground truth
-  at the horizon and each variant's forecast of it, its points coloured by their distance to
-  the nearest ground-truth point (m).
+- ``range-<group>``: L1 and AbsRel against the ground-truth range, per 10 m bin, every scored
+  sweep of each cell pooled. The runner stores each sweep's bins (rays, error sums) beside its
+  rows (``pcfbench.ranges``): the errors are those of ``SweepContext.ray_errors_wrapped``, the
+  very errors ``l1_mean``/``absrel_mean`` average, so a sweep's ray-weighted mean over its bins
+  is its stored value. A cell made before the store kept them is left out of the figure and
+  named, with the command that recomputes them (``pcfbench backfill-ranges``).
+- ``gallery-<group>``: only when asked for (``pcfbench report --gallery``), as it **re-runs**
+  the methods on a few samples (``figure_samples`` per group, chosen below): bird's-eye views
+  of those samples: the past sweeps, the ground truth at the horizon and each variant's
+  forecast of it, its points coloured by their distance to the nearest ground-truth point (m).
 - ``ablation-<stem>``: a sweep's metric against an option's value (``pcfbench.sweep``).
 
-Chosen samples: per group, the reference cell's (else the first cell's) samples ranked by
-their mean of the group's ranking metric; the median one and the worst one (for
+Chosen samples (the gallery): per group, the reference cell's (else the first cell's) samples
+ranked by their mean of the group's ranking metric; the median one and the worst one (for
 ``figure_samples=2``), evenly spaced ranks for more.
 """
 
@@ -33,10 +35,10 @@ import numpy as np
 import pandas as pd
 
 from pcfbench.errors import PcfbenchError
+from pcfbench.ranges import RANGE_BIN_M
 
 FIGURES_DIR = "figures"
 FORMATS = ("png", "svg")
-RANGE_BIN_M = 10.0
 _RC = {"svg.hashsalt": "pcfbench", "font.size": 9, "axes.grid": True, "grid.alpha": 0.3}
 
 
@@ -125,7 +127,7 @@ def _rc():
     return matplotlib.rc_context(_RC)
 
 
-# -- re-run samples: per-ray and per-point errors -----------------------------------------------
+# -- re-run samples (the gallery, on request): per-ray and per-point errors ----------------------
 @dataclass
 class SweepErrors:
     """One re-run future sweep of one variant: what the figures need, reference frame."""
@@ -250,7 +252,7 @@ def rerun(store_root: Path, cells: pd.DataFrame, sample_ids: list[str], plugins=
 # -- error vs range --------------------------------------------------------------------------
 def range_profile(sweeps: list[SweepErrors], bin_m: float = RANGE_BIN_M) -> pd.DataFrame:
     """Per range bin [lo, hi) m: kept rays, their mean L1 (m) and mean AbsRel (fraction),
-    pooled over ``sweeps``."""
+    pooled over re-run ``sweeps`` (what the store's range bins hold, recomputed per ray)."""
     rng = np.concatenate([s.ray_range_m for s in sweeps]) if sweeps else np.zeros(0)
     l1 = np.concatenate([s.ray_l1_m for s in sweeps]) if sweeps else np.zeros(0)
     ar = np.concatenate([s.ray_absrel for s in sweeps]) if sweeps else np.zeros(0)
@@ -265,12 +267,67 @@ def range_profile(sweeps: list[SweepErrors], bin_m: float = RANGE_BIN_M) -> pd.D
     return pd.DataFrame(rows)
 
 
-def range_figure(run: Rerun, title: str):
+@dataclass
+class StoredRanges:
+    """The range profiles of a group's cells, read from the store: ``profiles[variant]``
+    (:func:`pcfbench.ranges.profile`), ``sweeps[variant]`` the scored sweeps pooled, and
+    ``missing[variant]`` the cell folder of each cell whose range bins the store lacks, and
+    ``why[variant]`` why it lacks them."""
+
+    profiles: dict[str, pd.DataFrame] = field(default_factory=dict)
+    sweeps: dict[str, int] = field(default_factory=dict)
+    missing: dict[str, str] = field(default_factory=dict)
+    why: dict[str, str] = field(default_factory=dict)
+
+
+def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
+    """The range profile of every cell of ``cells`` (rows of the leaderboard with their
+    ``cell_dir``) from its range bins in the store; a cell without them for every scored sweep
+    goes to ``missing``. Reads the store only."""
+    from pcfbench import ranges
+    from pcfbench.store import Cell
+
+    out = StoredRanges()
+    for _, row in cells.iterrows():
+        cell = Cell.at(store_root, row["cell_dir"])
+        rows, stored, meta = cell.read_rows(), cell.read_ranges(), cell.read_meta() or {}
+        gaps = ranges.missing(meta, rows, stored)
+        if gaps:
+            out.missing[row["variant"]] = str(row["cell_dir"])
+            ok = int((rows["status"] == "ok").sum())
+            out.why[row["variant"]] = (
+                "it scores neither l1_mean nor absrel_mean" if not ranges.records(meta.get("metric_versions") or {})
+                else "made before the store kept them" if gaps == ok else f"{gaps} of its {ok} scored sweeps have none")
+            continue
+        ok = rows[rows["status"] == "ok"]
+        keys = set(zip(ok["sample_id"], ok["step"].astype(int)))
+        mine = stored[[(s, int(k)) in keys for s, k in zip(stored["sample_id"], stored["step"])]] if len(stored) else stored
+        out.profiles[row["variant"]] = ranges.profile(mine)
+        out.sweeps[row["variant"]] = len(ok)
+    return out
+
+
+def range_gaps(lb, store_root: Path) -> list[str]:
+    """One note per complete cell of ``lb`` whose range bins the store lacks: its range figure
+    leaves it out, and the note says how to recompute them."""
+    from pcfbench import ranges
+
+    if not len(lb.table):
+        return []
+    found = stored_ranges(store_root, lb.table)
+    return [f"{variant}: no range bins in the store for cell {cell_dir} ({found.why[variant]}), "
+            f"so the error-by-range figure leaves it out; `{ranges.BACKFILL_COMMAND} --store {store_root}` "
+            "recomputes them (it re-runs the method)" for variant, cell_dir in found.missing.items()]
+
+
+def range_figure(found: StoredRanges, title: str):
+    """L1 and AbsRel per range bin of each variant with range bins in the store."""
+    from pcfbench import ranges
+
     with _rc():
         fig = _new_figure(9.5, 3.6)
         ax_l1, ax_ar = fig.subplots(1, 2)
-        for variant, per_sample in run.errors.items():
-            prof = range_profile([s for sweeps in per_sample.values() for s in sweeps])
+        for variant, prof in found.profiles.items():
             if not len(prof):
                 continue
             mid = (prof["lo_m"] + prof["hi_m"]) / 2
@@ -282,12 +339,14 @@ def range_figure(run: Rerun, title: str):
         ax_l1.set_title("L1 error by range (lower is better)")
         ax_ar.set_title("AbsRel error by range (lower is better)")
         handles, labels = ax_l1.get_legend_handles_labels()
-        fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
-        note = f"{len(run.sample_ids)} re-run sample(s), every future sweep pooled"
-        if run.mismatch:
-            note += f"; re-run differs from the store for {', '.join(run.mismatch)}"
-        if run.skipped:
-            note += f"; not re-run: {', '.join(run.skipped)}"
+        if labels:
+            fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
+        sweeps = sorted(set(found.sweeps.values()))
+        note = (f"every scored sweep pooled ({'/'.join(map(str, sweeps))} per cell)" if sweeps
+                else "no cell with range bins")
+        if found.missing:  # a line of its own: the title stays within the figure
+            note += (f")\nleft out, no range bins in the store: {', '.join(found.missing)} "
+                     f"(`{ranges.BACKFILL_COMMAND}` recomputes them")
         fig.suptitle(f"{title}: error vs range ({note})")
     return fig
 
@@ -491,10 +550,12 @@ def _method_units(method: str, plugins=None) -> dict[str, str]:
 
 
 # -- everything for a leaderboard --------------------------------------------------------------
-def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 2, plugins=None) -> dict[str, Path]:
+def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 2, plugins=None,
+                  gallery: bool = False) -> dict[str, Path]:
     """Every figure of leaderboard ``lb`` (complete cells) in the layout of ``table``
-    (``tables.Table``: its columns) under ``out_dir``; ``samples`` re-run samples per group
-    for the range and gallery figures (0: none). Returns the paths."""
+    (``tables.Table``: its columns) under ``out_dir``, from the store alone; with ``gallery``
+    also the gallery, which re-runs ``samples`` samples per group with every method (0: no
+    gallery). Returns the paths."""
     from pcfbench.protocol import get_setting
 
     out_dir = Path(out_dir)
@@ -513,7 +574,8 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
         gs = gs[gs["variant"].isin(set(g["variant"]))] if len(gs) else gs
         if len(gs) and columns:
             paths.update(save(horizon_figure(gs, columns, title), out_dir, _group_stem("horizon", first)))
-        if samples <= 0:
+        paths.update(save(range_figure(stored_ranges(store_root, g), title), out_dir, _group_stem("range", first)))
+        if not gallery or samples <= 0:
             continue
         ref = g[g["is_reference"]] if "is_reference" in g else g.iloc[0:0]
         base = ref.iloc[0] if len(ref) else g.iloc[0]
@@ -531,6 +593,5 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
             horizon = f"t = +{s.step_seconds(s.future - 1):g} s"
         except PcfbenchError:
             horizon = "last future sweep"
-        paths.update(save(range_figure(run, title), out_dir, _group_stem("range", first)))
         paths.update(save(gallery_figure(run, title, horizon), out_dir, _group_stem("gallery", first)))
     return paths

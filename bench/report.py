@@ -1,5 +1,8 @@
 """Leaderboards regenerated from the store: paper-layout tables with intervals and comparisons.
 
+A report reads the store only: no method runs (the figures' data is stored at run time,
+``pcfbench.figures``), except the gallery, drawn only when asked for (``ReportOptions.gallery``).
+
 :func:`collect` reads every complete cell: the flat mean over (sample, future sweep) of each
 metric (the point estimate; skipped sweeps are counted, never averaged), its bootstrap
 interval over samples, and, per (dataset, split, setting, policy[, limit]) group, a paired
@@ -14,6 +17,7 @@ column never mixes metric versions. :func:`write_reports` renders the tables of
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
@@ -25,6 +29,7 @@ import pandas as pd
 
 from pcfbench import stats, tables
 from pcfbench.errors import PcfbenchError, unknown_name
+from pcfbench.labels import cell_label, method_label, trained_label  # noqa: F401 - re-exported
 from pcfbench.store import Cell, iter_cells, spec_from_meta
 
 #: Columns in the order of the published tables; other metrics follow alphabetically.
@@ -52,7 +57,10 @@ class ReportOptions:
     #: write reports/figures/ (and embed them in leaderboard.html); default: yes, unless the
     #: environment has PCFBENCH_FIGURES=0 (the test suite's quick runs)
     figures: bool = field(default_factory=lambda: os.environ.get("PCFBENCH_FIGURES", "1") != "0")
-    #: samples re-run per group for the error-vs-range and gallery figures (0: those are left out)
+    #: also draw the gallery of forecasts (``pcfbench report --gallery``): the one figure not
+    #: drawn from the store, as it re-runs every method on ``figure_samples`` samples per group
+    gallery: bool = False
+    #: samples re-run per group for the gallery (0: no gallery)
     figure_samples: int = 2
 
 
@@ -145,22 +153,6 @@ def provenance(meta: dict) -> dict[str, str]:
         "prov_checkpoint_sha256": str(meta.get("checkpoint_sha256") or (meta.get("spec") or {}).get("checkpoint_sha256") or ""),
         "prov_date": date,
     }
-
-
-def method_label(method: str, options: dict) -> str:
-    """A readable variant label: ``raycast-voxel (voxel=0.2, k=3)``; the bare name without options."""
-    if not options:
-        return method
-    return f"{method} (" + ", ".join(f"{k}={v}" for k, v in sorted(options.items())) + ")"
-
-
-def trained_label(spec, meta: dict) -> str:
-    """A trained method's row names its training data and checkpoint (two checkpoints side by
-    side stay two rows), and says so when it was scored on that very data."""
-    if not spec.train_on:
-        return ""
-    mark = ", ON ITS TRAINING DATA" if meta.get("evaluated_on_training_data") else ""
-    return f" [trained on {spec.train_on}, ck {str(spec.checkpoint_sha256)[:8]}{mark}]"
 
 
 def _step_seconds(setting: str, steps: np.ndarray, notes: list[str]) -> np.ndarray:
@@ -412,6 +404,12 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     rel: dict[str, Path] = {}  # key -> path relative to out_dir
+    if options.figures:  # a cell whose range bins the store lacks: the tables say so too
+        from pcfbench.figures import range_gaps
+
+        gaps = range_gaps(lb, store_root)
+        if gaps:
+            lb = dataclasses.replace(lb, notes=sorted(set(lb.notes) | set(gaps)))
     try:
         def render(preset, stem: Path, key: str | None, page: bool = False) -> tables.Table:
             t = tables.build(lb, preset, options.ci)
@@ -429,7 +427,7 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
             from pcfbench.figures import FIGURES_DIR, write_figures
 
             figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR,
-                                    samples=options.figure_samples, plugins=plugins)
+                                    samples=options.figure_samples, plugins=plugins, gallery=options.gallery)
             for name, p in figures.items():
                 rel[f"figures/{name}"] = p.relative_to(stage)
         from pcfbench.htmlreport import page
@@ -536,8 +534,6 @@ def failures(store_root: Path) -> pd.DataFrame:
     """Every failed sample of the store: one row per (cell, sample) with ``cell`` (its label,
     options included), ``cell_dir``, ``sample_id``, ``error`` (the exception's first line) and
     ``traceback``, cells in store order, samples in sample order."""
-    from pcfbench.sweep import cell_label
-
     out = []
     for cell_dir, meta in iter_cells(store_root):
         spec = spec_from_meta(meta)

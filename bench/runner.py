@@ -14,7 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 import pcfbench
-from pcfbench import config
+from pcfbench import config, ranges
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
@@ -24,7 +24,7 @@ from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
 from pcfbench.dataset import options_identity
-from pcfbench.store import Cell, CellSpec, check_identity, spec_to_meta
+from pcfbench.store import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.validate import validate_forecast
 
 #: Flush a chunk after this many samples or seconds, whichever comes first.
@@ -92,16 +92,25 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     """Rows for one sample: one per future sweep, or one failure row with the traceback.
 
     Data errors (a bad file) propagate: they stop the run rather than being blamed on the method.
+    When the cell scores ``l1_mean`` or ``absrel_mean``, each ok row also carries its sweep's
+    range bins under ``pcfbench.store.RANGE_KEY`` (``pcfbench.ranges``), which the store
+    writes beside the rows, never into them.
     """
     t0 = time.perf_counter()
     sample, truth = res.builder.build(*key)
     t1 = time.perf_counter()
     base = {"sample_id": sample.sample_id, "sequence": sample.sequence, "ref_index": sample.ref_index}
+    bins: dict[int, dict[str, list]] = {}
+
+    def keep_bins(row: dict, ctx: Any) -> None:
+        bins[int(row["step"])] = ranges.sweep_bins(ctx)
+
+    record = ranges.records(m.name for m in res.metrics)
     try:
         # the method gets a read-only copy; the forecast is checked and scored against `sample`
         forecast = validate_forecast(sample, res.method.forecast(sample.for_method()))
         t2 = time.perf_counter()
-        rows = score_sample(sample, truth, forecast, res.metrics, res.execution)
+        rows = score_sample(sample, truth, forecast, res.metrics, res.execution, keep_bins if record else None)
     except DataError:
         raise
     except Exception as exc:  # a method (or metric) failing on one sample is recorded, the run goes on
@@ -118,6 +127,8 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     t3 = time.perf_counter()
     for row in rows:
         row.update(base, status="ok", t_load=t1 - t0, t_method=t2 - t1, t_metrics=t3 - t2)
+        if record:
+            row[RANGE_KEY] = bins[int(row["step"])]
     return rows
 
 
@@ -298,6 +309,8 @@ def run_cell(
             "metric_higher_is_better": {m.name: m.higher_is_better for m in res.metrics},
             "created": (meta or {}).get("created", time.time()),
         }
+        if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.ranges)
+            meta["range_bins"] = ranges.meta()
         cell.write_meta(meta)
 
         buffer: list[dict[str, Any]] = []

@@ -12,6 +12,12 @@ A trained method's cell also records its checkpoint's sha256 and training data
 (``pcfbench.training``), and its folder name carries the sha256, so each checkpoint has its
 own cell.
 
+Beside each chunk of rows, ``ranges/`` holds a file of the same name with the range bins of
+its scored sweeps (``pcfbench.ranges``: what the report's error-by-range figure needs, so
+that a report reads the store only). It is written just before its chunk; one whose chunk is
+missing (a run killed between the two) is never read, and the next chunk of that name
+replaces it.
+
 Rows come in chunks of two names in ``rows/``: ``chunk-NNNNNN.parquet``, numbered in the order
 the local executor flushes them, and ``shard-START-STOP.parquet``, the rows of the samples
 ``START <= i < STOP`` of the cell's sample list computed by one task of a distributed executor
@@ -41,6 +47,11 @@ CELL_FILE = "cell.json"
 #: what every cell.json names (its CellSpec) and what every chunk of rows has
 SPEC_KEYS = ("method", "options", "options_hash", "dataset", "split", "setting")
 ROWS_DIR = "rows"
+#: Range bins of the scored sweeps (``pcfbench.ranges``), one file per rows chunk, of its name.
+RANGES_DIR = "ranges"
+#: The key under which a row dict (``pcfbench.runner.process_sample``) carries its sweep's
+#: range bins to the store; split off into ``ranges/``, never a column of the rows.
+RANGE_KEY = "_range_bins"
 #: Columns every row has besides the metric values.
 KEY_COLUMNS = ("sample_id", "step", "status")
 
@@ -242,6 +253,9 @@ class Cell:
         existing = sorted(d.glob("chunk-*.parquet"))
         index = int(existing[-1].stem.split("-")[1]) + 1 if existing else 0
         path = d / f"chunk-{index:06d}.parquet"
+        rows, ranges = split_ranges(rows)
+        if ranges is not None:  # first: a chunk is never there without its range bins
+            self.write_ranges_for(path, ranges)
         atomic_write_bytes(path, rows_to_parquet(rows))
         return path
 
@@ -251,6 +265,35 @@ class Cell:
         if not paths:
             return pd.DataFrame(columns=list(KEY_COLUMNS))
         df = pd.concat([_read_chunk(p).to_pandas() for p in paths], ignore_index=True)
+        return df.drop_duplicates(subset=["sample_id", "step"], keep="first").reset_index(drop=True)
+
+    # -- range bins (pcfbench.ranges) ---------------------------------------------------------
+    def write_ranges_for(self, chunk: Path, ranges: list[dict[str, Any]], unique: bool = False) -> Path:
+        """Write the range rows of the rows chunk ``chunk`` (its file in ``ranges/``), atomically."""
+        d = self.dir / RANGES_DIR
+        _mkdir(d)
+        path = d / Path(chunk).name
+        atomic_write_bytes(path, ranges_to_parquet(ranges), unique=unique)
+        return path
+
+    def read_ranges_for(self, chunk: Path) -> pd.DataFrame | None:
+        """The range rows of one rows chunk; None when it has none."""
+        path = self.dir / RANGES_DIR / Path(chunk).name
+        if not path.is_file():
+            return None
+        try:
+            return pq.read_table(path).to_pandas()
+        except (pa.ArrowException, OSError) as exc:
+            raise PcfbenchError(f"range file {path} is damaged or cut short ({exc}); delete it and run "
+                                "`pcfbench backfill-ranges` to recompute it") from None
+
+    def read_ranges(self) -> pd.DataFrame:
+        """The range rows of every chunk of rows, deduplicated on (sample_id, step) in chunk
+        order, as :meth:`read_rows`; a file whose chunk of rows is gone is not read."""
+        frames = [f for f in (self.read_ranges_for(p) for p in self.chunk_paths()) if f is not None and len(f)]
+        if not frames:
+            return pd.DataFrame(columns=["sample_id", "step", *RANGE_COLUMNS])
+        df = pd.concat(frames, ignore_index=True)
         return df.drop_duplicates(subset=["sample_id", "step"], keep="first").reset_index(drop=True)
 
     def done_ids(self) -> set[str]:
@@ -263,6 +306,41 @@ class Cell:
 def shard_name(start: int, stop: int) -> str:
     """The chunk file of the samples ``start <= i < stop`` of a cell's sample list."""
     return f"shard-{start:06d}-{stop:06d}.parquet"
+
+
+#: the range rows' lists, one entry per 10 m bin (``pcfbench.ranges``)
+RANGE_COLUMNS = ("bin", "rays", "l1_sum", "absrel_sum")
+RANGES_SCHEMA = pa.schema([("sample_id", pa.string()), ("step", pa.int64()), ("bin", pa.list_(pa.int64())),
+                           ("rays", pa.list_(pa.int64())), ("l1_sum", pa.list_(pa.float64())),
+                           ("absrel_sum", pa.list_(pa.float64()))])
+
+
+def split_ranges(rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], list[dict[str, Any]] | None]:
+    """``rows`` without the range bins they carry (``RANGE_KEY``), each row's other keys in
+    their order (the rows' columns are those of a run that records none), and those bins as
+    range rows; None when no row carries any (a cell that records none, or a chunk of failed
+    samples only: nothing to record)."""
+    if not any(RANGE_KEY in r for r in rows):
+        return rows, None
+    clean, ranges = [], []
+    for r in rows:
+        bins = r.get(RANGE_KEY)
+        clean.append({k: v for k, v in r.items() if k != RANGE_KEY})
+        if bins is not None:
+            ranges.append({"sample_id": r["sample_id"], "step": int(r["step"]), **bins})
+    return clean, ranges
+
+
+def ranges_to_parquet(ranges: list[dict[str, Any]]) -> bytes:
+    table = pa.Table.from_pylist(ranges, schema=RANGES_SCHEMA)
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink, compression="zstd")
+    return sink.getvalue().to_pybytes()
+
+
+def read_chunk_frame(path: Path) -> pd.DataFrame:
+    """One chunk of rows as a frame (a damaged file: one error naming it)."""
+    return _read_chunk(path).to_pandas()
 
 
 def rows_to_parquet(rows: list[dict[str, Any]]) -> bytes:
@@ -279,6 +357,11 @@ def write_shard(cell_dir: Path, start: int, stop: int, rows: list[dict[str, Any]
     d = Path(cell_dir) / ROWS_DIR
     d.mkdir(parents=True, exist_ok=True)
     path = d / shard_name(start, stop)
+    rows, ranges = split_ranges(rows)
+    if ranges is not None:  # first, as Cell.append_rows
+        r = Path(cell_dir) / RANGES_DIR
+        r.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(r / path.name, ranges_to_parquet(ranges), unique=True)
     atomic_write_bytes(path, rows_to_parquet(rows), unique=True)
     return path
 

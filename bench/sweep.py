@@ -34,7 +34,7 @@ from pcfbench import config
 from pcfbench.errors import PcfbenchError, UnknownNameError, unknown_name
 from pcfbench.method import MethodSpec, resolve_method
 from pcfbench.plugins import Plugins, get_plugins
-from pcfbench.report import method_label
+from pcfbench.labels import cell_label, method_label
 from pcfbench.store import CellSpec, atomic_write_bytes
 
 __all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "load_experiment", "plan", "run_sweep", "ablation_tables"]
@@ -445,11 +445,6 @@ def row_label(spec: CellSpec) -> str:
 
 def _row_key(method: str, options_hash: str, checkpoint_sha256: Any) -> tuple[str, str, str]:
     return (method, options_hash, checkpoint_sha256 if isinstance(checkpoint_sha256, str) else "")
-
-
-def cell_label(spec: CellSpec) -> str:
-    """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the row and the cell."""
-    return spec.label.replace(spec.method, method_label(spec.method, spec.options), 1)
 
 
 def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None = None,

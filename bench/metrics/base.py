@@ -253,11 +253,13 @@ class SweepContext:
 def score_sample(
     sample: Sample, truth: GroundTruth, forecast: Forecast, metrics: list[Metric],
     execution: ExecutionContext | None = None,
+    on_sweep: Callable[[dict, "SweepContext"], None] | None = None,
 ) -> list[dict[str, float | int]]:
     """Score every future sweep of a validated forecast: one row per sweep with every metric.
 
     ``execution``: the thread budget of the metrics' shared searches (default: the
-    process's); the rows do not depend on it."""
+    process's); the rows do not depend on it. ``on_sweep(row, ctx)``: called with each
+    sweep's row and context once it is scored (the runner's range bins reuse its work)."""
     rows = []
     for k, query in enumerate(sample.queries):
         gt = truth.future_points_ref[k]
@@ -276,5 +278,7 @@ def score_sample(
                 row[metric.name] = float("nan")
             else:
                 row[metric.name] = metric(ctx)
+        if on_sweep is not None:
+            on_sweep(row, ctx)
         rows.append(row)
     return rows

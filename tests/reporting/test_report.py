@@ -355,3 +355,30 @@ def test_run_prints_the_summary_table(tiny_kitti, tmp_path):
     assert lines[at + 1].split()[:3] == ["method", "n", "Chamfer"]
     assert lines[at + 2].startswith("copy-last (ref)") and "±" in lines[at + 2]
     assert lines[-1] == f"leaderboard: {tmp_path / 'rep' / 'leaderboard.md'}"
+
+
+def test_report_and_sweep_do_not_import_each_other():
+    """The cell labels both need live below them (pcfbench.labels): the report never imports
+    the sweeps, and neither module imports the other at load time."""
+    import ast
+    from pathlib import Path
+
+    import pcfbench.labels
+    import pcfbench.report
+    import pcfbench.sweep
+
+    def imported(module) -> set[str]:
+        names = set()
+        for node in ast.walk(ast.parse(Path(module.__file__).read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+            elif isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+        return names
+
+    assert not {n for n in imported(pcfbench.report) if n.startswith("pcfbench.sweep")}
+    assert not {n for n in imported(pcfbench.labels) if n in ("pcfbench.report", "pcfbench.sweep")}
+    top = {n.module for n in ast.parse(Path(pcfbench.sweep.__file__).read_text()).body if isinstance(n, ast.ImportFrom)}
+    assert "pcfbench.report" not in top
+    assert pcfbench.report.method_label is pcfbench.sweep.method_label is pcfbench.labels.method_label
+    assert pcfbench.sweep.cell_label is pcfbench.labels.cell_label

@@ -167,9 +167,9 @@ def test_run_writes_the_figures_and_the_page_by_default(tmp_path, monkeypatch):
                                            "--reports", str(rep), "-q"])
     assert res.exit_code == 0, res.output
     names = sorted(p.name for p in (rep / "figures").iterdir())
-    assert names == sorted(f"{k}-kitti_test_kitti-1s.{e}" for k in ("gallery", "horizon", "range") for e in ("png", "svg"))
+    assert names == sorted(f"{k}-kitti_test_kitti-1s.{e}" for k in ("horizon", "range") for e in ("png", "svg"))
     page = (rep / "leaderboard.html").read_text()
-    assert page.count("src='data:image/png;base64,") == 3 and "<tr id='cell-1'>" in page
+    assert page.count("src='data:image/png;base64,") == 2 and "<tr id='cell-1'>" in page
 
 
 def test_ctrl_c_in_a_sweep_says_the_same(tmp_path, monkeypatch):

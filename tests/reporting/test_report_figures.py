@@ -1,5 +1,6 @@
 """The report's figures (error vs forecast time, vs range, BEV gallery, sweep ablations), the
-self-contained HTML page, and the atomic publish of the reports folder."""
+self-contained HTML page, and the atomic publish of the reports folder; a report reads the
+store only (no method runs), the range bins stored at run time."""
 
 from __future__ import annotations
 
@@ -75,7 +76,8 @@ def test_every_kind_of_figure_is_written_as_png_and_svg_with_labelled_axes(made)
     import matplotlib.image
 
     _, out, paths = made
-    for kind in ("horizon", "range", "gallery"):
+    assert not any("gallery" in k for k in paths)  # the gallery re-runs methods: only on request
+    for kind in ("horizon", "range"):
         stem = f"{kind}-kitti_test_kitti-1s"
         png, svg = out / "figures" / f"{stem}.png", out / "figures" / f"{stem}.svg"
         assert paths[f"figures/{stem}.png"] == png and paths[f"figures/{stem}.svg"] == svg
@@ -198,7 +200,7 @@ def test_html_page_is_self_contained_with_figures_sortable_rows_and_provenance(m
     _, out, paths = made
     page = paths["html"].read_text()
     assert "http://" not in page and "https://" not in page and "<link" not in page and "src='http" not in page
-    assert page.count("<img") == 3 and page.count("src='data:image/png;base64,") == 3
+    assert page.count("<img") == 2 and page.count("src='data:image/png;base64,") == 2
     assert page.count("<tr class='cell'") == 3 and "table class='pcf sortable'" in page
     for key in ("harness", "protocol", "git commit", "dataset fingerprint", "checkpoint sha256", "date"):
         assert f"<th>{key}</th>" in page
@@ -298,7 +300,7 @@ def test_html_page_renders_in_headless_chromium(made, tmp_path):
         return d
 
     plain = dom(url)
-    assert plain.body.get("data-ready") == "1" and plain.body.get("data-figures-shown") == "3"
+    assert plain.body.get("data-ready") == "1" and plain.body.get("data-figures-shown") == "2"
     assert len(plain.rows) == len(lb.table) == 3
     col = plain.heads.index("l1_mean")
     shown = {r[0]: float(r[col]) for r in plain.rows}
@@ -340,3 +342,183 @@ def test_ablation_draws_no_figure_for_an_option_with_one_value(made, tmp_path):
     assert figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins()) == {}
     g = pd.DataFrame({"method": ["shifted"] * 3, "option.dx": ["0.0", np.nan, "abc"]})
     assert list(figures._with_defaults(g, "shifted", ["option.dx"], _plugins())["option.dx"]) == [0.0, 0.0, "abc"]
+
+
+# -- a report reads the store only ------------------------------------------------------------
+def _no_method_runs(monkeypatch):
+    """Make every way a report could run a method raise: the methods' forecasts, the runner's
+    entry points and the re-run of samples."""
+    import pcfbench.runner
+    from pcfbench.methods.copy_last import CopyLast
+
+    def boom(*a, **k):
+        raise AssertionError("a report ran a method")
+
+    for cls in (Shifted, CopyLast, Method):
+        monkeypatch.setattr(cls, "forecast", boom)
+    for name in ("resolve", "process_sample", "run_cell"):
+        monkeypatch.setattr(pcfbench.runner, name, boom)
+    monkeypatch.setattr(figures, "rerun", boom)
+
+
+def test_report_and_its_figures_run_no_method(made, tmp_path, monkeypatch):
+    """`pcfbench report` and write_reports draw every figure (the range one included) from
+    the store, with every method's forecast and the runner made to raise."""
+    from click.testing import CliRunner
+
+    from pcfbench.cli import build_cli
+
+    store = made[0]
+    _no_method_runs(monkeypatch)
+    paths = write_reports(store, tmp_path / "api", ReportOptions(figures=True), plugins=_plugins())
+    assert {"figures/range-kitti_test_kitti-1s.png", "figures/horizon-kitti_test_kitti-1s.png"} <= set(paths)
+    monkeypatch.setenv("PCFBENCH_FIGURES", "1")
+    res = CliRunner().invoke(build_cli(), ["report", "--store", str(store), "--reports", str(tmp_path / "cli")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "cli" / "figures" / "range-kitti_test_kitti-1s.svg").is_file()
+    assert "backfill" not in res.output  # every cell has its range bins
+
+
+def test_range_bins_stored_at_run_time_are_those_a_rerun_recomputes(made):
+    """The bins the runner stored for each sweep are the per-ray errors of a re-run of the
+    sample binned by ground-truth range (the old figure's recomputation); one bin by hand."""
+    from pcfbench import ranges
+
+    store = made[0]
+    lb = collect(store)
+    cells = lb.table[lb.table["variant"] == "shifted (dx=1.5)"]
+    cell = Cell.at(store, cells.iloc[0]["cell_dir"])
+    rows, stored = cell.read_rows(), cell.read_ranges()
+    assert len(stored) == len(rows[rows.status == "ok"]) and not stored.duplicated(["sample_id", "step"]).any()
+    sid = rows["sample_id"].iloc[len(rows) // 2]
+    run = figures.rerun(store, cells, [sid], _plugins())
+    assert run.mismatch == [] and run.skipped == {}
+    for sweep in run.errors["shifted (dx=1.5)"][sid]:
+        mine = stored[(stored.sample_id == sid) & (stored.step == sweep.step)]
+        assert len(mine) == 1
+        got, want = ranges.profile(mine), figures.range_profile([sweep])
+        np.testing.assert_array_equal(got["lo_m"].to_numpy(float), want["lo_m"].to_numpy(float))
+        np.testing.assert_array_equal(got["rays"].to_numpy(int), want["rays"].to_numpy(int))
+        np.testing.assert_allclose(got["l1_mean"].to_numpy(float), want["l1_mean"].to_numpy(float), rtol=1e-12)
+        np.testing.assert_allclose(got["absrel_mean"].to_numpy(float), want["absrel_mean"].to_numpy(float), rtol=1e-12)
+        # by hand: the kept rays whose ground truth lies 10-20 m away
+        r = mine.iloc[0]
+        inside = (sweep.ray_range_m >= 10.0) & (sweep.ray_range_m < 20.0)
+        k = list(r["bin"]).index(1)
+        assert r["rays"][k] == inside.sum() > 0
+        assert r["l1_sum"][k] == pytest.approx(float(np.sum(sweep.ray_l1_m[inside])), rel=1e-12)
+        assert r["absrel_sum"][k] == pytest.approx(float(np.sum(sweep.ray_absrel[inside])), rel=1e-12)
+        # and the ray-weighted mean over the bins is the sweep's stored l1_mean
+        stored_row = rows[(rows.sample_id == sid) & (rows.step == sweep.step)].iloc[0]
+        assert sum(r["l1_sum"]) / sum(r["rays"]) == pytest.approx(stored_row["l1_mean"], rel=1e-12)
+
+
+def test_range_figure_pools_every_stored_sweep(made):
+    from pcfbench import ranges
+
+    store = made[0]
+    lb = collect(store)
+    found = figures.stored_ranges(store, lb.table)
+    assert set(found.profiles) == set(lb.table["variant"]) and not found.missing
+    fig = figures.range_figure(found, "t")
+    ax_l1 = fig.axes[0]
+    for _, r in lb.table.iterrows():
+        cell = Cell.at(store, r["cell_dir"])
+        prof = ranges.profile(cell.read_ranges())
+        line = next(ln for ln in ax_l1.lines if ln.get_label() == r["variant"])
+        np.testing.assert_array_equal(line.get_ydata(), prof["l1_mean"].to_numpy(float))
+        np.testing.assert_array_equal(line.get_xdata(), ((prof["lo_m"] + prof["hi_m"]) / 2).to_numpy(float))
+        assert found.sweeps[r["variant"]] == r["sweeps"]
+    assert "every scored sweep pooled (30 per cell)" in fig.get_suptitle()
+
+
+def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(made, tmp_path, monkeypatch):
+    """A cell without range bins is left out of the range figure with a note naming it and the
+    command; the report runs no method for it; `pcfbench backfill-ranges` recomputes the very
+    bins the run stored."""
+    import json
+    import shutil
+
+    from pcfbench import ranges
+
+    store = tmp_path / "store"
+    shutil.copytree(made[0], store)
+    lb = collect(store)
+    old = lb.table[lb.table["variant"] == "shifted (dx=0.5)"].iloc[0]
+    cell = Cell.at(store, old["cell_dir"])
+    kept = cell.read_ranges()
+    shutil.rmtree(cell.dir / "ranges")  # as a cell made before this version
+    meta = json.loads((cell.dir / "cell.json").read_text())
+    del meta["range_bins"]
+    (cell.dir / "cell.json").write_text(json.dumps(meta))
+
+    with monkeypatch.context() as m:
+        _no_method_runs(m)
+        paths = write_reports(store, tmp_path / "rep", ReportOptions(figures=True), plugins=_plugins())
+        found = figures.stored_ranges(store, collect(store).table)
+    assert "figures/range-kitti_test_kitti-1s.png" in paths
+    assert found.missing == {"shifted (dx=0.5)": old["cell_dir"]} and "shifted (dx=0.5)" not in found.profiles
+    title = figures.range_figure(found, "t").get_suptitle()
+    assert "\nleft out, no range bins in the store: shifted (dx=0.5) (`pcfbench backfill-ranges`" in title
+    md = paths["md"].read_text()
+    assert f"no range bins in the store for cell {old['cell_dir']}" in md and "pcfbench backfill-ranges" in md
+
+    done = ranges.backfill(store, _plugins(), log=lambda s: None)
+    assert [d["status"] for d in done if d["cell"] == str(cell.dir)] == ["recomputed 1 chunk(s)"]
+    assert sum(d["status"] == "has ranges" for d in done) == 2
+    again = cell.read_ranges()
+    pd.testing.assert_frame_equal(again, kept)
+    assert json.loads((cell.dir / "cell.json").read_text())["range_bins"] == ranges.meta()
+    assert not figures.stored_ranges(store, collect(store).table).missing
+    assert ranges.backfill(store, _plugins(), log=lambda s: None)[0]["status"] == "has ranges"  # nothing left to do
+
+
+def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(made, tmp_path, monkeypatch):
+    """`pcfbench backfill-ranges` recomputes a cell's missing bins; a cell whose re-run gives
+    other numbers than its rows is named, left without bins, and the command exits 1."""
+    import json
+    import shutil
+
+    from click.testing import CliRunner
+
+    from pcfbench import ranges
+    from pcfbench.cli import build_cli
+
+    store = tmp_path / "store"
+    shutil.copytree(made[0], store)
+    lb = collect(store)
+
+    def strip(variant):
+        cell = Cell.at(store, lb.table[lb.table["variant"] == variant].iloc[0]["cell_dir"])
+        kept = cell.read_ranges()
+        shutil.rmtree(cell.dir / "ranges")
+        meta = json.loads((cell.dir / "cell.json").read_text())
+        del meta["range_bins"]
+        (cell.dir / "cell.json").write_text(json.dumps(meta))
+        return cell, kept
+
+    cell, kept = strip("copy-last")
+    res = CliRunner().invoke(build_cli(), ["backfill-ranges", "--store", str(store)])
+    assert res.exit_code == 0, res.output
+    assert f"{cell.dir}: recomputed 1 chunk(s)" in res.output and "1 cell(s) recomputed, 0 left as they are" in res.output
+    pd.testing.assert_frame_equal(cell.read_ranges(), kept)
+
+    cell, _ = strip("shifted (dx=1.5)")
+    monkeypatch.setattr(Shifted, "forecast", lambda self, sample: Forecast(points_ref=tuple(
+        sample.past_points_ref[-1] + np.float32(2.0) for _ in range(sample.num_future))))
+    done = [d for d in ranges.backfill(store, _plugins(), log=lambda s: None) if d["cell"] == str(cell.dir)]
+    assert done[0]["status"].startswith(f"not recomputed: re-running shifted does not give back its stored rows")
+    assert not (cell.dir / "ranges").exists() and "range_bins" not in json.loads((cell.dir / "cell.json").read_text())
+    note = figures.range_gaps(collect(store), store)
+    assert note == [f"shifted (dx=1.5): no range bins in the store for cell {cell.dir} (made before the store kept "
+                    f"them), so the error-by-range figure leaves it out; `pcfbench backfill-ranges --store {store}` "
+                    "recomputes them (it re-runs the method)"]
+
+
+def test_gallery_is_drawn_only_when_asked_for(made, tmp_path):
+    store = made[0]
+    paths = write_reports(store, tmp_path / "rep", ReportOptions(figures=True, gallery=True), plugins=_plugins())
+    assert {"figures/gallery-kitti_test_kitti-1s.png", "figures/gallery-kitti_test_kitti-1s.svg"} <= set(paths)
+    assert paths["html"].read_text().count("src='data:image/png;base64,") == 3
+    again = write_reports(store, tmp_path / "rep", ReportOptions(figures=True), plugins=_plugins())
+    assert not any("gallery" in k for k in again) and not list((tmp_path / "rep" / "figures").glob("gallery-*"))

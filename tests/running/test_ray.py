@@ -259,6 +259,11 @@ def test_ray_sweep_gives_the_local_rows_bit_for_bit_and_the_same_table(town, tmp
         a, b = (x.drop(columns=list(TIMINGS)).reset_index(drop=True) for x in (a, b))
         assert len(b) == 5 * 5 and set(b["status"]) == {"ok"}
         pd.testing.assert_frame_equal(a, b, check_exact=True)
+        # the range bins too: one file beside each shard, the local run's values
+        assert sorted(p.name for p in (d / "ranges").iterdir()) == sorted(p.name for p in (d / "rows").iterdir())
+        ra, rb = (Cell.at(x, "").read_ranges().sort_values(KEY).reset_index(drop=True) for x in (local[rel], d))
+        assert len(rb) == 5 * 5
+        pd.testing.assert_frame_equal(ra, rb, check_exact=True)
         ma, mb = (json.loads((x / "cell.json").read_text()) for x in (local[rel], d))
         assert mb["status"] == "complete" and ma["counts"] == mb["counts"] and ma["sample_ids_hash"] == mb["sample_ids_hash"]
     assert (tmp_path / "local" / "reports" / "sweeps" / "exp.csv").read_bytes() == \

@@ -159,3 +159,58 @@ def test_sigkill_at_any_moment_loses_and_duplicates_nothing(tmp_path):
     assert len(a) == len(b) == 2 * (90 - 18) * 5
     pd.testing.assert_frame_equal(a[key + ["chamfer", "chamfer_nf"]], b[key + ["chamfer", "chamfer_nf"]])
     assert json.loads((cell.dir / "cell.json").read_text())["status"] == "complete"
+    # the range bins beside the rows: none lost, none twice, the clean run's
+    raw_ranges = pd.concat([cell.read_ranges_for(p) for p in cell.chunk_paths()])
+    assert not raw_ranges.duplicated(key).any() and len(raw_ranges) == len(a)
+    pd.testing.assert_frame_equal(raw_ranges.sort_values(key).reset_index(drop=True),
+                                  Cell(tmp_path / "clean", spec).read_ranges().sort_values(key).reset_index(drop=True))
+
+
+def test_range_bins_are_written_with_their_rows_and_a_resumed_run_neither_loses_nor_repeats_them(tmp_path, monkeypatch):
+    """Each chunk of rows has its range bins in ranges/ under its name, written just before
+    it: a run killed between the two leaves a range file without rows, which is never read
+    and which the resumed run replaces. The rows are those of a run that keeps no bins."""
+    import pcfbench.runner as runner
+    import pcfbench.store as store_mod
+
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=30)
+    spec = _spec(root, metrics=("chamfer", "l1_mean"))
+    monkeypatch.setattr(runner, "CHUNK_SAMPLES", 4)
+    real = store_mod.rows_to_parquet
+    calls = []
+
+    def killed_on_second(rows):
+        calls.append(1)
+        if len(calls) >= 2:  # the process dies after chunk 1's range file, before its rows
+            raise KeyboardInterrupt
+        return real(rows)
+
+    monkeypatch.setattr(store_mod, "rows_to_parquet", killed_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        run_cell(spec, tmp_path / "s", progress=False)
+    cell = Cell(tmp_path / "s", spec)
+    assert [p.name for p in cell.chunk_paths()] == ["chunk-000000.parquet"]
+    assert sorted(p.name for p in (cell.dir / "ranges").iterdir()) == ["chunk-000000.parquet", "chunk-000001.parquet"]
+    assert set(cell.read_ranges()["sample_id"]) == cell.done_ids()  # the orphan is not read
+    monkeypatch.setattr(store_mod, "rows_to_parquet", real)
+    run_cell(spec, tmp_path / "s", progress=False)
+    clean = Cell(tmp_path / "clean", spec)
+    run_cell(spec, tmp_path / "clean", progress=False)
+    key = ["sample_id", "step"]
+    got, want = cell.read_ranges(), clean.read_ranges()
+    assert sorted(p.name for p in (cell.dir / "ranges").iterdir()) == [p.name for p in cell.chunk_paths()]
+    raw = pd.concat([cell.read_ranges_for(p) for p in cell.chunk_paths()])
+    assert not raw.duplicated(key).any() and len(raw) == len(cell.read_rows()) == 12 * 5
+    pd.testing.assert_frame_equal(got.sort_values(key).reset_index(drop=True), want.sort_values(key).reset_index(drop=True))
+    assert json.loads((cell.dir / "cell.json").read_text())["range_bins"]["bin_m"] == 10.0
+    # a cell scoring neither l1_mean nor absrel_mean keeps no bins and its rows are unchanged
+    monkeypatch.setattr(runner.ranges, "records", lambda names: False)
+    other = tmp_path / "none"
+    run_cell(spec, other, progress=False)
+    assert not (Cell(other, spec).dir / "ranges").exists() and "range_bins" not in Cell(other, spec).read_meta()
+    a, b = Cell(other, spec).read_rows(), clean.read_rows()
+    assert list(a.columns) == list(b.columns)
+    pd.testing.assert_frame_equal(a.drop(columns=[c for c in a if c.startswith("t_")]),
+                                  b.drop(columns=[c for c in b if c.startswith("t_")]))
+    assert not run_cell(_spec(root), tmp_path / "chamfer-only", progress=False).failed
+    assert not (Cell(tmp_path / "chamfer-only", _spec(root)).dir / "ranges").exists()

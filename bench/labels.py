@@ -1,0 +1,32 @@
+"""How a cell is named to a reader: its variant label and its one-line label.
+
+Low in the import graph (it needs only the store's ``CellSpec``): the report, the sweeps and
+the command line all name cells the same way without importing each other.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pcfbench.store import CellSpec
+
+
+def method_label(method: str, options: dict) -> str:
+    """A readable variant label: ``raycast-voxel (voxel=0.2, k=3)``; the bare name without options."""
+    if not options:
+        return method
+    return f"{method} (" + ", ".join(f"{k}={v}" for k, v in sorted(options.items())) + ")"
+
+
+def trained_label(spec: CellSpec, meta: dict[str, Any]) -> str:
+    """A trained method's row names its training data and checkpoint (two checkpoints side by
+    side stay two rows), and says so when it was scored on that very data."""
+    if not spec.train_on:
+        return ""
+    mark = ", ON ITS TRAINING DATA" if meta.get("evaluated_on_training_data") else ""
+    return f" [trained on {spec.train_on}, ck {str(spec.checkpoint_sha256)[:8]}{mark}]"
+
+
+def cell_label(spec: CellSpec) -> str:
+    """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the row and the cell."""
+    return spec.label.replace(spec.method, method_label(spec.method, spec.options), 1)
