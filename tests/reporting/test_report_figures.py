@@ -507,7 +507,7 @@ def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(m
     monkeypatch.setattr(Shifted, "forecast", lambda self, sample: Forecast(points_ref=tuple(
         sample.past_points_ref[-1] + np.float32(2.0) for _ in range(sample.num_future))))
     done = [d for d in ranges.backfill(store, _plugins(), log=lambda s: None) if d["cell"] == str(cell.dir)]
-    assert done[0]["status"].startswith(f"not recomputed: re-running shifted does not give back its stored rows")
+    assert done[0]["status"].startswith("not recomputed: re-running shifted does not give back its stored rows")
     assert not (cell.dir / "ranges").exists() and "range_bins" not in json.loads((cell.dir / "cell.json").read_text())
     note = figures.range_gaps(collect(store), store)
     assert note == [f"shifted (dx=1.5): no range bins in the store for cell {cell.dir} (made before the store kept "
