@@ -371,7 +371,7 @@ class Copilot4D(TrainedMethod):
         import torch
 
         from pcfbench.methods.copilot4d.diffusion import sample_frame
-        from pcfbench.methods.copilot4d.train import autocast
+        from pcfbench.training import autocast
 
         cfg = self.world_cfg
         dev = next(self.world.parameters()).device
