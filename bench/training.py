@@ -1,9 +1,14 @@
-"""Trained methods: the contract, checkpoints with identity, and the one training driver.
+"""Trained methods: the contract, checkpoints with identity, the one training driver and
+(from :mod:`pcfbench.trainloop`) the one training loop.
 
 A method that learns subclasses :class:`TrainedMethod` and implements ``fit`` (train on a
 :class:`TrainSource`, saving through the :class:`TrainingRun` it is handed, resuming from
 what that run gives back) and ``load`` (take the weights of a verified :class:`Checkpoint`).
 ``pcfbench train METHOD[:opts] --dataset NAME[=ROOT]`` drives any of them (:func:`train`).
+A ``fit`` that trains a torch model by gradient steps hands its model, optimiser, batch sampler
+and step function to :func:`~pcfbench.trainloop.fit_loop` (re-exported here), which owns
+seeding, resume, the random state, autocast, clipping, the schedule, timing, the saves and
+the curve.
 
 A checkpoint is a folder keyed by method, version, options hash and training data (dataset,
 split, a hash of the dataset's file fingerprint and root options) under
@@ -47,6 +52,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, MethodSpec, options_dict, options_hash
+from pcfbench.trainloop import (LoopResult, Panel, Randoms, StateError, adamw, autocast, default_device, fit_loop,
+                                param_groups, synchronize, warmup_cosine, write_curve)
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcfbench.plugins import Plugins
@@ -55,6 +62,9 @@ __all__ = [
     "Checkpoint", "CheckpointError", "TrainOn", "TrainSource", "TrainedMethod", "TrainingRun", "checkpoint_dir",
     "checkpoint_for", "find_checkpoint", "find_shipped", "find_shipped_by_recipe", "is_trained", "missing_checkpoint_message", "open_training_data", "ship", "shipped_dir",
     "train",
+    # the one training loop (pcfbench.trainloop)
+    "LoopResult", "Panel", "Randoms", "StateError", "adamw", "autocast", "default_device", "fit_loop", "param_groups",
+    "synchronize", "warmup_cosine", "write_curve",
 ]
 
 FORMAT = 1

@@ -192,17 +192,17 @@ def make_optimizer(model: nn.Module, cfg: WorldModelConfig) -> torch.optim.Optim
     (biases, the tied embedding / un-embedding, positional encodings and LayerNorm excluded).
     The schedule (linear warm-up, cosine decay to 10 %) is :func:`lr_at`; gradient clipping
     at ``cfg.grad_clip`` is the training loop's."""
-    from pcfbench.methods.copilot4d.train import param_groups
+    from pcfbench.training import adamw
 
-    return torch.optim.AdamW(param_groups(model, cfg.weight_decay), lr=cfg.lr, betas=cfg.betas)
+    return adamw(model, cfg.lr, cfg.betas, cfg.weight_decay)
 
 
 def lr_at(cfg: WorldModelConfig, step: int) -> float:
     """Learning rate at ``step``: linear warm-up over ``cfg.warmup`` steps, then cosine decay
     over ``cfg.decay_steps`` to ``cfg.min_lr_ratio * cfg.lr`` (the tokenizer's schedule)."""
-    from pcfbench.methods.copilot4d.train import lr_at as schedule
+    from pcfbench.training import warmup_cosine
 
-    return schedule(cfg, step)
+    return warmup_cosine(step, cfg.lr, cfg.warmup, cfg.decay_steps, cfg.min_lr_ratio)
 
 
 # --------------------------------------------------------------------------- Algorithm 2

@@ -15,7 +15,7 @@ from pcfbench.methods.copilot4d.data import SweepSource, in_box
 from pcfbench.methods.copilot4d.model import Tokenizer
 from pcfbench.methods.copilot4d.options import check_readout
 from pcfbench.methods.copilot4d.render import box_interval, logistic_noise_mask, render_depth, sample_along_rays
-from pcfbench.methods.copilot4d.train import autocast
+from pcfbench.training import autocast
 
 
 @torch.no_grad()

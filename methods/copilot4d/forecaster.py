@@ -26,7 +26,6 @@ checkpoint sha256 and a digest of its tensors, which ``load`` checks.
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import time
@@ -150,111 +149,49 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
     return out
 
 
-# --------------------------------------------------------------------------- training loop
+# --------------------------------------------------------------------------- training
 def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, steps: int, seed: int = 0,
-                manifest_config: dict, extra_weights: dict | None = None, resumed: dict | None = None,
-                log=print) -> dict:
-    """Algorithm 1 on ``windows`` until ``steps`` or until ``run`` says stop; checkpoints every
-    ``CHECKPOINT_EVERY`` steps through ``run.save`` (weights ``world.*`` plus ``extra_weights``);
-    ``resumed`` (what ``run.resume()`` gave) restores weights, optimiser, both RNGs and the
-    curve, so a resumed run continues the same curve. Returns the step reached and the curve."""
+                manifest_config, extra_weights: dict | None = None, resumed=None, log=print) -> dict:
+    """Algorithm 1 on ``windows`` through :func:`pcfbench.training.fit_loop`, until ``steps``
+    or until ``run`` says stop; checkpoints every ``CHECKPOINT_EVERY`` steps (weights
+    ``world.*`` plus ``extra_weights``); ``resumed`` (what ``run.resume()`` gave) restores
+    weights, optimiser, the random streams and the curve, so a resumed run continues the same
+    curve. ``model``: the world model, or a function building it (called after the loop seeded
+    torch with ``seed``). Returns the model, the step reached and the curve."""
     import torch
 
     from pcfbench.methods.copilot4d import diffusion as D
-    from pcfbench.methods.copilot4d.train import autocast, synchronize
+    from pcfbench.training import fit_loop
 
-    torch.manual_seed(seed)
-    device = next(model.parameters()).device  # windows stay on the CPU; each batch moves there
-    opt = D.make_optimizer(model, cfg)
-    rng = np.random.default_rng(seed)
-    gen = torch.Generator(device).manual_seed(seed + 1)
-    step, history, window, elapsed, cpu = 0, [], [], 0.0, 0.0
-    if resumed is not None:
-        st = resumed["state"]
-        model.load_state_dict({k[len("world."):]: v for k, v in resumed["weights"].items() if k.startswith("world.")})
-        opt.load_state_dict(st["optimizer"])
-        step, history, window = resumed["step"], list(st["history"]), list(st["window"])
-        elapsed, cpu = float(st["elapsed_s"]), float(st["cpu_s"])
-        rng.bit_generator.state = json.loads(st["numpy_rng"])
-        gen.set_state(st["torch_gen"])
-    model.train()
-    tokens = torch.from_numpy(windows["tokens"].astype(np.int64))
+    tokens = torch.from_numpy(windows["tokens"].astype(np.int64))  # on the CPU; each batch moves to the device
     poses = torch.from_numpy(windows["poses"].astype(np.float32))
 
-    def save(complete: bool) -> None:
-        weights = {f"world.{k}": v for k, v in model.state_dict().items()} | dict(extra_weights or {})
-        state = {"optimizer": opt.state_dict(), "history": history, "window": window,
-                 "numpy_rng": json.dumps(rng.bit_generator.state), "torch_gen": gen.get_state(),
-                 "elapsed_s": elapsed, "cpu_s": cpu}
-        run.save(step, weights, state, config=manifest_config, complete=complete)
+    def sample_batch(rand, step: int):
+        picks = torch.from_numpy(rand.numpy.integers(0, len(tokens), cfg.batch_size))
+        return tokens[picks], poses[picks], rand.torch  # the masking draws from the loop's torch generator
 
-    run.start(steps, step)
-    saved = step if resumed is not None else -1
-    while step < steps:
-        if run.should_stop():
-            log(f"time budget reached at step {step}")
-            break
-        t0, c0 = time.monotonic(), time.process_time()
-        for g in opt.param_groups:
-            g["lr"] = D.lr_at(cfg, step)
-        picks = torch.from_numpy(rng.integers(0, len(tokens), cfg.batch_size))
-        with autocast(device):  # bf16 on CUDA, nothing on the CPU
-            loss, stats = D.training_loss(model, tokens[picks].to(device), poses[picks].to(device), cfg.n_past,
-                                          variant, cfg.label_smoothing, generator=gen)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        opt.step()
-        step += 1
-        synchronize(device)  # on a GPU the backward pass may still be running
-        dt = time.monotonic() - t0
-        elapsed += dt
-        cpu += time.process_time() - c0
-        rec = {"step": step, "lr": opt.param_groups[0]["lr"], **stats, "grad_norm": float(gnorm), "step_s": dt}
-        window.append(rec)
-        if step % LOG_EVERY == 0 or step == steps:
-            avg = {k: float(np.nanmean([r[k] for r in window])) for k in rec}
-            avg.update(step=step, elapsed_s=elapsed, cpu_s=cpu)
-            history.append(avg)
-            window = []
-        run.update(1, loss=stats["loss"], acc=stats["accuracy"])
-        if step % CHECKPOINT_EVERY == 0 or step == steps:
-            save(step >= steps)
-            saved = step
-    if saved != step:
-        save(step >= steps)
-    return {"step": step, "history": history, "elapsed_s": elapsed, "cpu_s": cpu}
+    def step_fn(model, batch):
+        x0, pose, gen = batch
+        device = next(model.parameters()).device
+        return D.training_loss(model, x0.to(device), pose.to(device), cfg.n_past, variant, cfg.label_smoothing,
+                               generator=gen)
+
+    out = fit_loop(model, lambda m: D.make_optimizer(m, cfg), sample_batch, step_fn, run, steps=steps, seed=seed,
+                   schedule=lambda step: D.lr_at(cfg, step), grad_clip=cfg.grad_clip, log_every=LOG_EVERY,
+                   checkpoint_every=CHECKPOINT_EVERY, torch_generator=True,
+                   progress_values={"loss": "loss", "acc": "accuracy"}, weights_prefix="world.",
+                   extra_weights=extra_weights, manifest_config=manifest_config, resumed=resumed, log=log)
+    return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
+            "cpu_s": out.cpu_s}
 
 
-def write_world_curve(history: list[dict], out_dir: Path, stem: str = "curve") -> tuple[Path, Path]:
-    """The world model's training curve as CSV and PNG (loss; token accuracy on the scored and
-    on the masked tokens)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path = out_dir / f"{stem}.csv"
-    with open(csv_path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(history[0]))
-        w.writeheader()
-        w.writerows(history)
-    import matplotlib
+def world_curve_panels() -> list:
+    """The world model curve's figure: the loss; token accuracy on the scored and the masked tokens."""
+    from pcfbench.training import Panel
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    s = [r["step"] for r in history]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    axes[0].plot(s, [r["loss"] for r in history], label="cross entropy (label smoothing 0.1)")
-    axes[0].set_xlabel("step")
-    axes[0].legend()
-    axes[1].plot(s, [r["accuracy"] for r in history], label="token accuracy (scored tokens)")
-    axes[1].plot(s, [r["masked_accuracy"] for r in history], label="token accuracy (masked tokens)")
-    axes[1].set_ylim(0, 1)
-    axes[1].set_xlabel("step")
-    axes[1].legend()
-    fig.tight_layout()
-    png = out_dir / f"{stem}.png"
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
-    return csv_path, png
+    return [Panel((("loss", "cross entropy (label smoothing 0.1)"),)),
+            Panel((("accuracy", "token accuracy (scored tokens)"), ("masked_accuracy", "token accuracy (masked tokens)")),
+                  ylim=(0, 1))]
 
 
 # --------------------------------------------------------------------------- the methods
@@ -309,10 +246,9 @@ class Copilot4D(TrainedMethod):
         return ck
 
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
-        import torch
-
         from pcfbench.methods.copilot4d.train import default_device, load_tokenizer
         from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
+        from pcfbench.training import write_curve
 
         device = default_device()  # CPU threads: the harness applied `pcfbench train --threads` (every CPU)
         resumed = progress.resume()
@@ -338,20 +274,19 @@ class Copilot4D(TrainedMethod):
                                 window_cache_dir(tok_ck.sha256, train_source.train_on.key), log=progress.log)
         progress.log(f"{len(windows['tokens'])} training windows of {cfg.n_frames} frames, "
                      f"{cfg.token_grid}x{cfg.token_grid} tokens")
-        torch.manual_seed(0)
-        model = WorldModel(cfg).to(device)  # built on the CPU, so its initial weights do not depend on the device
-        manifest_config = {
+        manifest_config = lambda model: {  # noqa: E731
             "world": cfg.to_dict(), "variant": self.variant.name, "tokenizer": self.tok_cfg.to_dict(),
             "tokenizer_sha256": tok_ck.sha256, "tokenizer_digest": tok_digest,
             "tokenizer_checkpoint": str(tok_ck.manifest_path), "tokenizer_steps": tok_ck.steps,
             "parameters": count_parameters(model), "steps_target": self.training_steps(),
             "windows": int(len(windows["tokens"])), "strides": list(self.options.strides),
         }
-        out = train_world(model, cfg, windows, self.variant, progress, steps=self.training_steps(), seed=0,
-                          manifest_config=manifest_config, resumed=resumed,
+        # built on the CPU (then moved), so its initial weights do not depend on the device
+        out = train_world(lambda: WorldModel(cfg).to(device), cfg, windows, self.variant, progress,
+                          steps=self.training_steps(), seed=0, manifest_config=manifest_config, resumed=resumed,
                           extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()}, log=progress.log)
         if out["history"]:
-            csv_path, png = write_world_curve(out["history"], Path(out_dir))
+            csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
             progress.log(f"training curve: {csv_path} and {png}")
 
     # -- loading ------------------------------------------------------------------------------
@@ -434,7 +369,7 @@ class Copilot4D(TrainedMethod):
         import torch
 
         from pcfbench.methods.copilot4d.diffusion import sample_frame
-        from pcfbench.methods.copilot4d.train import autocast
+        from pcfbench.training import autocast
 
         cfg = self.world_cfg
         dev = next(self.world.parameters()).device

@@ -1,11 +1,9 @@
-"""Tokenizer training (A.3 optimiser), with checkpoints and resume."""
+"""Tokenizer training (A.3 optimiser) through the one training loop
+(:func:`pcfbench.training.fit_loop`): this module supplies the model, the batches, the
+losses of a step and the K-means codebook re-initialisation after it."""
 
 from __future__ import annotations
 
-import contextlib
-import csv
-import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,50 +15,23 @@ from pcfbench.methods.copilot4d.config import TokenizerConfig
 from pcfbench.methods.copilot4d.data import Batch, SweepSource, make_batch
 from pcfbench.methods.copilot4d.model import Tokenizer, occupancy_grid
 from pcfbench.methods.copilot4d.render import pool_mask, render_depth, render_loss, sample_along_rays
+# the generic pieces live in the core; their old names here stay for the callers that use them
+from pcfbench.training import Panel, adamw, autocast, default_device, fit_loop, param_groups, synchronize, warmup_cosine
+from pcfbench.training import write_curve as write_any_curve
 
-
-def default_device() -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
-def autocast(device: torch.device):
-    """bf16 autocast on CUDA, nothing on CPU."""
-    if device.type == "cuda":
-        return torch.autocast("cuda", dtype=torch.bfloat16)
-    return contextlib.nullcontext()
-
-
-def synchronize(device: torch.device) -> None:
-    """Wait for the GPU's queued work, so a step's wall time includes its backward pass."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
-    """A.3: weight decay on weight matrices only; biases, embeddings (codebook, z embedding,
-    relative position biases) and LayerNorm parameters are excluded."""
-    decay, no_decay = [], []
-    for mod_name, mod in model.named_modules():
-        for name, p in mod.named_parameters(recurse=False):
-            if not p.requires_grad:
-                continue
-            if isinstance(mod, nn.Linear) and name == "weight":
-                decay.append(p)
-            else:
-                no_decay.append(p)
-    return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+__all__ = ["autocast", "compute_losses", "config_from_dict", "count_parameters", "curve_panels", "default_device",
+           "load_tokenizer", "lr_at", "make_optimizer", "param_groups", "synchronize", "train", "write_curve"]
 
 
 def make_optimizer(model: nn.Module, cfg: TokenizerConfig) -> torch.optim.Optimizer:
-    return torch.optim.AdamW(param_groups(model, cfg.weight_decay), lr=cfg.lr, betas=cfg.betas)
+    """A.3: AdamW, weight decay on weight matrices only; biases, embeddings (codebook, z
+    embedding, relative position biases) and LayerNorm parameters are excluded."""
+    return adamw(model, cfg.lr, cfg.betas, cfg.weight_decay)
 
 
 def lr_at(cfg: TokenizerConfig, step: int) -> float:
     """Linear warm-up to ``lr``, then cosine decay over ``decay_steps`` to ``min_lr_ratio * lr``."""
-    if step < cfg.warmup:
-        return cfg.lr * (step + 1) / cfg.warmup
-    t = min(1.0, (step - cfg.warmup) / max(1, cfg.decay_steps - cfg.warmup))
-    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+    return warmup_cosine(step, cfg.lr, cfg.warmup, cfg.decay_steps, cfg.min_lr_ratio)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -112,120 +83,54 @@ def load_tokenizer(checkpoint, device: torch.device | None = None) -> Tokenizer:
 def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None = None,
           device: torch.device | None = None, seed: int = 0, threads: int | None = None, log=print) -> dict:
     """Train (or resume) until ``steps`` (default ``cfg.max_steps``) or until ``run`` (a
-    ``pcfbench.training.TrainingRun``) says the time budget is spent. ``run.resume()`` gives
-    the last checkpoint (weights, optimiser, both RNGs, the curve so far), so a resumed run
-    draws the same batches and continues the same curve; ``run.save`` is called every
-    ``cfg.checkpoint_every`` steps and at the end. Returns the model, step, curve and times."""
+    ``pcfbench.training.TrainingRun``) says the time budget is spent, through
+    :func:`pcfbench.training.fit_loop` (resume, random state, saves every
+    ``cfg.checkpoint_every`` steps and at the end, the curve every ``cfg.log_every``).
+    Returns the model, step, curve and times."""
     device = device or default_device()
     steps = steps or cfg.max_steps
     if threads and device.type == "cpu":
         torch.set_num_threads(threads)
-    torch.manual_seed(seed)
-    model = Tokenizer(cfg).to(device)
-    opt = make_optimizer(model, cfg)
-    rng = np.random.default_rng(seed)
-    step, history, elapsed, cpu = 0, [], 0.0, 0.0
-    resumed = run.resume()
-    if resumed is not None:
-        st = resumed["state"]
-        model.load_state_dict(resumed["weights"])
-        opt.load_state_dict(st["optimizer"])
-        step, history, elapsed, cpu = resumed["step"], list(st["history"]), float(st["elapsed_s"]), float(st["cpu_s"])
-        rng.bit_generator.state = st["numpy_rng"]
-        torch.set_rng_state(st["torch_rng"])
-    model.train()
-    codebook_params = {id(model.vq.codebook)}
-    manifest_config = {"tokenizer": cfg.to_dict(), "parameters": count_parameters(model), "steps_target": steps,
-                       "seed": seed}
 
-    def save(complete: bool) -> None:
-        state = {"optimizer": opt.state_dict(), "history": history, "numpy_rng": rng.bit_generator.state,
-                 "torch_rng": torch.get_rng_state(), "elapsed_s": elapsed, "cpu_s": cpu, "window": window}
-        run.save(step, model.state_dict(), state, config=manifest_config, complete=complete)
+    def sample_batch(rand, step: int) -> Batch:
+        picks = rand.numpy.integers(0, len(source), cfg.batch_size)
+        return make_batch(cfg, [source.points(int(k)) for k in picks], cfg.rays_per_step, rand.numpy).to(device)
 
-    window: list[dict] = list(resumed["state"].get("window", [])) if resumed is not None else []
-    run.start(steps, step)
-    saved = step if resumed is not None else -1
-    while step < steps:
-        if run.should_stop():
-            log(f"time budget reached at step {step}")
-            break
-        t0, c0 = time.monotonic(), time.process_time()
-        for g in opt.param_groups:
-            g["lr"] = lr_at(cfg, step)
-        picks = rng.integers(0, len(source), cfg.batch_size)
-        batch = make_batch(cfg, [source.points(int(k)) for k in picks], cfg.rays_per_step, rng).to(device)
-        with autocast(device):
-            out = compute_losses(model, batch, cfg)
-        opt.zero_grad(set_to_none=True)
-        out["loss"].backward()
-        gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        opt.step()
+    def step_fn(model: Tokenizer, batch: Batch):
+        out = compute_losses(model, batch, cfg)
+        return out["loss"], {"loss": out["loss"].item(), "l1": out["l1"].item(), "conc": out["conc"].item(),
+                             "bce": out["bce"].item(), "vq": out["vq"].item(),
+                             "batch_codes": int(out["codes"].unique().numel())}
+
+    def after_step(model: Tokenizer, opt: torch.optim.Optimizer, step: int) -> dict:
         if model.vq.maybe_reinit():
-            for p in model.vq.parameters():
-                if id(p) in codebook_params:
-                    opt.state.pop(p, None)  # stale Adam moments would drag the new codes
+            opt.state.pop(model.vq.codebook, None)  # stale Adam moments would drag the new codes
             log(f"step {step}: K-means re-initialised the codebook ({int(model.vq.reinits)} so far)")
-        step += 1
-        synchronize(device)
-        dt = time.monotonic() - t0
-        elapsed += dt
-        cpu += time.process_time() - c0
-        alive = 1.0 - model.vq.dead_codes().float().mean().item()
-        rec = {"step": step, "lr": opt.param_groups[0]["lr"], "loss": out["loss"].item(), "l1": out["l1"].item(),
-               "conc": out["conc"].item(), "bce": out["bce"].item(), "vq": out["vq"].item(),
-               "batch_codes": int(out["codes"].unique().numel()), "alive_codes": alive,
-               "grad_norm": float(gnorm), "step_s": dt, "elapsed_s": elapsed, "cpu_s": cpu}
-        window.append(rec)
-        if step % cfg.log_every == 0 or step == steps:
-            avg = {k: float(np.mean([r[k] for r in window])) for k in rec}
-            avg["step"], avg["elapsed_s"], avg["cpu_s"] = step, elapsed, cpu
-            history.append(avg)
-            window = []
-        run.update(1, loss=rec["loss"], l1=rec["l1"], codes=alive)
-        if step % cfg.checkpoint_every == 0 or step == steps:
-            save(step >= steps)
-            saved = step
-    if saved != step:
-        save(step >= steps)
-    return {"model": model, "step": step, "history": history, "elapsed_s": elapsed, "cpu_s": cpu}
+        return {"alive_codes": 1.0 - model.vq.dead_codes().float().mean().item()}
+
+    out = fit_loop(
+        lambda: Tokenizer(cfg).to(device), lambda model: make_optimizer(model, cfg), sample_batch, step_fn, run,
+        steps=steps, seed=seed, schedule=lambda step: lr_at(cfg, step), grad_clip=cfg.grad_clip,
+        log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every, after_step=after_step,
+        progress_values={"loss": "loss", "l1": "l1", "codes": "alive_codes"},
+        manifest_config=lambda model: {"tokenizer": cfg.to_dict(), "parameters": count_parameters(model),
+                                       "steps_target": steps, "seed": seed},
+        log=log)
+    return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
+            "cpu_s": out.cpu_s}
 
 
-def write_curve(history: list[dict], out_dir: Path, stem: str, codebook_size: int | None = None) -> tuple[Path, Path]:
-    """The training curve as CSV and PNG."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    csv_path = out_dir / f"{stem}.csv"
-    keys = list(history[0].keys()) if history else []
-    with open(csv_path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(history)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    s = [r["step"] for r in history]
-    axes[0].plot(s, [r["l1"] for r in history], label="L1 depth (m)")
-    axes[0].plot(s, [r["loss"] for r in history], label="total loss")
-    axes[0].set_yscale("log")
-    axes[0].legend()
-    axes[0].set_xlabel("step")
-    axes[1].plot(s, [r["conc"] for r in history], label="weight mass > eps")
-    axes[1].plot(s, [r["bce"] for r in history], label="coarse BCE")
-    axes[1].plot(s, [r["vq"] for r in history], label="L_vq")
-    axes[1].set_yscale("log")
-    axes[1].legend()
-    axes[1].set_xlabel("step")
-    axes[2].plot(s, [r["alive_codes"] for r in history], label="codes used in the last 256 it.")
+def curve_panels(codebook_size: int | None = None) -> list[Panel]:
+    """The tokenizer curve's figure: depth error and total loss; the loss terms; codebook use."""
+    codes = [("alive_codes", "codes used in the last 256 it.")]
     if codebook_size:
-        axes[2].plot(s, [r["batch_codes"] / codebook_size for r in history], label="codes used per step")
-    axes[2].set_ylim(0, 1.05)
-    axes[2].legend()
-    axes[2].set_xlabel("step")
-    fig.tight_layout()
-    png_path = out_dir / f"{stem}.png"
-    fig.savefig(png_path, dpi=110)
-    plt.close(fig)
-    return csv_path, png_path
+        codes.append(("batch_codes", "codes used per step", codebook_size))
+    return [Panel((("l1", "L1 depth (m)"), ("loss", "total loss")), log=True),
+            Panel((("conc", "weight mass > eps"), ("bce", "coarse BCE"), ("vq", "L_vq")), log=True),
+            Panel(tuple(codes), ylim=(0, 1.05))]
+
+
+def write_curve(history: list[dict], out_dir: Path, stem: str = "curve",
+                codebook_size: int | None = None) -> tuple[Path, Path]:
+    """The tokenizer's training curve as CSV and PNG."""
+    return write_any_curve(history, out_dir, stem, curve_panels(codebook_size))
