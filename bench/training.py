@@ -60,7 +60,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "Checkpoint", "CheckpointError", "TrainOn", "TrainSource", "TrainedMethod", "TrainingRun", "checkpoint_dir",
-    "checkpoint_for", "find_checkpoint", "find_shipped", "find_shipped_by_recipe", "is_trained", "missing_checkpoint_message", "open_training_data", "ship", "shipped_dir",
+    "checkpoint_for", "find_checkpoint", "find_shipped", "find_shipped_by_recipe", "is_trained",
+    "missing_checkpoint_message", "open_training_data", "ship", "shipped_dir",
     "train",
     # the one training loop (pcfbench.trainloop)
     "LoopResult", "Panel", "Randoms", "StateError", "adamw", "autocast", "default_device", "fit_loop", "param_groups",
