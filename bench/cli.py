@@ -379,7 +379,7 @@ def backfill_ranges(store, reports):
     """Recompute the range bins of the error-by-range figure for the complete cells made before
     the store kept them, by re-running their methods (a cell whose re-run does not give back
     its stored rows is named and left as it is); then `pcfbench report` draws them."""
-    from pcfbench.ranges import backfill
+    from pcfbench.backfill import backfill
 
     store_path = config.store_dir(store, config.reports_dir(reports))
     if not store_path.is_dir():

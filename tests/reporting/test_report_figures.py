@@ -439,7 +439,7 @@ def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(ma
     import json
     import shutil
 
-    from pcfbench import ranges
+    from pcfbench import backfill, ranges
 
     store = tmp_path / "store"
     shutil.copytree(made[0], store)
@@ -463,14 +463,14 @@ def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(ma
     md = paths["md"].read_text()
     assert f"no range bins in the store for cell {old['cell_dir']}" in md and "pcfbench backfill-ranges" in md
 
-    done = ranges.backfill(store, _plugins(), log=lambda s: None)
+    done = backfill.backfill(store, _plugins(), log=lambda s: None)
     assert [d["status"] for d in done if d["cell"] == str(cell.dir)] == ["recomputed 1 chunk(s)"]
     assert sum(d["status"] == "has ranges" for d in done) == 2
     again = cell.read_ranges()
     pd.testing.assert_frame_equal(again, kept)
     assert json.loads((cell.dir / "cell.json").read_text())["range_bins"] == ranges.meta()
     assert not figures.stored_ranges(store, collect(store).table).missing
-    assert ranges.backfill(store, _plugins(), log=lambda s: None)[0]["status"] == "has ranges"  # nothing left to do
+    assert backfill.backfill(store, _plugins(), log=lambda s: None)[0]["status"] == "has ranges"  # nothing left to do
 
 
 def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(made, tmp_path, monkeypatch):
@@ -481,7 +481,7 @@ def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(m
 
     from click.testing import CliRunner
 
-    from pcfbench import ranges
+    from pcfbench import backfill
     from pcfbench.cli import build_cli
 
     store = tmp_path / "store"
@@ -506,7 +506,7 @@ def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(m
     cell, _ = strip("shifted (dx=1.5)")
     monkeypatch.setattr(Shifted, "forecast", lambda self, sample: Forecast(points_ref=tuple(
         sample.past_points_ref[-1] + np.float32(2.0) for _ in range(sample.num_future))))
-    done = [d for d in ranges.backfill(store, _plugins(), log=lambda s: None) if d["cell"] == str(cell.dir)]
+    done = [d for d in backfill.backfill(store, _plugins(), log=lambda s: None) if d["cell"] == str(cell.dir)]
     assert done[0]["status"].startswith("not recomputed: re-running shifted does not give back its stored rows")
     assert not (cell.dir / "ranges").exists() and "range_bins" not in json.loads((cell.dir / "cell.json").read_text())
     note = figures.range_gaps(collect(store), store)
