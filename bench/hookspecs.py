@@ -35,7 +35,7 @@ import pluggy
 if TYPE_CHECKING:  # pragma: no cover
     import click
 
-    from pcfbench.plugins import DatasetRegister, MethodRegister, MetricRegister, SettingRegister
+    from pcfbench.registry import DatasetRegister, MethodRegister, MetricRegister, SettingRegister
 
 hookspec = pluggy.HookspecMarker("pcfbench")
 hookimpl = pluggy.HookimplMarker("pcfbench")
