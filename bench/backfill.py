@@ -72,7 +72,8 @@ def _backfill_cell(cell, meta_: dict[str, Any], plugins, log) -> dict[str, Any]:
                         continue
                     ctx = SweepContext(truth.future_points_ref[k], q,
                                        fc.points_ref[k] if fc.points_ref is not None else None,
-                                       fc.depths[k] if fc.depths is not None else None)
+                                       fc.depths[k] if fc.depths is not None else None,
+                                       roi=res.builder.protocol.roi, min_range_m=res.builder.protocol.min_range_m)
                     bins = ranges.sweep_bins(ctx)
                     n = sum(bins["rays"])
                     for name, col in (("l1_mean", "l1_sum"), ("absrel_mean", "absrel_sum")):

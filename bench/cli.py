@@ -16,7 +16,8 @@ import pcfbench
 from pcfbench import config
 from pcfbench.errors import PcfbenchError
 from pcfbench.plugins import get_plugins, warn_failed
-from pcfbench.protocol import SAMPLE_POLICIES, all_settings, get_setting
+from pcfbench.plugins import all_settings, get_setting
+from pcfbench.protocol import SAMPLE_POLICIES
 
 #: ``pcfbench run --timeout``: ten minutes per sample, far above any built-in method's CPU time
 #: per sample (seconds), so that only a hung or runaway method meets it.

@@ -556,7 +556,7 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
     (``tables.Table``: its columns) under ``out_dir``, from the store alone; with ``gallery``
     also the gallery, which re-runs ``samples`` samples per group with every method (0: no
     gallery). Returns the paths."""
-    from pcfbench.protocol import get_setting
+    from pcfbench.plugins import get_setting
 
     out_dir = Path(out_dir)
     paths: dict[str, Path] = {}

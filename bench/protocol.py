@@ -6,15 +6,18 @@ The protocol's values live in ``protocol.toml``, shipped inside the package and 
 by :func:`load_protocol` into a frozen :class:`Protocol`: its ``version``, the named
 :class:`Setting` s, the ROI box, the minimum range and the named :class:`SamplePolicy` s.
 :func:`active_protocol` is the protocol every run uses; the module-level names
-``SETTINGS``, ``SAMPLE_POLICIES`` and ``MIN_RANGE_M`` (and ``pcfbench.roi.ROI``) are views
-of it, never separate copies.
+``SETTINGS``, ``SAMPLE_POLICIES``, ``MIN_RANGE_M`` and ``ROI`` are views of it, never
+separate copies; what scores a sweep is handed the ROI and minimum range it uses
+(:class:`~pcfbench.metrics.base.SweepContext`), and the box geometry below the protocol
+(:mod:`pcfbench.roi`) takes its box from the caller.
 
 - Changing any value in the file changes what cells compute: bump ``version`` with it.
 - A malformed file is one :class:`~pcfbench.errors.PcfbenchError` naming the file, the key
   and what was expected; no value falls back to a default silently.
 - Dataset plugins add settings through the ``register_settings`` hook; those names may not
-  collide with the file's or with each other. :func:`get_setting` looks in the protocol
-  first, then in the loaded plugins.
+  collide with the file's or with each other. :func:`pcfbench.plugins.get_setting` looks in
+  the protocol first, then in the loaded plugins (the protocol is below the plugins and
+  never imports them).
 - Every cell records the protocol version, the setting's parameters, the sample policy, the
   ROI and the minimum range in its ``cell.json`` identity (:meth:`SampleBuilder.identity`);
   a rerun under different values stops with an error naming the field rather than mixing
@@ -31,7 +34,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -42,9 +45,6 @@ from pcfbench.geometry import invert, rotate_vectors, transform_points
 from pcfbench.kinds import PolicyKind, parse
 from pcfbench.roi import Box
 from pcfbench.validate import validate_sweep
-
-if TYPE_CHECKING:  # pragma: no cover
-    from pcfbench.plugins import Plugins
 
 #: The protocol file shipped in the package.
 PROTOCOL_FILE = "protocol.toml"
@@ -319,31 +319,8 @@ SETTINGS: Mapping[str, Setting] = _ACTIVE.settings
 SAMPLE_POLICIES: tuple[str, ...] = tuple(_ACTIVE.policies)
 #: Ground-truth points closer than this to their sensor are ignored by the metrics.
 MIN_RANGE_M: float = _ACTIVE.min_range_m
-
-
-def get_setting(name: str, plugins: "Plugins | None" = None) -> Setting:
-    """The protocol's setting ``name``, else one a plugin registered (``register_settings``)."""
-    if name in _ACTIVE.settings:
-        return _ACTIVE.settings[name]
-    from pcfbench.plugins import get_plugins
-
-    plugins = plugins or get_plugins()
-    if name in plugins.settings:
-        return plugins.settings.get(name)
-    failed = plugins.settings.failed_plugins
-    note = f"plugin(s) that failed to load and may provide it: {', '.join(sorted(failed))}" if failed else ""
-    raise unknown_name("setting", name, [*_ACTIVE.settings, *plugins.settings.names()], note)
-
-
-def all_settings(plugins: "Plugins | None" = None) -> dict[str, Setting]:
-    """The protocol's settings, then those registered by plugins (``register_settings``)."""
-    from pcfbench.plugins import get_plugins
-
-    plugins = plugins or get_plugins()
-    out = dict(_ACTIVE.settings)
-    for name in plugins.settings.names():
-        out[name] = plugins.settings.get(name)
-    return out
+#: The region of interest: the metrics' near-field crop and the clamp of depths along rays.
+ROI: Box = _ACTIVE.roi
 
 
 def check_compatible(setting: Setting, adapter: DatasetAdapter) -> None:
@@ -392,8 +369,12 @@ class SampleBuilder:
     share most of their sweeps.
     """
 
-    def __init__(self, adapter: DatasetAdapter, setting: Setting, policy: str = "full-context", cache_sweeps: int = 32):
-        self.sample_policy = _policy(policy)
+    def __init__(self, adapter: DatasetAdapter, setting: Setting, policy: str = "full-context", cache_sweeps: int = 32,
+                 protocol: Protocol | None = None):
+        #: the protocol the samples are made under, handed on to what scores them (ROI, minimum
+        #: range; :func:`pcfbench.metrics.base.score_sample`); default: the active one
+        self.protocol = protocol or _ACTIVE
+        self.sample_policy = policy if isinstance(policy, SamplePolicy) else self.protocol.policy(policy)
         self.adapter = adapter
         self.setting = setting
         self.policy = self.sample_policy.name
@@ -406,7 +387,7 @@ class SampleBuilder:
         range, the setting's parameters, the sample policy and the adapter's ego box."""
         ego = self.adapter.ego_box
         return {
-            **_ACTIVE.identity(),
+            **self.protocol.identity(),
             "setting_params": self.setting.params(),
             "sample_policy": self.sample_policy.params(),
             "ego_box": {k: float(getattr(ego, k)) for k in ("x_min", "x_max", "y_min", "y_max")},
@@ -472,7 +453,7 @@ class SampleBuilder:
         for T, i in zip(future_T, future_idx):
             pts = self.points_sensor(seq, i) if 0 <= i < n else empty
             rng = np.linalg.norm(pts.astype(np.float64), axis=1)
-            keep = rng > MIN_RANGE_M
+            keep = rng > self.protocol.min_range_m
             pts, rng = pts[keep], rng[keep]
             dirs_sensor = (pts.astype(np.float64) / rng[:, None]) if len(pts) else np.zeros((0, 3))
             queries.append(RayQuery(origin_ref=T[:3, 3].copy(), directions_ref=rotate_vectors(T, dirs_sensor).astype(np.float32)))

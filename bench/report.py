@@ -156,7 +156,7 @@ def provenance(meta: dict) -> dict[str, str]:
 
 
 def _step_seconds(setting: str, steps: np.ndarray, notes: list[str]) -> np.ndarray:
-    from pcfbench.protocol import get_setting
+    from pcfbench.plugins import get_setting
 
     try:
         s = get_setting(setting)
@@ -167,7 +167,7 @@ def _step_seconds(setting: str, steps: np.ndarray, notes: list[str]) -> np.ndarr
 
 
 def _horizon(setting: str) -> float:
-    from pcfbench.protocol import get_setting
+    from pcfbench.plugins import get_setting
 
     try:
         return get_setting(setting).horizon_s

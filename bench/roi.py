@@ -1,15 +1,14 @@
-"""Boxes of the protocol: the ego-vehicle box (docs/protocol.md section 1) and the ROI (section 3).
+"""Boxes of the protocol: the ego-vehicle box (docs/protocol.md section 1) and the box
+geometry of the ROI (section 3).
 
-``ROI`` is the active protocol's box (``pcfbench.protocol.active_protocol().roi``, read from
-the package's ``protocol.toml``), resolved on first access; functions whose ``box`` is
-``None`` use it.
+The ROI itself is protocol data (``pcfbench.protocol.ROI``, the active protocol's
+``roi``): this module is below the protocol and never reads it; every function takes its
+box from the caller.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
-
 import numpy as np
 
 
@@ -32,24 +31,6 @@ class Box:
         return points[self.contains(points)]
 
 
-def __getattr__(name: str) -> Any:
-    # ROI lives in the protocol file; pcfbench.protocol imports Box from here, so resolve late.
-    if name == "ROI":
-        from pcfbench.protocol import active_protocol
-
-        globals()["ROI"] = roi = active_protocol().roi
-        return roi
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _roi(box: Box | None) -> Box:
-    if box is not None:
-        return box
-    from pcfbench.protocol import active_protocol
-
-    return active_protocol().roi
-
-
 @dataclass(frozen=True)
 class EgoBox:
     """The ego vehicle's footprint in the dataset's own sensor frame; z is unbounded."""
@@ -70,15 +51,14 @@ class EgoBox:
 
 
 def ray_box_interval(
-    origin: np.ndarray, directions: np.ndarray, box: Box | None = None
+    origin: np.ndarray, directions: np.ndarray, box: Box
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Slab test: where rays ``origin + t * d`` (t >= 0) are inside ``box`` (default: the ROI).
+    """Slab test: where rays ``origin + t * d`` (t >= 0) are inside ``box``.
 
     Returns ``(t_enter, t_exit)`` per ray, float64; ``t_enter`` is 0 for an origin inside the
     box. A ray that misses the box has ``t_enter > t_exit``. Directions need not be unit;
     t is then in units of their length.
     """
-    box = _roi(box)
     o = np.asarray(origin, dtype=np.float64).reshape(3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     t_enter = np.zeros(d.shape[0])
@@ -101,9 +81,9 @@ def ray_box_interval(
 
 
 def clamp_ranges_to_box(
-    origin: np.ndarray, directions: np.ndarray, ranges: np.ndarray, box: Box | None = None
+    origin: np.ndarray, directions: np.ndarray, ranges: np.ndarray, box: Box
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Clamp points ``origin + r * d`` (unit d) to the box (default: the ROI) along their rays.
+    """Clamp points ``origin + r * d`` (unit d) to ``box`` along their rays.
 
     Returns ``(start, end, kept)``: the range where each ray's segment starts (0, or where it
     enters the box when the origin is outside), the clamped range of the point, and a mask of

@@ -22,7 +22,8 @@ from pcfbench.provenance import environment, git_commit
 from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
-from pcfbench.protocol import SampleBuilder, check_compatible, get_setting, ids_hash
+from pcfbench.plugins import get_setting
+from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash
 from pcfbench.dataset import options_identity
 from pcfbench.store import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.validate import validate_forecast
@@ -110,7 +111,8 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
         # the method gets a read-only copy; the forecast is checked and scored against `sample`
         forecast = validate_forecast(sample, res.method.forecast(sample.for_method()))
         t2 = time.perf_counter()
-        rows = score_sample(sample, truth, forecast, res.metrics, res.execution, keep_bins if record else None)
+        rows = score_sample(sample, truth, forecast, res.metrics, res.execution, keep_bins if record else None,
+                            protocol=res.builder.protocol)
     except DataError:
         raise
     except Exception as exc:  # a method (or metric) failing on one sample is recorded, the run goes on

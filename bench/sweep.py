@@ -234,7 +234,8 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
     """Read and validate experiment file ``path``; every problem is one error naming the
     file and the key (``PcfbenchError``, ``UnknownNameError`` with a did-you-mean)."""
     from pcfbench import tables as tables_mod
-    from pcfbench.protocol import SAMPLE_POLICIES, check_compatible, get_setting
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SAMPLE_POLICIES, check_compatible
 
     path = Path(path)
     plugins = plugins or get_plugins()
@@ -452,7 +453,8 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
     """The grid's cells: dataset x split x setting x variant, in the file's order. Resolves
     the roots (an embedded dataset prepares its data now), checks every split and that every
     (dataset, split, setting) has samples, before any cell runs."""
-    from pcfbench.protocol import SampleBuilder, get_setting
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder
 
     plugins = plugins or get_plugins()
     reader = _Reader(exp.path)

@@ -173,7 +173,8 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
     from pcfbench.metrics.base import score_sample
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
-    from pcfbench.protocol import SampleBuilder, check_compatible, get_setting
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder, check_compatible
     from pcfbench.runner import default_metrics
     from pcfbench.validate import validate_forecast
     from pcfbench.datasets.export_mcap import export_sample

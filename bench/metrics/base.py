@@ -13,8 +13,8 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext
 from pcfbench.kinds import Better, Needs, parse
 from pcfbench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
-from pcfbench.protocol import MIN_RANGE_M
-from pcfbench.roi import ROI, Box, ray_box_interval
+from pcfbench.protocol import MIN_RANGE_M, ROI, Protocol
+from pcfbench.roi import Box, ray_box_interval
 
 
 @dataclass(frozen=True)
@@ -79,13 +79,15 @@ class SweepContext:
         pred_depths: np.ndarray | None,
         roi: Box = ROI,
         execution: ExecutionContext | None = None,
+        min_range_m: float = MIN_RANGE_M,
     ) -> None:
         self.gt_points = gt_points  # (M, 3) float32, reference frame
         self.query = query
         self.origin = np.asarray(query.origin_ref, dtype=np.float64)
         self.pred_depths = pred_depths  # (M,) or None
         self._pred_points = pred_points  # (K, 3) or None
-        self.roi = roi
+        self.roi = roi  # the protocol's region of interest (the caller's protocol; default: the active one)
+        self.min_range_m = min_range_m  # the protocol's minimum range (m)
         self.execution = execution  # thread budget of the shared searches; None: the process's
 
     # -- points ----------------------------------------------------------------------------
@@ -196,7 +198,7 @@ class SweepContext:
         """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
         t_enter, _, meets = self.ray_clamp
         with np.errstate(invalid="ignore"):  # rays missing the box may have t_enter = inf
-            return meets & (self.gt_clamped - t_enter > MIN_RANGE_M)
+            return meets & (self.gt_clamped - t_enter > self.min_range_m)
 
     @cached_property
     def pred_rel(self) -> np.ndarray:
@@ -254,8 +256,12 @@ def score_sample(
     sample: Sample, truth: GroundTruth, forecast: Forecast, metrics: list[Metric],
     execution: ExecutionContext | None = None,
     on_sweep: Callable[[dict, "SweepContext"], None] | None = None,
+    protocol: Protocol | None = None,
 ) -> list[dict[str, float | int]]:
     """Score every future sweep of a validated forecast: one row per sweep with every metric.
+
+    ``protocol``: the one the sample was made under (its ROI and minimum range; the
+    runner hands down its :class:`~pcfbench.protocol.SampleBuilder`'s); default: the active one.
 
     ``execution``: the thread budget of the metrics' shared searches (default: the
     process's); the rows do not depend on it. ``on_sweep(row, ctx)``: called with each
@@ -268,7 +274,9 @@ def score_sample(
             query=query,
             pred_points=forecast.points_ref[k] if forecast.points_ref is not None else None,
             pred_depths=forecast.depths[k] if forecast.depths is not None else None,
+            roi=protocol.roi if protocol is not None else ROI,
             execution=execution,
+            min_range_m=protocol.min_range_m if protocol is not None else MIN_RANGE_M,
         )
         row: dict[str, float | int] = {"step": k, "n_gt": int(gt.shape[0]), "n_pred": int(ctx.pred_points.shape[0])}
         for metric in metrics:

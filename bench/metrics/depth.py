@@ -13,14 +13,13 @@ import numpy as np
 
 from pcfbench.kinds import Needs
 from pcfbench.metrics.base import Metric, SweepContext
-from pcfbench.protocol import MIN_RANGE_M
 
 NAN = float("nan")
 
 
 def _denominator_4docc(ctx: SweepContext) -> int:
     """The reference code's denominator: ground-truth rays with range > 1 cm, before dropping."""
-    return int(np.count_nonzero(ctx.gt_ranges > MIN_RANGE_M))
+    return int(np.count_nonzero(ctx.gt_ranges > ctx.min_range_m))
 
 
 def _sum_4docc(ctx: SweepContext, which: int) -> float:

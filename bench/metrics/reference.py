@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-from pcfbench.roi import ROI, Box
+from pcfbench.protocol import ROI
+from pcfbench.roi import Box
 
 MIN_RANGE = 0.01
 NAN = float("nan")

@@ -17,7 +17,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pcfbench.geometry import transform_points
-from pcfbench.protocol import MIN_RANGE_M, SampleBuilder, get_setting
+from pcfbench.plugins import get_setting
+from pcfbench.protocol import MIN_RANGE_M, SampleBuilder
 from pcfbench.datasets.synthetic.world import CLASS_NAMES, MOVING_CLASSES, STATIC_CLASSES
 
 #: range bins (m, from the future sensor) for the range-matched comparison

@@ -74,7 +74,7 @@ def add_commands(cli: click.Group) -> None:
         """Realism report: a generated domain beside a real dataset (ratios synthetic / real)."""
         from pcfbench.datasets.synthetic.compare import RANK_METRICS as RANK, pairs_phrase
         from pcfbench.datasets.synthetic.compare import compare as run_compare
-        from pcfbench.protocol import get_setting
+        from pcfbench.plugins import get_setting
 
         get_setting(setting)
         res = run_compare(real, domain, out, sweeps=sweeps, setting=setting, limit=limit, real_limit=real_limit,

@@ -321,7 +321,7 @@ def far_views_closing(earlier: np.ndarray, later: np.ndarray, later_origin: np.n
     from scipy.spatial import cKDTree
 
     if roi is None:
-        from pcfbench.roi import ROI as roi
+        from pcfbench.protocol import ROI as roi
     in_roi = roi.contains(earlier)
     judged = in_roi & (np.hypot(earlier[:, 0] - later_origin[0], earlier[:, 1] - later_origin[1]) >= far_m) \
         & (earlier[:, 2] > above)

@@ -52,7 +52,8 @@ def main() -> None:
     # the world model's inputs for every kitti-1s sample of the test split, exactly as the
     # copilot4d method computes them (Copilot4D.world_inputs), for the GPU to forecast
     from pcfbench.methods.copilot4d.forecaster import Copilot4D
-    from pcfbench.protocol import SampleBuilder, get_setting
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder
 
     method = Copilot4D()
     method.tokenizer = tokenizer

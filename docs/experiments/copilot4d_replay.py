@@ -25,7 +25,8 @@ from pcfbench.method import resolve_method
 from pcfbench.methods.copilot4d.forecaster import Copilot4D
 from pcfbench.metrics.base import score_sample
 from pcfbench.plugins import get_plugins
-from pcfbench.protocol import SampleBuilder, get_setting, sample_id
+from pcfbench.plugins import get_setting
+from pcfbench.protocol import SampleBuilder, sample_id
 from pcfbench.runner import default_metrics
 from pcfbench.training import find_checkpoint, open_training_data
 from pcfbench.validate import validate_forecast

@@ -32,8 +32,9 @@ from scipy.spatial import cKDTree
 from pcfbench.datasets.synthetic import compare as C
 from pcfbench.geometry import transform_points
 from pcfbench.method import resolve_method
-from pcfbench.protocol import SampleBuilder, get_setting
-from pcfbench.roi import ROI
+from pcfbench.plugins import get_setting
+from pcfbench.protocol import SampleBuilder
+from pcfbench.protocol import ROI
 from pcfbench.validate import validate_forecast
 
 METHODS = ("copy-last", "raycast-4docc", "raycast-freespace")

@@ -306,7 +306,8 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
     from pcfbench.metrics.base import score_sample
     from pcfbench.methods.copy_last import CopyLast
     from pcfbench.plugins import get_plugins
-    from pcfbench.protocol import SampleBuilder, get_setting
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder
     from pcfbench.runner import default_metrics
     from pcfbench.validate import validate_forecast
 

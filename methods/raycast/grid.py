@@ -57,7 +57,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from pcfbench.roi import ROI, Box
+from pcfbench.protocol import ROI
+from pcfbench.roi import Box
 
 #: the coarsest level of an empty-cell skip that may be stretched by the slab field
 FIELD_MAX_STEP = 1

@@ -17,9 +17,9 @@ from pcfbench import protocol, roi
 from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.hookspecs import hookimpl
-from pcfbench.plugins import load_plugins
+from pcfbench.plugins import all_settings, get_setting, load_plugins
 from pcfbench.protocol import (
-    SETTINGS, SampleBuilder, SamplePolicy, Setting, active_protocol, anchors, evenly_spaced, get_setting,
+    SETTINGS, SampleBuilder, SamplePolicy, Setting, active_protocol, anchors, evenly_spaced,
     load_protocol,
 )
 from pcfbench.roi import EgoBox
@@ -49,7 +49,7 @@ def test_shipped_protocol_has_the_legacy_values_exactly():
 
 def test_module_names_are_views_of_the_active_protocol():
     p = active_protocol()
-    assert protocol.SETTINGS is p.settings and roi.ROI is p.roi and pcfbench.roi.ROI is p.roi
+    assert protocol.SETTINGS is p.settings and protocol.ROI is p.roi and not hasattr(roi, "ROI")
     assert get_setting("kitti-3s") is p.settings["kitti-3s"]
     with pytest.raises(TypeError):
         SETTINGS["mine"] = SETTINGS["kitti-1s"]  # read-only
@@ -59,13 +59,15 @@ def test_module_names_are_views_of_the_active_protocol():
     assert pcfbench.active_protocol() is p and pcfbench.Protocol is protocol.Protocol
 
 
-def test_roi_default_of_the_box_functions_is_the_protocol_roi():
+def test_the_box_functions_take_the_protocol_roi_from_the_caller():
     o = np.zeros(3)
     d = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    t0, t1 = roi.ray_box_interval(o, d)
+    t0, t1 = roi.ray_box_interval(o, d, protocol.ROI)
     assert t0.tolist() == [0.0, 0.0] and t1.tolist() == [70.0, 4.5]
-    _, end, kept = roi.clamp_ranges_to_box(o, d, np.array([100.0, 2.0]))
+    _, end, kept = roi.clamp_ranges_to_box(o, d, np.array([100.0, 2.0]), protocol.ROI)
     assert end.tolist() == [70.0, 2.0] and kept.all()
+    with pytest.raises(TypeError):  # no box of its own: the protocol is handed down
+        roi.ray_box_interval(o, d)
 
 
 def test_the_file_is_package_data():
@@ -305,7 +307,7 @@ def test_a_plugin_adds_a_setting():
     assert plugins.info["tiny-plugin"].error is None
     assert plugins.info["tiny-plugin"].registered == {"settings": ["tiny-1s"]}
     assert get_setting("tiny-1s", plugins) is TINY
-    assert list(protocol.all_settings(plugins))[-1] == "tiny-1s"
+    assert list(all_settings(plugins))[-1] == "tiny-1s"
     assert "tiny-1s" not in active_protocol().settings  # the protocol itself stays frozen
     with pytest.raises(UnknownNameError, match=r"unknown setting 'tiny-2s'; did you mean 'tiny-1s'"):
         get_setting("tiny-2s", plugins)

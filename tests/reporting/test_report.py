@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 import pcfbench
+import pcfbench.plugins
 from conftest import write_tiny_kitti
 from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError
@@ -114,7 +115,7 @@ def test_by_step_gives_seconds(board):
     partial = pd.read_csv(paths["partial_by_step"])
     assert (partial.limit == 2).all() and len(partial) == 2 * 5
     cell = by_step[by_step.variant == "copy-last"].sort_values("step")
-    setting = pcfbench.protocol.get_setting("kitti-1s")
+    setting = pcfbench.plugins.get_setting("kitti-1s")
     assert cell["time_s"].tolist() == pytest.approx([setting.step_seconds(k) for k in range(5)])
     assert cell["time_s"].iloc[-1] == pytest.approx(setting.horizon_s)
     assert (cell["chamfer_lo"] <= cell["chamfer"]).all() and (cell["chamfer"] <= cell["chamfer_hi"]).all()

@@ -5,7 +5,8 @@ from pcfbench.geometry import (
     constant_velocity_poses, hat, invert, is_se3, quat_wxyz_to_rotation, rotate_vectors, rotation_to_quat_wxyz, se3,
     se3_exp, se3_log, so3_exp, so3_log, transform_points, yaw_transform,
 )
-from pcfbench.roi import ROI, Box, EgoBox, clamp_ranges_to_box, ray_box_interval
+from pcfbench.protocol import ROI
+from pcfbench.roi import Box, EgoBox, clamp_ranges_to_box, ray_box_interval
 
 
 def random_se3(rng):

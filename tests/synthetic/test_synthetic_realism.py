@@ -653,7 +653,8 @@ def test_baselines_follow_the_sample_policy_over_a_long_split(tmp_path):
     full-context anchor here), where --real-limit would take the first ones."""
     from conftest import write_tiny_kitti
     from pcfbench.datasets.kitti import KittiOdometry
-    from pcfbench.protocol import SampleBuilder, get_setting, sample_id
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder, sample_id
 
     real = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=30)
     every = SampleBuilder(KittiOdometry(real), get_setting("kitti-1s"), "full-context").sample_keys("test")
