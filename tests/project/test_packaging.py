@@ -88,8 +88,8 @@ def test_installed_package_resolves_outside_the_checkout(tmp_path):
     if package == ROOT / "bench":  # editable: the folders are mapped
         assert Path(info["methods"]).parent == ROOT / "methods"
         assert Path(info["datasets"]).parent == ROOT / "datasets"
-    else:  # a wheel (CI): one tree, outside the checkout
-        assert ROOT not in package.parents, package
+    else:  # a wheel (CI): one tree in an environment's site-packages, not the source folders
+        assert package.parent.name == "site-packages" and package.name == "pcfbench", package
         assert Path(info["methods"]).parent == package / "methods"
         assert Path(info["datasets"]).parent == package / "datasets"
     assert info["top"] == {"bench": False, "methods": False, "datasets": False}
