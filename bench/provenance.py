@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
-import pcfbench
-
 __all__ = ["environment", "git_commit"]
 
 
 def git_commit() -> str | None:
-    here = Path(pcfbench.__file__).resolve().parent.parent
+    """The commit of the git checkout this package's files lie in (editable, or a wheel in a
+    virtual environment inside the checkout), else None."""
+    here = Path(__file__).resolve().parent  # git looks upwards from any folder of a work tree
     try:
         out = subprocess.run(
             ["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=False
