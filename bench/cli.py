@@ -48,9 +48,8 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     """The methods of ``--method`` (resolved now: an unknown name or option fails before any
     work), else every registered method that is ready to run, with its default options: a
     trained method is ready when its checkpoint for its default training data exists."""
-    from pcfbench.training import (
-        find_checkpoint, is_trained, may_have_checkpoint, open_training_data, ready_shipped, shipped_mismatch,
-    )
+    from pcfbench.training import find_checkpoint, is_trained, open_training_data
+    from pcfbench.training.checkpoints import may_have_checkpoint, ready_shipped, shipped_mismatch
     from pcfbench.method import resolve_method
 
     if requested:
@@ -128,7 +127,7 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
     if jobs or threads:
         raise PcfbenchError("--jobs and --threads are the local executor's: with --executor ray, Ray runs as many "
                             "tasks at once as the cluster has CPUs for (--cpus-per-task each)")
-    from pcfbench.ray_executor import RayExecutor
+    from pcfbench.running.ray_executor import RayExecutor
 
     return RayExecutor(address=address, shard_samples=shard_samples, cpus_per_task=cpus_per_task,
                        gpus_per_task=gpus_per_task, timeout=timeout)
@@ -173,10 +172,10 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
     cell); ``--keep-going`` exits 0. A cell with failed samples is never ranked. Samples run
     in worker processes: one that crashes or exceeds ``--timeout`` is a failed sample."""
-    from pcfbench.report import write_reports
-    from pcfbench.runner import default_metrics, run_cell
-    from pcfbench.store import Cell, CellLocked, CellSpec
-    from pcfbench.warmup import warm_while_preparing
+    from pcfbench.reporting.report import write_reports
+    from pcfbench.running.runner import default_metrics, run_cell
+    from pcfbench.store.cells import Cell, CellLocked, CellSpec
+    from pcfbench.running.warmup import warm_while_preparing
 
     plugins = get_plugins()
     warn_failed(plugins)
@@ -243,7 +242,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
             failures += cell_failed
             failed_cells += cell_failed > 0
     if not no_report:
-        from pcfbench.report import collect, summary
+        from pcfbench.reporting.report import collect, summary
 
         board = collect(store_path)
         paths = write_reports(store_path, reports_path, leaderboard=board)
@@ -258,7 +257,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
 def cell_label(spec) -> str:
     """``raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s``: the cell with its options."""
-    from pcfbench.labels import cell_label as label
+    from pcfbench.reporting.labels import cell_label as label
 
     return label(spec)
 
@@ -351,8 +350,8 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
 def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed, no_figures, gallery):
     """Regenerate the leaderboard tables (reports/leaderboard.*, reports/tables/) and figures
     from the store alone: no method runs (but with --gallery)."""
-    from pcfbench.report import ReportOptions, collect, summary, write_reports
-    from pcfbench.stats import Resampling
+    from pcfbench.reporting.report import ReportOptions, collect, summary, write_reports
+    from pcfbench.reporting.stats import Resampling
 
     options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed),
                             gallery=gallery)
@@ -364,7 +363,7 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
     paths = write_reports(store_path, reports_path, options, leaderboard=board)
     click.echo(summary(store_path, options, leaderboard=board))
     if options.figures:
-        from pcfbench.figures import range_gaps
+        from pcfbench.reporting.figures import range_gaps
 
         for note in range_gaps(board, store_path):
             click.echo(f"pcfbench: note: {note}", err=True)
@@ -380,7 +379,7 @@ def backfill_ranges(store, reports):
     """Recompute the range bins of the error-by-range figure for the complete cells made before
     the store kept them, by re-running their methods (a cell whose re-run does not give back
     its stored rows is named and left as it is); then `pcfbench report` draws them."""
-    from pcfbench.backfill import backfill
+    from pcfbench.running.backfill import backfill
 
     store_path = config.store_dir(store, config.reports_dir(reports))
     if not store_path.is_dir():
@@ -401,7 +400,7 @@ def backfill_ranges(store, reports):
 @click.option("--json", "as_json", is_flag=True, help="One JSON object per failed sample.")
 def failures(store, tracebacks, as_json):
     """List the failed samples of STORE (default: the results store) with their errors."""
-    from pcfbench.report import failures as failed_samples
+    from pcfbench.reporting.report import failures as failed_samples
 
     store_path = Path(store) if store else config.store_dir(None, config.reports_dir(None))
     if not store_path.is_dir():
@@ -443,8 +442,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
           shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
-    from pcfbench.labels import cell_label
-    from pcfbench.sweep import load_experiment, plan, run_sweep
+    from pcfbench.reporting.labels import cell_label
+    from pcfbench.experiments.sweep import load_experiment, plan, run_sweep
 
     plugins = get_plugins()
     warn_failed(plugins)

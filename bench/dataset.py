@@ -15,7 +15,7 @@ import numpy as np
 from pcfbench.data import Sweep
 from pcfbench.errors import DataError
 from pcfbench.options import NoOptions
-from pcfbench.roi import EgoBox
+from pcfbench.boxes import EgoBox
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,7 +38,7 @@ class Sequence:
         return self.loader(self.name, index)
 
     def sweep(self, index: int) -> Sweep:
-        """Sweep ``index`` with its pose and timestamp (not validated: see pcfbench.validate)."""
+        """Sweep ``index`` with its pose and timestamp (not validated: see pcfbench.protocol.validate)."""
         return Sweep(
             points_sensor=self.load_points(index),
             T_world_sensor=self.T_world_sensor[index],

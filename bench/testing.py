@@ -16,8 +16,8 @@ from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.geometry import transform_points, yaw_transform
 from pcfbench.method import Method
 from pcfbench.protocol import SETTINGS, SampleBuilder, Setting
-from pcfbench.roi import EgoBox
-from pcfbench.validate import validate_forecast
+from pcfbench.boxes import EgoBox
+from pcfbench.protocol.validate import validate_forecast
 
 
 def spinning_directions(beams: int = 16, azimuths: int = 360, fov_deg: tuple[float, float] = (-24.0, 2.0)) -> np.ndarray:

@@ -10,7 +10,7 @@ pyarrow only; no av2 dependency.
 
 A log with a sweep missing (two sweeps more than 1.5 periods apart at 10 Hz) is refused with
 one ``DataError`` naming the log and the gap, never read with its later sweeps shifted in time
-(``pcfbench.validate.check_sweep_times``).
+(``pcfbench.protocol.validate.check_sweep_times``).
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ import pyarrow.ipc as ipc
 from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
 from pcfbench.errors import DataError
 from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from pcfbench.roi import EgoBox
-from pcfbench.validate import check_sweep_times
+from pcfbench.boxes import EgoBox
+from pcfbench.protocol.validate import check_sweep_times
 from pcfbench.datasets.layout import SequenceData
 
 SPLITS = ("train", "val", "test")

@@ -175,8 +175,8 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
     from pcfbench.plugins import get_plugins
     from pcfbench.plugins import get_setting
     from pcfbench.protocol import SampleBuilder, check_compatible
-    from pcfbench.runner import default_metrics
-    from pcfbench.validate import validate_forecast
+    from pcfbench.running.runner import default_metrics
+    from pcfbench.protocol.validate import validate_forecast
     from pcfbench.datasets.export_mcap import export_sample
 
     plugins = get_plugins()

@@ -7,7 +7,7 @@ SemanticKITTI's ``sequences/NN/poses.txt``; both are converted to LiDAR-frame po
 A sequence of a split is read whole or refused with one ``DataError`` naming the file: a
 sequence folder without poses, velodyne/ missing sweeps (inside or at the end: ``times.txt``
 and the poses have one line per sweep), an empty ``.bin``, a ``Tr`` that is not rigid, or
-``times.txt`` whose sweeps are not 10 Hz apart or have a gap (``pcfbench.validate.check_sweep_times``:
+``times.txt`` whose sweeps are not 10 Hz apart or have a gap (``pcfbench.protocol.validate.check_sweep_times``:
 a sequence with a missing sweep is refused, not split).
 """
 
@@ -21,8 +21,8 @@ import numpy as np
 
 from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.errors import DataError
-from pcfbench.roi import EgoBox
-from pcfbench.validate import check_rigid, check_sweep_times
+from pcfbench.boxes import EgoBox
+from pcfbench.protocol.validate import check_rigid, check_sweep_times
 
 SPLITS = {
     "train": ("00", "01", "02", "03", "04", "05"),

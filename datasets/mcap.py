@@ -19,7 +19,7 @@ Refused with one ``DataError`` naming the file: two clouds logged at the same ti
 loaded by its log time), a cloud frame that is its own world frame (no transforms to it, or
 the cloud frame is the root of the TF tree: every pose would be the identity), and a sweep
 missing (two clouds more than 1.5 periods of the recorded rate apart,
-``pcfbench.validate.check_sweep_times``): such a recording is refused, not split.
+``pcfbench.protocol.validate.check_sweep_times``): such a recording is refused, not split.
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from pcfbench.options import option
-from pcfbench.roi import EgoBox
-from pcfbench.validate import check_sweep_times
+from pcfbench.boxes import EgoBox
+from pcfbench.protocol.validate import check_sweep_times
 
 assert hasattr(mcap, "reader"), "pcfbench.datasets.mcap must import the mcap library"
 

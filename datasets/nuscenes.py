@@ -23,7 +23,7 @@ from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
 from pcfbench.errors import DataError
 from pcfbench.geometry import invert, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from pcfbench.options import option
-from pcfbench.roi import EgoBox
+from pcfbench.boxes import EgoBox
 from pcfbench.datasets.layout import SequenceData
 
 TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor", "log")

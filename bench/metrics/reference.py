@@ -2,7 +2,7 @@
 
 Brute force everywhere: no spatial index, nearest neighbours by scanning all candidates in
 chunks (O(N*M) time, bounded memory), the ROI clamp by a per-ray scalar slab walk written
-independently of pcfbench.roi. Each function takes plain arrays and returns the per-sweep value
+independently of pcfbench.boxes. Each function takes plain arrays and returns the per-sweep value
 with the same empty-input policy as the fast metric (NaN = skipped).
 """
 
@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from pcfbench.protocol import ROI
-from pcfbench.roi import Box
+from pcfbench.boxes import Box
 
 MIN_RANGE = 0.01
 NAN = float("nan")

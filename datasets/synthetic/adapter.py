@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 
 from pcfbench.errors import DataError
-from pcfbench.roi import EgoBox
+from pcfbench.boxes import EgoBox
 from pcfbench.datasets.kitti import KittiOdometry
 from pcfbench.datasets.synthetic.domains import GENERATOR_VERSION, get_domain
 from pcfbench.datasets.synthetic.generate import MANIFEST, ensure_domain, is_managed, split_complete

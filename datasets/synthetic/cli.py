@@ -72,8 +72,8 @@ def add_commands(cli: click.Group) -> None:
     def compare(real, domain, out, sweeps, setting, limit, real_limit, policy, real_policy, synthetic_split, real_split,
                 store, no_baselines, threads, quiet):
         """Realism report: a generated domain beside a real dataset (ratios synthetic / real)."""
-        from pcfbench.datasets.synthetic.compare import RANK_METRICS as RANK, pairs_phrase
-        from pcfbench.datasets.synthetic.compare import compare as run_compare
+        from pcfbench.datasets.realism.compare import RANK_METRICS as RANK, pairs_phrase
+        from pcfbench.datasets.realism.compare import compare as run_compare
         from pcfbench.plugins import get_setting
 
         get_setting(setting)

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from pcfbench.errors import PcfbenchError, UnknownNameError
-from pcfbench.warmup import preparing_data
+from pcfbench.running.warmup import preparing_data
 from pcfbench.datasets.synthetic.domains import GENERATOR_VERSION, Domain, get_domain
 from pcfbench.datasets.synthetic.lidar import EGO_SHAPE, StaticScene, cast_sweep
 from pcfbench.datasets.synthetic.world import (
@@ -359,7 +359,7 @@ def ensure_domain(domain: Domain | str, splits: tuple[str, ...] | None = None, p
             tmp = final.parent / f"{final.name}.tmp-{os.getpid()}-{split}"
             print(f"pcfbench: generating {domain.name} split {split!r} into {final} "
                   "(once; set PCFBENCH_CACHE to move it)", file=sys.stderr)
-            preparing_data()  # a run's kernel warm-up takes the core this leaves idle (pcfbench.warmup)
+            preparing_data()  # a run's kernel warm-up takes the core this leaves idle (pcfbench.running.warmup)
             manifest = generate_domain(domain, tmp, "kitti", progress=progress, splits=(split,))
             (final / "sequences").mkdir(exist_ok=True)
             (final / "poses").mkdir(exist_ok=True)

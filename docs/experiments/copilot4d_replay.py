@@ -27,9 +27,9 @@ from pcfbench.metrics.base import score_sample
 from pcfbench.plugins import get_plugins
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, sample_id
-from pcfbench.runner import default_metrics
+from pcfbench.running.runner import default_metrics
 from pcfbench.training import find_checkpoint, open_training_data
-from pcfbench.validate import validate_forecast
+from pcfbench.protocol.validate import validate_forecast
 
 
 class Replay(Copilot4D):

@@ -29,13 +29,13 @@ import json
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pcfbench.datasets.synthetic import compare as C
+from pcfbench.datasets.realism import compare as C
 from pcfbench.geometry import transform_points
 from pcfbench.method import resolve_method
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder
 from pcfbench.protocol import ROI
-from pcfbench.validate import validate_forecast
+from pcfbench.protocol.validate import validate_forecast
 
 METHODS = ("copy-last", "raycast-4docc", "raycast-freespace")
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcfbench.execution import ExecutionContext
-from pcfbench.roi import Box
+from pcfbench.running.execution import ExecutionContext
+from pcfbench.boxes import Box
 from pcfbench.methods.copilot4d.data import SweepSource, in_box
 from pcfbench.methods.copilot4d.model import Tokenizer
 from pcfbench.methods.copilot4d.options import check_readout
@@ -308,8 +308,8 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
     from pcfbench.plugins import get_plugins
     from pcfbench.plugins import get_setting
     from pcfbench.protocol import SampleBuilder
-    from pcfbench.runner import default_metrics
-    from pcfbench.validate import validate_forecast
+    from pcfbench.running.runner import default_metrics
+    from pcfbench.protocol.validate import validate_forecast
 
     model.eval()
     plugins = get_plugins()

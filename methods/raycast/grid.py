@@ -58,7 +58,7 @@ import numba as nb
 import numpy as np
 
 from pcfbench.protocol import ROI
-from pcfbench.roi import Box
+from pcfbench.boxes import Box
 
 #: the coarsest level of an empty-cell skip that may be stretched by the slab field
 FIELD_MAX_STEP = 1
@@ -477,7 +477,7 @@ def _inverse(d):
 
 @nb.njit(inline="always")
 def _slab(o, d, lo, hi, t_enter, t_exit):
-    """One slab of ``pcfbench.roi.ray_box_interval`` for one ray (the same arithmetic)."""
+    """One slab of ``pcfbench.boxes.ray_box_interval`` for one ray (the same arithmetic)."""
     if d == 0.0:  # parallel to the slab: inside it or never
         if lo <= o <= hi:
             return t_enter, t_exit

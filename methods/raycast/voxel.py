@@ -40,11 +40,11 @@ from typing import Literal
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
-from pcfbench.execution import ExecutionContext
+from pcfbench.running.execution import ExecutionContext
 from pcfbench.method import Method
 from pcfbench.options import option
 from pcfbench.protocol import ROI
-from pcfbench.roi import Box
+from pcfbench.boxes import Box
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, views
 from pcfbench.methods.raycast.grid import VoxelGrid
 from pcfbench.methods.raycast.zbuffer import ZBufferOptions, render_zbuffer

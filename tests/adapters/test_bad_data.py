@@ -23,7 +23,7 @@ from pcfbench.datasets.nuscenes import NuScenes, read_pcd_bin, write_nuscenes
 from pcfbench.errors import DataError
 from pcfbench.protocol import SETTINGS, SampleBuilder
 from pcfbench.testing import toy_world_sweeps
-from pcfbench.validate import check_rigid, check_sweep_times
+from pcfbench.protocol.validate import check_rigid, check_sweep_times
 
 N = 24
 

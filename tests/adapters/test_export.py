@@ -78,7 +78,7 @@ def test_export_keeps_variants_apart_with_per_point_errors_and_scores(tiny_kitti
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
     from pcfbench.protocol import SETTINGS, SampleBuilder
-    from pcfbench.runner import default_metrics
+    from pcfbench.running.runner import default_metrics
 
     out = tmp_path / "two.mcap"
     args = ["export", "-d", f"kitti={tiny_kitti}", "-s", "kitti-1s", "--sample", "08/000012", "-o", str(out),

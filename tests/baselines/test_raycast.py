@@ -8,7 +8,7 @@ import pytest
 from pcfbench.data import RayQuery, Sample
 from pcfbench.geometry import se3, yaw_transform
 from pcfbench.protocol import ROI
-from pcfbench.roi import Box
+from pcfbench.boxes import Box
 from pcfbench.testing import check_method
 from pcfbench.metrics.nn import angles_4docc
 from pcfbench.methods.raycast.common import aggregate, views

@@ -10,9 +10,9 @@ import pytest
 
 from pcfbench.method import options_hash
 from pcfbench.plugins import get_plugins
-from pcfbench.runner import Resolved, process_sample
+from pcfbench.running.runner import Resolved, process_sample
 from pcfbench.protocol import SETTINGS, SampleBuilder
-from pcfbench.store import Cell, CellSpec
+from pcfbench.store.cells import Cell, CellSpec
 from conftest import write_tiny_kitti
 from pcfbench.datasets.kitti import KittiOdometry
 from pcfbench.methods.copy_last import CopyLast

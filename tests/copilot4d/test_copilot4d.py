@@ -448,8 +448,8 @@ def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypa
 
     import pcfbench.methods.copilot4d.evaluate as ev
     from pcfbench.methods.copilot4d.data import open_dataset
-    from pcfbench.runner import run_cell
-    from pcfbench.store import CellSpec
+    from pcfbench.running.runner import run_cell
+    from pcfbench.store.cells import CellSpec
 
     root = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=24)
     adapter = open_dataset("kitti", root)
@@ -474,7 +474,7 @@ def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypa
         assert o[name] == pytest.approx(0.0, abs=1e-4), name
     assert c["chamfer_nf"] > 0.01
     from pcfbench.method import options_hash
-    from pcfbench.store import Cell
+    from pcfbench.store.cells import Cell
 
     spec = CellSpec("copy-last", {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", None,
                     tuple(o))

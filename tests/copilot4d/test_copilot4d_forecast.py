@@ -234,7 +234,8 @@ def _same_losses(a, b, b_text):
 def test_checkpoint_refused_when_its_tokenizer_differs(micro, kitti):
     import io
 
-    from pcfbench.training import Checkpoint, CheckpointError, _sha256
+    from pcfbench.training import Checkpoint, CheckpointError
+    from pcfbench.training.checkpoints import sha256_hex
 
     _tokenizer(kitti)
     ck = _train(f"copilot4d-maskgit:{MICRO},steps=1", kitti)
@@ -250,7 +251,7 @@ def test_checkpoint_refused_when_its_tokenizer_differs(micro, kitti):
     buf = io.BytesIO()
     torch.save(w, buf)
     ck.weights_path.write_bytes(buf.getvalue())
-    manifest = dict(ck.manifest, weights_sha256=_sha256(buf.getvalue()))
+    manifest = dict(ck.manifest, weights_sha256=sha256_hex(buf.getvalue()))
     ck.manifest_path.write_text(json.dumps(manifest))
     with pytest.raises(CheckpointError, match="tokenizer weights are not the tokenizer it was trained with"):
         m.load(Checkpoint.open(ck.dir))

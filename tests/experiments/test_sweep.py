@@ -21,8 +21,8 @@ import pcfbench
 from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.method import Method, resolve_method
 from pcfbench.plugins import get_plugins, load_plugins
-from pcfbench.store import Cell
-from pcfbench.sweep import EXPERIMENT_KEYS, METHOD_KEYS, TABLE_KEYS, load_experiment, plan, run_sweep
+from pcfbench.store.cells import Cell
+from pcfbench.experiments.sweep import EXPERIMENT_KEYS, METHOD_KEYS, TABLE_KEYS, load_experiment, plan, run_sweep
 from tests_helpers import write_kitti_tree
 
 REPO = Path(__file__).resolve().parents[2]
@@ -111,7 +111,7 @@ def test_example_experiment_writes_the_ablation_table_and_a_rerun_does_no_work(t
     chunks = sorted(p.name for s in cells for p in Cell(store, s).chunk_paths())
     written = {p.name: p.read_bytes() for p in out.iterdir()}
     calls = []
-    import pcfbench.runner as runner
+    import pcfbench.running.runner as runner
 
     real = runner.process_sample
     monkeypatch.setattr(runner, "process_sample", lambda *a: calls.append(a) or real(*a))
@@ -181,7 +181,7 @@ grid = {{ fill_ring = [4, 8] }}
         assert len(raw) == samples * 5 and raw["sample_id"].nunique() == samples
         assert json.loads((cell.dir / "cell.json").read_text())["status"] == "complete"
     # the resumed cell's rows equal those of an uninterrupted run
-    from pcfbench.runner import run_cell
+    from pcfbench.running.runner import run_cell
 
     run_cell(second, tmp_path / "clean", jobs=1, progress=False)
     key = ["sample_id", "step"]

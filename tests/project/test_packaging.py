@@ -219,7 +219,7 @@ def test_wheel_has_one_top_level_name_and_installs_beside_a_datasets_package(tmp
         from pcfbench.docs import read_changelog
         from pcfbench.method import resolve_method
         from pcfbench.protocol import load_protocol
-        from pcfbench.tables import load_presets
+        from pcfbench.reporting.tables import load_presets
         from pcfbench.training import shipped_dir
         assert len(official_splits()["train"]) == 700
         assert load_protocol().settings and load_presets() and read_changelog()

@@ -13,7 +13,8 @@ import pytest
 from click.testing import CliRunner
 
 import pcfbench
-from pcfbench import protocol, roi
+from pcfbench import protocol
+from pcfbench import boxes
 from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.hookspecs import hookimpl
@@ -22,7 +23,7 @@ from pcfbench.protocol import (
     SETTINGS, SampleBuilder, SamplePolicy, Setting, active_protocol, anchors, evenly_spaced,
     load_protocol,
 )
-from pcfbench.roi import EgoBox
+from pcfbench.boxes import EgoBox
 
 #: The values the settings had as Python literals before the protocol became a file.
 LEGACY_SETTINGS = [
@@ -49,7 +50,7 @@ def test_shipped_protocol_has_the_legacy_values_exactly():
 
 def test_module_names_are_views_of_the_active_protocol():
     p = active_protocol()
-    assert protocol.SETTINGS is p.settings and protocol.ROI is p.roi and not hasattr(roi, "ROI")
+    assert protocol.SETTINGS is p.settings and protocol.ROI is p.roi and not hasattr(boxes, "ROI")
     assert get_setting("kitti-3s") is p.settings["kitti-3s"]
     with pytest.raises(TypeError):
         SETTINGS["mine"] = SETTINGS["kitti-1s"]  # read-only
@@ -62,16 +63,16 @@ def test_module_names_are_views_of_the_active_protocol():
 def test_the_box_functions_take_the_protocol_roi_from_the_caller():
     o = np.zeros(3)
     d = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    t0, t1 = roi.ray_box_interval(o, d, protocol.ROI)
+    t0, t1 = boxes.ray_box_interval(o, d, protocol.ROI)
     assert t0.tolist() == [0.0, 0.0] and t1.tolist() == [70.0, 4.5]
-    _, end, kept = roi.clamp_ranges_to_box(o, d, np.array([100.0, 2.0]), protocol.ROI)
+    _, end, kept = boxes.clamp_ranges_to_box(o, d, np.array([100.0, 2.0]), protocol.ROI)
     assert end.tolist() == [70.0, 2.0] and kept.all()
     with pytest.raises(TypeError):  # no box of its own: the protocol is handed down
-        roi.ray_box_interval(o, d)
+        boxes.ray_box_interval(o, d)
 
 
 def test_the_file_is_package_data():
-    resource = resources.files("pcfbench").joinpath(protocol.PROTOCOL_FILE)
+    resource = resources.files("pcfbench.protocol").joinpath(protocol.PROTOCOL_FILE)
     assert resource.is_file()
     assert load_protocol(str(resource)) == active_protocol()
 
@@ -79,7 +80,7 @@ def test_the_file_is_package_data():
 # -- bad protocol files: one error naming the file and the key ---------------------------------
 
 def _shipped() -> dict:
-    return tomllib.loads(resources.files("pcfbench").joinpath(protocol.PROTOCOL_FILE).read_text())
+    return tomllib.loads(resources.files("pcfbench.protocol").joinpath(protocol.PROTOCOL_FILE).read_text())
 
 
 def _write(tmp_path, data: dict) -> str:

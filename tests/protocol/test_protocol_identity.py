@@ -19,9 +19,9 @@ from pcfbench.method import Method, options_hash
 from pcfbench.options import option
 from pcfbench.plugins import load_plugins
 from pcfbench.protocol import Setting
-from pcfbench.report import collect
-from pcfbench.runner import run_cell
-from pcfbench.store import PROTOCOL_IDENTITY, Cell, CellSpec
+from pcfbench.reporting.report import collect
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import PROTOCOL_IDENTITY, Cell, CellSpec
 from tests_helpers import write_kitti_tree
 
 METRICS = ("chamfer", "chamfer_nf")

@@ -18,10 +18,10 @@ from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import load_plugins
-from pcfbench.report import ReportOptions, collect, summary, write_reports
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec, iter_cells, spec_from_meta
-from pcfbench import tables
+from pcfbench.reporting.report import ReportOptions, collect, summary, write_reports
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec, iter_cells, spec_from_meta
+from pcfbench.reporting import tables
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
 
@@ -206,7 +206,7 @@ def test_latex_width_estimate_picks_the_page_layout():
 
 def _tiny_board(values):
     """A one-cell leaderboard built by hand."""
-    from pcfbench.report import Leaderboard
+    from pcfbench.reporting.report import Leaderboard
 
     row = {"dataset": "d", "split": "s", "setting": "kitti-1s", "policy": "full-context", "method": "m",
            "variant": "m", "samples": 3, "failed": 0, "sweeps": 15, "limit": None, "horizon_s": 1.0,
@@ -285,7 +285,7 @@ def test_user_presets_extend_and_bad_presets_are_named(board, tmp_path):
 
 def test_interval_style_and_resampling_options(board, tmp_path):
     store, _, _ = board
-    from pcfbench.stats import Resampling
+    from pcfbench.reporting.stats import Resampling
 
     paths = write_reports(store, tmp_path / "r", ReportOptions(ci="interval", resampling=Resampling.parse("sequence")))
     csv = pd.read_csv(paths["csv"])
@@ -327,7 +327,7 @@ def test_reference_choice(board, tmp_path):
 
 def test_too_few_units_are_noted(board):
     store, _, _ = board
-    from pcfbench.stats import Resampling
+    from pcfbench.reporting.stats import Resampling
 
     lb = collect(store, Resampling.parse("block:100"))  # one block per sequence: 2 units
     assert (lb.table["ci_units"] == 2).all()
@@ -359,14 +359,14 @@ def test_run_prints_the_summary_table(tiny_kitti, tmp_path):
 
 
 def test_report_and_sweep_do_not_import_each_other():
-    """The cell labels both need live below them (pcfbench.labels): the report never imports
+    """The cell labels both need live below them (pcfbench.reporting.labels): the report never imports
     the sweeps, and neither module imports the other at load time."""
     import ast
     from pathlib import Path
 
-    import pcfbench.labels
-    import pcfbench.report
-    import pcfbench.sweep
+    import pcfbench.reporting.labels
+    import pcfbench.reporting.report
+    import pcfbench.experiments.sweep
 
     def imported(module) -> set[str]:
         names = set()
@@ -377,9 +377,9 @@ def test_report_and_sweep_do_not_import_each_other():
                 names.update(a.name for a in node.names)
         return names
 
-    assert not {n for n in imported(pcfbench.report) if n.startswith("pcfbench.sweep")}
-    assert not {n for n in imported(pcfbench.labels) if n in ("pcfbench.report", "pcfbench.sweep")}
-    top = {n.module for n in ast.parse(Path(pcfbench.sweep.__file__).read_text()).body if isinstance(n, ast.ImportFrom)}
-    assert "pcfbench.report" not in top
-    assert pcfbench.report.method_label is pcfbench.sweep.method_label is pcfbench.labels.method_label
-    assert pcfbench.sweep.cell_label is pcfbench.labels.cell_label
+    assert not {n for n in imported(pcfbench.reporting.report) if n.startswith("pcfbench.experiments.sweep")}
+    assert not {n for n in imported(pcfbench.reporting.labels) if n in ("pcfbench.reporting.report", "pcfbench.experiments.sweep")}
+    top = {n.module for n in ast.parse(Path(pcfbench.experiments.sweep.__file__).read_text()).body if isinstance(n, ast.ImportFrom)}
+    assert "pcfbench.reporting.report" not in top
+    assert pcfbench.reporting.report.method_label is pcfbench.experiments.sweep.method_label is pcfbench.reporting.labels.method_label
+    assert pcfbench.experiments.sweep.cell_label is pcfbench.reporting.labels.cell_label

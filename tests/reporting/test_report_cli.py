@@ -21,10 +21,10 @@ from pcfbench.cli import build_cli
 from pcfbench.data import Forecast
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import load_plugins
-from pcfbench.report import collect, failures, write_reports, ReportOptions
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
-from pcfbench import tables
+from pcfbench.reporting.report import collect, failures, write_reports, ReportOptions
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
+from pcfbench.reporting import tables
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
 PCFBENCH = str(Path(sys.executable).parent / "pcfbench")
@@ -143,7 +143,7 @@ def test_ctrl_c_keeps_the_finished_work_and_says_how_to_resume(tmp_path):
 
 
 def _spec_of(store, method):
-    from pcfbench.store import iter_cells, spec_from_meta
+    from pcfbench.store.cells import iter_cells, spec_from_meta
 
     return next(spec_from_meta(m) for _, m in iter_cells(store) if m["spec"]["method"] == method)
 
@@ -173,12 +173,12 @@ def test_run_writes_the_figures_and_the_page_by_default(tmp_path, monkeypatch):
 
 
 def test_ctrl_c_in_a_sweep_says_the_same(tmp_path, monkeypatch):
-    import pcfbench.sweep
+    import pcfbench.experiments.sweep
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pcfbench.sweep, "run_sweep", interrupted)
+    monkeypatch.setattr(pcfbench.experiments.sweep, "run_sweep", interrupted)
     exp = Path(__file__).resolve().parents[2] / "docs" / "experiments" / "raycast-voxel-size.toml"
     res = CliRunner().invoke(build_cli(), ["sweep", str(exp), "--store", str(tmp_path / "s"), "-q"])
     assert res.exit_code == 130, res.output

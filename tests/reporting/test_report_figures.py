@@ -13,14 +13,14 @@ import pytest
 
 import pcfbench
 from conftest import write_tiny_kitti
-from pcfbench import figures, tables
+from pcfbench.reporting import figures, tables
 from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import load_plugins
-from pcfbench.report import ReportOptions, collect, write_reports
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
+from pcfbench.reporting.report import ReportOptions, collect, write_reports
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
 
@@ -214,7 +214,7 @@ def test_report_publishes_atomically_and_refuses_a_file_as_folder(made, tmp_path
     write_reports(store, out, ReportOptions(figures=False))
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
     # killed half way through the rendering: nothing in place changed, the staging folder is dropped
-    import pcfbench.htmlreport as hr
+    import pcfbench.reporting.htmlreport as hr
 
     def boom(*a, **k):
         raise KeyboardInterrupt
@@ -348,7 +348,7 @@ def test_ablation_draws_no_figure_for_an_option_with_one_value(made, tmp_path):
 def _no_method_runs(monkeypatch):
     """Make every way a report could run a method raise: the methods' forecasts, the runner's
     entry points and the re-run of samples."""
-    import pcfbench.runner
+    import pcfbench.running.runner
     from pcfbench.methods.copy_last import CopyLast
 
     def boom(*a, **k):
@@ -357,7 +357,7 @@ def _no_method_runs(monkeypatch):
     for cls in (Shifted, CopyLast, Method):
         monkeypatch.setattr(cls, "forecast", boom)
     for name in ("resolve", "process_sample", "run_cell"):
-        monkeypatch.setattr(pcfbench.runner, name, boom)
+        monkeypatch.setattr(pcfbench.running.runner, name, boom)
     monkeypatch.setattr(figures, "rerun", boom)
 
 
@@ -382,7 +382,7 @@ def test_report_and_its_figures_run_no_method(made, tmp_path, monkeypatch):
 def test_range_bins_stored_at_run_time_are_those_a_rerun_recomputes(made):
     """The bins the runner stored for each sweep are the per-ray errors of a re-run of the
     sample binned by ground-truth range (the old figure's recomputation); one bin by hand."""
-    from pcfbench import ranges
+    from pcfbench.store import ranges
 
     store = made[0]
     lb = collect(store)
@@ -414,7 +414,7 @@ def test_range_bins_stored_at_run_time_are_those_a_rerun_recomputes(made):
 
 
 def test_range_figure_pools_every_stored_sweep(made):
-    from pcfbench import ranges
+    from pcfbench.store import ranges
 
     store = made[0]
     lb = collect(store)
@@ -439,7 +439,9 @@ def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(ma
     import json
     import shutil
 
-    from pcfbench import backfill, ranges
+    from pcfbench.running import backfill
+
+    from pcfbench.store import ranges
 
     store = tmp_path / "store"
     shutil.copytree(made[0], store)
@@ -481,7 +483,7 @@ def test_backfill_ranges_command_and_a_method_that_does_not_reproduce_its_rows(m
 
     from click.testing import CliRunner
 
-    from pcfbench import backfill
+    from pcfbench.running import backfill
     from pcfbench.cli import build_cli
 
     store = tmp_path / "store"

@@ -1,4 +1,4 @@
-"""pcfbench.stats: intervals and paired comparisons against a hand-computed case, a plain-loop
+"""pcfbench.reporting.stats: intervals and paired comparisons against a hand-computed case, a plain-loop
 reference with the same draws, and coverage on synthetic data."""
 
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pcfbench import stats
+from pcfbench.reporting import stats
 from pcfbench.errors import PcfbenchError
 
 

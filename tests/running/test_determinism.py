@@ -8,11 +8,11 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pcfbench import stats
+from pcfbench.reporting import stats
 from pcfbench.method import options_hash
-from pcfbench.report import write_reports
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
+from pcfbench.reporting.report import write_reports
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "absrel_mean")
 

@@ -7,15 +7,15 @@ import pandas as pd
 from click.testing import CliRunner
 
 import pcfbench.plugins
-from pcfbench import runner
+from pcfbench.running import runner
 from pcfbench.cli import cli
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
 from pcfbench.protocol import ids_hash
-from pcfbench.report import collect, coverage, summary, write_reports
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
+from pcfbench.reporting.report import collect, coverage, summary, write_reports
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf")
 

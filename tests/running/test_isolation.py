@@ -17,8 +17,8 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer",)
 #: the tiny KITTI sequence's reference indices are 4, 6, ..., 14 (kitti-1s: 6 samples)
@@ -155,7 +155,7 @@ def test_no_orphan_workers_after_the_driver_is_sigkilled(tiny_kitti, tmp_path):
         import sys
         sys.path[:0] = {[str(Path(__file__).parent), str(Path(__file__).parents[1])]!r}
         from test_isolation import plugins, _spec
-        from pcfbench.runner import run_cell
+        from pcfbench.running.runner import run_cell
         run_cell(_spec({str(tiny_kitti)!r}, "slow"), {str(tmp_path / "store")!r}, plugins=plugins(), progress=False,
                  jobs=2, timeout=600)
     """)

@@ -17,7 +17,7 @@ import pytest
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
-from pcfbench.store import Cell, CellSpec
+from pcfbench.store.cells import Cell, CellSpec
 from tests_helpers import write_kitti_tree
 from test_isolation import _alive, _descendants
 

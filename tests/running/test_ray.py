@@ -22,8 +22,8 @@ import pytest
 from click.testing import CliRunner
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.ray_executor import check_gpus, shards
-from pcfbench.store import Cell, CellSpec, shard_name, write_shard
+from pcfbench.running.ray_executor import check_gpus, shards
+from pcfbench.store.cells import Cell, CellSpec, shard_name, write_shard
 from tests_helpers import write_kitti_tree
 
 PCFBENCH = str(Path(sys.executable).parent / "pcfbench")
@@ -213,7 +213,7 @@ def test_options_of_the_other_executor_are_refused(tmp_path, args, message):
 
 
 def test_importing_pcfbench_does_not_import_ray():
-    code = "import sys, pcfbench, pcfbench.cli, pcfbench.runner, pcfbench.sweep, pcfbench.ray_executor; print('ray' in sys.modules)"
+    code = "import sys, pcfbench, pcfbench.cli, pcfbench.running.runner, pcfbench.experiments.sweep, pcfbench.running.ray_executor; print('ray' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "False", out.stdout + out.stderr
 
@@ -247,7 +247,7 @@ def test_ray_sweep_gives_the_local_rows_bit_for_bit_and_the_same_table(town, tmp
                               "--reports", str(tmp_path / name / "reports"), "--quiet", *extra],
                              capture_output=True, text=True, env=env, timeout=600)
         assert out.returncode == 0, out.stdout + out.stderr
-    from pcfbench.store import iter_cells
+    from pcfbench.store.cells import iter_cells
 
     local = {d.relative_to(tmp_path / "local" / "store"): d for d, _ in iter_cells(tmp_path / "local" / "store")}
     ray = {d.relative_to(tmp_path / "ray" / "store"): d for d, _ in iter_cells(tmp_path / "ray" / "store")}
@@ -427,7 +427,7 @@ def test_a_trained_method_loads_its_checkpoint_once_per_worker_and_scores_as_loc
         assert out.returncode == 0, out.stdout + out.stderr
     loads = (markers / "loads").read_text().split()  # of the Ray run: the driver's and each worker's
     assert 2 <= len(loads) == len(set(loads)) <= 3  # 3 shards, at most 2 workers: each process loaded it once
-    from pcfbench.store import iter_cells
+    from pcfbench.store.cells import iter_cells
 
     (local, _), = iter_cells(tmp_path / "local")
     (ray, meta), = iter_cells(tmp_path / "ray")

@@ -7,8 +7,8 @@ from pcfbench.data import Forecast, read_only_copy
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
 from pcfbench.testing import toy_sample
 
 

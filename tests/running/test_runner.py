@@ -14,9 +14,9 @@ from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash
 from pcfbench.plugins import load_plugins
-from pcfbench.report import collect, write_reports
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellSpec
+from pcfbench.reporting.report import collect, write_reports
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellSpec
 from pcfbench.testing import check_method
 from pcfbench.methods.copy_last import CopyLast
 from tests_helpers import write_kitti_tree
@@ -170,8 +170,8 @@ def test_range_bins_are_written_with_their_rows_and_a_resumed_run_neither_loses_
     """Each chunk of rows has its range bins in ranges/ under its name, written just before
     it: a run killed between the two leaves a range file without rows, which is never read
     and which the resumed run replaces. The rows are those of a run that keeps no bins."""
-    import pcfbench.runner as runner
-    import pcfbench.store as store_mod
+    import pcfbench.running.runner as runner
+    import pcfbench.store.cells as store_mod
 
     root = write_kitti_tree(tmp_path / "k", num_sweeps=30)
     spec = _spec(root, metrics=("chamfer", "l1_mean"))

@@ -1,10 +1,10 @@
-"""The kernel warm-up of a run that generates data (pcfbench.warmup)."""
+"""The kernel warm-up of a run that generates data (pcfbench.running.warmup)."""
 
 from __future__ import annotations
 
 import os
 
-from pcfbench.warmup import KernelWarmup, preparing_data, warm, warm_while_preparing
+from pcfbench.running.warmup import KernelWarmup, preparing_data, warm, warm_while_preparing
 
 
 def test_warm_forecasts_and_scores_each_untrained_method_and_skips_the_rest():

@@ -1,4 +1,4 @@
-"""pcfbench.workers.run_supervised: every key answered once, and no worker left waiting."""
+"""pcfbench.running.workers.run_supervised: every key answered once, and no worker left waiting."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import threading
 import time
 from pathlib import Path
 
-from pcfbench.workers import run_supervised
+from pcfbench.running.workers import run_supervised
 
 _FIRST: list[bool] = []
 

@@ -6,7 +6,7 @@ from pcfbench.geometry import (
     se3_exp, se3_log, so3_exp, so3_log, transform_points, yaw_transform,
 )
 from pcfbench.protocol import ROI
-from pcfbench.roi import Box, EgoBox, clamp_ranges_to_box, ray_box_interval
+from pcfbench.boxes import Box, EgoBox, clamp_ranges_to_box, ray_box_interval
 
 
 def random_se3(rng):

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 import pcfbench
-from pcfbench import tables
+from pcfbench.reporting import tables
 from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError, PluginError
 from pcfbench.hookspecs import hookimpl
@@ -23,9 +23,9 @@ from pcfbench.metrics.base import Metric
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import Plugins, load_plugins
 from pcfbench.protocol import SamplePolicy
-from pcfbench.report import ReportOptions, collect, metric_directions, write_reports
-from pcfbench.runner import run_cell
-from pcfbench.store import CellSpec, iter_cells
+from pcfbench.reporting.report import ReportOptions, collect, metric_directions, write_reports
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import CellSpec, iter_cells
 
 from conftest import write_tiny_kitti
 

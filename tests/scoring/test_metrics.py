@@ -184,7 +184,7 @@ def test_ray_query_mode():
 
 
 def test_ray_box_interval_hand_cases():
-    from pcfbench.roi import Box, clamp_ranges_to_box, ray_box_interval
+    from pcfbench.boxes import Box, clamp_ranges_to_box, ray_box_interval
 
     box = Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
     o = np.zeros(3)

@@ -9,7 +9,7 @@ from test_metrics import suite
 from pcfbench.data import Forecast
 from pcfbench.method import Method
 from pcfbench.protocol import SETTINGS, SampleBuilder
-from pcfbench.runner import Resolved, process_sample
+from pcfbench.running.runner import Resolved, process_sample
 from pcfbench.testing import InMemoryDataset
 
 

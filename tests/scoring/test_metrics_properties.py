@@ -103,7 +103,7 @@ def test_nearest_2d_matches_brute_force(seed, k, m, periodic, layout):
 def test_ray_box_interval_matches_scalar_slab_walk(seed, n):
     from pcfbench.metrics.reference import segment_in_box
     from pcfbench.protocol import ROI
-    from pcfbench.roi import ray_box_interval
+    from pcfbench.boxes import ray_box_interval
 
     rng = np.random.default_rng(seed)
     o = rng.uniform(-100, 100, 3) * rng.integers(0, 2, 3)  # some coordinates exactly 0

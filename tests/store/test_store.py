@@ -20,9 +20,9 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
-from pcfbench.report import collect
-from pcfbench.runner import run_cell
-from pcfbench.store import Cell, CellLocked, CellSpec
+from pcfbench.reporting.report import collect
+from pcfbench.running.runner import run_cell
+from pcfbench.store.cells import Cell, CellLocked, CellSpec
 
 METRICS = ("chamfer",)
 

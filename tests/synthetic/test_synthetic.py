@@ -244,13 +244,13 @@ def test_pcfbench_run_without_arguments_generates_the_default_domain_once(tmp_pa
     import pcfbench.datasets.synthetic.generate as gen
     from pcfbench.cli import build_cli
     from pcfbench.plugins import get_plugins
-    from pcfbench.runner import default_metrics
+    from pcfbench.running.runner import default_metrics
 
     dom = tiny("synthetic-town-realistic", sweeps=56, azimuths=240)
     monkeypatch.setattr(adapter_mod, "get_domain", lambda name: dom)
     monkeypatch.setattr(gen, "get_domain", lambda name: dom)
     monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
-    from pcfbench.warmup import KernelWarmup
+    from pcfbench.running.warmup import KernelWarmup
 
     warmups = []  # the run's kernel warm-up starts with the generation, once (tests/running/test_warmup.py runs it)
     monkeypatch.setattr(KernelWarmup, "start", lambda self: warmups.append((self.methods, self.metrics)))
@@ -338,7 +338,7 @@ def test_reading_generated_data_does_not_import_open3d():
     import subprocess
     import sys
 
-    code = ("import sys, pcfbench.datasets.synthetic.adapter, pcfbench.datasets.synthetic.generate, pcfbench.runner; "
+    code = ("import sys, pcfbench.datasets.synthetic.adapter, pcfbench.datasets.synthetic.generate, pcfbench.running.runner; "
             "print(sorted(m for m in ('open3d', 'sklearn') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.datasets.synthetic import compare as C
+from pcfbench.datasets.realism import compare as C
 from pcfbench.datasets.synthetic import realism as R
 from pcfbench.datasets.synthetic.domains import get_domain
 from pcfbench.datasets.synthetic.generate import generate_domain, simulate_sequence
@@ -274,7 +274,7 @@ def test_ground_height_pairs_match_a_brute_force_reference():
 
 
 def test_far_views_closing_hand_case():
-    from pcfbench.roi import Box
+    from pcfbench.boxes import Box
 
     roi = Box((-70.0, -70.0, -4.5), (70.0, 70.0, 4.5))
     o = np.array([8.0, 0.0, 0.1])  # the later sensor, 8 m ahead
@@ -743,7 +743,7 @@ def test_several_splits_are_checked_before_anything_runs():
 
 
 def test_baselines_pool_several_splits_row_by_row(tmp_path):
-    from pcfbench.store import Cell, iter_cells
+    from pcfbench.store.cells import Cell, iter_cells
 
     syn = tmp_path / "syn"
     dom = dataclasses.replace(_tiny_domain(azimuths=120), splits={"train": (("00", 19),), "test": (("05", 20),)})

@@ -13,9 +13,10 @@ import pytest
 
 from pcfbench.method import resolve_method
 from pcfbench.training import (
-    SHIPPED_LIMIT_BYTES, Checkpoint, CheckpointError, TrainingRun, checkpoint_dir, checkpoint_for, find_checkpoint,
-    may_have_checkpoint, open_training_data, ship, shipped_dir, shipped_mismatch,
+    Checkpoint, CheckpointError, TrainingRun, checkpoint_dir, checkpoint_for, find_checkpoint, open_training_data, ship,
+    shipped_dir,
 )
+from pcfbench.training.checkpoints import SHIPPED_LIMIT_BYTES, may_have_checkpoint, shipped_mismatch
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = {"pcfbench": ROOT / "bench", "pcfbench.methods": ROOT / "methods", "pcfbench.datasets": ROOT / "datasets"}
@@ -113,7 +114,7 @@ def test_shipped_checkpoint_matches_local_data_by_content_not_file_times(toy):
 
 
 def test_shipping_refuses_incomplete_tampered_and_oversized(toy):
-    import pcfbench.training as training
+    import pcfbench.training.checkpoints as training
 
     ck, _ = _save(toy, complete=False)
     with pytest.raises(CheckpointError, match=r"manifest.json is not complete \(7 steps\)"):

@@ -291,8 +291,8 @@ def test_missing_checkpoint_says_how_to_train_it(env):
 
 
 def _cell(env, ck, split="test", **kw):
-    from pcfbench.runner import run_cell
-    from pcfbench.store import CellSpec
+    from pcfbench.running.runner import run_cell
+    from pcfbench.store.cells import CellSpec
 
     spec = resolve_method("toy-trained", env.plugins)
     cell = CellSpec("toy-trained", {}, spec.options_hash, "kitti", str(env.root), split, "kitti-1s", limit=2,
@@ -314,15 +314,15 @@ def test_cells_know_their_checkpoint_and_a_changed_one_is_a_new_cell(env):
     assert b.path != a.path and b.processed == 2 and first.sha256[:12] in a.path.name
     assert json.loads((a.path / "cell.json").read_text())["checkpoint_sha256"] == first.sha256  # kept side by side
     # a cell whose checkpoint file changed under it is refused, never scored with other weights
-    from pcfbench.store import CellSpec
+    from pcfbench.store.cells import CellSpec
 
     with pytest.raises(PcfbenchError, match="changed since cell"):
-        from pcfbench.runner import resolve
+        from pcfbench.running.runner import resolve
 
         resolve(CellSpec("toy-trained", {}, resolve_method("toy-trained", env.plugins).options_hash, "kitti",
                          str(env.root), "test", "kitti-1s", checkpoint=str(second.dir), checkpoint_sha256=first.sha256,
                          train_on="kitti:train"), env.plugins)
-    from pcfbench.report import collect
+    from pcfbench.reporting.report import collect
 
     board = collect(env.tmp / "store")
     labels = sorted(board.partial["variant"])
@@ -336,7 +336,7 @@ def test_evaluating_on_the_training_split_is_refused_unless_allowed(env):
         _cell(env, ck, split="train")
     r = _cell(env, ck, split="train", allow_train_split=True)
     assert json.loads((r.path / "cell.json").read_text())["evaluated_on_training_data"] is True
-    from pcfbench.report import collect
+    from pcfbench.reporting.report import collect
 
     assert list(collect(env.tmp / "store").partial["variant"]) == [
         f"toy-trained [trained on kitti:train, ck {ck.sha256[:8]}, ON ITS TRAINING DATA]"]
@@ -373,9 +373,9 @@ def test_cli_train_and_run_with_checkpoint_and_train_on(env, monkeypatch):
 def test_transfer_table_layout(env):
     """A trained cell on other data than its training data gets a Table-5 block: the trained row
     and the untrained baselines of the same block, the paper's columns, the leaderboard's values."""
-    from pcfbench.report import collect, write_reports
-    from pcfbench.runner import run_cell
-    from pcfbench.store import CellSpec
+    from pcfbench.reporting.report import collect, write_reports
+    from pcfbench.running.runner import run_cell
+    from pcfbench.store.cells import CellSpec
 
     ck = _train(env)
     _cell(env, ck)

@@ -1,4 +1,4 @@
-"""The one training loop (pcfbench.trainloop.fit_loop) on a tiny linear regression: an
+"""The one training loop (pcfbench.training.loop.fit_loop) on a tiny linear regression: an
 interrupted and resumed run is the uninterrupted one (curve and weights), the random state's
 one format survives a weights_only round trip, the old formats still resume, the time budget
 stops with a checkpoint, and the generic pieces (schedule, parameter groups, curve writer)."""
@@ -20,7 +20,7 @@ import pcfbench
 from pcfbench.method import resolve_method
 from pcfbench.training import (Panel, Randoms, StateError, fit_loop, param_groups, train, warmup_cosine,
                                write_curve)
-from pcfbench.trainloop import random_state, restore_random_state
+from pcfbench.training.loop import random_state, restore_random_state
 
 TIMING = ("step_s", "elapsed_s", "cpu_s")
 TRUE_W = torch.tensor([[1.5, -2.0, 0.5]])

@@ -5,7 +5,7 @@ L1 Mean, AbsRel (mean) and Chamfer over the whole sweep).
 
 A block holds every method scored on the same data, setting and samples as a trained cell, so
 the untrained baselines (copy-last, ray casting) stand beside it with training data "-". Rows
-come from :func:`pcfbench.report.collect`'s leaderboard: the same flat means as the
+come from :func:`pcfbench.reporting.report.collect`'s leaderboard: the same flat means as the
 leaderboard; cells run with ``--limit`` form their own blocks, marked as partial.
 """
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pcfbench import tables
+from pcfbench.reporting import tables
 
 #: Table 5's columns: (metric, header).
 COLUMNS = (("chamfer_nf", "Chamfer"), ("l1_mean", "L1 Mean"), ("absrel_mean", "AbsRel"), ("chamfer", "Chamfer (full)"))

@@ -40,7 +40,7 @@ def _context() -> multiprocessing.context.BaseContext:
     # torch), and a child forked while one of them holds a lock deadlocks. Preloading the
     # runner makes each worker a cheap fork of a process that has imported it once.
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["pcfbench.runner"])
+    ctx.set_forkserver_preload(["pcfbench.running.runner"])
     return ctx
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pcfbench.store import CellSpec
+from pcfbench.store.cells import CellSpec
 
 
 def method_label(method: str, options: dict) -> str:

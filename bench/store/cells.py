@@ -13,7 +13,7 @@ A trained method's cell also records its checkpoint's sha256 and training data
 own cell.
 
 Beside each chunk of rows, ``ranges/`` holds a file of the same name with the range bins of
-its scored sweeps (``pcfbench.ranges``: what the report's error-by-range figure needs, so
+its scored sweeps (``pcfbench.store.ranges``: what the report's error-by-range figure needs, so
 that a report reads the store only). It is written just before its chunk; one whose chunk is
 missing (a run killed between the two) is never read, and the next chunk of that name
 replaces it.
@@ -21,7 +21,7 @@ replaces it.
 Rows come in chunks of two names in ``rows/``: ``chunk-NNNNNN.parquet``, numbered in the order
 the local executor flushes them, and ``shard-START-STOP.parquet``, the rows of the samples
 ``START <= i < STOP`` of the cell's sample list computed by one task of a distributed executor
-(``pcfbench.ray_executor``). A shard is named by its samples, not by who wrote it, so a task
+(``pcfbench.running.ray_executor``). A shard is named by its samples, not by who wrote it, so a task
 that runs twice (a retry) replaces its file instead of adding one.
 """
 
@@ -47,9 +47,9 @@ CELL_FILE = "cell.json"
 #: what every cell.json names (its CellSpec) and what every chunk of rows has
 SPEC_KEYS = ("method", "options", "options_hash", "dataset", "split", "setting")
 ROWS_DIR = "rows"
-#: Range bins of the scored sweeps (``pcfbench.ranges``), one file per rows chunk, of its name.
+#: Range bins of the scored sweeps (``pcfbench.store.ranges``), one file per rows chunk, of its name.
 RANGES_DIR = "ranges"
-#: The key under which a row dict (``pcfbench.runner.process_sample``) carries its sweep's
+#: The key under which a row dict (``pcfbench.running.runner.process_sample``) carries its sweep's
 #: range bins to the store; split off into ``ranges/``, never a column of the rows.
 RANGE_KEY = "_range_bins"
 #: Columns every row has besides the metric values.
@@ -267,7 +267,7 @@ class Cell:
         df = pd.concat([_read_chunk(p).to_pandas() for p in paths], ignore_index=True)
         return df.drop_duplicates(subset=["sample_id", "step"], keep="first").reset_index(drop=True)
 
-    # -- range bins (pcfbench.ranges) ---------------------------------------------------------
+    # -- range bins (pcfbench.store.ranges) ---------------------------------------------------------
     def write_ranges_for(self, chunk: Path, ranges: list[dict[str, Any]], unique: bool = False) -> Path:
         """Write the range rows of the rows chunk ``chunk`` (its file in ``ranges/``), atomically."""
         d = self.dir / RANGES_DIR
@@ -308,7 +308,7 @@ def shard_name(start: int, stop: int) -> str:
     return f"shard-{start:06d}-{stop:06d}.parquet"
 
 
-#: the range rows' lists, one entry per 10 m bin (``pcfbench.ranges``)
+#: the range rows' lists, one entry per 10 m bin (``pcfbench.store.ranges``)
 RANGE_COLUMNS = ("bin", "rays", "l1_sum", "absrel_sum")
 RANGES_SCHEMA = pa.schema([("sample_id", pa.string()), ("step", pa.int64()), ("bin", pa.list_(pa.int64())),
                            ("rays", pa.list_(pa.int64())), ("l1_sum", pa.list_(pa.float64())),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-
 from pcfbench.data import FLOAT32_MAX, Forecast, Sample, Sweep
 from pcfbench.errors import DataError, ForecastError
 from pcfbench.geometry import is_se3

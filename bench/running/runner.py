@@ -14,19 +14,20 @@ import numpy as np
 from tqdm import tqdm
 
 import pcfbench
-from pcfbench import config, ranges
+from pcfbench import config
+from pcfbench.store import ranges
 from pcfbench.errors import DataError, PcfbenchError
-from pcfbench.execution import ExecutionContext, applied
-from pcfbench.execution import apply as apply_execution
-from pcfbench.provenance import environment, git_commit
+from pcfbench.running.execution import ExecutionContext, applied
+from pcfbench.running.execution import apply as apply_execution
+from pcfbench.running.provenance import environment, git_commit
 from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash
 from pcfbench.dataset import options_identity
-from pcfbench.store import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
-from pcfbench.validate import validate_forecast
+from pcfbench.store.cells import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
+from pcfbench.protocol.validate import validate_forecast
 
 #: Flush a chunk after this many samples or seconds, whichever comes first.
 CHUNK_SAMPLES = int(os.environ.get("PCFBENCH_CHUNK_SAMPLES", 64))
@@ -94,7 +95,7 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
 
     Data errors (a bad file) propagate: they stop the run rather than being blamed on the method.
     When the cell scores ``l1_mean`` or ``absrel_mean``, each ok row also carries its sweep's
-    range bins under ``pcfbench.store.RANGE_KEY`` (``pcfbench.ranges``), which the store
+    range bins under ``pcfbench.store.cells.RANGE_KEY`` (``pcfbench.store.ranges``), which the store
     writes beside the rows, never into them.
     """
     t0 = time.perf_counter()
@@ -134,7 +135,7 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     return rows
 
 
-# -- workers (pcfbench.workers) ---------------------------------------------------------------
+# -- workers (pcfbench.running.workers) ---------------------------------------------------------------
 _WORKER: Resolved | None = None
 
 
@@ -245,17 +246,17 @@ def run_cell(
     ``jobs=0`` picks a pool of one worker per CPU when there are enough samples to pay for
     starting it, else runs serially. ``threads``: the run's thread budget (default: every CPU
     this process may use); a serial run keeps all of it, each of N workers gets
-    ``max(1, threads // N)`` (``pcfbench.execution``). The rows do not depend on it.
-    ``executor`` (``pcfbench.ray_executor.RayExecutor``) computes the samples elsewhere instead:
+    ``max(1, threads // N)`` (``pcfbench.running.execution``). The rows do not depend on it.
+    ``executor`` (``pcfbench.running.ray_executor.RayExecutor``) computes the samples elsewhere instead:
     its tasks write the rows to the store themselves, a shard of samples per chunk.
 
     ``isolate`` (default: when a ``timeout`` is given) runs even a serial cell's samples in a
     worker process; a pool (``jobs`` > 1) always does. There a sample whose worker crashes
     (a native crash, ``os._exit``) or runs past ``timeout`` seconds is recorded failed and
-    the cell goes on (``pcfbench.workers``). Unisolated, the method runs in this process.
+    the cell goes on (``pcfbench.running.workers``). Unisolated, the method runs in this process.
 
     A cell another process is computing (it holds the cell's lock) is waited for (``wait``),
-    or refused at once with ``pcfbench.store.CellLocked``.
+    or refused at once with ``pcfbench.store.cells.CellLocked``.
     """
     if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0 and timeout == timeout):
         raise PcfbenchError(f"the per-sample time limit must be a number of seconds > 0, not {timeout!r}")
@@ -311,7 +312,7 @@ def run_cell(
             "metric_higher_is_better": {m.name: m.higher_is_better for m in res.metrics},
             "created": (meta or {}).get("created", time.time()),
         }
-        if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.ranges)
+        if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.store.ranges)
             meta["range_bins"] = ranges.meta()
         cell.write_meta(meta)
 
@@ -410,7 +411,7 @@ def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: i
              execution: ExecutionContext, timeout: float | None = None, isolate: bool = False,
              plugins: Plugins | None = None) -> Iterable[list[dict[str, Any]]]:
     """Yield each sample's rows: in this process within ``execution`` (``isolate`` false,
-    serial), else from ``jobs`` supervised worker processes (``pcfbench.workers``), each
+    serial), else from ``jobs`` supervised worker processes (``pcfbench.running.workers``), each
     pinned to its share of ``execution``, where a sample whose worker crashes or runs past
     ``timeout`` seconds is one failure row."""
     if not isolate and (jobs <= 1 or len(keys) < 2):
@@ -419,7 +420,7 @@ def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: i
             for key in keys:
                 yield process_sample(res, key)
         return
-    from pcfbench.workers import run_supervised
+    from pcfbench.running.workers import run_supervised
 
     jobs = max(1, min(jobs, len(keys)))
     yield from run_supervised(keys, jobs, _worker_init, (spec, execution.share(jobs), CellPlugins(spec, plugins or get_plugins())),

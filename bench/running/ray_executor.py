@@ -1,12 +1,12 @@
 """Runs a cell's samples as Ray tasks, one task per shard, against a store every node sees.
 
 ``pcfbench run/sweep --executor ray`` hands each cell to :class:`RayExecutor` through
-``pcfbench.runner.run_cell``, which keeps everything else of a cell on the driver: its identity
+``pcfbench.running.runner.run_cell``, which keeps everything else of a cell on the driver: its identity
 check, ``cell.json``, what is already done, completion. The executor cuts the cell's sample
 list into shards of ``shard_samples`` consecutive samples (fixed by the list, not by what is
 left to do) and submits one Ray task per shard that has samples left. A task computes them
 and publishes their rows itself as one chunk, ``rows/shard-START-STOP.parquet``
-(``pcfbench.store.write_shard``: a temporary file renamed into place), so:
+(``pcfbench.store.cells.write_shard``: a temporary file renamed into place), so:
 
 - a finished shard is never recomputed: a rerun of a killed driver finds its rows;
 - a task that Ray retries after its worker died (``max_retries``) replaces the same file, so
@@ -40,7 +40,7 @@ from typing import Any, Callable
 import pandas as pd
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.store import write_shard
+from pcfbench.store.cells import write_shard
 
 #: Samples per task unless told otherwise: enough that a task's overhead (a few ms) is
 #: small against its samples (~0.1-1 s each), few enough to share a cell over many workers.
@@ -174,7 +174,7 @@ class RayExecutor:
                                 submit(i, i + 1, [i])
                             continue
                         # that one sample is a failure row, as the local executor records a crash
-                        from pcfbench.runner import _failure_row
+                        from pcfbench.running.runner import _failure_row
 
                         reason = (f"its Ray worker process died on each of {self.max_retries + 1} tries "
                                   f"({lost.kind})")
@@ -220,9 +220,9 @@ def _resolved(spec: Any, threads: int) -> tuple[Any, bool]:
     """This worker's resolved cell (built on its first shard of the cell, then kept; one cell
     at a time, so a worker holds one method's weights). Returns it and whether it was built now."""
     global _CACHED
-    from pcfbench.execution import ExecutionContext, apply
-    from pcfbench.runner import resolve
-    from pcfbench.store import spec_to_meta
+    from pcfbench.running.execution import ExecutionContext, apply
+    from pcfbench.running.runner import resolve
+    from pcfbench.store.cells import spec_to_meta
 
     key = json.dumps([spec_to_meta(spec), threads], sort_keys=True, default=str)
     if _CACHED is not None and _CACHED[0] == key:
@@ -240,7 +240,7 @@ def _published(cell_dir: Path, start: int, stop: int) -> dict[str, bool]:
     """Samples of shard [start, stop) already in the store, in files of this shard's range
     (one that a timed-out try of this task published before its worker was killed), and
     whether each failed."""
-    from pcfbench.store import ROWS_DIR
+    from pcfbench.store.cells import ROWS_DIR
 
     out: dict[str, bool] = {}
     for path in sorted((Path(cell_dir) / ROWS_DIR).glob("shard-*.parquet")):
@@ -261,7 +261,7 @@ def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, todo: list[int],
     executor does: it publishes the rows done so far and a ``SampleTimeout`` row for that
     sample (``shard-FIRST-HUNG+1``), then kills this worker process; Ray's retry of the task
     skips what is published and writes the rest (``shard-HUNG+1-STOP``)."""
-    from pcfbench.runner import _failure_row, process_sample
+    from pcfbench.running.runner import _failure_row, process_sample
 
     t0 = time.perf_counter()
     published = _published(Path(cell_dir), start, stop)

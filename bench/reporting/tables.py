@@ -3,11 +3,11 @@
 A preset names the metric columns of a table and their headers; which way each column is
 better comes from its metric (``Metric.higher_is_better``, recorded in every cell.json), and
 a preset that still says ``better`` must agree with it. :func:`build` turns the analysed
-leaderboard (``pcfbench.report.collect``) into row groups per (dataset, split, setting,
+leaderboard (``pcfbench.reporting.report.collect``) into row groups per (dataset, split, setting,
 policy[, limit]) ranked best first, and :func:`markdown`, :func:`latex`, :func:`html_table`
 and :func:`text` print it. Every value is the flat mean of the leaderboard; the ± (or
 [lo, hi]) is its bootstrap interval, and the relative change is against the group's
-reference cell (``pcfbench.stats``).
+reference cell (``pcfbench.reporting.stats``).
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ def _read_presets(text: str, source: str) -> dict[str, Preset]:
 
 def load_presets(extra: Path | str | None = None) -> dict[str, Preset]:
     """The shipped presets, then those of ``extra`` (a TOML file; same name replaces)."""
-    shipped = resources.files("pcfbench").joinpath(PRESETS_FILE)
+    shipped = resources.files(__package__).joinpath(PRESETS_FILE)
     presets = _read_presets(shipped.read_text(), f"pcfbench/{PRESETS_FILE}")
     if extra is not None:
         path = Path(extra)
@@ -231,7 +231,7 @@ def column_better(preset: Preset, column: Column, higher_is_better: bool | None)
 
 def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
           heading: str = "pcfbench leaderboard") -> Table:
-    """The display model of leaderboard ``lb`` (``pcfbench.report.Leaderboard``) in ``preset``.
+    """The display model of leaderboard ``lb`` (``pcfbench.reporting.report.Leaderboard``) in ``preset``.
 
     ``order``: variant labels; rows follow it (a sweep's ablation table) instead of being
     ranked. ``heading`` starts the Markdown and HTML titles."""

@@ -8,12 +8,12 @@ setting, split, policy, metric, dataset and table before anything runs: a bad fi
 ``PcfbenchError`` naming the file and the key, and nothing is written.
 
 The grid is method variant x dataset x split x setting. Each cell runs through
-``pcfbench.runner.run_cell`` into the results store like any ``pcfbench run`` cell (same
+``pcfbench.running.runner.run_cell`` into the results store like any ``pcfbench run`` cell (same
 paths, same identity), so a finished cell is reused, an interrupted one resumed, and
 ``pcfbench report`` sees them too. The ablation table (one row per variant in the
 experiment's order, the preset's columns, the relative change against the experiment's
-reference row, as in Copilot4D's Tables 3 and 4) is computed by ``pcfbench.report.collect``
-over the sweep's cells only and rendered by ``pcfbench.tables`` as Markdown, CSV, LaTeX and
+reference row, as in Copilot4D's Tables 3 and 4) is computed by ``pcfbench.reporting.report.collect``
+over the sweep's cells only and rendered by ``pcfbench.reporting.tables`` as Markdown, CSV, LaTeX and
 HTML under ``<reports>/sweeps/``. Each file is written whole (a temporary file renamed into
 place) after every cell is complete.
 """
@@ -34,8 +34,8 @@ from pcfbench import config
 from pcfbench.errors import PcfbenchError, UnknownNameError, unknown_name
 from pcfbench.method import MethodSpec, resolve_method
 from pcfbench.plugins import Plugins, get_plugins
-from pcfbench.labels import cell_label, method_label
-from pcfbench.store import CellSpec, atomic_write_bytes
+from pcfbench.reporting.labels import cell_label, method_label
+from pcfbench.store.cells import CellSpec, atomic_write_bytes
 
 __all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "load_experiment", "plan", "run_sweep", "ablation_tables"]
 
@@ -233,7 +233,7 @@ def _datasets(value: Any, reader: _Reader, plugins: Plugins) -> tuple[tuple[str,
 def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experiment:
     """Read and validate experiment file ``path``; every problem is one error naming the
     file and the key (``PcfbenchError``, ``UnknownNameError`` with a did-you-mean)."""
-    from pcfbench import tables as tables_mod
+    from pcfbench.reporting import tables as tables_mod
     from pcfbench.plugins import get_setting
     from pcfbench.protocol import SAMPLE_POLICIES, check_compatible
 
@@ -300,7 +300,7 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
             except PcfbenchError as exc:
                 raise reader.wrap("metrics", exc) from None
     else:
-        from pcfbench.runner import default_metrics
+        from pcfbench.running.runner import default_metrics
 
         metrics = default_metrics(plugins)
 
@@ -496,11 +496,11 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
     """Run (or resume) every cell of ``exp`` through ``run_cell``, then write its ablation
     tables to ``reports/sweeps/``. Complete cells are reused without calling the method;
     ``force`` recomputes them. ``limit``/``jobs`` override the file's. ``executor``: run_cell's
-    (``pcfbench.ray_executor.RayExecutor``; the file's ``jobs`` then does not apply).
+    (``pcfbench.running.ray_executor.RayExecutor``; the file's ``jobs`` then does not apply).
     ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes."""
     from tqdm import tqdm
 
-    from pcfbench.runner import _progress_disabled, run_cell
+    from pcfbench.running.runner import _progress_disabled, run_cell
 
     plugins = plugins or get_plugins()
     cells = plan(exp, limit=limit, plugins=plugins, progress=progress)
@@ -534,7 +534,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
     value, ``reports/figures/ablation-<stem>_*``); returns the paths (``"<stem>.<ext>"``,
     ``"figures/<name>"``) and each table as terminal text.
     Everything is rendered in memory first, then each file is written atomically."""
-    from pcfbench import report, tables
+    from pcfbench.reporting import report, tables
 
     presets = tables.load_presets()
     labels = {_row_key(c.method, c.options_hash, getattr(c, "checkpoint_sha256", None)): row_label(c) for c in cells}
@@ -560,7 +560,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
         contents[f"{t.stem}.html"] = tables.html_page(table)
         contents[f"{t.stem}.csv"] = _csv(lb, order).to_csv(index=False)
         summaries.append(f"{table.heading}: {preset.title}\n{tables.text(table)}")
-        from pcfbench.figures import FIGURES_DIR, ablation_figures  # metric vs option value
+        from pcfbench.reporting.figures import FIGURES_DIR, ablation_figures  # metric vs option value
 
         figure_paths.update(ablation_figures(lb, table.columns, Path(reports) / FIGURES_DIR, t.stem))
     out = Path(reports) / SWEEPS_DIR
@@ -576,7 +576,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
 def _csv(lb, order: list[str]) -> pd.DataFrame:
     """The report's CSV columns for the sweep's rows (complete and partial), with ``limit``,
     in the experiment's row order within each (dataset, split, setting, limit) block."""
-    from pcfbench.report import _csv_frame
+    from pcfbench.reporting.report import _csv_frame
 
     frames = [df for df in (lb.table, lb.partial) if len(df)]
     if not frames:

@@ -4,10 +4,10 @@ Every figure but the gallery is drawn from the store alone: no method runs in a 
 
 - ``horizon-<group>``: each preset column against the forecast time in seconds, one line per
   method variant, the band its 95 % bootstrap interval (the per-step rows of
-  ``pcfbench.report.collect``, resampling samples).
+  ``pcfbench.reporting.report.collect``, resampling samples).
 - ``range-<group>``: L1 and AbsRel against the ground-truth range, per 10 m bin, every scored
   sweep of each cell pooled. The runner stores each sweep's bins (rays, error sums) beside its
-  rows (``pcfbench.ranges``): the errors are those of ``SweepContext.ray_errors_wrapped``, the
+  rows (``pcfbench.store.ranges``): the errors are those of ``SweepContext.ray_errors_wrapped``, the
   very errors ``l1_mean``/``absrel_mean`` average, so a sweep's ray-weighted mean over its bins
   is its stored value. A cell made before the store kept them is left out of the figure and
   named, with the command that recomputes them (``pcfbench backfill-ranges``).
@@ -15,7 +15,7 @@ Every figure but the gallery is drawn from the store alone: no method runs in a 
   the methods on a few samples (``figure_samples`` per group, chosen below): bird's-eye views
   of those samples: the past sweeps, the ground truth at the horizon and each variant's
   forecast of it, its points coloured by their distance to the nearest ground-truth point (m).
-- ``ablation-<stem>``: a sweep's metric against an option's value (``pcfbench.sweep``).
+- ``ablation-<stem>``: a sweep's metric against an option's value (``pcfbench.experiments.sweep``).
 
 Chosen samples (the gallery): per group, the reference cell's (else the first cell's) samples
 ranked by their mean of the group's ranking metric; the median one and the worst one (for
@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.ranges import RANGE_BIN_M
+from pcfbench.store.ranges import RANGE_BIN_M
 
 FIGURES_DIR = "figures"
 FORMATS = ("png", "svg")
@@ -198,9 +198,9 @@ def rerun(store_root: Path, cells: pd.DataFrame, sample_ids: list[str], plugins=
     import time
 
     from pcfbench.errors import DataError
-    from pcfbench.runner import resolve
-    from pcfbench.store import Cell, spec_from_meta
-    from pcfbench.validate import validate_forecast
+    from pcfbench.running.runner import resolve
+    from pcfbench.store.cells import Cell, spec_from_meta
+    from pcfbench.protocol.validate import validate_forecast
 
     t0 = time.perf_counter()
     out = Rerun(list(sample_ids))
@@ -270,7 +270,7 @@ def range_profile(sweeps: list[SweepErrors], bin_m: float = RANGE_BIN_M) -> pd.D
 @dataclass
 class StoredRanges:
     """The range profiles of a group's cells, read from the store: ``profiles[variant]``
-    (:func:`pcfbench.ranges.profile`), ``sweeps[variant]`` the scored sweeps pooled, and
+    (:func:`pcfbench.store.ranges.profile`), ``sweeps[variant]`` the scored sweeps pooled, and
     ``missing[variant]`` the cell folder of each cell whose range bins the store lacks, and
     ``why[variant]`` why it lacks them."""
 
@@ -284,8 +284,8 @@ def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
     """The range profile of every cell of ``cells`` (rows of the leaderboard with their
     ``cell_dir``) from its range bins in the store; a cell without them for every scored sweep
     goes to ``missing``. Reads the store only."""
-    from pcfbench import ranges
-    from pcfbench.store import Cell
+    from pcfbench.store import ranges
+    from pcfbench.store.cells import Cell
 
     out = StoredRanges()
     for _, row in cells.iterrows():
@@ -310,7 +310,7 @@ def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
 def range_gaps(lb, store_root: Path) -> list[str]:
     """One note per complete cell of ``lb`` whose range bins the store lacks: its range figure
     leaves it out, and the note says how to recompute them."""
-    from pcfbench import ranges
+    from pcfbench.store import ranges
 
     if not len(lb.table):
         return []
@@ -322,7 +322,7 @@ def range_gaps(lb, store_root: Path) -> list[str]:
 
 def range_figure(found: StoredRanges, title: str):
     """L1 and AbsRel per range bin of each variant with range bins in the store."""
-    from pcfbench import ranges
+    from pcfbench.store import ranges
 
     with _rc():
         fig = _new_figure(9.5, 3.6)
@@ -579,7 +579,7 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
             continue
         ref = g[g["is_reference"]] if "is_reference" in g else g.iloc[0:0]
         base = ref.iloc[0] if len(ref) else g.iloc[0]
-        from pcfbench.store import Cell
+        from pcfbench.store.cells import Cell
 
         rows = Cell.at(store_root, base["cell_dir"]).read_rows()
         ids = choose_samples(rows, rank, samples, any(c.metric == rank and c.better == "higher" for c in columns))

@@ -1,7 +1,7 @@
 """``pcfbench backfill-ranges``: the range bins of cells made before the store kept them.
 
 The one place a report's input is recomputed, and an explicit command: each rows chunk of a
-complete cell without its range bins (:mod:`pcfbench.ranges`) is re-run through the cell's
+complete cell without its range bins (:mod:`pcfbench.store.ranges`) is re-run through the cell's
 method and scored again; its bins are written only when the re-run gives back the cell's
 stored ``l1_mean``/``absrel_mean``. It sits above the runner (it re-runs methods), and the
 runner and the report below it never import it.
@@ -14,11 +14,11 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-from pcfbench import ranges
+from pcfbench.store import ranges
 from pcfbench.metrics.base import SweepContext
-from pcfbench.runner import resolve
-from pcfbench.store import Cell, iter_cells, read_chunk_frame, spec_from_meta
-from pcfbench.validate import validate_forecast
+from pcfbench.running.runner import resolve
+from pcfbench.store.cells import Cell, iter_cells, read_chunk_frame, spec_from_meta
+from pcfbench.protocol.validate import validate_forecast
 
 __all__ = ["backfill"]
 

@@ -44,7 +44,7 @@ class KernelWarmup:
 
     def start(self) -> None:
         if self.process is None:
-            code = "import json, sys; from pcfbench.warmup import warm; warm(*json.loads(sys.argv[1]))"
+            code = "import json, sys; from pcfbench.running.warmup import warm; warm(*json.loads(sys.argv[1]))"
             args = json.dumps([None if self.methods is None else list(self.methods), list(self.metrics)])
             self.process = subprocess.Popen([sys.executable, "-c", code, args], stdin=subprocess.DEVNULL,
                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -89,13 +89,13 @@ def preparing_data() -> None:
 def warm(methods: "list[str] | tuple[str, ...] | None", metrics: "list[str] | tuple[str, ...]") -> list[str]:
     """Forecast and score the toy sample with each method on one thread; returns the names of
     the methods that ran (the process's exit status says nothing: failures are left to the cells)."""
-    from pcfbench.execution import ExecutionContext, applied
+    from pcfbench.running.execution import ExecutionContext, applied
     from pcfbench.method import resolve_method
     from pcfbench.metrics.base import score_sample
     from pcfbench.plugins import get_plugins
     from pcfbench.testing import toy_sample
     from pcfbench.training import is_trained
-    from pcfbench.validate import validate_forecast
+    from pcfbench.protocol.validate import validate_forecast
 
     plugins = get_plugins()
     if methods is None:
@@ -123,5 +123,5 @@ def warm(methods: "list[str] | tuple[str, ...] | None", metrics: "list[str] | tu
     return done
 
 
-if __name__ == "__main__":  # pragma: no cover - by hand: python -m pcfbench.warmup
+if __name__ == "__main__":  # pragma: no cover - by hand: python -m pcfbench.running.warmup
     print(warm(None, tuple(sys.argv[1:]) or ()))

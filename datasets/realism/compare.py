@@ -826,8 +826,8 @@ def baseline_rows(dataset: str, root: str, split, setting: str, store: Path, lim
 
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
-    from pcfbench.runner import default_metrics, run_cell
-    from pcfbench.store import Cell, CellSpec
+    from pcfbench.running.runner import default_metrics, run_cell
+    from pcfbench.store.cells import Cell, CellSpec
 
     plugins = get_plugins()
     spec_m = resolve_method(method, plugins)

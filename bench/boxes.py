@@ -9,6 +9,7 @@ box from the caller.
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
 
 

@@ -4,12 +4,12 @@ For every scored future sweep the runner records, per 10 m bin of the ground-tru
 the kept rays, the number of rays and the sums of their L1 and AbsRel errors: the very errors
 ``l1_mean`` and ``absrel_mean`` average (``SweepContext.ray_errors_wrapped``), so a sweep's
 ray-weighted mean over its bins is its stored ``l1_mean``/``absrel_mean``. They are stored
-beside the cell's rows (``ranges/`` in the cell folder, :mod:`pcfbench.store`), one row per
+beside the cell's rows (``ranges/`` in the cell folder, :mod:`pcfbench.store.cells`), one row per
 (sample, future sweep) with the bins as lists, and the report's figure pools them over every
 sample of a cell: it reads the store only, no method runs.
 
 Only cells scoring ``l1_mean`` or ``absrel_mean`` record them (then the errors are computed
-anyway); ``pcfbench backfill-ranges`` (:func:`pcfbench.backfill.backfill`) recomputes them
+anyway); ``pcfbench backfill-ranges`` (:func:`pcfbench.running.backfill.backfill`) recomputes them
 for a cell made before the store kept them, re-running its method, as an explicit command.
 """
 

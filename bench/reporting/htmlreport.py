@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pcfbench import tables
+from pcfbench.reporting import tables
 
 PROVENANCE_COLUMNS = (
     ("prov_harness_version", "harness"), ("prov_protocol_version", "protocol"), ("prov_method_version", "method"),

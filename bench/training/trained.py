@@ -1,0 +1,269 @@
+"""The contract of a method that learns (:class:`TrainedMethod`), the run handed to its
+``fit`` (:class:`TrainingRun`) and the one training driver (:func:`train`)."""
+
+from __future__ import annotations
+
+import fcntl
+import io
+import os
+import time
+from abc import abstractmethod
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.method import Method, MethodSpec, options_dict
+from pcfbench.training.checkpoints import (FORMAT, MANIFEST, Checkpoint, CheckpointError, checkpoint_dir,
+                                           checkpoint_options_hash, sha256_hex, training_options)
+from pcfbench.training.data import DEFAULT_SPLIT, TrainOn, TrainSource, open_training_data
+
+if TYPE_CHECKING:  # pragma: no cover
+    from pcfbench.plugins import Plugins
+
+def is_trained(cls: type) -> bool:
+    return isinstance(cls, type) and issubclass(cls, TrainedMethod)
+
+
+
+
+# -- the training run handed to fit ---------------------------------------------------------------
+class TrainingRun:
+    """What ``fit`` gets as ``progress``: where to save, what to resume from, when to stop
+    (the ``--max-minutes`` budget) and a progress bar.
+
+    ``fit`` calls :meth:`resume` once (None, or the last saved ``{"step", "weights", "state"}``),
+    :meth:`start` with its total steps, :meth:`update` after each step, :meth:`save` every so
+    often and at the end, and stops early when :meth:`should_stop` says so.
+    """
+
+    def __init__(self, spec: MethodSpec, train_on: TrainOn, out_dir: Path, *, max_minutes: float | None = None,
+                 fresh: bool = False, progress: bool = True, device: str = "cpu", threads: int | None = None,
+                 log=print) -> None:
+        self.spec = spec
+        self.train_on = train_on
+        self.out_dir = Path(out_dir)
+        self.max_minutes = max_minutes
+        self.fresh = fresh
+        self.show = progress
+        self.device = device
+        #: the thread budget ``fit`` runs under (``pcfbench train --threads``; :func:`train` has
+        #: applied it to torch, numba and the BLAS libraries), recorded in the manifest; None
+        #: where no budget was applied (a run made outside :func:`train`): not recorded
+        self.threads = threads
+        self.log = log
+        self._t0 = time.monotonic()
+        self._c0 = time.process_time()
+        self._base_wall = 0.0
+        self._base_cpu = 0.0
+        self._created = time.time()
+        self._bar = None
+        self._steps = 0
+        self.saved_steps: int | None = None
+
+    # resume -----------------------------------------------------------------------------------
+    def resume(self) -> dict[str, Any] | None:
+        """The last checkpoint's step, weights and state, or None (nothing saved, or ``--fresh``)."""
+        if self.fresh or not (self.out_dir / MANIFEST).is_file():
+            return None
+        ck = Checkpoint.open(self.out_dir)
+        ck.check_method(self.spec)
+        if ck.manifest["train_on"].get("fingerprint") != self.train_on.fingerprint:
+            raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on other data than {self.train_on.label} "
+                                  "has now; rerun with --fresh")
+        had = ck.manifest.get("device", self.device)
+        if had != self.device:  # other numerics and RNG streams: the resumed curve would not be the one it continues
+            raise CheckpointError(f"checkpoint {ck.manifest_path} was trained on {had} and this run would resume "
+                                  f"it on {self.device}; resume it where it was trained, or rerun with --fresh")
+        had = ck.manifest.get("threads")  # unrecorded before the thread budget was (2026-11-26)
+        if self.device == "cpu" and None not in (had, self.threads) and had != self.threads:
+            # a matrix product cut over another number of threads rounds differently: the resumed
+            # curve would drift from the one it continues (measured: 1e-7 at step 10, 1e-5 at 100)
+            raise CheckpointError(f"checkpoint {ck.manifest_path} was trained with {had} CPU threads and this run "
+                                  f"has {self.threads}; resume it with --threads {had}, or rerun with --fresh")
+        self._base_wall = float(ck.manifest.get("wall_s", 0.0))
+        self._base_cpu = float(ck.manifest.get("cpu_s", 0.0))
+        self._created = ck.manifest.get("created", self._created)
+        self.saved_steps = ck.steps
+        self.log(f"resuming {ck.dir} at step {ck.steps}")
+        return {"step": ck.steps, "weights": ck.load_weights(), "state": ck.load_state()}
+
+    # budget and progress -------------------------------------------------------------------------
+    def elapsed_s(self) -> float:
+        return time.monotonic() - self._t0
+
+    def should_stop(self) -> bool:
+        """True once the time budget is spent (each call trains at least one step)."""
+        return self.max_minutes is not None and self._steps > 0 and self.elapsed_s() > 60 * self.max_minutes
+
+    def start(self, total: int, initial: int = 0) -> None:
+        if self.show and not os.environ.get("PCFBENCH_NO_PROGRESS"):
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, initial=initial, desc=f"train {self.spec.name}", unit="step", dynamic_ncols=True)
+
+    def update(self, steps: int = 1, **metrics: float) -> None:
+        self._steps += steps
+        if self._bar is not None:
+            if metrics:
+                self._bar.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()}, refresh=False)
+            self._bar.update(steps)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    # save -----------------------------------------------------------------------------------------
+    def save(self, step: int, weights: Mapping[str, Any], state: Mapping[str, Any] | None = None, *,
+             config: Mapping[str, Any] | None = None, complete: bool = False) -> Checkpoint:
+        """Write ``weights`` (tensors) and ``state`` (to resume: optimiser, RNG, curve) for
+        ``step``, then the manifest naming them; older files go. Both must load with
+        ``torch.load(weights_only=True)``. ``config``: what the method adds to the manifest
+        (e.g. its network sizes)."""
+        import torch
+
+        from pcfbench.running.provenance import git_commit
+        from pcfbench.store.cells import atomic_write_bytes, atomic_write_json
+
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        files = {}
+        # weights on the CPU whatever the training device: a checkpoint trained on a GPU has
+        # the bytes (and the sha256) of the same tensors trained anywhere, and loads anywhere
+        weights = {k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in weights.items()}
+        for kind, obj in (("weights", weights), ("state", None if state is None else dict(state))):
+            if obj is None:
+                continue
+            buf = io.BytesIO()
+            torch.save(obj, buf)
+            data = buf.getvalue()
+            name = f"{kind}-{step:08d}.pt"
+            atomic_write_bytes(self.out_dir / name, data)
+            files[kind] = (name, sha256_hex(data))
+        manifest = {
+            "format": FORMAT,
+            "method": self.spec.name,
+            "method_version": str(self.spec.cls.version),
+            "options": options_dict(training_options(self.spec)),
+            "options_hash": checkpoint_options_hash(self.spec),
+            "config": dict(config or {}),
+            "train_on": self.train_on.to_meta(),
+            "steps": int(step),
+            "complete": bool(complete),
+            "wall_s": round(self._base_wall + self.elapsed_s(), 3),
+            "cpu_s": round(self._base_cpu + time.process_time() - self._c0, 3),
+            "device": self.device,
+            **({"threads": self.threads} if self.threads is not None else {}),
+            "torch": torch.__version__,
+            "git_commit": git_commit(),
+            "weights": files["weights"][0],
+            "weights_sha256": files["weights"][1],
+            "state": files["state"][0] if "state" in files else None,
+            "state_sha256": files["state"][1] if "state" in files else None,
+            "created": self._created,
+            "updated": time.time(),
+        }
+        atomic_write_json(self.out_dir / MANIFEST, manifest)
+        keep = {name for name, _ in files.values()}
+        for old in list(self.out_dir.glob("weights-*.pt")) + list(self.out_dir.glob("state-*.pt")):
+            if old.name not in keep:
+                old.unlink(missing_ok=True)
+        self.saved_steps = step
+        return Checkpoint(self.out_dir, manifest)
+
+
+# -- the contract -------------------------------------------------------------------------------
+class TrainedMethod(Method):
+    """A method that learns. Subclasses implement ``fit`` and ``load`` besides ``forecast``.
+
+    A trained method runs only with a checkpoint: ``pcfbench run`` evaluates the one trained
+    on ``--train-on`` (default ``default_train_on``, split ``train``) or the file given with
+    ``--checkpoint``, and the default run includes the method only when that checkpoint
+    exists. Its cells carry the checkpoint's sha256 and training data.
+    """
+
+    #: The training data of the default run (an embedded dataset, so it exists everywhere).
+    default_train_on: ClassVar[str] = "synthetic-town-realistic"
+    #: How long a full training takes, stated for the missing-checkpoint message when no
+    #: earlier training on this machine measured it.
+    training_time: ClassVar[str] = ""
+    #: The folder of the checkpoints it ships (pcfbench train --ship); None: ``checkpoints/``
+    #: beside the method's module, installed as package data.
+    shipped_checkpoints: ClassVar[str | Path | None] = None
+    #: Options that change only how a checkpoint forecasts, never its weights (a sampler's
+    #: seed, a rendering threshold): left out of the checkpoint's identity
+    #: (:func:`checkpoint_options_hash`), so every value of them evaluates the one checkpoint
+    #: trained with the others. A result still records every option it ran with.
+    inference_options: ClassVar[tuple[str, ...]] = ()
+
+    checkpoint: Checkpoint | None = None
+
+    @abstractmethod
+    def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
+        """Train on ``train_source``, saving through ``progress.save`` periodically and at the
+        end; start from ``progress.resume()`` when it returns a state (continuing the same
+        curve: same data order, same random draws); stop early when ``progress.should_stop()``."""
+
+    @abstractmethod
+    def load(self, checkpoint: Checkpoint) -> None:
+        """Take the weights of ``checkpoint`` (already verified and of this method and options)."""
+
+    def training_steps(self) -> int | None:
+        """Steps of a full training with these options (for the time estimate), if known."""
+        return None
+
+
+# -- the driver -------------------------------------------------------------------------------------
+def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_minutes: float | None = None,
+          fresh: bool = False, progress: bool = True, plugins: Plugins | None = None, threads: int | None = None,
+          log=print) -> Checkpoint:
+    """Train (or resume) ``spec`` on ``dataset`` (``NAME[=ROOT]``) ``split``; returns the checkpoint.
+
+    ``fit`` runs under a budget of ``threads`` CPU threads (default: every CPU this process may
+    use), applied to torch, numba and the BLAS libraries for its duration and recorded in the
+    manifest. The weights depend on it (float sums cut differently), not the checkpoint's
+    identity: a resumed run must use the count it started with."""
+    from pcfbench.running.execution import ExecutionContext, applied
+
+    if not is_trained(spec.cls):
+        raise PcfbenchError(f"method {spec.name!r} does not train (it is not a pcfbench.TrainedMethod)")
+    source = open_training_data(dataset, split, plugins, progress)
+    out = checkpoint_dir(spec, source.train_on)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / ".lock", "w") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise PcfbenchError(f"checkpoint {out} is being trained by another pcfbench process") from None
+        if fresh:
+            for old in [*out.glob("*.pt"), out / MANIFEST]:
+                old.unlink(missing_ok=True)
+        elif (out / MANIFEST).is_file():
+            ck = Checkpoint.open(out)
+            if ck.manifest.get("complete"):  # nothing left to train (inference options may differ)
+                ck.check_method(spec)
+                log(f"{spec.name}: {out} is complete ({ck.steps} steps); --fresh trains it again")
+                return ck
+        device = "cuda" if _cuda() else "cpu"
+        context = ExecutionContext(threads) if threads else ExecutionContext()
+        run = TrainingRun(spec, source.train_on, out, max_minutes=max_minutes, fresh=fresh, progress=progress,
+                          device=device, threads=context.threads, log=log)
+        method = spec.create()
+        try:
+            with applied(context):
+                method.fit(source, out, run)
+        finally:
+            run.close()
+    if run.saved_steps is None:
+        raise PcfbenchError(f"method {spec.name!r} finished fit without saving a checkpoint in {out}")
+    ck = Checkpoint.open(out)
+    ck.check_method(spec)
+    return ck
+
+
+def _cuda() -> bool:
+    import sys
+
+    torch = sys.modules.get("torch")
+    if torch is None:
+        import torch
+    return bool(torch.cuda.is_available())
