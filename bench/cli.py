@@ -172,14 +172,39 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
     cell); ``--keep-going`` exits 0. A cell with failed samples is never ranked. Samples run
     in worker processes: one that crashes or exceeds ``--timeout`` is a failed sample."""
-    from pcfbench.reporting.report import write_reports
-    from pcfbench.running.runner import default_metrics, run_cell
-    from pcfbench.store.cells import Cell, CellLocked, CellSpec
-    from pcfbench.running.warmup import warm_while_preparing
+    from pcfbench.reporting.report import collect, summary, write_reports
+    from pcfbench.running.runner import RunOptions
 
     plugins = get_plugins()
     warn_failed(plugins)
     ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
+    cells = _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, limit, train_on, train_split,
+                        checkpoint, progress=not quiet, warm=executor == "local")
+    reports_path = config.reports_dir(reports)
+    store_path = config.store_dir(store, reports_path)
+    options = RunOptions(jobs=jobs, force=force, progress=not quiet, threads=threads, allow_train_split=allow_train_split,
+                         executor=ray_executor, timeout=timeout or None, isolate=True)
+    failures, failed_cells = _run_cells(cells, store_path, options, plugins)
+    if not no_report:
+        board = collect(store_path)
+        paths = write_reports(store_path, reports_path, leaderboard=board)
+        click.echo(summary(store_path, leaderboard=board))
+        click.echo(f"leaderboard: {paths['md']}")
+    if failures:
+        click.echo(f"pcfbench: {failures} sample(s) failed in {failed_cells} cell(s), which are incomplete and not "
+                   "ranked; their tracebacks are in the cells' rows", err=True)
+        if not keep_going:
+            sys.exit(1)
+
+
+def _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, limit, train_on, train_split, checkpoint,
+                progress: bool, warm: bool) -> list:
+    """The run's cells (method x dataset x split x setting), every name checked and every
+    trained method's checkpoint found before any work."""
+    from pcfbench.running.runner import default_metrics
+    from pcfbench.running.warmup import warm_while_preparing
+    from pcfbench.store.cells import CellSpec
+
     for s in settings:
         get_setting(s)
     metric_names = tuple(metrics) or default_metrics(plugins)
@@ -187,17 +212,15 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         plugins.metrics.get(m)
     # data generated now (the embedded dataset's splits) leaves a core idle: the methods' and
     # metrics' numba kernels compile there meanwhile, not in every worker of the first cells
-    warmup = warm_while_preparing(methods or None, metric_names) if executor == "local" else contextlib.nullcontext()
+    warmup = warm_while_preparing(methods or None, metric_names) if warm else contextlib.nullcontext()
     with warmup:
         # named methods resolve first and a bad dataset root fails next, before the default
         # methods' readiness generates their training data
         method_specs = _selected_methods(plugins, methods) if methods else None
-        roots = _dataset_roots(plugins, datasets, not quiet)
+        roots = _dataset_roots(plugins, datasets, progress)
         if method_specs is None:
             method_specs = _selected_methods(plugins, methods)
-        checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, not quiet)
-    reports_path = config.reports_dir(reports)
-    store_path = config.store_dir(store, reports_path)
+        checkpoints = _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress)
     cells = []
     for name, root in roots:
         cls = plugins.datasets.get(name)
@@ -210,9 +233,18 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
                 CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, ds_policy, limit,
                          metric_names, **checkpoints.get(method.name, {}))
             )
+    return cells
+
+
+def _run_cells(cells, store_path, options, plugins) -> tuple[int, int]:
+    """Run every cell in turn (a cell another process holds goes last and is then waited
+    for: its rows are the other run's, computed once; docs/trust.md); Ctrl-C says how to
+    resume. Returns the failed samples of the run's cells, now or in an earlier run of a
+    reused cell, and how many cells have any."""
+    from pcfbench.running.runner import run_cell
+    from pcfbench.store.cells import Cell, CellLocked
+
     failures = failed_cells = 0
-    # A cell that another run is computing (it holds the cell's lock) goes last and is then
-    # waited for: its rows are the other run's, computed once (docs/trust.md).
     queue = [(i, spec, False) for i, spec in enumerate(cells, 1)]
     finished = 0
     with interrupted_note(store_path, lambda: finished, len(cells)):
@@ -222,9 +254,8 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
             if wait:
                 click.echo(f"{where}: waiting for the other pcfbench process computing it", err=True)
             try:
-                result = run_cell(spec, store_path, jobs=jobs, force=force, progress=not quiet, plugins=plugins,
-                                  threads=threads, allow_train_split=allow_train_split, executor=ray_executor,
-                                  timeout=timeout or None, isolate=True, wait=wait, progress_label=where)
+                result = run_cell(spec, store_path, dataclasses.replace(options, wait=wait, progress_label=where),
+                                  plugins=plugins)
             except CellLocked:
                 click.echo(f"{where}: another pcfbench process is computing it; doing the other cells first", err=True)
                 queue.append((i, spec, True))
@@ -241,18 +272,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
             cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
             failures += cell_failed
             failed_cells += cell_failed > 0
-    if not no_report:
-        from pcfbench.reporting.report import collect, summary
-
-        board = collect(store_path)
-        paths = write_reports(store_path, reports_path, leaderboard=board)
-        click.echo(summary(store_path, leaderboard=board))
-        click.echo(f"leaderboard: {paths['md']}")
-    if failures:
-        click.echo(f"pcfbench: {failures} sample(s) failed in {failed_cells} cell(s), which are incomplete and not "
-                   "ranked; their tracebacks are in the cells' rows", err=True)
-        if not keep_going:
-            sys.exit(1)
+    return failures, failed_cells
 
 
 def cell_label(spec) -> str:

@@ -500,7 +500,7 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
     ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes."""
     from tqdm import tqdm
 
-    from pcfbench.running.runner import _progress_disabled, run_cell
+    from pcfbench.running.runner import RunOptions, _progress_disabled, run_cell
 
     plugins = plugins or get_plugins()
     cells = plan(exp, limit=limit, plugins=plugins, progress=progress)
@@ -512,8 +512,9 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
         for i, spec in enumerate(cells, 1):
             line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             tqdm.write(line) if not bar.disable else echo(line)
-            r = run_cell(spec, store, jobs=jobs, force=force, progress=progress, plugins=plugins, threads=threads,
-                         executor=executor, progress_label=line, timeout=timeout, isolate=isolate)
+            options = RunOptions(jobs=jobs, force=force, progress=progress, threads=threads, executor=executor,
+                                 progress_label=line, timeout=timeout, isolate=isolate)
+            r = run_cell(spec, store, options, plugins=plugins)
             results.append(r)
             done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
                 f"{r.processed} sample(s) now, {r.failed} failed, {r.seconds:.1f} s"

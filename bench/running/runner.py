@@ -24,7 +24,7 @@ from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.plugins import get_setting
-from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash
+from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash, sample_id
 from pcfbench.dataset import options_identity
 from pcfbench.store.cells import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.protocol.validate import validate_forecast
@@ -199,11 +199,11 @@ def _worker_task(key: tuple[str, int]) -> list[dict[str, Any]]:
 def _failure_row(key: tuple[str, int], kind: str, reason: str) -> list[dict[str, Any]]:
     """The one failure row of a sample whose worker crashed or ran out of time."""
     sequence, ref_index = key
-    sample_id = f"{sequence}/{ref_index:06d}"
-    error = ("SampleTimeout" if kind == "timeout" else "SampleCrash") + f": sample {sample_id}: {reason}"
+    sid = sample_id(sequence, ref_index)
+    error = ("SampleTimeout" if kind == "timeout" else "SampleCrash") + f": sample {sid}: {reason}"
     note = ("the method (or a metric) hung or is too slow: raise the limit with --timeout SECONDS (0: none)"
             if kind == "timeout" else "a native crash, os._exit() or the out-of-memory killer; no Python traceback")
-    return [{"sample_id": sample_id, "sequence": sequence, "ref_index": ref_index, "step": -1, "status": "failed",
+    return [{"sample_id": sid, "sequence": sequence, "ref_index": ref_index, "step": -1, "status": "failed",
              "error": error, "traceback": f"{error}\n({note})", "t_load": float("nan")}]
 
 
@@ -219,52 +219,106 @@ class CellResult:
     seconds: float
 
 
-def run_cell(
-    spec: CellSpec,
-    store_root: Path,
-    *,
-    jobs: int = 1,
-    force: bool = False,
-    progress: bool = True,
-    plugins: Plugins | None = None,
-    threads: int | None = None,
-    allow_train_split: bool = False,
-    executor: Any = None,
-    timeout: float | None = None,
-    isolate: bool | None = None,
-    wait: bool = True,
-    progress_label: str | None = None,
-) -> CellResult:
-    """Run (or resume) one cell. Returns at once if the cell is already complete.
+@dataclass(frozen=True)
+class RunOptions:
+    """How :func:`run_cell` computes a cell. None of it changes a row; ``allow_train_split``
+    decides whether a trained method's cell on its own training data runs at all.
 
-    ``progress_label``: the progress bar's text (default: the cell's label), e.g. with the
-    grid's position ``cell 3/10 ...``.
+    ``jobs``: worker processes; 0 picks a pool of one worker per CPU when there are enough
+    samples to pay for starting it, else runs serially. ``threads``: the run's thread budget
+    (default: every CPU this process may use); a serial run keeps all of it, each of N
+    workers gets ``max(1, threads // N)`` (:mod:`pcfbench.running.execution`).
 
-    A trained method's cell is refused on the very data its checkpoint was trained on (same
-    dataset, split and file fingerprint) unless ``allow_train_split``; cell.json then says so.
-
-    ``jobs=0`` picks a pool of one worker per CPU when there are enough samples to pay for
-    starting it, else runs serially. ``threads``: the run's thread budget (default: every CPU
-    this process may use); a serial run keeps all of it, each of N workers gets
-    ``max(1, threads // N)`` (``pcfbench.running.execution``). The rows do not depend on it.
-    ``executor`` (``pcfbench.running.ray_executor.RayExecutor``) computes the samples elsewhere instead:
-    its tasks write the rows to the store themselves, a shard of samples per chunk.
+    ``executor`` (:class:`pcfbench.running.ray_executor.RayExecutor`) computes the samples
+    elsewhere instead: its tasks write the rows to the store themselves, a shard of samples
+    per chunk.
 
     ``isolate`` (default: when a ``timeout`` is given) runs even a serial cell's samples in a
-    worker process; a pool (``jobs`` > 1) always does. There a sample whose worker crashes
-    (a native crash, ``os._exit``) or runs past ``timeout`` seconds is recorded failed and
-    the cell goes on (``pcfbench.running.workers``). Unisolated, the method runs in this process.
+    worker process; a pool (``jobs`` > 1) always does. There a sample whose worker crashes (a
+    native crash, ``os._exit``) or runs past ``timeout`` seconds is recorded failed and the
+    cell goes on (:mod:`pcfbench.running.workers`). Unisolated, the method runs in this process.
 
-    A cell another process is computing (it holds the cell's lock) is waited for (``wait``),
-    or refused at once with ``pcfbench.store.cells.CellLocked``.
+    ``wait``: a cell another process is computing (it holds the cell's lock) is waited for,
+    else refused at once with :class:`pcfbench.store.cells.CellLocked`. ``progress_label``:
+    the progress bar's text (default: the cell's label), e.g. ``cell 3/10 ...``.
     """
-    if timeout is not None and not (isinstance(timeout, (int, float)) and timeout > 0 and timeout == timeout):
-        raise PcfbenchError(f"the per-sample time limit must be a number of seconds > 0, not {timeout!r}")
-    if isolate is None:
-        isolate = timeout is not None
-    execution = ExecutionContext() if threads is None else ExecutionContext(threads)
+
+    jobs: int = 1
+    force: bool = False
+    progress: bool = True
+    threads: int | None = None
+    allow_train_split: bool = False
+    executor: Any = None
+    timeout: float | None = None
+    isolate: bool | None = None
+    wait: bool = True
+    progress_label: str | None = None
+
+    def __post_init__(self) -> None:
+        t = self.timeout
+        if t is not None and not (isinstance(t, (int, float)) and not isinstance(t, bool) and t > 0 and t == t):
+            raise PcfbenchError(f"the per-sample time limit must be a number of seconds > 0, not {t!r}")
+
+    @property
+    def isolated(self) -> bool:
+        return self.timeout is not None if self.isolate is None else self.isolate
+
+    def execution(self) -> ExecutionContext:
+        return ExecutionContext() if self.threads is None else ExecutionContext(self.threads)
+
+    def workers(self, todo: int) -> int:
+        if self.jobs == 0:
+            return (os.cpu_count() or 1) if todo >= AUTO_POOL_MIN_SAMPLES else 1
+        return self.jobs
+
+
+def run_cell(spec: CellSpec, store_root: Path, options: RunOptions | None = None, *,
+             plugins: Plugins | None = None) -> CellResult:
+    """Run (or resume) one cell. Returns at once if the cell is already complete.
+
+    The cell is resolved once (:func:`resolve`): its samples, its identity (what the rows
+    depend on: versions, protocol, data, checkpoint) and the rows still to compute. A cell
+    whose stored identity differs is refused, naming the field (:func:`check_identity`).
+
+    A trained method's cell is refused on the very data its checkpoint was trained on (same
+    dataset, split and file fingerprint) unless ``options.allow_train_split``; cell.json then
+    says so.
+    """
+    options = options or RunOptions()
     start = time.perf_counter()
     res = resolve(spec, plugins)
+    keys = sample_keys(res, spec)
+    ids = [sample_id(s, i) for s, i in keys]
+    fingerprint = res.builder.adapter.fingerprint(spec.split)
+    cell = Cell(store_root, spec, wait=options.wait)
+    with cell:
+        if options.force:  # whatever is there, a cut-short cell.json or a damaged chunk included
+            cell.clear()
+        meta = cell.read_meta()
+        identity = cell_identity(res, spec, ids_hash(ids), fingerprint.digest, options.allow_train_split)
+        if meta is not None:
+            check_identity(cell.dir, meta, identity, fingerprint)
+        done = cell.done_ids()
+        todo = [k for k, sid in zip(keys, ids) if sid not in done]
+        if not todo and meta is not None and meta.get("status") == "complete":
+            return CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
+        meta = _running_meta(meta, spec, res, identity, fingerprint, len(ids))
+        cell.write_meta(meta)
+        failed = _compute(res, spec, cell, keys, todo, done, options, plugins)
+        after = res.builder.adapter.fingerprint(spec.split)
+        if after.digest != fingerprint.digest:  # rows from both versions of the data: never complete
+            raise PcfbenchError(
+                f"the files of {spec.dataset}:{spec.split} changed while cell {cell.dir} was computed "
+                f"({after.changes_since(fingerprint.summary())}); it stays incomplete: rerun with --force to recompute it"
+            )
+        elapsed = time.perf_counter() - start
+        cell.write_meta(_complete_meta(meta, cell.read_rows(), len(ids), elapsed))
+    return CellResult(spec, cell.dir, "complete", len(ids), len(done), len(todo), failed, elapsed)
+
+
+def sample_keys(res: Resolved, spec: CellSpec) -> list[tuple[str, int]]:
+    """The cell's samples, ``(sequence, reference index)``, the first ``spec.limit`` of them;
+    none is an error naming the dataset, split, setting and policy."""
     keys = res.builder.sample_keys(spec.split)
     if spec.limit is not None:
         keys = keys[: spec.limit]
@@ -273,107 +327,108 @@ def run_cell(
             f"{spec.dataset}:{spec.split} has no samples for setting {spec.setting} ({spec.policy}); "
             f"check the dataset root {spec.dataset_root}"
         )
-    ids = [f"{s}/{i:06d}" for s, i in keys]
-    id_hash = ids_hash(ids)
-    fingerprint = res.builder.adapter.fingerprint(spec.split)
-    cell = Cell(store_root, spec, wait=wait)
-    with cell:
-        if force:  # whatever is there, a cut-short cell.json or a damaged chunk included
-            cell.clear()
-        meta = cell.read_meta()
-        identity = {
-            "method_version": res.method.version,
-            "dataset_version": res.builder.adapter.version,
-            "metric_versions": {m.name: m.version for m in res.metrics},
-            "sample_ids_hash": id_hash,
-            **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
-            "dataset_options": options_identity(res.builder.adapter, config.split_root_options(spec.dataset_root)[1]),
-            "data_fingerprint": fingerprint.digest,
-            **_trained_identity(spec, res.method, fingerprint.digest, allow_train_split),
-        }
-        if meta is not None:
-            check_identity(cell.dir, meta, identity, fingerprint)
-        done = cell.done_ids()
-        todo = [k for k, sid in zip(keys, ids) if sid not in done]
-        if not todo and meta is not None and meta.get("status") == "complete":
-            return CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
-        meta = {
-            **(meta or {}),
-            "spec": spec_to_meta(spec),
-            **identity,
-            "data_files": fingerprint.summary(),
-            "status": "running",
-            "partial": spec.partial,
-            "harness_version": pcfbench.__version__,
-            "git_commit": git_commit(),
-            "environment": environment(),
-            "samples": len(ids),
-            "metric_units": {m.name: m.unit for m in res.metrics},
-            "metric_higher_is_better": {m.name: m.higher_is_better for m in res.metrics},
-            "created": (meta or {}).get("created", time.time()),
-        }
-        if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.store.ranges)
-            meta["range_bins"] = ranges.meta()
-        cell.write_meta(meta)
+    return keys
 
-        buffer: list[dict[str, Any]] = []
-        last_flush = time.monotonic()
-        buffered_samples = 0
 
-        def flush() -> None:
-            nonlocal buffer, last_flush, buffered_samples
-            if buffer:
-                cell.append_rows(buffer)
-            buffer, buffered_samples, last_flush = [], 0, time.monotonic()
+def cell_identity(res: Resolved, spec: CellSpec, id_hash: str, digest: str, allow_train_split: bool) -> dict[str, Any]:
+    """What a cell's rows depend on (its ``cell.json`` identity): the method's, dataset's and
+    metrics' versions, the samples, the protocol, the dataset's options and files, and a
+    trained method's checkpoint and training data."""
+    return {
+        "method_version": res.method.version,
+        "dataset_version": res.builder.adapter.version,
+        "metric_versions": {m.name: m.version for m in res.metrics},
+        "sample_ids_hash": id_hash,
+        **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
+        "dataset_options": options_identity(res.builder.adapter, config.split_root_options(spec.dataset_root)[1]),
+        "data_fingerprint": digest,
+        **_trained_identity(spec, res.method, digest, allow_train_split),
+    }
 
-        bar = tqdm(
-            total=len(ids), initial=len(ids) - len(todo), desc=progress_label or spec.label, unit="sample",
-            disable=_progress_disabled() if progress else True, leave=True, dynamic_ncols=True,
-        )
-        if jobs == 0:
-            jobs = (os.cpu_count() or 1) if len(todo) >= AUTO_POOL_MIN_SAMPLES else 1
-        failed = 0
-        try:
-            if executor is not None:  # its tasks write the rows, a shard at a time; nothing to buffer here
-                failed = executor.run(spec, cell, keys, done, bar.update)
-            for rows in () if executor is not None else _execute(res, spec, todo, jobs, execution, timeout, isolate, plugins):
-                buffer.extend(rows)
-                buffered_samples += 1
-                failed += rows[0]["status"] == "failed"
-                bar.update(1)
-                if buffered_samples >= CHUNK_SAMPLES or time.monotonic() - last_flush > CHUNK_SECONDS:
-                    flush()
-        finally:
-            # Rows in the buffer belong to finished samples: keep them even when interrupted.
-            flush()
-            bar.close()
-        after = res.builder.adapter.fingerprint(spec.split)
-        if after.digest != fingerprint.digest:  # rows from both versions of the data: never complete
-            raise PcfbenchError(
-                f"the files of {spec.dataset}:{spec.split} changed while cell {cell.dir} was computed "
-                f"({after.changes_since(fingerprint.summary())}); it stays incomplete: rerun with --force to recompute it"
-            )
-        df = cell.read_rows()
-        sample_status = df.groupby("sample_id")["status"].first() if len(df) else None
-        n_failed = int((sample_status == "failed").sum()) if sample_status is not None else 0
-        elapsed = time.perf_counter() - start
-        meta.update(
-            status="complete",
-            counts={
-                "samples": len(ids),
-                "ok": len(ids) - n_failed,
-                "failed": n_failed,
-                "sweeps": int((df["status"] == "ok").sum()) if len(df) else 0,
-            },
-            timings={
-                "last_run_seconds": elapsed,
-                "total_seconds": meta.get("timings", {}).get("total_seconds", 0.0) + elapsed,
-                **_median_timings(df),
-            },
-            updated=time.time(),
-        )
-        cell.write_meta(meta)
-    return CellResult(spec, cell.dir, "complete", len(ids), len(done), len(todo), failed, elapsed)
+
+def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: dict[str, Any], fingerprint: Any,
+                  samples: int) -> dict[str, Any]:
+    """``cell.json`` while the cell computes: its identity, the data files, the code and
+    environment, the metrics' units and directions (what a report needs of them)."""
+    meta = {
+        **(meta or {}),
+        "spec": spec_to_meta(spec),
+        **identity,
+        "data_files": fingerprint.summary(),
+        "status": "running",
+        "partial": spec.partial,
+        "harness_version": pcfbench.__version__,
+        "git_commit": git_commit(),
+        "environment": environment(),
+        "samples": samples,
+        "metric_units": {m.name: m.unit for m in res.metrics},
+        "metric_higher_is_better": {m.name: m.higher_is_better for m in res.metrics},
+        "created": (meta or {}).get("created", time.time()),
+    }
+    if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.store.ranges)
+        meta["range_bins"] = ranges.meta()
+    return meta
+
+
+def _compute(res: Resolved, spec: CellSpec, cell: Cell, keys: list[tuple[str, int]], todo: list[tuple[str, int]],
+             done: set[str], options: RunOptions, plugins: Plugins | None) -> int:
+    """Compute the ``todo`` samples' rows into ``cell``, a chunk at a time (after
+    ``CHUNK_SAMPLES`` samples or ``CHUNK_SECONDS``), keeping every finished sample's rows
+    when interrupted; returns how many samples failed."""
+    buffer: list[dict[str, Any]] = []
+    last_flush = time.monotonic()
+    buffered_samples = 0
+
+    def flush() -> None:
+        nonlocal buffer, last_flush, buffered_samples
+        if buffer:
+            cell.append_rows(buffer)
+        buffer, buffered_samples, last_flush = [], 0, time.monotonic()
+
+    bar = tqdm(
+        total=len(keys), initial=len(keys) - len(todo), desc=options.progress_label or spec.label, unit="sample",
+        disable=_progress_disabled() if options.progress else True, leave=True, dynamic_ncols=True,
+    )
+    failed = 0
+    try:
+        if options.executor is not None:  # its tasks write the rows, a shard at a time; nothing to buffer here
+            return options.executor.run(spec, cell, keys, done, bar.update)
+        for rows in _execute(res, spec, todo, options.workers(len(todo)), options.execution(), options.timeout,
+                             options.isolated, plugins):
+            buffer.extend(rows)
+            buffered_samples += 1
+            failed += rows[0]["status"] == "failed"
+            bar.update(1)
+            if buffered_samples >= CHUNK_SAMPLES or time.monotonic() - last_flush > CHUNK_SECONDS:
+                flush()
+        return failed
+    finally:
+        # Rows in the buffer belong to finished samples: keep them even when interrupted.
+        flush()
+        bar.close()
+
+
+def _complete_meta(meta: dict[str, Any], df: Any, samples: int, elapsed: float) -> dict[str, Any]:
+    """``cell.json`` of a complete cell: its counts (samples, ok, failed, scored sweeps) and
+    timings (this run's, the total, the per-sample medians)."""
+    sample_status = df.groupby("sample_id")["status"].first() if len(df) else None
+    n_failed = int((sample_status == "failed").sum()) if sample_status is not None else 0
+    return {
+        **meta,
+        "status": "complete",
+        "counts": {
+            "samples": samples,
+            "ok": samples - n_failed,
+            "failed": n_failed,
+            "sweeps": int((df["status"] == "ok").sum()) if len(df) else 0,
+        },
+        "timings": {
+            "last_run_seconds": elapsed,
+            "total_seconds": meta.get("timings", {}).get("total_seconds", 0.0) + elapsed,
+            **_median_timings(df),
+        },
+        "updated": time.time(),
+    }
 
 
 def _trained_identity(spec: CellSpec, method: Method, digest: str, allow_train_split: bool) -> dict[str, Any]:

@@ -826,7 +826,7 @@ def baseline_rows(dataset: str, root: str, split, setting: str, store: Path, lim
 
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
-    from pcfbench.running.runner import default_metrics, run_cell
+    from pcfbench.running.runner import RunOptions, default_metrics, run_cell
     from pcfbench.store.cells import Cell, CellSpec
 
     plugins = get_plugins()
@@ -835,7 +835,7 @@ def baseline_rows(dataset: str, root: str, split, setting: str, store: Path, lim
     for sp in split_list(split):
         spec = CellSpec(spec_m.name, dict(spec_m.raw), spec_m.options_hash, dataset, root, sp, setting,
                         policy, limit, default_metrics(plugins))
-        samples += run_cell(spec, store, progress=progress, plugins=plugins, threads=threads).samples
+        samples += run_cell(spec, store, RunOptions(progress=progress, threads=threads), plugins=plugins).samples
         frames.append(Cell(store, spec).read_rows())
     df = pd.concat(frames, ignore_index=True)
     return df[df["status"] == "ok"], samples

@@ -448,7 +448,7 @@ def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypa
 
     import pcfbench.methods.copilot4d.evaluate as ev
     from pcfbench.methods.copilot4d.data import open_dataset
-    from pcfbench.running.runner import run_cell
+    from pcfbench.running.runner import RunOptions, run_cell
     from pcfbench.store.cells import CellSpec
 
     root = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=24)
@@ -478,7 +478,7 @@ def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypa
 
     spec = CellSpec("copy-last", {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", None,
                     tuple(o))
-    run_cell(spec, tmp_path / "store", progress=False)
+    run_cell(spec, tmp_path / "store", RunOptions(progress=False))
     rows = Cell(tmp_path / "store", spec).read_rows()
     assert len(rows) == res["sweeps"]
     for name in ("chamfer_nf", "l1_mean", "l1_median"):

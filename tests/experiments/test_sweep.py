@@ -181,9 +181,9 @@ grid = {{ fill_ring = [4, 8] }}
         assert len(raw) == samples * 5 and raw["sample_id"].nunique() == samples
         assert json.loads((cell.dir / "cell.json").read_text())["status"] == "complete"
     # the resumed cell's rows equal those of an uninterrupted run
-    from pcfbench.running.runner import run_cell
+    from pcfbench.running.runner import RunOptions, run_cell
 
-    run_cell(second, tmp_path / "clean", jobs=1, progress=False)
+    run_cell(second, tmp_path / "clean", RunOptions(jobs=1, progress=False))
     key = ["sample_id", "step"]
     a = pd.concat([pd.read_parquet(p) for p in c2.chunk_paths()]).sort_values(key).reset_index(drop=True)
     b = Cell(tmp_path / "clean", second).read_rows().sort_values(key).reset_index(drop=True)
@@ -397,6 +397,8 @@ def test_the_docs_describe_every_key():
 # -- trained methods: train_on -----------------------------------------------------------------
 def test_train_on_evaluates_each_checkpoint_and_says_how_to_train_a_missing_one(tmp_path, monkeypatch):
     from conftest import write_tiny_kitti
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "training"))  # the toy trained method
     from test_training import toy_plugins
 
     from pcfbench.training import train

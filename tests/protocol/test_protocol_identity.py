@@ -20,7 +20,7 @@ from pcfbench.options import option
 from pcfbench.plugins import load_plugins
 from pcfbench.protocol import Setting
 from pcfbench.reporting.report import collect
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import PROTOCOL_IDENTITY, Cell, CellSpec
 from tests_helpers import write_kitti_tree
 
@@ -122,7 +122,7 @@ def test_kitti_fingerprint_is_what_the_split_reads(tmp_path):
 
 def test_cell_json_records_the_protocol_identity(tiny_kitti, store):
     spec = _spec(tiny_kitti)
-    run_cell(spec, store, progress=False)
+    run_cell(spec, store, RunOptions(progress=False))
     meta = _meta(store, spec)
     assert meta["protocol_version"] == "1"
     assert meta["roi"] == {"lo": [-70.0, -70.0, -4.5], "hi": [70.0, 70.0, 4.5]} and meta["min_range_m"] == 0.01
@@ -136,7 +136,7 @@ def test_cell_json_records_the_protocol_identity(tiny_kitti, store):
     assert set(PROTOCOL_IDENTITY) <= set(meta)
     # the store path is what it was before the identity grew
     assert Cell(store, spec).dir == store / "kitti" / "kitti-1s" / "test" / f"copy-last.{options_hash(None)}"
-    again = run_cell(spec, store, progress=False)
+    again = run_cell(spec, store, RunOptions(progress=False))
     assert again.processed == 0 and again.done_before == 6
 
 
@@ -148,7 +148,7 @@ def _shift_sweep(path: Path, dx: float) -> None:
 
 def test_editing_one_sweep_is_never_reused_silently(tiny_kitti, store):
     spec = _spec(tiny_kitti)
-    run_cell(spec, store, progress=False)
+    run_cell(spec, store, RunOptions(progress=False))
     old = Cell(store, spec).read_rows().set_index(["sample_id", "step"]).chamfer
     sweep = tiny_kitti / "sequences" / "08" / "velodyne" / "000012.bin"
     stat = sweep.stat()
@@ -156,9 +156,9 @@ def test_editing_one_sweep_is_never_reused_silently(tiny_kitti, store):
     os.utime(sweep, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # written later (whatever the clock's grain)
     with pytest.raises(PcfbenchError, match=r"(?s)different data_fingerprint \(dataset files changed: "
                                             r"sequences/08/velodyne: modified since: sequences/08/velodyne/000012.bin\).*--force"):
-        run_cell(spec, store, progress=False)
+        run_cell(spec, store, RunOptions(progress=False))
     assert Cell(store, spec).read_rows().set_index(["sample_id", "step"]).chamfer.equals(old)  # untouched
-    redone = run_cell(spec, store, progress=False, force=True)
+    redone = run_cell(spec, store, RunOptions(progress=False, force=True))
     assert redone.processed == 6
     new = Cell(store, spec).read_rows().set_index(["sample_id", "step"]).chamfer
     assert len(new) == len(old) == 30
@@ -172,11 +172,11 @@ def test_editing_one_sweep_is_never_reused_silently(tiny_kitti, store):
 def test_a_sweep_that_changes_size_or_disappears_is_noticed(tmp_path):
     root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
     spec = _spec(root)
-    run_cell(spec, tmp_path / "s", progress=False)
+    run_cell(spec, tmp_path / "s", RunOptions(progress=False))
     sweep = root / "sequences" / "08" / "velodyne" / "000005.bin"
     sweep.write_bytes(read_bin(sweep)[:-10].tobytes())
     with pytest.raises(PcfbenchError, match=r"data_fingerprint.*sequences/08/velodyne: .*bytes.*--force"):
-        run_cell(spec, tmp_path / "s", progress=False)
+        run_cell(spec, tmp_path / "s", RunOptions(progress=False))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,24 +203,24 @@ def test_a_changed_root_option_is_noticed(tiny_kitti, store):
     plugins = load_plugins()
     plugins.datasets.add("kitti-opt", KittiWithOption, "test")
     spec = _spec(f"{tiny_kitti}?flavour=plain", dataset="kitti-opt")
-    run_cell(spec, store, progress=False, plugins=plugins)
+    run_cell(spec, store, RunOptions(progress=False), plugins=plugins)
     assert _meta(store, spec)["dataset_options"] == {"flavour": "plain"}
     # the typed value is the identity: the default spelled out or left out is the same cell
-    assert run_cell(_spec(tiny_kitti, dataset="kitti-opt"), store, progress=False, plugins=plugins).processed == 0
+    assert run_cell(_spec(tiny_kitti, dataset="kitti-opt"), store, RunOptions(progress=False), plugins=plugins).processed == 0
     other = _spec(f"{tiny_kitti}?flavour=salted", dataset="kitti-opt")
     assert Cell(store, other).dir == Cell(store, spec).dir  # the same cell folder ...
     with pytest.raises(PcfbenchError, match=r"different dataset_options \(dataset_options: flavour 'plain' -> 'salted'\).*--force"):
-        run_cell(other, store, progress=False, plugins=plugins)  # ... so it must not be reused
+        run_cell(other, store, RunOptions(progress=False), plugins=plugins)  # ... so it must not be reused
 
 
 def test_a_changed_keyword_of_an_adapter_without_options_is_noticed(tiny_kitti, store):
     plugins = load_plugins()
     plugins.datasets.add("kitti-kw", KittiKeywords, "test")
     spec = _spec(f"{tiny_kitti}?flavour=plain", dataset="kitti-kw")
-    run_cell(spec, store, progress=False, plugins=plugins)
+    run_cell(spec, store, RunOptions(progress=False), plugins=plugins)
     assert _meta(store, spec)["dataset_options"] == {"flavour": "plain"}
     with pytest.raises(PcfbenchError, match=r"dataset_options: flavour 'plain' -> 'salted'"):
-        run_cell(_spec(f"{tiny_kitti}?flavour=salted", dataset="kitti-kw"), store, progress=False, plugins=plugins)
+        run_cell(_spec(f"{tiny_kitti}?flavour=salted", dataset="kitti-kw"), store, RunOptions(progress=False), plugins=plugins)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,17 +254,17 @@ def test_a_plugin_setting_runs_and_a_changed_parameter_is_noticed(tiny_kitti, st
     # every-frame: the sample ids do not depend on the setting, so only its parameters differ
     spec = _spec(tiny_kitti, setting="tiny-2s", policy="every-frame", limit=3)
     first = _setting_plugin(Setting("tiny-2s", 10.0, 3, 2, 2, "a dataset plugin's setting"))
-    result = run_cell(spec, store, progress=False, plugins=first)
+    result = run_cell(spec, store, RunOptions(progress=False), plugins=first)
     assert result.samples == 3 and _meta(store, spec)["setting_params"]["stride"] == 2
     changed = _setting_plugin(Setting("tiny-2s", 10.0, 3, 2, 3, "the same name, another stride"))
     with pytest.raises(PcfbenchError, match=r"different setting_params \(setting_params: stride 2 -> 3\).*--force"):
-        run_cell(spec, store, progress=False, plugins=changed)
-    assert run_cell(spec, store, progress=False, plugins=first).processed == 0  # the original still reuses
+        run_cell(spec, store, RunOptions(progress=False), plugins=changed)
+    assert run_cell(spec, store, RunOptions(progress=False), plugins=first).processed == 0  # the original still reuses
 
 
 def test_subsample_policy_cell(tiny_kitti, store):
     spec = _spec(tiny_kitti, policy="subsample-4000")
-    result = run_cell(spec, store, progress=False)
+    result = run_cell(spec, store, RunOptions(progress=False))
     assert result.samples == 6  # fewer candidates than 4,000: every one
     assert Cell(store, spec).dir.relative_to(store).as_posix() == f"kitti/kitti-1s.subsample-4000/test/copy-last.{options_hash(None)}"
     assert _meta(store, spec)["sample_policy"] == {"name": "subsample-4000", "kind": "subsample", "n": 4000, "of": "full-context"}
@@ -274,22 +274,22 @@ def test_subsample_policy_cell(tiny_kitti, store):
 
 def test_cells_from_before_the_protocol_identity(tiny_kitti, store):
     spec = _spec(tiny_kitti)
-    run_cell(spec, store, progress=False)
+    run_cell(spec, store, RunOptions(progress=False))
     path = Cell(store, spec).dir / "cell.json"
     legacy = {k: v for k, v in json.loads(path.read_text()).items() if k not in PROTOCOL_IDENTITY and k != "data_files"}
     path.write_text(json.dumps(legacy))
     # complete: reused as before (no rows are added, so none can mix), and left as it was
-    assert run_cell(spec, store, progress=False).processed == 0
+    assert run_cell(spec, store, RunOptions(progress=False)).processed == 0
     assert json.loads(path.read_text()) == legacy
     assert len(collect(store).table) == 1
     # incomplete: nothing tells whether new rows would match the old ones
     path.write_text(json.dumps({**legacy, "status": "running"}))
     with pytest.raises(PcfbenchError, match=r"incomplete and its cell.json predates the protocol identity.*--force"):
-        run_cell(spec, store, progress=False)
+        run_cell(spec, store, RunOptions(progress=False))
     # a legacy field that differs is still named
     path.write_text(json.dumps({**legacy, "dataset_version": "0"}))
     with pytest.raises(PcfbenchError, match=r"different dataset_version \(dataset_version: '0' -> '1'\)"):
-        run_cell(spec, store, progress=False)
+        run_cell(spec, store, RunOptions(progress=False))
 
 
 class TouchesASweep(Method):
@@ -315,10 +315,10 @@ def test_data_changed_during_the_run_leaves_the_cell_incomplete(tiny_kitti, stor
                     "full-context", None, METRICS)
     with pytest.raises(PcfbenchError, match=r"files of kitti:test changed while cell .* was computed "
                                             r"\(sequences/08/velodyne: modified since: sequences/08/velodyne/000020.bin\).*--force"):
-        run_cell(spec, store, progress=False, plugins=plugins)
+        run_cell(spec, store, RunOptions(progress=False), plugins=plugins)
     assert _meta(store, spec)["status"] == "running"  # never complete ...
     assert len(collect(store).table) == 0  # ... so no leaderboard reads its mixed rows
     TouchesASweep.sweep = None
     with pytest.raises(PcfbenchError, match="different data_fingerprint"):  # and a plain rerun does not resume it
-        run_cell(spec, store, progress=False, plugins=plugins)
-    assert run_cell(spec, store, progress=False, plugins=plugins, force=True).processed == 6
+        run_cell(spec, store, RunOptions(progress=False), plugins=plugins)
+    assert run_cell(spec, store, RunOptions(progress=False, force=True), plugins=plugins).processed == 6

@@ -19,7 +19,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import load_plugins
 from pcfbench.reporting.report import ReportOptions, collect, summary, write_reports
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec, iter_cells, spec_from_meta
 from pcfbench.reporting import tables
 
@@ -62,7 +62,7 @@ def board(tmp_path_factory):
     store = tmp / "store"
     for method, raw, limit in [("copy-last", None, None), ("shifted", {"dx": "0.5"}, None),
                                ("shifted", {"dx": "0"}, None), ("shifted", {"dx": "0.5"}, 2), ("copy-last", None, 2)]:
-        run_cell(_spec(root, method, raw, limit), store, plugins=_plugins(), progress=False)
+        run_cell(_spec(root, method, raw, limit), store, RunOptions(progress=False), plugins=_plugins())
     out = tmp / "rep"
     paths = write_reports(store, out)
     return store, out, paths

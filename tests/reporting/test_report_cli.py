@@ -22,7 +22,7 @@ from pcfbench.data import Forecast
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import load_plugins
 from pcfbench.reporting.report import collect, failures, write_reports, ReportOptions
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 from pcfbench.reporting import tables
 
@@ -63,7 +63,7 @@ def failing_store(tmp_path_factory):
     root = write_tiny_kitti(tmp / "kitti")
     store = tmp / "store"
     for method in ("copy-last", "fails-on-odd"):
-        run_cell(_spec(root, method), store, plugins=_plugins(), progress=False)
+        run_cell(_spec(root, method), store, RunOptions(progress=False), plugins=_plugins())
     return store
 
 

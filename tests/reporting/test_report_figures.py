@@ -19,7 +19,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import load_plugins
 from pcfbench.reporting.report import ReportOptions, collect, write_reports
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
@@ -59,7 +59,7 @@ def made(tmp_path_factory):
     root = write_tiny_kitti(tmp / "kitti")
     store = tmp / "store"
     for method, raw in [("copy-last", None), ("shifted", {"dx": "0.5"}), ("shifted", {"dx": "1.5"})]:
-        run_cell(_spec(root, method, raw), store, plugins=_plugins(), progress=False)
+        run_cell(_spec(root, method, raw), store, RunOptions(progress=False), plugins=_plugins())
     out = tmp / "rep"
     paths = write_reports(store, out, ReportOptions(figures=True), plugins=_plugins())
     return store, out, paths

@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 from pcfbench.reporting import stats
 from pcfbench.method import options_hash
 from pcfbench.reporting.report import write_reports
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "absrel_mean")
@@ -31,7 +31,7 @@ def _rewrite_chunks(cell: Cell, rows: pd.DataFrame, pieces: list[np.ndarray]) ->
 
 def test_same_rows_in_other_chunk_orders_give_byte_identical_leaderboards(tiny_kitti, tmp_path):
     a = tmp_path / "a"
-    run_cell(_spec(tiny_kitti), a, progress=False)
+    run_cell(_spec(tiny_kitti), a, RunOptions(progress=False))
     cell_a = Cell(a, _spec(tiny_kitti))
     rows = cell_a.read_rows()
     # values whose sums depend on the order they are added in (as real metric values do,

@@ -14,7 +14,7 @@ from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
 from pcfbench.protocol import ids_hash
 from pcfbench.reporting.report import collect, coverage, summary, write_reports
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf")
@@ -57,8 +57,8 @@ def test_coverage_hand_made():
 
 def test_a_cell_with_failed_samples_is_not_ranked(tiny_kitti, store, tmp_path):
     plugins = _plugins()
-    run_cell(_spec(tiny_kitti), store, plugins=plugins, progress=False)
-    result = run_cell(_spec(tiny_kitti, "half-fails"), store, plugins=plugins, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False), plugins=plugins)
+    result = run_cell(_spec(tiny_kitti, "half-fails"), store, RunOptions(progress=False), plugins=plugins)
     n = result.samples
     assert 0 < result.failed < n
     lb = collect(store)
@@ -80,7 +80,7 @@ def test_a_cell_with_failed_samples_is_not_ranked(tiny_kitti, store, tmp_path):
 
 def test_a_deleted_chunk_is_found_on_read(tiny_kitti, store, monkeypatch):
     monkeypatch.setattr(runner, "CHUNK_SAMPLES", 2)
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     cell = Cell(store, _spec(tiny_kitti))
     chunks = cell.chunk_paths()
     assert len(chunks) >= 3

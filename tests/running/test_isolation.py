@@ -17,7 +17,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer",)
@@ -82,8 +82,8 @@ def _rows(store, root, method):
 ])
 def test_a_crashing_sample_is_one_failure_and_the_cell_completes(tiny_kitti, tmp_path, method, error, jobs):
     p = plugins()
-    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "ref", plugins=p, progress=False)
-    result = run_cell(_spec(tiny_kitti, method), tmp_path / "s", plugins=p, progress=False, jobs=jobs, isolate=True)
+    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "ref", RunOptions(progress=False), plugins=p)
+    result = run_cell(_spec(tiny_kitti, method), tmp_path / "s", RunOptions(progress=False, jobs=jobs, isolate=True), plugins=p)
     assert result.status == "complete" and result.samples == 6 and result.failed == 1
     rows = _rows(tmp_path / "s", tiny_kitti, method)
     failed = rows[rows.status == "failed"]
@@ -100,7 +100,7 @@ def test_a_crashing_sample_is_one_failure_and_the_cell_completes(tiny_kitti, tmp
 def test_a_hanging_sample_times_out_and_the_cell_completes(tiny_kitti, store):
     t0 = time.monotonic()
     # (a worker's first sample includes its warm-up, numba's compilation: seconds on a loaded machine)
-    result = run_cell(_spec(tiny_kitti, "hangs"), store, plugins=plugins(), progress=False, timeout=5)
+    result = run_cell(_spec(tiny_kitti, "hangs"), store, RunOptions(progress=False, timeout=5), plugins=plugins())
     assert time.monotonic() - t0 < 60
     assert result.failed == 1 and result.samples == 6
     rows = _rows(store, tiny_kitti, "hangs")
@@ -112,14 +112,14 @@ def test_a_hanging_sample_times_out_and_the_cell_completes(tiny_kitti, store):
 
 
 def test_the_timeout_must_be_positive(tiny_kitti, store):
-    for bad in (0, -1, float("nan")):
+    for bad in (0, -1, float("nan"), True):
         with pytest.raises(PcfbenchError, match="per-sample time limit must be a number of seconds > 0"):
-            run_cell(_spec(tiny_kitti, "copy-last"), store, progress=False, timeout=bad)
+            run_cell(_spec(tiny_kitti, "copy-last"), store, RunOptions(progress=False, timeout=bad))
 
 
 def test_isolated_rows_equal_in_process_rows(tiny_kitti, tmp_path):
-    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "a", progress=False)
-    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "b", progress=False, timeout=60)
+    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "a", RunOptions(progress=False))
+    run_cell(_spec(tiny_kitti, "copy-last"), tmp_path / "b", RunOptions(progress=False, timeout=60))
     cols = ["sample_id", "step", "status", "chamfer"]
     pd.testing.assert_frame_equal(_rows(tmp_path / "a", tiny_kitti, "copy-last")[cols],
                                   _rows(tmp_path / "b", tiny_kitti, "copy-last")[cols])
@@ -155,9 +155,9 @@ def test_no_orphan_workers_after_the_driver_is_sigkilled(tiny_kitti, tmp_path):
         import sys
         sys.path[:0] = {[str(Path(__file__).parent), str(Path(__file__).parents[1])]!r}
         from test_isolation import plugins, _spec
-        from pcfbench.running.runner import run_cell
-        run_cell(_spec({str(tiny_kitti)!r}, "slow"), {str(tmp_path / "store")!r}, plugins=plugins(), progress=False,
-                 jobs=2, timeout=600)
+        from pcfbench.running.runner import RunOptions, run_cell
+        run_cell(_spec({str(tiny_kitti)!r}, "slow"), {str(tmp_path / "store")!r},
+                 RunOptions(progress=False, jobs=2, timeout=600), plugins=plugins())
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:

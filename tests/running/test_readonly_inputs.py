@@ -7,7 +7,7 @@ from pcfbench.data import Forecast, read_only_copy
 from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 from pcfbench.testing import toy_sample
 
@@ -76,7 +76,7 @@ def test_every_array_a_method_receives_is_read_only():
 
 
 def test_a_method_moving_the_query_origins_in_place_fails_every_sample(tiny_kitti, store):
-    result = run_cell(_spec(tiny_kitti, "moves-origins"), store, plugins=_plugins(), progress=False)
+    result = run_cell(_spec(tiny_kitti, "moves-origins"), store, RunOptions(progress=False), plugins=_plugins())
     df = Cell(store, _spec(tiny_kitti, "moves-origins")).read_rows()
     assert result.failed == 3 and set(df.status) == {"failed"}
     assert all("ValueError" in e and "read-only" in e for e in df.error)
@@ -84,8 +84,8 @@ def test_a_method_moving_the_query_origins_in_place_fails_every_sample(tiny_kitt
 
 def test_a_method_forcing_its_copy_writeable_cannot_change_its_score(tiny_kitti, store):
     plugins = _plugins()
-    run_cell(_spec(tiny_kitti, "copy-last"), store, plugins=plugins, progress=False)
-    run_cell(_spec(tiny_kitti, "forces-writeable"), store, plugins=plugins, progress=False)
+    run_cell(_spec(tiny_kitti, "copy-last"), store, RunOptions(progress=False), plugins=plugins)
+    run_cell(_spec(tiny_kitti, "forces-writeable"), store, RunOptions(progress=False), plugins=plugins)
     ref = Cell(store, _spec(tiny_kitti, "copy-last")).read_rows().sort_values(["sample_id", "step"])
     got = Cell(store, _spec(tiny_kitti, "forces-writeable")).read_rows().sort_values(["sample_id", "step"])
     assert set(got.status) == {"ok"} and len(got) == len(ref) == 15

@@ -15,7 +15,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash
 from pcfbench.plugins import load_plugins
 from pcfbench.reporting.report import collect, write_reports
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 from pcfbench.testing import check_method
 from pcfbench.methods.copy_last import CopyLast
@@ -58,7 +58,7 @@ def test_copy_last_contract():
 
 
 def test_bad_forecasts_are_recorded_failures_and_the_run_goes_on(tiny_kitti, store):
-    result = run_cell(_spec(tiny_kitti, "flaky"), store, plugins=_plugins(), progress=False)
+    result = run_cell(_spec(tiny_kitti, "flaky"), store, RunOptions(progress=False), plugins=_plugins())
     df = Cell(store, _spec(tiny_kitti, "flaky")).read_rows()
     failed = df[df.status == "failed"].set_index("ref_index")
     assert result.failed == len(failed) > 0
@@ -75,8 +75,8 @@ def test_bad_forecasts_are_recorded_failures_and_the_run_goes_on(tiny_kitti, sto
 
 def test_process_pool_matches_serial(tmp_path):
     root = write_kitti_tree(tmp_path / "k", num_sweeps=40)
-    serial = run_cell(_spec(root), tmp_path / "s1", progress=False)
-    pooled = run_cell(_spec(root), tmp_path / "s2", jobs=2, progress=False)
+    serial = run_cell(_spec(root), tmp_path / "s1", RunOptions(progress=False))
+    pooled = run_cell(_spec(root), tmp_path / "s2", RunOptions(jobs=2, progress=False))
     assert serial.samples == pooled.samples
     a = Cell(tmp_path / "s1", _spec(root)).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
     b = Cell(tmp_path / "s2", _spec(root)).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
@@ -84,26 +84,26 @@ def test_process_pool_matches_serial(tmp_path):
 
 
 def test_limit_is_partial_and_kept_out_of_leaderboard(tiny_kitti, store, tmp_path):
-    run_cell(_spec(tiny_kitti, limit=2), store, progress=False)
+    run_cell(_spec(tiny_kitti, limit=2), store, RunOptions(progress=False))
     assert len(collect(store).table) == 0
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     table = collect(store).table
     assert len(table) == 1 and table.samples.iloc[0] == 6
 
 
 def test_rerun_with_changed_samples_requires_force(tmp_path):
     root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
-    run_cell(_spec(root), tmp_path / "s", progress=False)
+    run_cell(_spec(root), tmp_path / "s", RunOptions(progress=False))
     write_kitti_tree(tmp_path / "k", num_sweeps=30)
     with pytest.raises(PcfbenchError, match="sample_ids_hash.*--force"):
-        run_cell(_spec(root), tmp_path / "s", progress=False)
-    assert run_cell(_spec(root), tmp_path / "s", progress=False, force=True).processed == 12
+        run_cell(_spec(root), tmp_path / "s", RunOptions(progress=False))
+    assert run_cell(_spec(root), tmp_path / "s", RunOptions(progress=False, force=True)).processed == 12
 
 
 def test_report_refuses_mixed_metric_versions(tiny_kitti, store):
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     other = _spec(tiny_kitti, method="flaky")
-    run_cell(other, store, plugins=_plugins(), progress=False)
+    run_cell(other, store, RunOptions(progress=False), plugins=_plugins())
     meta_path = Cell(store, other).dir / "cell.json"
     meta = json.loads(meta_path.read_text())
     meta["metric_versions"]["chamfer"] = "0"
@@ -113,7 +113,7 @@ def test_report_refuses_mixed_metric_versions(tiny_kitti, store):
 
 
 def test_report_shape(tiny_kitti, store, tmp_path):
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     paths = write_reports(store, tmp_path / "rep")
     csv = pd.read_csv(paths["csv"])
     assert list(csv.columns[:9]) == ["dataset", "split", "setting", "policy", "method", "method_version", "samples", "failed", "sweeps"]
@@ -187,15 +187,15 @@ def test_range_bins_are_written_with_their_rows_and_a_resumed_run_neither_loses_
 
     monkeypatch.setattr(store_mod, "rows_to_parquet", killed_on_second)
     with pytest.raises(KeyboardInterrupt):
-        run_cell(spec, tmp_path / "s", progress=False)
+        run_cell(spec, tmp_path / "s", RunOptions(progress=False))
     cell = Cell(tmp_path / "s", spec)
     assert [p.name for p in cell.chunk_paths()] == ["chunk-000000.parquet"]
     assert sorted(p.name for p in (cell.dir / "ranges").iterdir()) == ["chunk-000000.parquet", "chunk-000001.parquet"]
     assert set(cell.read_ranges()["sample_id"]) == cell.done_ids()  # the orphan is not read
     monkeypatch.setattr(store_mod, "rows_to_parquet", real)
-    run_cell(spec, tmp_path / "s", progress=False)
+    run_cell(spec, tmp_path / "s", RunOptions(progress=False))
     clean = Cell(tmp_path / "clean", spec)
-    run_cell(spec, tmp_path / "clean", progress=False)
+    run_cell(spec, tmp_path / "clean", RunOptions(progress=False))
     key = ["sample_id", "step"]
     got, want = cell.read_ranges(), clean.read_ranges()
     assert sorted(p.name for p in (cell.dir / "ranges").iterdir()) == [p.name for p in cell.chunk_paths()]
@@ -206,11 +206,25 @@ def test_range_bins_are_written_with_their_rows_and_a_resumed_run_neither_loses_
     # a cell scoring neither l1_mean nor absrel_mean keeps no bins and its rows are unchanged
     monkeypatch.setattr(runner.ranges, "records", lambda names: False)
     other = tmp_path / "none"
-    run_cell(spec, other, progress=False)
+    run_cell(spec, other, RunOptions(progress=False))
     assert not (Cell(other, spec).dir / "ranges").exists() and "range_bins" not in Cell(other, spec).read_meta()
     a, b = Cell(other, spec).read_rows(), clean.read_rows()
     assert list(a.columns) == list(b.columns)
     pd.testing.assert_frame_equal(a.drop(columns=[c for c in a if c.startswith("t_")]),
                                   b.drop(columns=[c for c in b if c.startswith("t_")]))
-    assert not run_cell(_spec(root), tmp_path / "chamfer-only", progress=False).failed
+    assert not run_cell(_spec(root), tmp_path / "chamfer-only", RunOptions(progress=False)).failed
     assert not (Cell(tmp_path / "chamfer-only", _spec(root)).dir / "ranges").exists()
+
+
+def test_run_options_pick_the_workers_and_the_isolation():
+    import os
+
+    from pcfbench.running.runner import AUTO_POOL_MIN_SAMPLES
+
+    auto = RunOptions(jobs=0)
+    assert auto.workers(AUTO_POOL_MIN_SAMPLES - 1) == 1  # too few samples to pay for a pool
+    assert auto.workers(AUTO_POOL_MIN_SAMPLES) == (os.cpu_count() or 1)
+    assert RunOptions(jobs=3).workers(1) == 3  # a pool asked for is a pool (run_cell caps it at the samples)
+    assert not RunOptions().isolated and RunOptions(timeout=5).isolated  # a time limit needs a worker to kill
+    assert not RunOptions(timeout=5, isolate=False).isolated and RunOptions(isolate=True).isolated
+    assert RunOptions().execution().threads >= 1 and RunOptions(threads=2).execution().threads == 2

@@ -24,7 +24,7 @@ from pcfbench.method import Method, options_hash, parse_options
 from pcfbench.plugins import Plugins, load_plugins
 from pcfbench.protocol import SamplePolicy
 from pcfbench.reporting.report import ReportOptions, collect, metric_directions, write_reports
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import CellSpec, iter_cells
 
 from conftest import write_tiny_kitti
@@ -80,7 +80,7 @@ def store(tmp_path_factory):
         opts = parse_options(plugins.methods.get(method).Options, raw, method)
         spec = CellSpec(method, raw, options_hash(opts), "kitti", str(root), "test", "kitti-1s", "full-context",
                         None, ("near_share", "chamfer"))
-        run_cell(spec, store, plugins=plugins, progress=False)
+        run_cell(spec, store, RunOptions(progress=False), plugins=plugins)
     return store
 
 

@@ -21,7 +21,7 @@ from pcfbench.method import options_hash
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
 from pcfbench.reporting.report import collect
-from pcfbench.running.runner import run_cell
+from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellLocked, CellSpec
 
 METRICS = ("chamfer",)
@@ -62,23 +62,23 @@ def _one_line_error(res, *parts):
 
 
 def test_a_damaged_chunk_is_one_error_naming_it(tiny_kitti, store):
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     before = collect(store).table
     chunk = Cell(store, _spec(tiny_kitti)).chunk_paths()[0]
     chunk.write_bytes(chunk.read_bytes()[: chunk.stat().st_size // 2])  # cut short
-    for read in (lambda: collect(store), lambda: run_cell(_spec(tiny_kitti), store, progress=False)):
+    for read in (lambda: collect(store), lambda: run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))):
         with pytest.raises(PcfbenchError, match=rf"rows file {chunk} is damaged or cut short .*delete that file"):
             read()
     res = CliRunner().invoke(cli, ["report", "--store", str(store), "--reports", str(store.parent / "rep")])
     _one_line_error(res, str(chunk), "delete that file")
     # the fix the message gives: its samples are recomputed, the leaderboard is the same
     chunk.unlink()
-    assert run_cell(_spec(tiny_kitti), store, progress=False).processed == 6
+    assert run_cell(_spec(tiny_kitti), store, RunOptions(progress=False)).processed == 6
     pd.testing.assert_series_equal(collect(store).table.chamfer, before.chamfer)
 
 
 def test_a_parquet_file_without_row_columns_is_refused(tiny_kitti, store):
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     chunk = Cell(store, _spec(tiny_kitti)).chunk_paths()[0]
     pd.DataFrame({"x": [1.0]}).to_parquet(chunk)
     with pytest.raises(PcfbenchError, match=rf"rows file {chunk} has no column sample_id, step, status"):
@@ -92,17 +92,17 @@ def test_a_parquet_file_without_row_columns_is_refused(tiny_kitti, store):
      r"is not a complete cell.json \(spec without options, options_hash, dataset, split, setting\)"),
 ])
 def test_a_cut_short_cell_json_is_one_error_not_a_vanished_cell(tiny_kitti, store, content, message):
-    run_cell(_spec(tiny_kitti), store, progress=False)
+    run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     path = Cell(store, _spec(tiny_kitti)).dir / "cell.json"
     path.write_text(path.read_text()[:200] if content is None else content)
     with pytest.raises(PcfbenchError, match=rf"{path} {message}"):
         collect(store)
     with pytest.raises(PcfbenchError, match=rf"{path} {message}"):
-        run_cell(_spec(tiny_kitti), store, progress=False)
+        run_cell(_spec(tiny_kitti), store, RunOptions(progress=False))
     _one_line_error(CliRunner().invoke(cli, ["report", "--store", str(store), "--reports", str(store.parent / "r")]),
                     str(path))
     # --force, as the message says, recomputes it
-    assert run_cell(_spec(tiny_kitti), store, progress=False, force=True).processed == 6
+    assert run_cell(_spec(tiny_kitti), store, RunOptions(progress=False, force=True)).processed == 6
     assert len(collect(store).table) == 1
 
 
@@ -150,8 +150,8 @@ def test_a_locked_cell_is_refused_or_waited_for(tiny_kitti, store):
     holder = Cell(store, _spec(tiny_kitti))
     with holder:
         with pytest.raises(CellLocked, match="is being computed by another pcfbench process"):
-            run_cell(_spec(tiny_kitti), store, progress=False, wait=False)
-    assert run_cell(_spec(tiny_kitti), store, progress=False, wait=True).processed == 6
+            run_cell(_spec(tiny_kitti), store, RunOptions(progress=False, wait=False))
+    assert run_cell(_spec(tiny_kitti), store, RunOptions(progress=False, wait=True)).processed == 6
 
 
 _RUN = """

@@ -291,14 +291,14 @@ def test_missing_checkpoint_says_how_to_train_it(env):
 
 
 def _cell(env, ck, split="test", **kw):
-    from pcfbench.running.runner import run_cell
+    from pcfbench.running.runner import RunOptions, run_cell
     from pcfbench.store.cells import CellSpec
 
     spec = resolve_method("toy-trained", env.plugins)
     cell = CellSpec("toy-trained", {}, spec.options_hash, "kitti", str(env.root), split, "kitti-1s", limit=2,
                     metrics=("chamfer", "l1_mean"), checkpoint=str(ck.dir), checkpoint_sha256=ck.sha256,
                     train_on=ck.train_on_label)
-    return run_cell(cell, env.tmp / "store", progress=False, plugins=env.plugins, **kw)
+    return run_cell(cell, env.tmp / "store", RunOptions(progress=False, **kw), plugins=env.plugins)
 
 
 def test_cells_know_their_checkpoint_and_a_changed_one_is_a_new_cell(env):
@@ -374,14 +374,14 @@ def test_transfer_table_layout(env):
     """A trained cell on other data than its training data gets a Table-5 block: the trained row
     and the untrained baselines of the same block, the paper's columns, the leaderboard's values."""
     from pcfbench.reporting.report import collect, write_reports
-    from pcfbench.running.runner import run_cell
+    from pcfbench.running.runner import RunOptions, run_cell
     from pcfbench.store.cells import CellSpec
 
     ck = _train(env)
     _cell(env, ck)
     copy = resolve_method("copy-last", env.plugins)
     run_cell(CellSpec("copy-last", {}, copy.options_hash, "kitti", str(env.root), "test", "kitti-1s", limit=2,
-                      metrics=("chamfer", "l1_mean")), env.tmp / "store", progress=False, plugins=env.plugins)
+                      metrics=("chamfer", "l1_mean")), env.tmp / "store", RunOptions(progress=False), plugins=env.plugins)
     paths = write_reports(env.tmp / "store", env.tmp / "reports")
     md = paths["transfer_md"].read_text().splitlines()
     i = md.index("## [kitti → kitti] 1s Prediction (test split, kitti-1s, PARTIAL: first 2 samples)")
