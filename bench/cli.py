@@ -456,7 +456,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
         cells = plan(exp, limit=limit, plugins=plugins, progress=not quiet)
         for i, spec in enumerate(cells, 1):
             click.echo(f"cell {i}/{len(cells)}: {cell_label(spec)} -> {store_path / spec.relpath()}")
-        click.echo(f"tables: {', '.join(str(reports_path / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
+        where = reports_path if (exp.limit if limit is None else limit) is None else config.partial_reports_dir(reports_path)
+        click.echo(f"tables: {', '.join(str(where / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
         return
     with interrupted_note(store_path, None, 0):
         result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
