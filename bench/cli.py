@@ -246,9 +246,14 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
         from pcfbench.report import collect, summary
 
         board = collect(store_path)
-        paths = write_reports(store_path, reports_path, leaderboard=board)
+        # a --limit run's report goes beside the leaderboard, never over it (a complete one may be there)
+        out = reports_path if limit is None else config.partial_reports_dir(reports_path)
+        paths = write_reports(store_path, out, leaderboard=board)
         click.echo(summary(store_path, leaderboard=board))
         click.echo(f"leaderboard: {paths['md']}")
+        if limit is not None:
+            click.echo(f"(a --limit run writes its report under {out}; {reports_path / 'leaderboard.md'} is written "
+                       "only by a run without --limit or by pcfbench report)")
     if failures:
         click.echo(f"pcfbench: {failures} sample(s) failed in {failed_cells} cell(s), which are incomplete and not "
                    "ranked; their tracebacks are in the cells' rows", err=True)
