@@ -187,9 +187,14 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     failures, failed_cells = _run_cells(cells, store_path, options, plugins)
     if not no_report:
         board = collect(store_path)
-        paths = write_reports(store_path, reports_path, leaderboard=board)
+        # a --limit run's report goes beside the leaderboard, never over it (a complete one may be there)
+        out = reports_path if limit is None else config.partial_reports_dir(reports_path)
+        paths = write_reports(store_path, out, leaderboard=board)
         click.echo(summary(store_path, leaderboard=board))
         click.echo(f"leaderboard: {paths['md']}")
+        if limit is not None:
+            click.echo(f"(a --limit run writes its report under {out}; {reports_path / 'leaderboard.md'} is written "
+                       "only by a run without --limit or by pcfbench report)")
     if failures:
         click.echo(f"pcfbench: {failures} sample(s) failed in {failed_cells} cell(s), which are incomplete and not "
                    "ranked; their tracebacks are in the cells' rows", err=True)
@@ -475,7 +480,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quie
         cells = plan(exp, limit=limit, plugins=plugins, progress=not quiet)
         for i, spec in enumerate(cells, 1):
             click.echo(f"cell {i}/{len(cells)}: {cell_label(spec)} -> {store_path / spec.relpath()}")
-        click.echo(f"tables: {', '.join(str(reports_path / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
+        where = reports_path if (exp.limit if limit is None else limit) is None else config.partial_reports_dir(reports_path)
+        click.echo(f"tables: {', '.join(str(where / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
         return
     with interrupted_note(store_path, None, 0):
         result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,

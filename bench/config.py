@@ -127,6 +127,16 @@ def reports_dir(cli: str | None = None) -> Path:
     return path
 
 
+#: the sub-folder of the reports folder where a partial run writes, in the same layout
+PARTIAL_DIR = "partial"
+
+
+def partial_reports_dir(reports: Path) -> Path:
+    """Where a partial run writes its tables and figures (``run --limit``; a sweep with a
+    limited or incomplete cell): ``<reports>/partial``, so it never replaces a complete table."""
+    return Path(reports) / PARTIAL_DIR
+
+
 def store_dir(cli: str | None = None, reports: Path | None = None) -> Path:
     """The results store: ``--store``, ``$PCFBENCH_STORE``, else <reports>/store."""
     if cli:

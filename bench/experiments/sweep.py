@@ -534,7 +534,9 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
     ``reports/sweeps/<stem>.{md,csv,tex,html}`` and its ablation figures (metric vs option
     value, ``reports/figures/ablation-<stem>_*``); returns the paths (``"<stem>.<ext>"``,
     ``"figures/<name>"``) and each table as terminal text.
-    Everything is rendered in memory first, then each file is written atomically."""
+    Everything is rendered in memory first, then each file is written atomically. A grid with a
+    limited or incomplete cell writes under ``reports/partial/`` instead, in the same layout: a
+    partial table never replaces a complete one."""
     from pcfbench.reporting import report, tables
 
     presets = tables.load_presets()
@@ -543,9 +545,12 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
     contents: dict[str, str] = {}
     summaries = []
     figure_paths: dict[str, Path] = {}
+    root: Path | None = None  # the reports folder, or its partial/ when a cell is limited or incomplete
     for t in exp.tables:
         lb = report.collect(store, reference=t.reference.method.name, cells=cell_dirs,
                             reference_options_hash=t.reference.method.options_hash)
+        if root is None:  # every table has the same cells: complete for one, complete for all
+            root = Path(reports) if _every_cell_complete(lb, cell_dirs) else config.partial_reports_dir(reports)
         for df in (lb.table, lb.partial):
             if len(df):  # rows labelled by the experiment (a reused cell keeps the label of its first run)
                 cks = df["checkpoint_sha256"] if "checkpoint_sha256" in df else [""] * len(df)
@@ -563,8 +568,11 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
         summaries.append(f"{table.heading}: {preset.title}\n{tables.text(table)}")
         from pcfbench.reporting.figures import FIGURES_DIR, ablation_figures  # metric vs option value
 
-        figure_paths.update(ablation_figures(lb, table.columns, Path(reports) / FIGURES_DIR, t.stem))
-    out = Path(reports) / SWEEPS_DIR
+        figure_paths.update(ablation_figures(lb, table.columns, root / FIGURES_DIR, t.stem))
+    if root != Path(reports):
+        summaries.append(f"PARTIAL sweep (a --limit, or a cell not scored on every sample): its tables and figures "
+                         f"are under {root}, never over the complete ones under {Path(reports)}")
+    out = root / SWEEPS_DIR
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
     for name, text in contents.items():
@@ -572,6 +580,12 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
         paths[name] = out / name
     paths.update({f"figures/{k}": p for k, p in figure_paths.items()})
     return paths, summaries
+
+
+def _every_cell_complete(lb, cell_dirs: list[Path]) -> bool:
+    """Every cell of the grid is ranked: complete, not limited, scored on every sample."""
+    ranked = set(lb.table["cell_dir"]) if len(lb.table) else set()
+    return ranked == {str(Path(d).resolve()) for d in cell_dirs}
 
 
 def _csv(lb, order: list[str]) -> pd.DataFrame:

@@ -7,7 +7,7 @@ Each replayed run is rendered exactly as the copilot4d method renders its own to
 (``Copilot4D.forecast``: the token-copy checkpoint's tokenizer, the same rendering options and
 per-sample seeds); only where the tokens come from differs.
 
-    .venv/bin/python docs/experiments/copilot4d_replay.py REPLAY_TOKENS.npz [--out reports/copilot4d/...]
+    .venv/bin/python docs/experiments/copilot4d_replay.py REPLAY_TOKENS.npz [--out docs/results/copilot4d/...]
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from click.testing import CliRunner
 import pcfbench
 from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.method import Method, resolve_method
+from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import get_plugins, load_plugins
 from pcfbench.store.cells import Cell
 from pcfbench.experiments.sweep import EXPERIMENT_KEYS, METHOD_KEYS, TABLE_KEYS, load_experiment, plan, run_sweep
@@ -67,7 +68,9 @@ def test_example_experiment_writes_the_ablation_table_and_a_rerun_does_no_work(t
     for i in range(1, 7):
         assert f"cell {i}/6: " in res.output
     assert "cell 3/6: raycast-voxel (voxel=0.4) | synthetic-town:test | kitti-1s limit=2" in res.output
-    out = reports / "sweeps"
+    # a --limit sweep is partial: its tables and figures go to reports/partial/, in the same layout
+    assert sorted(p.name for p in reports.iterdir()) == ["partial"]
+    out = reports / "partial" / "sweeps"
     assert sorted(p.name for p in out.iterdir()) == [f"raycast-voxel-size.{e}" for e in ("csv", "html", "md", "tex")]
 
     # one row per variant in the experiment's order, per setting; the reference row first
@@ -85,7 +88,7 @@ def test_example_experiment_writes_the_ablation_table_and_a_rerun_does_no_work(t
     assert r"\label{tab:pcfbench-raycast-voxel-size}" in tex and tex.isascii()
     assert "<h1>pcfbench ablation: Ray casting: voxel size" in (out / "raycast-voxel-size.html").read_text()
     # the ablation figure: each column against the voxel size (m), a line per setting
-    assert sorted(p.name for p in (reports / "figures").iterdir()) == [
+    assert sorted(p.name for p in (reports / "partial" / "figures").iterdir()) == [
         f"ablation-raycast-voxel-size_raycast-voxel_voxel.{e}" for e in ("png", "svg")]
 
     # the numbers: flat means of each cell's rows, and the change against copy-last's row
@@ -136,6 +139,77 @@ def test_example_experiment_on_the_whole_small_test_split(town, tmp_path, monkey
     csv = pd.read_csv(result.paths["raycast-voxel-size.csv"])
     assert list(csv["samples"]) == [38] * 3 + [2] * 3 and csv["limit"].isna().all()
     assert "PARTIAL" not in result.paths["raycast-voxel-size.md"].read_text()
+    assert result.paths["raycast-voxel-size.md"] == tmp_path / "r" / "sweeps" / "raycast-voxel-size.md"
+
+
+# -- a partial sweep beside a complete one -----------------------------------------------------
+class FailsOnOne(Method):
+    """Copy-last that raises on sample 08/000010 (its cell is complete but not scored on every sample)."""
+
+    name = "fails-on-one"
+
+    def forecast(self, sample):
+        if sample.sample_id.endswith("000010"):
+            raise RuntimeError("no forecast for this one")
+        return CopyLast().forecast(sample)
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` but the partial/ sub-folder: relative path -> bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.relative_to(folder).parts[0] != "partial"}
+
+
+def test_a_partial_sweep_leaves_the_complete_table_untouched(tmp_path, tiny_kitti):
+    """A complete grid writes reports/sweeps/ and its figure; the same grid with --limit, and a
+    grid whose cell failed on a sample, write under reports/partial/ and change no byte of it."""
+    exp = _write(tmp_path, f"""
+datasets = ["kitti={tiny_kitti}"]
+settings = ["kitti-1s"]
+metrics = ["chamfer", "l1_median"]
+jobs = 1
+
+[[methods]]
+name = "copy-last"
+
+[[methods]]
+name = "raycast-zbuffer"
+grid = {{ fill_ring = [4, 8] }}
+""")
+    store, reports = tmp_path / "store", tmp_path / "reports"
+    args = ["sweep", str(exp), "--store", str(store), "--reports", str(reports), "-q"]
+    for extra, where in (([], reports), (["--limit", "2"], reports / "partial")):  # --dry-run says where they go
+        dry = _cli(args + ["--dry-run", *extra])
+        assert dry.exit_code == 0 and f"tables: {where / 'sweeps' / 'exp'}.{{md,csv,tex,html}}\n" in dry.output, dry.output
+    full = _cli(args)
+    assert full.exit_code == 0, full.output
+    complete = _files(reports)
+    assert sorted(complete) == [*(f"figures/ablation-exp_raycast-zbuffer_fill_ring.{e}" for e in ("png", "svg")),
+                                *(f"sweeps/exp.{e}" for e in ("csv", "html", "md", "tex"))]
+    assert "PARTIAL" not in complete["sweeps/exp.md"].decode() and "PARTIAL sweep" not in full.output
+    assert list(pd.read_csv(reports / "sweeps" / "exp.csv")["samples"]) == [6, 6, 6]
+
+    part = _cli(args + ["--limit", "2"])
+    assert part.exit_code == 0, part.output
+    assert _files(reports) == complete  # the complete table and figure, byte for byte
+    out = reports / "partial" / "sweeps"
+    assert sorted(p.name for p in out.iterdir()) == [f"exp.{e}" for e in ("csv", "html", "md", "tex")]
+    assert "PARTIAL" in (out / "exp.md").read_text()
+    assert (pd.read_csv(out / "exp.csv")["limit"] == 2).all()
+    assert (reports / "partial" / "figures" / "ablation-exp_raycast-zbuffer_fill_ring.png").is_file()
+    assert f"PARTIAL sweep (a --limit, or a cell not scored on every sample): its tables and figures are under " \
+           f"{reports / 'partial'}, never over the complete ones under {reports}" in part.output
+    assert f"{out / 'exp.md'}\n" in part.output
+
+    # no --limit, but a sample failed: the grid is not complete either
+    plugins = load_plugins()
+    plugins.methods.add("fails-on-one", FailsOnOne, "test")
+    failing = load_experiment(_write(tmp_path, exp.read_text().replace('"raycast-zbuffer"', '"fails-on-one"')
+                                     .replace("grid = { fill_ring = [4, 8] }", ""), "exp.toml"), plugins)
+    res = run_sweep(failing, store, reports, progress=False, plugins=plugins, echo=lambda s: None)
+    assert [r.failed for r in res.results] == [0, 1]
+    assert _files(reports) == complete
+    assert res.paths["exp.md"] == out / "exp.md" and "INCOMPLETE" in (out / "exp.md").read_text()
 
 
 # -- killed mid-grid ---------------------------------------------------------------------------
