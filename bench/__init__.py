@@ -47,7 +47,7 @@ _EXPORTS: dict[str, str | None] = {
     # typed options of methods and adapters (a help text per field)
     "option": "pcfbench.options",
     # the thread budget a method or metric may use (Method.execution)
-    "ExecutionContext": "pcfbench.running.execution",
+    "ExecutionContext": "pcfbench.execution",
     # datasets
     "DatasetAdapter": "pcfbench.dataset",
     "Sequence": "pcfbench.dataset",
@@ -96,7 +96,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench.errors import DataError, PcfbenchError, PluginError, UnknownNameError
     from pcfbench.hookspecs import hookimpl, hookspec
     from pcfbench.method import Method, NoOptions
-    from pcfbench.running.execution import ExecutionContext
+    from pcfbench.execution import ExecutionContext
     from pcfbench.options import option
     from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
     from pcfbench.metrics.base import Metric, SweepContext

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
-from pcfbench.running.execution import ExecutionContext, current
+from pcfbench.execution import ExecutionContext, current
 from pcfbench.options import NoOptions, check_options, options_dict, options_hash, parse_options
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -50,7 +50,7 @@ class Method(ABC):
 
     @property
     def execution(self) -> ExecutionContext:
-        """The thread budget the method's own threads stay within (``pcfbench.running.execution``): what
+        """The thread budget the method's own threads stay within (``pcfbench.execution``): what
         the runner gave it, else the process's (``current()``). Methods that run no threads of
         their own can ignore it; parallel work goes through ``self.execution.map``."""
         return self.__dict__.get("_execution") or current()

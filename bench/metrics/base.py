@@ -10,7 +10,7 @@ import numpy as np
 
 from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
 from pcfbench.errors import PcfbenchError
-from pcfbench.running.execution import ExecutionContext
+from pcfbench.execution import ExecutionContext
 from pcfbench.kinds import Better, Needs, parse
 from pcfbench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
 from pcfbench.protocol import MIN_RANGE_M, ROI, Protocol

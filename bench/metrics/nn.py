@@ -13,7 +13,7 @@ import numba
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from pcfbench.running.execution import ExecutionContext, current, in_pool_worker
+from pcfbench.execution import ExecutionContext, current, in_pool_worker
 from pcfbench.nn2d import NN2D, PER_CELL
 
 TWO_PI = 2.0 * np.pi
@@ -156,7 +156,7 @@ CHUNK = 8192
 def nearest_angles(pred_rel: np.ndarray, gt_rel: np.ndarray,
                    execution: ExecutionContext | None = None) -> tuple[np.ndarray, np.ndarray]:
     """nearest_angle_4docc and nearest_angle_wrapped together, over the threads of
-    ``execution`` (default: the process's, ``pcfbench.running.execution.current()``).
+    ``execution`` (default: the process's, ``pcfbench.execution.current()``).
 
     One thread (or called from a pool worker): one search after the other. More: the angles
     and grids of the two spaces are made as two jobs of the context's pool; then both grid

@@ -220,7 +220,7 @@ def _resolved(spec: Any, threads: int) -> tuple[Any, bool]:
     """This worker's resolved cell (built on its first shard of the cell, then kept; one cell
     at a time, so a worker holds one method's weights). Returns it and whether it was built now."""
     global _CACHED
-    from pcfbench.running.execution import ExecutionContext, apply
+    from pcfbench.execution import ExecutionContext, apply
     from pcfbench.running.runner import resolve
     from pcfbench.store.cells import spec_to_meta
 

@@ -17,9 +17,9 @@ import pcfbench
 from pcfbench import config
 from pcfbench.store import ranges
 from pcfbench.errors import DataError, PcfbenchError
-from pcfbench.running.execution import ExecutionContext, applied
-from pcfbench.running.execution import apply as apply_execution
-from pcfbench.running.provenance import environment, git_commit
+from pcfbench.execution import ExecutionContext, applied
+from pcfbench.execution import apply as apply_execution
+from pcfbench.provenance import environment, git_commit
 from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
@@ -227,7 +227,7 @@ class RunOptions:
     ``jobs``: worker processes; 0 picks a pool of one worker per CPU when there are enough
     samples to pay for starting it, else runs serially. ``threads``: the run's thread budget
     (default: every CPU this process may use); a serial run keeps all of it, each of N
-    workers gets ``max(1, threads // N)`` (:mod:`pcfbench.running.execution`).
+    workers gets ``max(1, threads // N)`` (:mod:`pcfbench.execution`).
 
     ``executor`` (:class:`pcfbench.running.ray_executor.RayExecutor`) computes the samples
     elsewhere instead: its tasks write the rows to the store themselves, a shard of samples

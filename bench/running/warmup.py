@@ -89,7 +89,7 @@ def preparing_data() -> None:
 def warm(methods: "list[str] | tuple[str, ...] | None", metrics: "list[str] | tuple[str, ...]") -> list[str]:
     """Forecast and score the toy sample with each method on one thread; returns the names of
     the methods that ran (the process's exit status says nothing: failures are left to the cells)."""
-    from pcfbench.running.execution import ExecutionContext, applied
+    from pcfbench.execution import ExecutionContext, applied
     from pcfbench.method import resolve_method
     from pcfbench.metrics.base import score_sample
     from pcfbench.plugins import get_plugins

@@ -122,7 +122,7 @@ class TrainingRun:
         (e.g. its network sizes)."""
         import torch
 
-        from pcfbench.running.provenance import git_commit
+        from pcfbench.provenance import git_commit
         from pcfbench.store.cells import atomic_write_bytes, atomic_write_json
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -222,7 +222,7 @@ def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_min
     use), applied to torch, numba and the BLAS libraries for its duration and recorded in the
     manifest. The weights depend on it (float sums cut differently), not the checkpoint's
     identity: a resumed run must use the count it started with."""
-    from pcfbench.running.execution import ExecutionContext, applied
+    from pcfbench.execution import ExecutionContext, applied
 
     if not is_trained(spec.cls):
         raise PcfbenchError(f"method {spec.name!r} does not train (it is not a pcfbench.TrainedMethod)")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pcfbench.running.execution import ExecutionContext
+from pcfbench.execution import ExecutionContext
 from pcfbench.boxes import Box
 from pcfbench.methods.copilot4d.data import SweepSource, in_box
 from pcfbench.methods.copilot4d.model import Tokenizer

@@ -32,7 +32,7 @@ import math
 import numba as nb
 import numpy as np
 
-from pcfbench.running.execution import ExecutionContext, current
+from pcfbench.execution import ExecutionContext, current
 
 READOUT_CODES = {"expected": 0, "median": 1}
 #: rays per piece of a march shared out over threads (any value gives the same depths)
@@ -202,7 +202,7 @@ def march(cfg, nfg_cl: np.ndarray, mask: np.ndarray | None, origin: np.ndarray, 
     to each other then read the same NFG columns, which keeps them in cache (the NFG is tens
     of MB; 15 % faster on a synthetic-town sweep, whose rays come beam by beam).
 
-    ``execution`` (default: the process's, ``pcfbench.running.execution.current()``): the azimuth-sorted
+    ``execution`` (default: the process's, ``pcfbench.execution.current()``): the azimuth-sorted
     rays are cut into ``CHUNK``-ray pieces that its threads march as they come free (the kernel
     releases the GIL). A ray's depth does not depend on the piece it is in, so the depths are
     the same whatever the thread count."""

@@ -4,6 +4,6 @@ One module per baseline (``fourdocc``, ``zbuffer``, ``voxel``, ``freespace``); s
 in ``common`` (aggregation, viewpoints, forecast assembly) and ``grid`` (voxel occupancy and
 ray traversal); exact angle-space nearest neighbours come from ``pcfbench.nn2d``.
 
-Their threads come from the method's execution context (``pcfbench.running.execution``); importing
+Their threads come from the method's execution context (``pcfbench.execution``); importing
 them sets no thread or threading-layer setting.
 """

@@ -21,7 +21,7 @@ from typing import TypeVar
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
-from pcfbench.running.execution import ExecutionContext, current
+from pcfbench.execution import ExecutionContext, current
 from pcfbench.geometry import constant_velocity_poses
 
 
@@ -88,7 +88,7 @@ _R = TypeVar("_R")
 
 def map_views(fn: Callable[[_T], _R], items: Sequence[_T], execution: ExecutionContext | None = None) -> list[_R]:
     """``[fn(x) for x in items]`` with the items shared out over the threads of ``execution``
-    (default: the process's, ``pcfbench.running.execution.current()``) as they come free; each runs
+    (default: the process's, ``pcfbench.execution.current()``) as they come free; each runs
     its numba kernels on one thread (``ExecutionContext.map``).
 
     Views (or pieces of views: ``pieces``), not rays, are the unit of parallel work: numba's

@@ -24,7 +24,7 @@ import numba as nb
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
-from pcfbench.running.execution import ExecutionContext, current
+from pcfbench.execution import ExecutionContext, current
 from pcfbench.method import Method
 from pcfbench.options import option
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, pieces, scratch, views

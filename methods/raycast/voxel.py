@@ -40,7 +40,7 @@ from typing import Literal
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
-from pcfbench.running.execution import ExecutionContext
+from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
 from pcfbench.options import option
 from pcfbench.protocol import ROI

@@ -28,7 +28,7 @@ import numba as nb
 import numpy as np
 
 from pcfbench.data import Forecast, Sample
-from pcfbench.running.execution import ExecutionContext
+from pcfbench.execution import ExecutionContext
 from pcfbench.method import Method
 from pcfbench.options import option
 from pcfbench.methods.raycast.common import aggregate, assemble, map_views, scratch, views

@@ -129,7 +129,7 @@ def test_threads_change_no_depth(micro_model, monkeypatch):
     """Marched in pieces over 1, 2 or 3 threads, every ray's depth is the same bit for bit (and
     so is the early-stop count): a ray's answer does not depend on the piece it is in."""
     import pcfbench.methods.copilot4d.raymarch as rm
-    from pcfbench.running.execution import ExecutionContext
+    from pcfbench.execution import ExecutionContext
 
     nfg_cl, mask, mlp = _marcher_inputs(micro_model)
     dirs = _rays(1000, 11)

@@ -1,4 +1,4 @@
-"""The thread budget (pcfbench.running.execution): shares, pinning, the pool, imports that change
+"""The thread budget (pcfbench.execution): shares, pinning, the pool, imports that change
 nothing, rows that do not depend on the thread count, and workers that stay within it."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.running.execution import ExecutionContext, applied, available_cpus, current, pool_sizes, thread_limits
+from pcfbench.execution import ExecutionContext, applied, available_cpus, current, pool_sizes, thread_limits
 
 HERE = Path(__file__).resolve().parent
 TESTS = HERE.parent  # conftest.py, tests_helpers.py
@@ -76,7 +76,7 @@ def test_work_started_inside_a_pool_worker_stays_on_that_thread():
     """Every worker asking the same pool for more work would wait for itself: it runs inline."""
     import threading
 
-    from pcfbench.running.execution import in_pool_worker
+    from pcfbench.execution import in_pool_worker
     from pcfbench.metrics import nn
 
     ctx = ExecutionContext(2)
@@ -173,7 +173,7 @@ def test_importing_every_builtin_plugin_module_changes_no_thread_setting():
     got = json.loads(out.stdout.strip().splitlines()[-1])
     modules = set(got["modules"])
     for expected in ("pcfbench.methods.raycast.common", "pcfbench.methods.raycast.fourdocc", "pcfbench.metrics.nn",
-                     "pcfbench.running.runner", "pcfbench.running.execution", "pcfbench.methods.copilot4d.plugin"):
+                     "pcfbench.running.runner", "pcfbench.execution", "pcfbench.methods.copilot4d.plugin"):
         assert expected in modules
     before, after = got["before"], got["after"]
     # libraries loaded by the imports (scipy's BLAS, ...) come in at their own defaults; those
@@ -240,7 +240,7 @@ _PROBE = _SNAPSHOT + textwrap.dedent('''
     import json, os
     import numba
     from pcfbench.data import Forecast
-    from pcfbench.running.execution import current, pool_sizes, thread_limits
+    from pcfbench.execution import current, pool_sizes, thread_limits
     from pcfbench.hookspecs import hookimpl
     from pcfbench.methods.raycast.zbuffer import RaycastZBuffer
 
@@ -357,7 +357,7 @@ def test_a_library_imported_after_the_pool_is_pinned_before_the_next_job():
     code = """
 import sys
 from threadpoolctl import threadpool_info
-from pcfbench.running.execution import ExecutionContext
+from pcfbench.execution import ExecutionContext
 assert "pykdtree" not in sys.modules
 ctx = ExecutionContext(2)
 omp = lambda _: sorted((i["filepath"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "openmp")
