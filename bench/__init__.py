@@ -52,6 +52,7 @@ _EXPORTS: dict[str, str | None] = {
     "DatasetAdapter": "pcfbench.dataset",
     "Sequence": "pcfbench.dataset",
     "CheckReport": "pcfbench.dataset",
+    "EgoBox": "pcfbench.boxes",
     # metrics
     "Metric": "pcfbench.metrics.base",
     "SweepContext": "pcfbench.metrics.base",
@@ -92,6 +93,7 @@ def __dir__() -> list[str]:
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from pcfbench import testing
     from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample, Sweep
+    from pcfbench.boxes import EgoBox
     from pcfbench.dataset import CheckReport, DatasetAdapter, Sequence
     from pcfbench.errors import DataError, PcfbenchError, PluginError, UnknownNameError
     from pcfbench.hookspecs import hookimpl, hookspec
