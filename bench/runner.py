@@ -206,6 +206,28 @@ def _failure_row(key: tuple[str, int], kind: str, reason: str) -> list[dict[str,
              "error": error, "traceback": f"{error}\n({note})", "t_load": float("nan")}]
 
 
+def _sample_keys(builder: SampleBuilder, spec: CellSpec, plugins: Plugins | None) -> list[tuple[str, int]]:
+    """The cell's samples; none is an error that says why (the split's sequences are elsewhere,
+    too short for the setting, or absent) and the option that fixes it (``pcfbench.nosamples``)."""
+    from pcfbench.errors import unknown_name
+    from pcfbench.nosamples import explain
+
+    adapter = builder.adapter
+    try:
+        keys = builder.sample_keys(spec.split)
+    except DataError:
+        # the adapter refuses a split it does not know; name the known ones and the option. A
+        # split it accepts without listing (an alias) is not refused here
+        if spec.split not in adapter.splits():
+            raise unknown_name(f"split of dataset {spec.dataset}", spec.split, adapter.splits(),
+                               "pick one with --split NAME") from None
+        raise
+    if not keys:
+        settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
+        raise PcfbenchError(explain(builder, spec.split, settings=settings).message)
+    return keys
+
+
 @dataclass
 class CellResult:
     spec: CellSpec
@@ -264,14 +286,9 @@ def run_cell(
     execution = ExecutionContext() if threads is None else ExecutionContext(threads)
     start = time.perf_counter()
     res = resolve(spec, plugins)
-    keys = res.builder.sample_keys(spec.split)
+    keys = _sample_keys(res.builder, spec, plugins)
     if spec.limit is not None:
         keys = keys[: spec.limit]
-    if not keys:
-        raise PcfbenchError(
-            f"{spec.dataset}:{spec.split} has no samples for setting {spec.setting} ({spec.policy}); "
-            f"check the dataset root {spec.dataset_root}"
-        )
     ids = [f"{s}/{i:06d}" for s, i in keys]
     id_hash = ids_hash(ids)
     fingerprint = res.builder.adapter.fingerprint(spec.split)

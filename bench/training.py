@@ -141,10 +141,11 @@ class TrainSource:
 
 
 def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugins | None = None,
-                       progress: bool = True) -> TrainSource:
+                       progress: bool = True, split_option: str = "--split {}") -> TrainSource:
     """``NAME`` or ``NAME=ROOT`` (root options ``ROOT?key=value`` allowed) opened for training:
     the root from the argument, the config, or the adapter's default (embedded datasets are
-    generated). An unknown name or a split without sequences is one clear error."""
+    generated). An unknown name or a split without sequences is one clear error; for a split
+    whose sequences are elsewhere it names their split and ``split_option`` (``{}``: the split)."""
     from pcfbench import config
     from pcfbench.dataset import options_identity
     from pcfbench.plugins import get_plugins
@@ -162,7 +163,10 @@ def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugin
 
         raise unknown_name(f"split of dataset {name}", split, adapter.splits())
     if not adapter.sequence_names(split):
-        raise PcfbenchError(f"dataset {name!r} has no sequences in split {split!r} under {root}")
+        from pcfbench.nosamples import Options, no_sequences
+
+        raise PcfbenchError(no_sequences(adapter, split, f"dataset {name!r} has no sequences in split {split!r}",
+                                         Options(split=split_option)).message)
     fp = adapter.fingerprint(split).digest
     opts = options_identity(adapter, config.split_root_options(root)[1])
     files = tuple(str(f) for f in adapter.data_files(split))
@@ -589,10 +593,12 @@ def _embedded() -> set[str]:
 
 
 def checkpoint_for(spec: MethodSpec, *, checkpoint: str | Path | None = None, train_on: str | None = None,
-                   split: str = DEFAULT_SPLIT, plugins: Plugins | None = None, progress: bool = True) -> Checkpoint:
+                   split: str = DEFAULT_SPLIT, plugins: Plugins | None = None, progress: bool = True,
+                   split_option: str = "--train-split {}") -> Checkpoint:
     """The checkpoint a run of ``spec`` evaluates: the file ``checkpoint`` (verified, and of
     this method and options), else the one trained on ``train_on`` (default: the method's
-    ``default_train_on``) and ``split``; a missing one is one error saying how to train it."""
+    ``default_train_on``) and ``split``; a missing one is one error saying how to train it.
+    ``split_option``: how the caller's user picks the training split (``{}``: the split)."""
     if checkpoint is not None:
         ck = Checkpoint.open(checkpoint)
         ck.check_method(spec)
@@ -601,7 +607,7 @@ def checkpoint_for(spec: MethodSpec, *, checkpoint: str | Path | None = None, tr
     ck = ready_shipped(spec, data, split, plugins)
     if ck is not None:
         return ck
-    source = open_training_data(data, split, plugins, progress)
+    source = open_training_data(data, split, plugins, progress, split_option)
     ck = find_checkpoint(spec, source.train_on)
     if ck is None:
         raise CheckpointError(missing_checkpoint_message(spec, source.train_on))

@@ -201,7 +201,10 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
     if sample_id is None:
         keys = builder.sample_keys(split)
         if not keys:
-            raise PcfbenchError(f"{dataset}: no samples for setting {setting} ({policy})")
+            from pcfbench.nosamples import explain
+
+            settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
+            raise PcfbenchError(explain(builder, split, settings=settings).message)
         seq, index = keys[0]
     else:
         seq, index = check_sample(builder, split, sample_id)
