@@ -68,12 +68,24 @@ def _die_with_driver(conn: Connection) -> None:
     threading.Thread(target=watch, name="pcfbench-driver-watch", daemon=True).start()
 
 
+def _exit_on_term(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, task: Callable[[Any], Any]) -> None:
     """A worker's life: set up (``init(*init_args)``), then answer one task per message until
-    told to stop (``None``) or the driver's end of the pipe closes."""
+    told to stop (``None``) or the driver's end of the pipe closes.
+
+    SIGTERM (the driver stopping a busy worker, :func:`_stop`) exits through Python, so that the
+    process's finalizers run: numba's threading layer makes a named semaphore in every worker
+    (its init lock), registered with the resource tracker the driver shares, and a worker that
+    never runs its finalizers leaves it for the tracker to warn about at the driver's exit."""
+    signal.signal(signal.SIGTERM, _exit_on_term)
     _die_with_driver(conn)
     try:
         init(*init_args)
+    except SystemExit:  # told to stop while setting up
+        return
     except BaseException as exc:  # noqa: BLE001 - every setup failure goes back to the driver
         _send_error(conn, "init-error", exc)
         return
@@ -87,6 +99,8 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
             return
         try:
             result = task(key)
+        except SystemExit:  # told to stop mid-sample: its result is not wanted
+            return
         except BaseException as exc:  # noqa: BLE001 - data errors stop the run: the driver raises them
             _send_error(conn, "error", exc)
             return
@@ -123,6 +137,7 @@ class _Worker:
             child.close()
         self.ready = False
         self.stopping = False  # told to exit (None sent)
+        self.exiting = False  # sent an error and exits on its own
         self.key: Any = None
         self.started = 0.0
 
@@ -186,6 +201,7 @@ def run_supervised(
                 if message is not None:
                     kind, value = message
                     if kind in ("error", "init-error"):
+                        w.exiting = True
                         raise value
                     if kind == "ready":
                         w.ready = True
@@ -217,16 +233,24 @@ def run_supervised(
 
 
 def _stop(workers: list[_Worker]) -> None:
-    """Ask idle workers to exit, then kill whatever is left (a worker busy on a sample whose
-    result nobody will read, after an error or an interrupt)."""
+    """Stop every worker after an error or an interrupt, each through its own exit (so its
+    finalizers run, :func:`_worker_main`): an idle one is told to exit, a busy one (a sample
+    whose result nobody will read) or one setting up gets SIGTERM, and one that sent an error
+    is already exiting. Whatever is left after ``STOP_GRACE_S`` (native code that does not
+    return to Python) is killed."""
     for w in workers:
-        if w.key is None and not w.stopping:
+        if w.exiting or w.stopping:
+            continue
+        if w.ready and w.key is None:
             try:
                 w.conn.send(None)
+                w.stopping = True
+                continue
             except (OSError, ValueError):
                 pass
+        if w.process.is_alive():
+            w.process.terminate()
     deadline = time.monotonic() + STOP_GRACE_S
     for w in workers:
-        if w.key is None:
-            w.process.join(max(0.0, deadline - time.monotonic()))
+        w.process.join(max(0.0, deadline - time.monotonic()))
         w.kill()
