@@ -32,6 +32,8 @@ from pcfbench.errors import PcfbenchError
 
 #: seconds a worker gets to finish its last sample and exit after the driver says stop
 STOP_GRACE_S = 5.0
+#: seconds a timed-out worker gets to exit on SIGTERM before it is killed (the run waits meanwhile)
+TERM_GRACE_S = 1.0
 _PR_SET_PDEATHSIG = 1
 
 
@@ -77,10 +79,15 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
     told to stop (``None``) or the driver's end of the pipe closes.
 
     SIGTERM (the driver stopping a busy worker, :func:`_stop`) exits through Python, so that the
-    process's finalizers run: numba's threading layer makes a named semaphore in every worker
-    (its init lock), registered with the resource tracker the driver shares, and a worker that
-    never runs its finalizers leaves it for the tracker to warn about at the driver's exit."""
+    process's finalizers run: a named semaphore the worker made (a ``multiprocessing`` lock) is
+    registered with the resource tracker the driver shares, and one a killed worker leaves
+    behind is what the tracker warns about ("leaked semaphore") at the driver's exit."""
     signal.signal(signal.SIGTERM, _exit_on_term)
+    # A process this worker starts is spawned, never forked (a fork of a process running numba,
+    # OpenMP or torch threads can deadlock). numba reads it: it makes its init lock a named
+    # semaphore only under a fork start method, so a worker killed after all (a hang past the
+    # grace, a crash) leaves none behind.
+    multiprocessing.set_start_method("spawn", force=True)
     _die_with_driver(conn)
     try:
         init(*init_args)
@@ -224,6 +231,8 @@ def run_supervised(
                     continue
                 if timeout is not None and w.key is not None and time.monotonic() - w.started > timeout:
                     workers.remove(w)
+                    w.process.terminate()  # a sample hung in Python exits through its finalizers (_stop)
+                    w.process.join(TERM_GRACE_S)
                     w.kill()
                     yield on_failure(w.key, "timeout", f"it ran longer than the per-sample time limit of {timeout:g} s")
                     if todo:

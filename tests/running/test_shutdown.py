@@ -32,9 +32,7 @@ def test_a_data_error_in_a_worker_is_the_only_thing_on_stderr(tmp_path, jobs):
                           "(x, y, z, reflectance float32)\n")
 
 
-def test_a_busy_worker_is_stopped_through_its_own_exit(tmp_path):
-    """One worker raises while the other is busy: the busy one exits through Python (SIGTERM),
-    its semaphore goes with it, and the driver does not wait out a sample nobody will read."""
+def _tasks(tmp_path: Path) -> None:
     (tmp_path / "shutdown_tasks.py").write_text(textwrap.dedent('''
         import multiprocessing
         import time
@@ -52,23 +50,41 @@ def test_a_busy_worker_is_stopped_through_its_own_exit(tmp_path):
             time.sleep(60)
             return key
     '''))
-    (tmp_path / "driver.py").write_text(textwrap.dedent('''
-        import time
-        from pcfbench.workers import run_supervised
-        import shutdown_tasks
 
-        if __name__ == "__main__":
-            start = time.monotonic()
-            try:
-                list(run_supervised(["slow", "bad"], 2, shutdown_tasks.init, (), shutdown_tasks.task, None))
-            except ValueError as exc:
-                print(f"raised {exc} after {time.monotonic() - start:.1f} s")
-    '''))
+
+def _drive(tmp_path: Path, body: str) -> str:
+    """Run ``body`` (the driver's code) in a fresh interpreter; its stdout, with stderr empty."""
+    _tasks(tmp_path)
+    (tmp_path / "driver.py").write_text("import time\nfrom pcfbench.workers import run_supervised\n"
+                                        "import shutdown_tasks\n\nif __name__ == '__main__':\n"
+                                        + textwrap.indent(textwrap.dedent(body), "    "))
     env = {**os.environ, "PYTHONPATH": str(tmp_path)}
-    start = time.monotonic()
     res = subprocess.run([sys.executable, str(tmp_path / "driver.py")], capture_output=True, text=True, cwd=tmp_path,
                          env=env, timeout=120)
     assert res.returncode == 0, res.stderr
-    assert res.stdout.startswith("raised bad data after"), res.stdout
     assert res.stderr == ""
+    return res.stdout
+
+
+def test_a_busy_worker_is_stopped_through_its_own_exit(tmp_path):
+    """One worker raises while the other is busy: the busy one exits through Python (SIGTERM),
+    its semaphore goes with it, and the driver does not wait out a sample nobody will read."""
+    start = time.monotonic()
+    out = _drive(tmp_path, '''
+        start = time.monotonic()
+        try:
+            list(run_supervised(["slow", "bad"], 2, shutdown_tasks.init, (), shutdown_tasks.task, None))
+        except ValueError as exc:
+            print(f"raised {exc} after {time.monotonic() - start:.1f} s")
+    ''')
+    assert out.startswith("raised bad data after"), out
     assert time.monotonic() - start < 30  # not the busy sample's 60 s
+
+
+def test_a_timed_out_worker_is_stopped_through_its_own_exit(tmp_path):
+    out = _drive(tmp_path, '''
+        print(list(run_supervised(["slow"], 1, shutdown_tasks.init, (), shutdown_tasks.task,
+                                  lambda key, kind, why: (key, kind), timeout=3)))
+    ''')
+    assert out == "[('slow', 'timeout')]\n"
+
