@@ -626,7 +626,13 @@ def _ls_samples(dataset, setting, split, policy, as_json) -> None:
         from pcfbench.errors import unknown_name
 
         raise unknown_name(f"split of dataset {name}", split, adapter.splits())
-    ids = [f"{seq}/{i:06d}" for seq, i in SampleBuilder(adapter, s, policy).sample_keys(split)]
+    builder = SampleBuilder(adapter, s, policy)
+    ids = [f"{seq}/{i:06d}" for seq, i in builder.sample_keys(split)]
+    if not ids:  # why, and the option that fixes it (pcfbench.nosamples), beside the empty list
+        from pcfbench.nosamples import explain
+
+        settings = [get_setting(n) for n in cls.default_settings]
+        click.echo(f"pcfbench: note: {explain(builder, split, settings=settings).message}", err=True)
     if as_json:
         click.echo(json.dumps(ids))
         return

@@ -23,11 +23,12 @@ MOST_NAMES = 5
 
 @dataclass(frozen=True)
 class Options:
-    """How the caller's user picks a split, a setting and a policy: ``{}`` is the name."""
+    """How the caller's user picks a split, a setting and a policy: ``{}`` is the name (None: the
+    caller offers no choice of it)."""
 
     split: str = "--split {}"
-    setting: str = "--setting {}"
-    policy: str = "--policy {}"
+    setting: str | None = "--setting {}"
+    policy: str | None = "--policy {}"
 
 
 CLI = Options()
@@ -103,12 +104,12 @@ def explain(builder: SampleBuilder, split: str, *, settings: Iterable[Setting] =
     fixes = []
     fitting = [s for s in settings
                if s.name != setting.name and abs(s.rate_hz - adapter.rate_hz) <= 1e-6 and window(s, policy.rule) <= longest]
-    if fitting:
+    if fitting and options.setting is not None:
         fixes.append("a setting of a shorter horizon: " + " or ".join(
             f"{options.setting.format(s.name)} (needs {window(s, policy.rule)})" for s in fitting))
     every_frame = [p.name for p in builder.protocol.policies.values() if p.kind == PolicyKind.EVERY_FRAME]
-    if policy.rule == PolicyKind.FULL_CONTEXT and longest > 0 and every_frame:
+    if policy.rule == PolicyKind.FULL_CONTEXT and longest > 0 and every_frame and options.policy is not None:
         fixes.append(f"{options.policy.format(every_frame[0])} (every sweep a sample; sweeps outside the sequence "
                      "are empty)")
-    fix = f"; pick {', or '.join(fixes)}" if fixes else ""
+    fix = f"; pick {', or '.join(fixes)}" if fixes else "; longer sequences are needed"
     return NoSamples("setting", f"{head}: {why}{fix}")

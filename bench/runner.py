@@ -224,8 +224,25 @@ def _sample_keys(builder: SampleBuilder, spec: CellSpec, plugins: Plugins | None
         raise
     if not keys:
         settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
-        raise PcfbenchError(explain(builder, spec.split, settings=settings).message)
+        raise DataError(explain(builder, spec.split, settings=settings).message)
     return keys
+
+
+def _layout_hint(spec: CellSpec, plugins: Plugins | None) -> str:
+    """``; ROOT holds the kitti layout: pass --dataset kitti=ROOT`` when the cell's root is
+    not its dataset's layout and another registered adapter recognises it (``detect``, what
+    ``pcfbench datasets check`` uses); else ""."""
+    root = Path(config.split_root_options(spec.dataset_root)[0])
+    try:
+        datasets = (plugins or get_plugins()).datasets
+        if not root.exists() or datasets.get(spec.dataset).detect(root):
+            return ""
+        found = [name for name in datasets.names() if name != spec.dataset and datasets.get(name).detect(root)]
+    except Exception:  # noqa: BLE001 - a hint, never a second error
+        return ""
+    if not found:
+        return ""
+    return f"; {root} holds the {found[0]} layout: pass --dataset {found[0]}={root}"
 
 
 @dataclass
@@ -285,8 +302,14 @@ def run_cell(
         isolate = timeout is not None
     execution = ExecutionContext() if threads is None else ExecutionContext(threads)
     start = time.perf_counter()
-    res = resolve(spec, plugins)
-    keys = _sample_keys(res.builder, spec, plugins)
+    try:
+        res = resolve(spec, plugins)
+        keys = _sample_keys(res.builder, spec, plugins)
+    except DataError as exc:  # the root may be another dataset's: say so, as `datasets check` would
+        hint = _layout_hint(spec, plugins)
+        if not hint:
+            raise
+        raise DataError(f"{exc}{hint}") from None
     if spec.limit is not None:
         keys = keys[: spec.limit]
     ids = [f"{s}/{i:06d}" for s, i in keys]

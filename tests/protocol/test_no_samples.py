@@ -114,3 +114,40 @@ def test_the_window_is_the_shortest_sequence_with_a_sample(name):
     for rule in (PolicyKind.FULL_CONTEXT, PolicyKind.EVERY_FRAME):
         need = window(s, rule)
         assert len(anchors(need, s, rule.value)) == 1 and anchors(need - 1, s, rule.value) == []
+
+
+@pytest.mark.parametrize("dataset", ["nuscenes", "av2", "mcap"])
+def test_a_root_of_another_layout_is_named_with_the_dataset_that_reads_it(tmp_path, dataset):
+    root = write_kitti_tree(tmp_path / "k", sequences=("08",), num_sweeps=24)
+    line = _error(_run(["run", "-d", f"{dataset}={root}", "-s", "kitti-1s", "-m", "copy-last", "--no-report", "-q",
+                        "--store", str(tmp_path / "store")]))
+    assert line.endswith(f"; {root} holds the kitti layout: pass --dataset kitti={root}"), line
+
+
+def test_ls_samples_says_why_the_list_is_empty(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", sequences=("00",), num_sweeps=24)
+    res = CliRunner().invoke(build_cli(), ["ls", "samples", f"kitti={root}", "-s", "kitti-1s"])
+    assert res.exit_code == 0, res.output
+    assert ("pcfbench: note: kitti:test has no samples for setting kitti-1s (full-context): the root "
+            f"{root} holds no sequence of split test; its sequences are in split train (00): pick it with --split train"
+            in res.output)
+
+
+def test_export_of_a_sample_id_in_an_empty_split_names_the_split(tmp_path):
+    root = write_kitti_tree(tmp_path / "k", sequences=("00",), num_sweeps=24)
+    line = _error(_run(["export", "-d", f"kitti={root}", "-s", "kitti-1s", "--sample", "00/000010",
+                        "-o", str(tmp_path / "x.mcap")]))
+    assert line == (f"pcfbench: error: --sample '00/000010': kitti:test has no sequence: the root {root} holds no "
+                    "sequence of split test; its sequences are in split train (00): pick it with --split train")
+
+
+def test_the_tokenizer_oracle_names_its_own_option(tmp_path):
+    torch = pytest.importorskip("torch")
+    from pcfbench.errors import PcfbenchError
+    from pcfbench.methods.copilot4d import evaluate
+
+    root = write_kitti_tree(tmp_path / "k", sequences=("08",), num_sweeps=24)
+    with pytest.raises(PcfbenchError) as err:
+        evaluate.evaluate_oracle(torch.nn.Module(), KittiOdometry(root), "test", "kitti-3s", log=lambda *a: None)
+    assert str(err.value).endswith("the longest of its 1 sequence(s) has 24 (08); pick a setting of a shorter "
+                                   "horizon: --oracle kitti-1s (needs 19)"), err.value
