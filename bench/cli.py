@@ -340,13 +340,22 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
     """Train (or resume) a trained method; its checkpoint goes to the cache, keyed by method,
     version, options and training data."""
     from pcfbench.method import resolve_method
-    from pcfbench.training import open_training_data, retrain_command, ship as ship_checkpoint, train as train_method
+    from pcfbench.training import TrainingInterrupted, open_training_data, retrain_command
+    from pcfbench.training import ship as ship_checkpoint, train as train_method
 
     plugins = get_plugins()
     warn_failed(plugins)
     spec = resolve_method(method_spec, plugins)
-    ck = train_method(spec, dataset, split=split, max_minutes=max_minutes, fresh=fresh, progress=not quiet,
-                      plugins=plugins, threads=threads, log=click.echo)
+    try:
+        ck = train_method(spec, dataset, split=split, max_minutes=max_minutes, fresh=fresh, progress=not quiet,
+                          plugins=plugins, threads=threads, log=click.echo)
+    except TrainingInterrupted as stop:
+        click.echo(_training_interrupted(stop, _resume_command(method_spec, dataset, split, max_minutes, threads,
+                                                               quiet, ship)), err=True)
+        sys.exit(130)
+    except KeyboardInterrupt:  # while opening (or making) the training data: no step was trained
+        click.echo("\npcfbench: interrupted before training began: nothing was trained or saved", err=True)
+        sys.exit(130)
     state = "complete" if ck.manifest.get("complete") else "not finished: rerun the same command to continue"
     click.echo(f"{spec.name}: {ck.steps} steps on {ck.train_on_label} in {ck.manifest['wall_s']:.0f} s ({state})")
     click.echo(f"checkpoint: {ck.manifest_path} (weights sha256 {ck.sha256[:16]})")
@@ -354,6 +363,36 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
         retrain = retrain_command(spec, dataset, split, ck.manifest)
         ship_checkpoint(spec, ck, open_training_data(dataset, split, plugins, progress=False).train_on, retrain,
                         log=click.echo)
+
+
+def _resume_command(method_spec, dataset, split, max_minutes, threads, quiet, ship) -> str:
+    """The ``pcfbench train`` command that resumes this one: its options but ``--fresh`` (which
+    would throw the kept checkpoint away); ``--threads`` as given (a resumed training must keep
+    its thread count)."""
+    import shlex
+
+    args = ["pcfbench", "train", method_spec, "--dataset", dataset]
+    if split != "train":
+        args += ["--split", split]
+    if max_minutes is not None:
+        args += ["--max-minutes", f"{max_minutes:g}"]
+    if threads is not None:
+        args += ["--threads", str(threads)]
+    args += ["--quiet"] * bool(quiet) + ["--ship"] * bool(ship)
+    return shlex.join(args)
+
+
+def _training_interrupted(stop, resume: str) -> str:
+    """What Ctrl-C in ``pcfbench train`` says: where it stopped, the checkpoint kept and the
+    command that resumes from it."""
+    at = "" if stop.step is None else f" at step {stop.step}" + (f" of {stop.total}" if stop.total else "")
+    if stop.saved_step is None:
+        return (f"\npcfbench: training interrupted{at}, before its first checkpoint: nothing is kept in {stop.dir}; "
+                f"start again with:\n  {resume}")
+    redo = (f" (steps {stop.saved_step + 1}..{stop.step} are trained again)"
+            if stop.step is not None and stop.step > stop.saved_step else "")
+    return (f"\npcfbench: training interrupted{at}: the checkpoint of step {stop.saved_step} is kept, "
+            f"{stop.manifest_path}; resume it{redo} with:\n  {resume}")
 
 
 @cli.command()
@@ -532,6 +571,9 @@ def ls_cmd(what, dataset, as_json, with_options, setting, split, policy):
         if with_options:
             for r in rows:
                 r["options"], r["error"] = _options_of(registry, r["name"])
+        if what == "methods":
+            for r in rows:
+                r.update(_checkpoints_of(plugins, r["name"]))
     if as_json:
         click.echo(json.dumps(rows, indent=2, default=str))
         return
@@ -542,6 +584,8 @@ def ls_cmd(what, dataset, as_json, with_options, setting, split, policy):
             click.echo(f"{r['name']:<14} {r['rate_hz']:>4g} Hz  past {r['past']}  future {r['future']}  stride {r['stride']}  {r['description']}")
             continue
         click.echo(f"{r['name']:<22} {r['plugin']:<22} {r['description']}")
+        for line in _checkpoint_lines(r):
+            click.echo(f"    {line}")
         if not with_options:
             continue
         if r["error"]:
@@ -551,6 +595,44 @@ def ls_cmd(what, dataset, as_json, with_options, setting, split, policy):
         for o in r["options"]:
             valid = f" (valid: {o['range']})" if o.get("range") else ""
             click.echo(f"    {o['name']:<{widths[0]}}  {o['type']:<{widths[1]}}  {o['default']!r:<{widths[2]}}  {o['help']}{valid}")
+
+
+def _checkpoints_of(plugins, name: str) -> dict:
+    """``ls methods``' fields of a trained method: its default training data and every
+    checkpoint it has (:func:`pcfbench.training.checkpoints.list_checkpoints`); nothing for another."""
+    from pcfbench.method import resolve_method
+    from pcfbench.training import is_trained
+    from pcfbench.training.checkpoints import list_checkpoints
+
+    try:
+        spec = resolve_method((name, {}), plugins)
+    except PcfbenchError:
+        return {}
+    if not is_trained(spec.cls):
+        return {}
+    return {"default_train_on": spec.cls.default_train_on, "checkpoints": list_checkpoints(spec)}
+
+
+def _checkpoint_lines(row: dict) -> list[str]:
+    """``checkpoint kitti:train (root /data/kitti): 1200 steps, complete; <manifest>`` per
+    checkpoint of a trained method, or how to train one."""
+    if "checkpoints" not in row:
+        return []
+    lines = []
+    for c in row["checkpoints"]:
+        if "error" in c:
+            lines.append(f"checkpoint {c['manifest']}: {c['error']}")
+            continue
+        data = c["train_on"] + "".join(f"?{k}={v}" if i == 0 else f"&{k}={v}"
+                                       for i, (k, v) in enumerate(sorted(c["dataset_options"].items())))
+        origin = "shipped" if c["where"] == "shipped" else f"root {c['root']}" if c["root"] else "trained here"
+        opts = f", options {','.join(f'{k}={v}' for k, v in sorted(c['options'].items()))}" if c["options"] else ""
+        state = "complete" if c["complete"] else "unfinished (rerun its pcfbench train to continue)"
+        lines.append(f"checkpoint {data} ({origin}{opts}): {c['steps']} steps, {state}; {c['manifest']}")
+    if not row["checkpoints"]:
+        lines.append(f"no checkpoint: `pcfbench train {row['name']} --dataset {row['default_train_on']}` trains the "
+                     "one the default run uses")
+    return lines
 
 
 def _ls_samples(dataset, setting, split, policy, as_json) -> None:
@@ -570,7 +652,13 @@ def _ls_samples(dataset, setting, split, policy, as_json) -> None:
         from pcfbench.errors import unknown_name
 
         raise unknown_name(f"split of dataset {name}", split, adapter.splits())
-    ids = [f"{seq}/{i:06d}" for seq, i in SampleBuilder(adapter, s, policy).sample_keys(split)]
+    builder = SampleBuilder(adapter, s, policy)
+    ids = [f"{seq}/{i:06d}" for seq, i in builder.sample_keys(split)]
+    if not ids:  # why, and the option that fixes it (pcfbench.protocol.nosamples), beside the empty list
+        from pcfbench.protocol.nosamples import explain
+
+        settings = [get_setting(n) for n in cls.default_settings]
+        click.echo(f"pcfbench: note: {explain(builder, split, settings=settings).message}", err=True)
     if as_json:
         click.echo(json.dumps(ids))
         return

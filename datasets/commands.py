@@ -137,6 +137,11 @@ def check_sample(builder, split: str, sample_id: str, where: str = "--sample") -
         raise PcfbenchError(f"{where} {sample_id!r}: expected SEQUENCE/INDEX, e.g. 08/000010; {hint}")
     index = int(idx)
     names = list(adapter.sequence_names(split))
+    if not names:  # which split its sequences are in, rather than "it has" nothing
+        from pcfbench.protocol.nosamples import no_sequences
+
+        raise PcfbenchError(no_sequences(adapter, split, f"{where} {sample_id!r}: {adapter.name}:{split} has no "
+                                                         "sequence").message)
     if seq not in names:
         shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
         raise PcfbenchError(f"{where} {sample_id!r}: {adapter.name}:{split} has no sequence {seq!r} (it has {shown}); {hint}")
@@ -201,7 +206,10 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
     if sample_id is None:
         keys = builder.sample_keys(split)
         if not keys:
-            raise PcfbenchError(f"{dataset}: no samples for setting {setting} ({policy})")
+            from pcfbench.protocol.nosamples import explain
+
+            settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
+            raise PcfbenchError(explain(builder, split, settings=settings).message)
         seq, index = keys[0]
     else:
         seq, index = check_sample(builder, split, sample_id)

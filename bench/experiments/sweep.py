@@ -416,7 +416,8 @@ def _checkpoints(exp: Experiment, v: Variant, plugins: Plugins, progress: bool) 
     out = []
     for t in exp.train_on or (None,):
         try:
-            ck = checkpoint_for(v.method, train_on=t, split=exp.train_split, plugins=plugins, progress=progress)
+            ck = checkpoint_for(v.method, train_on=t, split=exp.train_split, plugins=plugins, progress=progress,
+                                split_option='train_split = "{}"')
         except PcfbenchError as exc:
             raise _Reader(exp.path).wrap("train_on" if t else v.where, exc) from None
         out.append({"checkpoint": str(ck.dir.resolve()), "checkpoint_sha256": ck.sha256, "train_on": ck.train_on_label})
@@ -475,12 +476,16 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
         policy = exp.policy or cls.default_policy
         for split, setting in itertools.product(splits, exp.settings or cls.default_settings):
             try:
-                keys = SampleBuilder(adapter, get_setting(setting, plugins), policy).sample_keys(split)
+                builder = SampleBuilder(adapter, get_setting(setting, plugins), policy)
+                keys = builder.sample_keys(split)
             except PcfbenchError as exc:
                 raise reader.wrap("datasets", exc) from None
             if not keys:
-                raise reader.error("settings", f"{name}:{split} (root {root}) has no samples for setting {setting} "
-                                   f"({policy})")
+                from pcfbench.protocol.nosamples import EXPERIMENT_FILE, explain
+
+                why = explain(builder, split, settings=[get_setting(s, plugins) for s in cls.default_settings],
+                              options=EXPERIMENT_FILE)
+                raise reader.error({"split": "splits", "setting": "settings"}.get(why.kind, "datasets"), why.message)
             for v in exp.variants:
                 m = v.method
                 for ck in checkpoints.setdefault(v.key, _checkpoints(exp, v, plugins, progress)):

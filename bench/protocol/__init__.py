@@ -5,6 +5,7 @@ under it, and what every forecast and sweep must be before it is scored.
     settings.py     reads it (Protocol, Setting, SamplePolicy; active_protocol)
     samples.py      sequences -> (Sample, GroundTruth) pairs under a setting (SampleBuilder)
     validate.py     the checks on sweeps read and forecasts returned
+    nosamples.py    why a split yields no samples, and the option that fixes it
 
 The names below are what the rest of pcfbench, and plugins, import from the protocol.
 """

@@ -286,8 +286,14 @@ def run_cell(spec: CellSpec, store_root: Path, options: RunOptions | None = None
     """
     options = options or RunOptions()
     start = time.perf_counter()
-    res = resolve(spec, plugins)
-    keys = sample_keys(res, spec)
+    try:
+        res = resolve(spec, plugins)
+        keys = sample_keys(res, spec, plugins)
+    except DataError as exc:  # the root may be another dataset's: say so, as `datasets check` would
+        hint = _layout_hint(spec, plugins)
+        if not hint:
+            raise
+        raise DataError(f"{exc}{hint}") from None
     ids = [sample_id(s, i) for s, i in keys]
     fingerprint = res.builder.adapter.fingerprint(spec.split)
     cell = Cell(store_root, spec, wait=options.wait)
@@ -316,18 +322,45 @@ def run_cell(spec: CellSpec, store_root: Path, options: RunOptions | None = None
     return CellResult(spec, cell.dir, "complete", len(ids), len(done), len(todo), failed, elapsed)
 
 
-def sample_keys(res: Resolved, spec: CellSpec) -> list[tuple[str, int]]:
+def sample_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -> list[tuple[str, int]]:
     """The cell's samples, ``(sequence, reference index)``, the first ``spec.limit`` of them;
-    none is an error naming the dataset, split, setting and policy."""
-    keys = res.builder.sample_keys(spec.split)
-    if spec.limit is not None:
-        keys = keys[: spec.limit]
+    none is an error that says why (the split's sequences are elsewhere, too short for the
+    setting, or absent) and the option that fixes it (:mod:`pcfbench.protocol.nosamples`)."""
+    from pcfbench.errors import unknown_name
+    from pcfbench.protocol.nosamples import explain
+
+    builder = res.builder
+    adapter = builder.adapter
+    try:
+        keys = builder.sample_keys(spec.split)
+    except DataError:
+        # the adapter refuses a split it does not know; name the known ones and the option. A
+        # split it accepts without listing (an alias) is not refused here
+        if spec.split not in adapter.splits():
+            raise unknown_name(f"split of dataset {spec.dataset}", spec.split, adapter.splits(),
+                               "pick one with --split NAME") from None
+        raise
     if not keys:
-        raise PcfbenchError(
-            f"{spec.dataset}:{spec.split} has no samples for setting {spec.setting} ({spec.policy}); "
-            f"check the dataset root {spec.dataset_root}"
-        )
-    return keys
+        settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
+        raise DataError(explain(builder, spec.split, settings=settings).message)
+    return keys if spec.limit is None else keys[: spec.limit]
+
+
+def _layout_hint(spec: CellSpec, plugins: Plugins | None) -> str:
+    """``; ROOT holds the kitti layout: pass --dataset kitti=ROOT`` when the cell's root is
+    not its dataset's layout and another registered adapter recognises it (``detect``, what
+    ``pcfbench datasets check`` uses); else ""."""
+    root = Path(config.split_root_options(spec.dataset_root)[0])
+    try:
+        datasets = (plugins or get_plugins()).datasets
+        if not root.exists() or datasets.get(spec.dataset).detect(root):
+            return ""
+        found = [name for name in datasets.names() if name != spec.dataset and datasets.get(name).detect(root)]
+    except Exception:  # noqa: BLE001 - a hint, never a second error
+        return ""
+    if not found:
+        return ""
+    return f"; {root} holds the {found[0]} layout: pass --dataset {found[0]}={root}"
 
 
 def cell_identity(res: Resolved, spec: CellSpec, id_hash: str, digest: str, allow_train_split: bool) -> dict[str, Any]:

@@ -32,6 +32,8 @@ from pcfbench.errors import PcfbenchError
 
 #: seconds a worker gets to finish its last sample and exit after the driver says stop
 STOP_GRACE_S = 5.0
+#: seconds a timed-out worker gets to exit on SIGTERM before it is killed (the run waits meanwhile)
+TERM_GRACE_S = 1.0
 _PR_SET_PDEATHSIG = 1
 
 
@@ -68,12 +70,29 @@ def _die_with_driver(conn: Connection) -> None:
     threading.Thread(target=watch, name="pcfbench-driver-watch", daemon=True).start()
 
 
+def _exit_on_term(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, task: Callable[[Any], Any]) -> None:
     """A worker's life: set up (``init(*init_args)``), then answer one task per message until
-    told to stop (``None``) or the driver's end of the pipe closes."""
+    told to stop (``None``) or the driver's end of the pipe closes.
+
+    SIGTERM (the driver stopping a busy worker, :func:`_stop`) exits through Python, so that the
+    process's finalizers run: a named semaphore the worker made (a ``multiprocessing`` lock) is
+    registered with the resource tracker the driver shares, and one a killed worker leaves
+    behind is what the tracker warns about ("leaked semaphore") at the driver's exit."""
+    signal.signal(signal.SIGTERM, _exit_on_term)
+    # A process this worker starts is spawned, never forked (a fork of a process running numba,
+    # OpenMP or torch threads can deadlock). numba reads it: it makes its init lock a named
+    # semaphore only under a fork start method, so a worker killed after all (a hang past the
+    # grace, a crash) leaves none behind.
+    multiprocessing.set_start_method("spawn", force=True)
     _die_with_driver(conn)
     try:
         init(*init_args)
+    except SystemExit:  # told to stop while setting up
+        return
     except BaseException as exc:  # noqa: BLE001 - every setup failure goes back to the driver
         _send_error(conn, "init-error", exc)
         return
@@ -87,6 +106,8 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
             return
         try:
             result = task(key)
+        except SystemExit:  # told to stop mid-sample: its result is not wanted
+            return
         except BaseException as exc:  # noqa: BLE001 - data errors stop the run: the driver raises them
             _send_error(conn, "error", exc)
             return
@@ -123,6 +144,7 @@ class _Worker:
             child.close()
         self.ready = False
         self.stopping = False  # told to exit (None sent)
+        self.exiting = False  # sent an error and exits on its own
         self.key: Any = None
         self.started = 0.0
 
@@ -186,6 +208,7 @@ def run_supervised(
                 if message is not None:
                     kind, value = message
                     if kind in ("error", "init-error"):
+                        w.exiting = True
                         raise value
                     if kind == "ready":
                         w.ready = True
@@ -208,6 +231,8 @@ def run_supervised(
                     continue
                 if timeout is not None and w.key is not None and time.monotonic() - w.started > timeout:
                     workers.remove(w)
+                    w.process.terminate()  # a sample hung in Python exits through its finalizers (_stop)
+                    w.process.join(TERM_GRACE_S)
                     w.kill()
                     yield on_failure(w.key, "timeout", f"it ran longer than the per-sample time limit of {timeout:g} s")
                     if todo:
@@ -217,16 +242,24 @@ def run_supervised(
 
 
 def _stop(workers: list[_Worker]) -> None:
-    """Ask idle workers to exit, then kill whatever is left (a worker busy on a sample whose
-    result nobody will read, after an error or an interrupt)."""
+    """Stop every worker after an error or an interrupt, each through its own exit (so its
+    finalizers run, :func:`_worker_main`): an idle one is told to exit, a busy one (a sample
+    whose result nobody will read) or one setting up gets SIGTERM, and one that sent an error
+    is already exiting. Whatever is left after ``STOP_GRACE_S`` (native code that does not
+    return to Python) is killed."""
     for w in workers:
-        if w.key is None and not w.stopping:
+        if w.exiting or w.stopping:
+            continue
+        if w.ready and w.key is None:
             try:
                 w.conn.send(None)
+                w.stopping = True
+                continue
             except (OSError, ValueError):
                 pass
+        if w.process.is_alive():
+            w.process.terminate()
     deadline = time.monotonic() + STOP_GRACE_S
     for w in workers:
-        if w.key is None:
-            w.process.join(max(0.0, deadline - time.monotonic()))
+        w.process.join(max(0.0, deadline - time.monotonic()))
         w.kill()

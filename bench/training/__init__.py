@@ -49,10 +49,11 @@ from pcfbench.training.checkpoints import (Checkpoint, CheckpointError, checkpoi
 from pcfbench.training.data import TrainOn, TrainSource, data_recipe_sha256, open_training_data, recipe_sha256
 from pcfbench.training.loop import (LoopResult, Panel, Randoms, StateError, adamw, autocast, default_device, fit_loop,
                                     param_groups, synchronize, warmup_cosine, write_curve)
-from pcfbench.training.trained import TrainedMethod, TrainingRun, is_trained, train
+from pcfbench.training.trained import TrainedMethod, TrainingInterrupted, TrainingRun, is_trained, train
 
 __all__ = [
-    "Checkpoint", "CheckpointError", "TrainOn", "TrainSource", "TrainedMethod", "TrainingRun", "checkpoint_dir",
+    "Checkpoint", "CheckpointError", "TrainOn", "TrainSource", "TrainedMethod", "TrainingInterrupted", "TrainingRun",
+    "checkpoint_dir",
     "checkpoint_for", "checkpoint_options_hash", "data_recipe_sha256", "find_checkpoint", "find_shipped",
     "find_shipped_by_recipe", "is_trained", "missing_checkpoint_message", "open_training_data", "recipe_sha256",
     "retrain_command", "ship", "shipped_dir", "train",

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
 from pcfbench.errors import PcfbenchError
-from pcfbench.method import MethodSpec, options_hash
+from pcfbench.method import MethodSpec, options_dict, options_hash
 from pcfbench.training.data import DEFAULT_SPLIT, TrainOn, data_recipe_sha256, open_training_data
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -312,6 +312,36 @@ def trained_here(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> 
     return any(checkpoint_dir_base(spec).glob(f"{dataset}.{split}.*/{MANIFEST}"))
 
 
+def list_checkpoints(spec: MethodSpec) -> list[dict[str, Any]]:
+    """Every checkpoint of ``spec``'s method and version, any options and any data: those in
+    the cache (trained here), then those shipped with its package. From each manifest alone
+    (no weights read or hashed, so ``ls`` stays fast): ``where`` ("cache" or "shipped"),
+    ``train_on`` (``dataset:split``), ``root`` and ``dataset_options`` of the training data,
+    ``options`` (those differing from ``spec``'s), ``steps``, ``complete``, ``manifest`` (its
+    path); ``error`` for a manifest that does not read."""
+    base = f"{spec.name}/v{spec.cls.version}"
+    mine = options_dict(training_options(spec))
+    folders = [("cache", checkpoint_dir_base(spec).parent)]
+    shipped = shipped_root(spec.cls)
+    if shipped is not None:
+        folders.append(("shipped", shipped / base))
+    out = []
+    for where, folder in folders:
+        for path in sorted(folder.glob(f"*/*/{MANIFEST}")):
+            row: dict[str, Any] = {"where": where, "manifest": str(path)}
+            try:
+                m = json.loads(path.read_text())
+                t = m["train_on"]
+                row.update(train_on=f"{t['dataset']}:{t['split']}", root=None if where == "shipped" else t.get("root"),
+                           dataset_options=dict(t.get("dataset_options") or {}),
+                           options={k: v for k, v in (m.get("options") or {}).items() if mine.get(k, v) != v},
+                           steps=int(m["steps"]), complete=bool(m.get("complete")))
+            except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+                row["error"] = f"its manifest does not read ({type(exc).__name__}: {exc})"
+            out.append(row)
+    return out
+
+
 def retrain_command(spec: MethodSpec, dataset: str, split: str, manifest: Mapping[str, Any]) -> str:
     """The ``pcfbench train`` command that rebuilds a checkpoint with this ``manifest``, for its
     shipped copy: the method with the options it was given, the data, and on the CPU the thread
@@ -421,10 +451,12 @@ def _embedded() -> set[str]:
 
 
 def checkpoint_for(spec: MethodSpec, *, checkpoint: str | Path | None = None, train_on: str | None = None,
-                   split: str = DEFAULT_SPLIT, plugins: Plugins | None = None, progress: bool = True) -> Checkpoint:
+                   split: str = DEFAULT_SPLIT, plugins: Plugins | None = None, progress: bool = True,
+                   split_option: str = "--train-split {}") -> Checkpoint:
     """The checkpoint a run of ``spec`` evaluates: the file ``checkpoint`` (verified, and of
     this method and options), else the one trained on ``train_on`` (default: the method's
-    ``default_train_on``) and ``split``; a missing one is one error saying how to train it."""
+    ``default_train_on``) and ``split``; a missing one is one error saying how to train it.
+    ``split_option``: how the caller's user picks the training split (``{}``: the split)."""
     if checkpoint is not None:
         ck = Checkpoint.open(checkpoint)
         ck.check_method(spec)
@@ -433,7 +465,7 @@ def checkpoint_for(spec: MethodSpec, *, checkpoint: str | Path | None = None, tr
     ck = ready_shipped(spec, data, split, plugins)
     if ck is not None:
         return ck
-    source = open_training_data(data, split, plugins, progress)
+    source = open_training_data(data, split, plugins, progress, split_option)
     ck = find_checkpoint(spec, source.train_on)
     if ck is None:
         raise CheckpointError(missing_checkpoint_message(spec, source.train_on))

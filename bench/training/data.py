@@ -82,10 +82,11 @@ class TrainSource:
 
 
 def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugins | None = None,
-                       progress: bool = True) -> TrainSource:
+                       progress: bool = True, split_option: str = "--split {}") -> TrainSource:
     """``NAME`` or ``NAME=ROOT`` (root options ``ROOT?key=value`` allowed) opened for training:
     the root from the argument, the config, or the adapter's default (embedded datasets are
-    generated). An unknown name or a split without sequences is one clear error."""
+    generated). An unknown name or a split without sequences is one clear error; for a split
+    whose sequences are elsewhere it names their split and ``split_option`` (``{}``: the split)."""
     from pcfbench import config
     from pcfbench.dataset import options_identity
     from pcfbench.plugins import get_plugins
@@ -103,7 +104,10 @@ def open_training_data(dataset: str, split: str = DEFAULT_SPLIT, plugins: Plugin
 
         raise unknown_name(f"split of dataset {name}", split, adapter.splits())
     if not adapter.sequence_names(split):
-        raise PcfbenchError(f"dataset {name!r} has no sequences in split {split!r} under {root}")
+        from pcfbench.protocol.nosamples import Options, no_sequences
+
+        raise PcfbenchError(no_sequences(adapter, split, f"dataset {name!r} has no sequences in split {split!r}",
+                                         Options(split=split_option)).message)
     fp = adapter.fingerprint(split).digest
     opts = options_identity(adapter, config.split_root_options(root)[1])
     files = tuple(str(f) for f in adapter.data_files(split))

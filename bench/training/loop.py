@@ -207,8 +207,9 @@ def fit_loop(build_model: "Callable[[], nn.Module] | nn.Module", make_optimizer:
 
     The curve (``history``) holds one row each ``log_every`` steps and at the last: the
     window's mean (NaN ignored) of ``step, lr, *logged, grad_norm, step_s``, with ``step``,
-    ``elapsed_s`` and ``cpu_s`` at its end. The progress bar shows ``progress_values``
-    (label -> logged name; default the loss). Saves every ``checkpoint_every`` steps and at
+    ``elapsed_s`` and ``cpu_s`` at its end. The progress (a bar on a terminal, log lines
+    elsewhere) shows ``progress_values`` (label -> logged name; default the loss): labels a
+    reader understands, e.g. ``"L1 depth error (m)"``, not a column's short name. Saves every ``checkpoint_every`` steps and at
     the end: the weights (``model.state_dict()`` under ``weights_prefix``, then
     ``extra_weights``), the state (optimiser, :func:`random_state`, history, window, times)
     and ``manifest_config`` (a mapping, or a function of the model) in the manifest.

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import fcntl
 import io
+import json
 import os
 import time
 from abc import abstractmethod
@@ -19,6 +20,25 @@ from pcfbench.training.data import DEFAULT_SPLIT, TrainOn, TrainSource, open_tra
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcfbench.plugins import Plugins
+
+#: Off a terminal, training progress is a log line this often (seconds), not a bar.
+LOG_EVERY_S = 30.0
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`train`: where it stopped and what is kept.
+
+    ``step`` of ``total``: the steps trained when it stopped (None: before ``fit`` started the
+    loop); ``saved_step``: the step of the checkpoint kept in ``dir`` (its manifest, read from
+    the disk: the last save that completed), None when none was saved."""
+
+    def __init__(self, dir: Path, step: int | None, total: int | None, saved_step: int | None) -> None:
+        super().__init__(f"training interrupted at step {step}")
+        self.dir, self.step, self.total, self.saved_step = Path(dir), step, total, saved_step
+
+    @property
+    def manifest_path(self) -> Path:
+        return self.dir / MANIFEST
 
 def is_trained(cls: type) -> bool:
     return isinstance(cls, type) and issubclass(cls, TrainedMethod)
@@ -57,7 +77,12 @@ class TrainingRun:
         self._base_cpu = 0.0
         self._created = time.time()
         self._bar = None
+        self._lines = False  # progress as log lines (off a terminal)
+        self._last_line = 0.0
         self._steps = 0
+        self._initial = 0
+        #: the steps of the whole training (``start``); None before
+        self.total: int | None = None
         self.saved_steps: int | None = None
 
     # resume -----------------------------------------------------------------------------------
@@ -95,18 +120,49 @@ class TrainingRun:
         """True once the time budget is spent (each call trains at least one step)."""
         return self.max_minutes is not None and self._steps > 0 and self.elapsed_s() > 60 * self.max_minutes
 
-    def start(self, total: int, initial: int = 0) -> None:
-        if self.show and not os.environ.get("PCFBENCH_NO_PROGRESS"):
-            from tqdm import tqdm
+    @property
+    def step(self) -> int | None:
+        """The steps trained so far, the resumed ones included (None before :meth:`start`)."""
+        return None if self.total is None else self._initial + self._steps
 
-            self._bar = tqdm(total=total, initial=initial, desc=f"train {self.spec.name}", unit="step", dynamic_ncols=True)
+    def start(self, total: int, initial: int = 0) -> None:
+        """Steps of the whole training and those already trained; shows the progress: a bar on
+        a terminal, else a log line every ``LOG_EVERY_S`` seconds and at the last step."""
+        self.total, self._initial = int(total), int(initial)
+        if self.show and not os.environ.get("PCFBENCH_NO_PROGRESS"):
+            import sys
+
+            if sys.stderr.isatty():
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=total, initial=initial, desc=f"train {self.spec.name}", unit="step",
+                                 dynamic_ncols=True)
+            else:  # a bar redrawn in a log file floods it
+                self._lines = True
+                self._last_line = -LOG_EVERY_S  # the first step's line says it started, and how fast
 
     def update(self, steps: int = 1, **metrics: float) -> None:
+        """``steps`` more trained; ``metrics``: the values to show, by their label."""
         self._steps += steps
         if self._bar is not None:
             if metrics:
                 self._bar.set_postfix({k: f"{v:.4g}" for k, v in metrics.items()}, refresh=False)
             self._bar.update(steps)
+        elif self._lines:
+            now = time.monotonic()
+            if now - self._last_line >= LOG_EVERY_S or self.step == self.total:
+                self._last_line = now
+                self.log(self._progress_line(metrics))
+
+    def _progress_line(self, metrics: Mapping[str, float]) -> str:
+        """``train NAME: step 40/1200 (3%), 0.81 s/step, 16 min left; loss 0.1234, ...``."""
+        step, total = self.step, self.total
+        per_step = self.elapsed_s() / max(1, self._steps)
+        left = max(0, total - step) * per_step
+        eta = f"{left / 60:.0f} min" if left >= 90 else f"{left:.0f} s"
+        values = "; " + ", ".join(f"{k} {v:.4g}" for k, v in metrics.items()) if metrics else ""
+        return (f"train {self.spec.name}: step {step}/{total} ({100 * step / max(1, total):.0f}%), "
+                f"{per_step:.3g} s/step, {eta} left{values}")
 
     def close(self) -> None:
         if self._bar is not None:
@@ -251,6 +307,9 @@ def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_min
         try:
             with applied(context):
                 method.fit(source, out, run)
+        except KeyboardInterrupt:
+            run.close()  # the bar ends before anything says why
+            raise TrainingInterrupted(out, run.step, run.total, _saved_step(out)) from None
         finally:
             run.close()
     if run.saved_steps is None:
@@ -258,6 +317,15 @@ def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_min
     ck = Checkpoint.open(out)
     ck.check_method(spec)
     return ck
+
+
+def _saved_step(folder: Path) -> int | None:
+    """The step of the checkpoint in ``folder`` as its manifest on the disk says (None: none)."""
+    try:
+        steps = json.loads((folder / MANIFEST).read_text()).get("steps")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return steps if isinstance(steps, int) else None
 
 
 def _cuda() -> bool:

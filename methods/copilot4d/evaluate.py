@@ -318,8 +318,11 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
     keys = builder.sample_keys(split)
     if not keys:
         from pcfbench.errors import PcfbenchError
+        from pcfbench.protocol.nosamples import Options, explain
 
-        raise PcfbenchError(f"dataset {adapter.name!r} split {split!r} has no {setting} samples for the oracle")
+        settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
+        why = explain(builder, split, settings=settings, options=Options(setting="--oracle {}", policy=None))
+        raise PcfbenchError(f"the oracle: {why.message}")
     if max_samples:
         keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(max_samples, len(keys))).round().astype(int))]
     rows: dict[str, list[dict]] = {"oracle": [], "copy-last": []}

@@ -179,7 +179,7 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     out = fit_loop(model, lambda m: D.make_optimizer(m, cfg), sample_batch, step_fn, run, steps=steps, seed=seed,
                    schedule=lambda step: D.lr_at(cfg, step), grad_clip=cfg.grad_clip, log_every=LOG_EVERY,
                    checkpoint_every=CHECKPOINT_EVERY, torch_generator=True,
-                   progress_values={"loss": "loss", "acc": "accuracy"}, weights_prefix="world.",
+                   progress_values={"cross entropy": "loss", "token accuracy": "accuracy"}, weights_prefix="world.",
                    extra_weights=extra_weights, manifest_config=manifest_config, resumed=resumed, log=log)
     return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
             "cpu_s": out.cpu_s}

@@ -111,7 +111,8 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
         lambda: Tokenizer(cfg).to(device), lambda model: make_optimizer(model, cfg), sample_batch, step_fn, run,
         steps=steps, seed=seed, schedule=lambda step: lr_at(cfg, step), grad_clip=cfg.grad_clip,
         log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every, after_step=after_step,
-        progress_values={"loss": "loss", "l1": "l1", "codes": "alive_codes"},
+        # labels a reader of the bar or the log understands (the curve keeps the column names)
+        progress_values={"total loss": "loss", "L1 depth error (m)": "l1", "share of codes in use": "alive_codes"},
         manifest_config=lambda model: {"tokenizer": cfg.to_dict(), "parameters": count_parameters(model),
                                        "steps_target": steps, "seed": seed},
         log=log)
