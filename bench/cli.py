@@ -400,11 +400,8 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
     click.echo(summary(store_path, options, leaderboard=board))
     if board.scope:
         click.echo(board.scope)
-    if options.figures:
-        from pcfbench.reporting.figures import range_gaps
-
-        for note in range_gaps(board, store_path):
-            click.echo(f"pcfbench: note: {note}", err=True)
+    for note in paths.range_gaps:  # with figures only
+        click.echo(f"pcfbench: note: {note}", err=True)
     if verbose:
         for p in paths.values():
             click.echo(str(p))

@@ -401,9 +401,11 @@ def _csv_frame(lb: Leaderboard, df: pd.DataFrame) -> pd.DataFrame:
 
 class ReportPaths(dict):
     """What :func:`write_reports` wrote: key -> final path, as a dict; ``kept_figures``: the
-    stems of the figures left in place because their data had not changed (not drawn again)."""
+    stems of the figures left in place because their data had not changed (not drawn again);
+    ``range_gaps``: the notes on cells whose range bins the store lacks (figures only)."""
 
     kept_figures: tuple[str, ...] = ()
+    range_gaps: tuple[str, ...] = ()
 
 
 def written_summary(paths: ReportPaths, out_dir: Path) -> str:
@@ -426,6 +428,10 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     then each file is renamed into place, so a report killed at any moment leaves every file
     either old or new, never half written. ``leaderboard``: the :func:`collect` result of the
     same store and options, if already made.
+
+    A figure whose key (a hash of exactly what it plots and of the figure code:
+    ``pcfbench.reporting.figcache``) is the one recorded in ``figures/.figures.json`` for the
+    file in place is not drawn again: that file stays.
     """
     import shutil
 
@@ -441,10 +447,12 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     rel: dict[str, Path] = {}  # key -> path relative to out_dir
+    found_ranges, gaps = None, []
     if options.figures:  # a cell whose range bins the store lacks: the tables say so too
-        from pcfbench.reporting.figures import range_gaps
+        from pcfbench.reporting.figures import group_ranges, range_gaps
 
-        gaps = range_gaps(lb, store_root)
+        found_ranges = group_ranges(store_root, lb.table)  # read once: for these notes and the figures
+        gaps = range_gaps(lb, store_root, found_ranges)
         if gaps:
             lb = dataclasses.replace(lb, notes=sorted(set(lb.notes) | set(gaps)))
     try:
@@ -460,13 +468,21 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
 
         main_table = render(main, Path("leaderboard"), None, page=True)
         figures: dict[str, Path] = {}
+        cache = None
+        in_place: set[str] = set()  # keys of the figures kept where they are: nothing to publish
         if options.figures:
+            from pcfbench.reporting.figcache import FigureCache
             from pcfbench.reporting.figures import FIGURES_DIR, write_figures
 
-            figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR,
-                                    samples=options.figure_samples, plugins=plugins, gallery=options.gallery)
+            cache = FigureCache(out_dir / FIGURES_DIR)
+            figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR, samples=options.figure_samples,
+                                    plugins=plugins, gallery=options.gallery, cache=cache, ranges=found_ranges)
             for name, p in figures.items():
-                rel[f"figures/{name}"] = p.relative_to(stage)
+                if p.is_relative_to(stage):
+                    rel[f"figures/{name}"] = p.relative_to(stage)
+                else:
+                    rel[f"figures/{name}"] = p.relative_to(out_dir)
+                    in_place.add(f"figures/{name}")
         from pcfbench.reporting.htmlreport import page
 
         (stage / "leaderboard.html").write_text(page(main_table, lb, figures, generated=(
@@ -495,7 +511,9 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
         (stage / "tables").mkdir(exist_ok=True)
         for name, preset in presets.items():
             render(preset, Path("tables") / name, f"tables/{name}")
-        publish(stage, out_dir, [rel[k] for k in rel])
+        publish(stage, out_dir, [rel[k] for k in rel if k not in in_place])
+        if cache is not None:  # after the figures it describes are in place
+            cache.write()
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     if "transfer_md" not in rel:  # no trained cells (any more): no transfer table
@@ -504,6 +522,8 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     if options.figures:
         _remove_old_figures(out_dir, {p.name for k, p in rel.items() if k.startswith("figures/")})
     written = ReportPaths({k: out_dir / p for k, p in rel.items()})
+    written.kept_figures = tuple(cache.kept) if cache is not None else ()
+    written.range_gaps = tuple(gaps)
     return written
 
 
