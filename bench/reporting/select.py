@@ -56,8 +56,15 @@ class Selection:
             return
         where = "\n".join(f"  {f}s: {', '.join(names[f]) or 'none'}" for f, _ in FIELDS)
         if unmatched:
-            what = "; ".join(f"--{f} {shlex.quote(p)} matches no {f}" for f, p in unmatched)
+            what = "; ".join(f"--{f} {shlex.quote(p)} matches no {f}{_did_you_mean(p, names[f])}" for f, p in unmatched)
         else:
             what = f"no cell matches {self.describe()} together"
         raise PcfbenchError(f"{what} of the store's {len(held)} complete cell(s), which hold:\n{where}\n"
                             "patterns are shell-style (fnmatch, case-sensitive): `--method 'raycast-*'`")
+
+
+def _did_you_mean(pattern: str, names: list[str]) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(pattern, names, n=3, cutoff=0.5)
+    return f" (did you mean {' or '.join(shlex.quote(c) for c in close)}?)" if close else ""

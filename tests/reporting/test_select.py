@@ -139,10 +139,11 @@ def test_unfiltered_report_says_nothing_of_filters(two_settings, tmp_path):
 
 
 def test_a_pattern_that_matches_nothing_is_one_error_listing_the_store(two_settings, tmp_path):
-    res = _report(two_settings, tmp_path / "rep", "--method", "raycast-*", "--dataset", "nuscenes")
+    res = _report(two_settings, tmp_path / "rep", "--method", "raycast-*", "--dataset", "nuscenes", "--method", "shifted",
+                  "--method", "copy-lst")
     assert res.exit_code != 0
-    assert "--dataset nuscenes matches no dataset; --method 'raycast-*' matches no method of the store's 4 " \
-           "complete cell(s), which hold:" in res.output
+    assert "--dataset nuscenes matches no dataset; --method 'raycast-*' matches no method; --method copy-lst matches " \
+           "no method (did you mean copy-last?) of the store's 4 complete cell(s), which hold:" in res.output
     assert "  datasets: kitti\n  settings: kitti-1s, kitti-3s\n  methods: copy-last, shifted\n" in res.output
     assert "Traceback" not in res.output
     assert not (tmp_path / "rep").exists()  # no empty report
