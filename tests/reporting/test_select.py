@@ -152,3 +152,15 @@ def test_a_pattern_that_matches_nothing_is_one_error_listing_the_store(two_setti
     assert res.exit_code != 0
     assert "no cell matches --setting kitti-3s --method shifted together of the store's 4 complete cell(s)" in res.output
     assert not (tmp_path / "rep").exists()
+
+
+def test_the_transfer_table_of_a_filtered_view_says_so_too(two_settings, tmp_path):
+    from pcfbench.reporting.transfer import write_transfer
+
+    lb = collect(two_settings, select=Selection(settings=("kitti-1s",)))
+    table = lb.table.copy()
+    table.loc[table["method"] == "shifted", ["train_on", "checkpoint_sha256"]] = ["kitti:train", "0" * 64]  # as if trained
+    text = write_transfer(dataclasses.replace(lb, table=table), tmp_path)["transfer_md"].read_text()
+    assert text.splitlines()[2] == f"**{lb.scope}**" and lb.scope.startswith("filtered view: ")
+    unfiltered = write_transfer(dataclasses.replace(lb, table=table, scope=""), tmp_path)["transfer_md"].read_text()
+    assert "filtered view" not in unfiltered
