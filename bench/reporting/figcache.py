@@ -43,8 +43,8 @@ def _plain(value: Any) -> Any:
     if isinstance(value, pd.DataFrame):
         return {"columns": [str(c) for c in value.columns],
                 "rows": [[_plain(v) for v in row] for row in value.itertuples(index=False, name=None)]}
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, dict):  # in order: the variants' order is the order their lines are drawn in
+        return [[str(k), _plain(v)] for k, v in value.items()]
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, np.generic):

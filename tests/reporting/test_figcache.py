@@ -158,6 +158,14 @@ def test_the_key_follows_every_plotted_value_and_label(store):
     assert figcache.figure_key("horizon", **figures.horizon_data(steps, relabelled, "x")) != key
     reordered = steps.iloc[::-1]  # the lines are drawn in row order
     assert figcache.figure_key("horizon", **figures.horizon_data(reordered, t.columns, "x")) != key
+    # the range figure's profiles, in the order their lines are drawn
+    found = figures.group_ranges(store, lb.table)[("kitti", "test", "kitti-1s", "full-context")]
+    assert len(found.profiles) == 2
+    rkey = figcache.figure_key("range", **figures.range_data(found, "x"))
+    flipped = figures.StoredRanges(dict(reversed(found.profiles.items())), found.sweeps, found.missing, found.why)
+    assert figcache.figure_key("range", **figures.range_data(flipped, "x")) != rkey
+    fewer = figures.StoredRanges({k: p.iloc[:-1] for k, p in found.profiles.items()}, found.sweeps, found.missing)
+    assert figcache.figure_key("range", **figures.range_data(fewer, "x")) != rkey
     # a column the figure does not read does not change it
     other = steps.assign(sweeps=steps["sweeps"] + 1)
     assert figcache.figure_key("horizon", **figures.horizon_data(other, t.columns, "x")) == key
