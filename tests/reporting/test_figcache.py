@@ -113,6 +113,31 @@ def test_a_changed_group_redraws_its_own_figures_only(store, root, tmp_path, dra
         sorted(n for n in before if "kitti-1s" in n)
 
 
+def test_a_changed_cell_redraws_only_the_figures_that_plot_what_changed(store, root, tmp_path, drawn):
+    """One value of one stored row changed (as a recomputed cell with another result would):
+    its group's horizon figure plots it and is drawn again; the range figure, drawn from the
+    range bins, and the other group's figures are not."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from pcfbench.store.cells import Cell
+
+    out = tmp_path / "rep"
+    write_reports(store, out, ReportOptions(figures=True))
+    before = _files(out)
+    chunk = Cell(store, _spec(root, "kitti-3s", "raycast-voxel")).chunk_paths()[0]
+    rows = pq.read_table(chunk).to_pandas()
+    rows.loc[0, "l1_mean"] += 0.25
+    pq.write_table(pa.Table.from_pandas(rows, preserve_index=False), chunk)
+    drawn.clear()
+    paths = write_reports(store, out, ReportOptions(figures=True))
+    assert drawn == ["horizon-kitti_test_kitti-3s"]
+    assert sorted(paths.kept_figures) == sorted(STEMS - {"horizon-kitti_test_kitti-3s"})
+    after = _files(out)
+    assert sorted(n for n in before if after[n] != before[n]) == ["horizon-kitti_test_kitti-3s.png",
+                                                                  "horizon-kitti_test_kitti-3s.svg"]
+
+
 def test_a_figure_edited_or_removed_since_is_drawn_again(store, tmp_path, drawn, monkeypatch):
     out = tmp_path / "rep"
     write_reports(store, out, ReportOptions(figures=True))
