@@ -411,28 +411,40 @@ def _training_interrupted(stop, resume: str) -> str:
 @click.option("--no-figures", is_flag=True, help="Leave out reports/figures/ (and the page's figures).")
 @click.option("--gallery", is_flag=True, help="Also draw the gallery of forecasts (reports/figures/gallery-*), "
               "which re-runs every method on 2 samples per group: the one figure not drawn from the store.")
-def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed, no_figures, gallery):
+@click.option("--dataset", "-d", "datasets", multiple=True, metavar="PATTERN",
+              help="Only cells of these datasets (repeatable; shell-style patterns, e.g. 'kitti*').")
+@click.option("--setting", "-s", "settings", multiple=True, metavar="PATTERN",
+              help="Only cells of these settings (repeatable; patterns).")
+@click.option("--method", "-m", "methods", multiple=True, metavar="PATTERN",
+              help="Only cells of these methods (repeatable; patterns, e.g. 'raycast-*').")
+@click.option("--verbose", "-v", is_flag=True, help="List every file written.")
+def report(store, reports, preset, tables_file, reference, ci, resample, resamples, seed, no_figures, gallery,
+           datasets, settings, methods, verbose):
     """Regenerate the leaderboard tables (reports/leaderboard.*, reports/tables/) and figures
-    from the store alone: no method runs (but with --gallery)."""
-    from pcfbench.reporting.report import ReportOptions, collect, summary, write_reports
+    from the store alone: no method runs (but with --gallery). --dataset/--setting/--method
+    report only the cells they match, and every page says so; a figure whose data did not
+    change is not drawn again."""
+    from pcfbench.reporting.report import ReportOptions, collect, summary, write_reports, written_summary
+    from pcfbench.reporting.select import Selection
     from pcfbench.reporting.stats import Resampling
 
     options = ReportOptions(preset, tables_file, reference, ci, Resampling.parse(resample, resamples=resamples, seed=seed),
-                            gallery=gallery)
+                            gallery=gallery, select=Selection(datasets, settings, methods))
     if no_figures:  # otherwise the default: figures unless PCFBENCH_FIGURES=0, as for run and sweep
         options = dataclasses.replace(options, figures=False)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
-    board = collect(store_path, options.resampling, options.reference)
+    board = collect(store_path, options.resampling, options.reference, select=options.select)
     paths = write_reports(store_path, reports_path, options, leaderboard=board)
     click.echo(summary(store_path, options, leaderboard=board))
-    if options.figures:
-        from pcfbench.reporting.figures import range_gaps
-
-        for note in range_gaps(board, store_path):
-            click.echo(f"pcfbench: note: {note}", err=True)
-    for p in paths.values():
-        click.echo(str(p))
+    if board.scope:
+        click.echo(board.scope)
+    for note in paths.range_gaps:  # with figures only
+        click.echo(f"pcfbench: note: {note}", err=True)
+    if verbose:
+        for p in paths.values():
+            click.echo(str(p))
+    click.echo(written_summary(paths, reports_path))
     click.echo(paths["tex"].read_text().splitlines()[0].lstrip("% "))
 
 

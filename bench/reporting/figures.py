@@ -307,17 +307,29 @@ def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
     return out
 
 
-def range_gaps(lb, store_root: Path) -> list[str]:
+GROUP_KEYS = ["dataset", "split", "setting", "policy"]
+
+
+def group_ranges(store_root: Path, table: pd.DataFrame) -> dict[tuple, StoredRanges]:
+    """:func:`stored_ranges` of each (dataset, split, setting, policy) group of ``table``, the
+    group's key to it: what a report reads once for both the notes and the range figures."""
+    if not len(table):
+        return {}
+    return {key: stored_ranges(store_root, g) for key, g in table.groupby(GROUP_KEYS, sort=True)}
+
+
+def range_gaps(lb, store_root: Path, found: dict[tuple, StoredRanges] | None = None) -> list[str]:
     """One note per complete cell of ``lb`` whose range bins the store lacks: its range figure
-    leaves it out, and the note says how to recompute them."""
+    leaves it out, and the note says how to recompute them. ``found``: the
+    :func:`group_ranges` of ``lb.table``, if already read."""
     from pcfbench.store import ranges
 
     if not len(lb.table):
         return []
-    found = stored_ranges(store_root, lb.table)
-    return [f"{variant}: no range bins in the store for cell {cell_dir} ({found.why[variant]}), "
+    found = group_ranges(store_root, lb.table) if found is None else found
+    return [f"{variant}: no range bins in the store for cell {cell_dir} ({g.why[variant]}), "
             f"so the error-by-range figure leaves it out; `{ranges.BACKFILL_COMMAND} --store {store_root}` "
-            "recomputes them (it re-runs the method)" for variant, cell_dir in found.missing.items()]
+            "recomputes them (it re-runs the method)" for g in found.values() for variant, cell_dir in g.missing.items()]
 
 
 def range_figure(found: StoredRanges, title: str):
@@ -550,13 +562,46 @@ def _method_units(method: str, plugins=None) -> dict[str, str]:
 
 
 # -- everything for a leaderboard --------------------------------------------------------------
+def horizon_data(steps: pd.DataFrame, columns: list, title: str) -> dict:
+    """Everything :func:`horizon_figure` plots, for its key (``figcache``): the per-step rows'
+    columns it reads, in its order, and each column's label, unit and direction."""
+    used = ["variant", "time_s"] + [c for col in columns for c in (col.metric, f"{col.metric}_lo", f"{col.metric}_hi")
+                                    if c in steps]
+    return {"title": title, "steps": steps[used],
+            "columns": [(c.metric, c.label, str(c.better), c.unit) for c in columns]}
+
+
+def range_data(found: StoredRanges, title: str) -> dict:
+    """Everything :func:`range_figure` plots, for its key (``figcache``)."""
+    from pcfbench.store import ranges
+
+    return {"title": title, "profiles": found.profiles, "sweeps": found.sweeps, "missing": found.missing,
+            "bin_m": RANGE_BIN_M, "backfill": ranges.BACKFILL_COMMAND}
+
+
 def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 2, plugins=None,
-                  gallery: bool = False) -> dict[str, Path]:
+                  gallery: bool = False, cache=None, ranges: dict[tuple, StoredRanges] | None = None) -> dict[str, Path]:
     """Every figure of leaderboard ``lb`` (complete cells) in the layout of ``table``
     (``tables.Table``: its columns) under ``out_dir``, from the store alone; with ``gallery``
     also the gallery, which re-runs ``samples`` samples per group with every method (0: no
-    gallery). Returns the paths."""
+    gallery). ``cache`` (``figcache.FigureCache``): a horizon or range figure whose key it
+    holds is not drawn again, and its path is the one in the cache's folder; the gallery is
+    always drawn (its data are forecasts made anew). ``ranges``: the :func:`group_ranges` of
+    ``lb.table``, if already read. Returns the paths."""
     from pcfbench.plugins import get_setting
+
+    def draw(kind: str, stem: str, data: dict, make) -> None:
+        from pcfbench.reporting.figcache import figure_key
+
+        key = figure_key(kind, **data) if cache is not None else ""
+        kept = cache.fresh(stem, key) if cache is not None else None
+        if kept is not None:
+            paths.update(kept)
+            return
+        drawn = save(make(), out_dir, stem)
+        paths.update(drawn)
+        if cache is not None:
+            cache.record(stem, key, drawn)
 
     out_dir = Path(out_dir)
     paths: dict[str, Path] = {}
@@ -565,7 +610,7 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
     columns = table.columns
     steps = lb.by_step[~lb.by_step["partial"].astype(bool)] if len(lb.by_step) else lb.by_step
     rank = table.preset.rank_by or (columns[0].metric if columns else None)
-    for _, g in lb.table.groupby(["dataset", "split", "setting", "policy"], sort=True):
+    for key, g in lb.table.groupby(GROUP_KEYS, sort=True):
         first = g.iloc[0]
         title = _group_title(first)
         gs = steps
@@ -573,8 +618,10 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
             gs = gs[gs[k] == first[k]] if len(gs) else gs
         gs = gs[gs["variant"].isin(set(g["variant"]))] if len(gs) else gs
         if len(gs) and columns:
-            paths.update(save(horizon_figure(gs, columns, title), out_dir, _group_stem("horizon", first)))
-        paths.update(save(range_figure(stored_ranges(store_root, g), title), out_dir, _group_stem("range", first)))
+            draw("horizon", _group_stem("horizon", first), horizon_data(gs, columns, title),
+                 lambda: horizon_figure(gs, columns, title))
+        found = ranges[key] if ranges is not None and key in ranges else stored_ranges(store_root, g)
+        draw("range", _group_stem("range", first), range_data(found, title), lambda: range_figure(found, title))
         if not gallery or samples <= 0:
             continue
         ref = g[g["is_reference"]] if "is_reference" in g else g.iloc[0:0]

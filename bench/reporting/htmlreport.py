@@ -154,7 +154,9 @@ def page(t: tables.Table, lb, figures: dict[str, Path] | None = None, generated:
     (``{name: path}``, PNGs embedded, in the given order)."""
     e = html.escape
     ids: dict[str, int] = {}
-    parts = [f"<h1>{e(t.heading)}: {e(t.preset.title)}</h1>", "<ul class='legend'>"]
+    parts = [f"<h1>{e(t.heading)}: {e(t.preset.title)}</h1>"]
+    parts += [f"<p class='scope'><strong>{e(t.scope)}</strong></p>"] if t.scope else []
+    parts += ["<ul class='legend'>"]
     parts += [f"<li>{e(x)}</li>" for x in t.legend + ["click a column header to sort the rows of every group by it"]]
     parts.append("</ul>")
     parts += [f"<p class='note'>note: {e(n)}</p>" for n in t.notes]

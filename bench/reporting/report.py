@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from pcfbench.reporting import stats, tables
+from pcfbench.reporting.select import Selection
 from pcfbench.errors import PcfbenchError, unknown_name
 from pcfbench.reporting.labels import cell_label, method_label, trained_label  # noqa: F401 - re-exported
 from pcfbench.store.cells import Cell, iter_cells, spec_from_meta
@@ -62,6 +63,8 @@ class ReportOptions:
     gallery: bool = False
     #: samples re-run per group for the gallery (0: no gallery)
     figure_samples: int = 2
+    #: only the cells it selects (``pcfbench report --dataset/--setting/--method``); the pages say so
+    select: Selection = field(default_factory=Selection)
 
 
 @dataclass
@@ -88,6 +91,9 @@ class Leaderboard:
     #: metric -> ``Metric.higher_is_better`` (from the cells' cell.json, else the registry);
     #: a metric neither knows is absent, and its columns are shown lower-is-better
     higher_is_better: dict[str, bool] = field(default_factory=dict)
+    #: "" for every cell of the store, else the line that says which filters made this view
+    #: (:class:`pcfbench.reporting.select.Selection`), printed on every page made from it
+    scope: str = ""
 
 
 @dataclass(frozen=True)
@@ -190,25 +196,30 @@ def _check_versions(versions: dict[str, dict[str, list[str]]]) -> None:
 
 def collect(store_root: Path, resampling: stats.Resampling | None = None,
             reference: str | None = None, cells: Iterable[Path] | None = None,
-            reference_options_hash: str | None = None) -> Leaderboard:
+            reference_options_hash: str | None = None, select: Selection | None = None) -> Leaderboard:
     """Read and analyse every complete cell under ``store_root``.
 
     ``reference``: the method every cell is compared with; None means ``copy-last`` where a
     group has it. A reference named explicitly must be a method of the store.
     ``reference_options_hash``: with ``reference``, only its cell of these options is the
     reference (a sweep's reference row). ``cells``: only these cell folders (a sweep's grid).
+    ``select``: only the cells it matches (a pattern that matches no cell is one error listing
+    what the store holds); ``Leaderboard.scope`` then says so.
     """
     from threadpoolctl import threadpool_limits
 
     # The products are small (resamples x units x metrics): BLAS threads only add overhead.
     with threadpool_limits(1):
         return _collect(Path(store_root), resampling or stats.Resampling(), reference,
-                        None if cells is None else {Path(c).resolve() for c in cells}, reference_options_hash)
+                        None if cells is None else {Path(c).resolve() for c in cells}, reference_options_hash,
+                        select or Selection())
 
 
 def _collect(store_root: Path, resampling: stats.Resampling, reference: str | None,
-             cells: set[Path] | None = None, reference_options_hash: str | None = None) -> Leaderboard:
+             cells: set[Path] | None = None, reference_options_hash: str | None = None,
+             select: Selection = Selection()) -> Leaderboard:
     rows, step_rows, sums, notes = [], [], [], []
+    held = []  # every cell this report could read: what a selection is checked against
     versions = {False: {}, True: {}}
     units: dict[str, str] = {}
     directions: dict[str, bool] = {}
@@ -216,6 +227,9 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
         if meta.get("status") != "complete" or (cells is not None and cell_dir.resolve() not in cells):
             continue
         spec = spec_from_meta(meta)
+        held.append(spec)
+        if not select.matches(spec):
+            continue
         partial = bool(meta.get("partial"))
         # in sample order: every mean below adds in one order, whatever the chunk order
         df = stats.in_sample_order(Cell(store_root, spec).read_rows())
@@ -265,12 +279,18 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
                     srow[name] = float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
                     srow[f"{name}_lo"], srow[f"{name}_hi"] = float(siv.lo[j]), float(siv.hi[j])
                 step_rows.append(srow)
+    select.check(held)
+    scope = (f"filtered view: only the cells matching {select.describe()} ({len(rows)} of the store's {len(held)} "
+             "complete cells)" if select.active else "")
     _check_versions(versions[False])
     _check_versions(versions[True])
     all_names = set(versions[False]) | set(versions[True])
     metric_cols = sorted(all_names, key=lambda n: (PREFERRED_ORDER.index(n) if n in PREFERRED_ORDER else 99, n))
     table = pd.DataFrame(rows)
     if len(table) and reference is not None and reference not in set(table["method"]):
+        if select.active and reference in {s.method for s in held}:
+            raise PcfbenchError(f"the reference method {reference!r} is not among the cells selected by "
+                                f"{select.describe()}: add --method {reference}")
         raise unknown_name("reference method", reference, set(table["method"]), "the store has no cell of it")
     reference = reference or DEFAULT_REFERENCE
     incomplete = pd.DataFrame()
@@ -298,7 +318,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
     directions = metric_directions(metric_cols, directions, notes)
     return Leaderboard(complete.reset_index(drop=True), pd.DataFrame(step_rows), metric_cols, units,
                        partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)),
-                       incomplete=incomplete.reset_index(drop=True), higher_is_better=directions)
+                       incomplete=incomplete.reset_index(drop=True), higher_is_better=directions, scope=scope)
 
 
 def metric_directions(names: list[str], recorded: dict[str, bool], notes: list[str] | None = None) -> dict[str, bool]:
@@ -379,8 +399,27 @@ def _csv_frame(lb: Leaderboard, df: pd.DataFrame) -> pd.DataFrame:
     return df.reindex(columns=keep)
 
 
+class ReportPaths(dict):
+    """What :func:`write_reports` wrote: key -> final path, as a dict; ``kept_figures``: the
+    stems of the figures left in place because their data had not changed (not drawn again);
+    ``range_gaps``: the notes on cells whose range bins the store lacks (figures only)."""
+
+    kept_figures: tuple[str, ...] = ()
+    range_gaps: tuple[str, ...] = ()
+
+
+def written_summary(paths: ReportPaths, out_dir: Path) -> str:
+    """One line for the terminal: how many tables and figures a report wrote, and where."""
+    tables_written = sum(1 for k in paths if k == "md" or (k.startswith("tables/") and k.endswith(".md")))
+    stems = {Path(k).stem for k in paths if k.startswith("figures/")}
+    kept = len(set(getattr(paths, "kept_figures", ())) & stems)
+    figs = f"{len(stems)} figure(s)" + (f" ({kept} unchanged, not redrawn)" if kept else "") if stems else "no figures"
+    return (f"wrote {tables_written} tables (leaderboard and tables/), {figs} to {out_dir}; "
+            f"leaderboard: {paths['md']} and {paths['html'].name} (-v lists every file)")
+
+
 def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None = None,
-                  leaderboard: Leaderboard | None = None, plugins=None) -> dict[str, Path]:
+                  leaderboard: Leaderboard | None = None, plugins=None) -> ReportPaths:
     """Write the leaderboard (Markdown, CSV, LaTeX in the chosen preset; ``leaderboard.html`` the
     self-contained page with the figures), the per-horizon and comparison CSVs, every preset's
     tables under ``tables/`` and the figures under ``figures/``; returns the final paths.
@@ -389,6 +428,10 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     then each file is renamed into place, so a report killed at any moment leaves every file
     either old or new, never half written. ``leaderboard``: the :func:`collect` result of the
     same store and options, if already made.
+
+    A figure whose key (a hash of exactly what it plots and of the figure code:
+    ``pcfbench.reporting.figcache``) is the one recorded in ``figures/.figures.json`` for the
+    file in place is not drawn again: that file stays.
     """
     import shutil
 
@@ -397,17 +440,19 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
     main = tables.get_preset(options.preset, presets)
     out_dir = Path(out_dir)
     check_reports_dir(out_dir)
-    lb = leaderboard or collect(store_root, options.resampling, options.reference)
+    lb = leaderboard or collect(store_root, options.resampling, options.reference, select=options.select)
     out_dir.mkdir(parents=True, exist_ok=True)
     _remove_stale_staging(out_dir)
     stage = out_dir / f".report-{os.getpid()}.tmp"
     shutil.rmtree(stage, ignore_errors=True)
     stage.mkdir()
     rel: dict[str, Path] = {}  # key -> path relative to out_dir
+    found_ranges, gaps = None, []
     if options.figures:  # a cell whose range bins the store lacks: the tables say so too
-        from pcfbench.reporting.figures import range_gaps
+        from pcfbench.reporting.figures import group_ranges, range_gaps
 
-        gaps = range_gaps(lb, store_root)
+        found_ranges = group_ranges(store_root, lb.table)  # read once: for these notes and the figures
+        gaps = range_gaps(lb, store_root, found_ranges)
         if gaps:
             lb = dataclasses.replace(lb, notes=sorted(set(lb.notes) | set(gaps)))
     try:
@@ -423,13 +468,21 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
 
         main_table = render(main, Path("leaderboard"), None, page=True)
         figures: dict[str, Path] = {}
+        cache = None
+        in_place: set[str] = set()  # keys of the figures kept where they are: nothing to publish
         if options.figures:
+            from pcfbench.reporting.figcache import FigureCache
             from pcfbench.reporting.figures import FIGURES_DIR, write_figures
 
-            figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR,
-                                    samples=options.figure_samples, plugins=plugins, gallery=options.gallery)
+            cache = FigureCache(out_dir / FIGURES_DIR)
+            figures = write_figures(lb, main_table, store_root, stage / FIGURES_DIR, samples=options.figure_samples,
+                                    plugins=plugins, gallery=options.gallery, cache=cache, ranges=found_ranges)
             for name, p in figures.items():
-                rel[f"figures/{name}"] = p.relative_to(stage)
+                if p.is_relative_to(stage):
+                    rel[f"figures/{name}"] = p.relative_to(stage)
+                else:
+                    rel[f"figures/{name}"] = p.relative_to(out_dir)
+                    in_place.add(f"figures/{name}")
         from pcfbench.reporting.htmlreport import page
 
         (stage / "leaderboard.html").write_text(page(main_table, lb, figures, generated=(
@@ -458,7 +511,9 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
         (stage / "tables").mkdir(exist_ok=True)
         for name, preset in presets.items():
             render(preset, Path("tables") / name, f"tables/{name}")
-        publish(stage, out_dir, [rel[k] for k in rel])
+        publish(stage, out_dir, [rel[k] for k in rel if k not in in_place])
+        if cache is not None:  # after the figures it describes are in place
+            cache.write()
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     if "transfer_md" not in rel:  # no trained cells (any more): no transfer table
@@ -466,7 +521,10 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
             (out_dir / name).unlink(missing_ok=True)
     if options.figures:
         _remove_old_figures(out_dir, {p.name for k, p in rel.items() if k.startswith("figures/")})
-    return {k: out_dir / p for k, p in rel.items()}
+    written = ReportPaths({k: out_dir / p for k, p in rel.items()})
+    written.kept_figures = tuple(cache.kept) if cache is not None else ()
+    written.range_gaps = tuple(gaps)
+    return written
 
 
 def check_reports_dir(out_dir: Path) -> None:
@@ -519,7 +577,7 @@ def summary(store_root: Path, options: ReportOptions | None = None, leaderboard:
     """The terminal summary: the preset's columns with intervals, a block per group."""
     options = options or ReportOptions()
     preset = tables.get_preset(options.preset, tables.load_presets(options.tables_file))
-    lb = leaderboard or collect(store_root, options.resampling, options.reference)
+    lb = leaderboard or collect(store_root, options.resampling, options.reference, select=options.select)
     out = tables.text(tables.build(lb, preset, options.ci))
     if len(lb.incomplete):
         lines = [f"INCOMPLETE cells, not ranked ({len(lb.incomplete)}): samples scored / expected"]

@@ -159,6 +159,8 @@ class Table:
     heading: str = "pcfbench leaderboard"  # "pcfbench ablation" for a sweep's table
     #: printed where a table has no complete cells ("" prints nothing)
     empty_note: str = "No complete cells in the store yet: run `pcfbench run` first."
+    #: which filters made this view of the store (``Leaderboard.scope``), "" for all of it
+    scope: str = ""
 
 
 def _title(r: pd.Series, horizon_s: float | None) -> str:
@@ -263,7 +265,8 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
     elsewhere = _failed_by_group(getattr(lb, "incomplete", pd.DataFrame()))
     return Table(preset, columns, _groups(lb.table, columns, rank, order, elsewhere),
                  _groups(lb.partial, columns, rank, order, elsewhere),
-                 legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence, heading)
+                 legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence, heading,
+                 scope=getattr(lb, "scope", ""))
 
 
 # -- formatting ------------------------------------------------------------------------
@@ -364,6 +367,7 @@ def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
 
 def markdown(t: Table, heading: str = "#") -> str:
     lines = [f"{heading} {t.heading}: {t.preset.title}", ""]
+    lines += [f"**{t.scope}**", ""] if t.scope else []
     lines += [f"- {x}" for x in t.legend] + [""]
     lines += [f"> note: {n}" for n in t.notes] + ([""] if t.notes else [])
     if not t.groups and t.empty_note:
@@ -511,6 +515,7 @@ def latex(t: Table) -> tuple[str, str]:
     lines = [
         f"% {t.heading}, preset {t.preset.name}: {fit}",
         r"% needs \usepackage{booktabs,graphicx,rotating}",
+        *([f"% {t.scope}"] if t.scope else []),
         rf"\begin{{{env}}}" + ("[p]" if env == "sidewaystable" else "[t]"),
         r"\centering" + size + r"\setlength{\tabcolsep}{4pt}",
         rf"\caption{{{caption}}}",
@@ -567,7 +572,9 @@ def html_table(t: Table, groups: list[Group], caption: str) -> str:
 
 
 def html_page(t: Table) -> str:
-    parts = [f"<h1>{_html.escape(t.heading)}: {_html.escape(t.preset.title)}</h1>", "<ul>"]
+    parts = [f"<h1>{_html.escape(t.heading)}: {_html.escape(t.preset.title)}</h1>"]
+    parts += [f"<p class='scope'><strong>{_html.escape(t.scope)}</strong></p>"] if t.scope else []
+    parts += ["<ul>"]
     parts += [f"<li>{_html.escape(x)}</li>" for x in t.legend] + ["</ul>"]
     parts += [f"<p class='note'>note: {_html.escape(n)}</p>" for n in t.notes]
     if t.groups:

@@ -46,11 +46,13 @@ def transfer_rows(lb) -> pd.DataFrame:
     return out.reindex(columns=cols).reset_index(drop=True)
 
 
-def markdown(rows: pd.DataFrame, units: dict[str, str]) -> str:
-    lines = ["# Zero-shot transfer (layout of Copilot4D Table 5)", "",
-             "Rows: method and its training data (`-`: the method does not train); a block per evaluation "
-             "dataset and horizon. Values are flat means over (sample, future sweep), as in the leaderboard; "
-             "↓: lower is better.", ""]
+def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "") -> str:
+    """``scope``: the line that says which filters made a filtered view (``Leaderboard.scope``)."""
+    lines = ["# Zero-shot transfer (layout of Copilot4D Table 5)", ""]
+    lines += [f"**{scope}**", ""] if scope else []
+    lines += ["Rows: method and its training data (`-`: the method does not train); a block per evaluation "
+              "dataset and horizon. Values are flat means over (sample, future sweep), as in the leaderboard; "
+              "↓: lower is better.", ""]
     metrics = [(m, h) for m, h in COLUMNS if m in rows]
     for key, g in rows.groupby(["dataset", "split", "setting", "policy", "limit"], sort=False, dropna=False):
         dataset, split, setting, policy, limit = key
@@ -84,6 +86,6 @@ def write_transfer(lb, out_dir: Path) -> dict[str, Path]:
         for p in paths.values():
             p.unlink(missing_ok=True)
         return {}
-    paths["transfer_md"].write_text(markdown(rows, lb.units))
+    paths["transfer_md"].write_text(markdown(rows, lb.units, getattr(lb, "scope", "")))
     rows.to_csv(paths["transfer_csv"], index=False)
     return paths
