@@ -440,12 +440,15 @@ def gallery_figure(run: Rerun, title: str, horizon_label: str, extent_m: float =
 def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) -> dict[str, Path]:
     """For each option that varies among one method's variants of a sweep: each column's
     value (with its interval as error bars) against the option's value, a line per
-    (dataset, split, setting) group and per combination of the method's other options."""
+    (dataset, split, setting) group and per combination of the method's other options, ticks
+    at the grid's values; the table's reference row (``is_reference``, when it is another
+    method's) as a dashed horizontal line with its interval as a faint band."""
     df = lb.table if len(lb.table) else lb.partial
     paths: dict[str, Path] = {}
     if not len(df):
         return paths
     option_cols = [c for c in df.columns if c.startswith("option.")]
+    refs = df[df["is_reference"].fillna(False).astype(bool)] if "is_reference" in df else df.iloc[0:0]
     for method, g in df.groupby("method", sort=True):
         g = _with_defaults(g, method, option_cols, plugins)
         for opt in option_cols:
@@ -453,7 +456,8 @@ def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) 
             if values.nunique() < 2:
                 continue
             others = [c for c in option_cols if c != opt and g[c].notna().any()]
-            fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins))
+            fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins),
+                                   refs[refs["method"] != method])
             paths.update(save(fig, out_dir, "ablation-" + _slug(stem, method, opt.removeprefix("option."))))
     return paths
 
@@ -499,8 +503,17 @@ def _numeric(values: pd.Series) -> np.ndarray | None:
 
 
 def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list, method: str,
-                     units: dict[str, str]):
+                     units: dict[str, str], refs: pd.DataFrame | None = None):
+    """The figure of one option; ``refs``: reference rows drawn as horizontal lines, those of
+    the (dataset, split, setting) groups ``g`` plots."""
     name = opt.removeprefix("option.")
+    groups = ["dataset", "split", "setting"]
+    if refs is not None and len(refs):
+        plotted = set(g[groups].itertuples(index=False, name=None))
+        refs = refs[[tuple(r) in plotted for r in refs[groups].itertuples(index=False, name=None)]]
+    else:
+        refs = g.iloc[0:0]
+    numeric = _numeric(g[opt])
     with _rc():
         n = len(columns)
         ncols = min(3, n)
@@ -513,7 +526,7 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
             k, unit = _unit_scale(col.unit)
             for key, line in g.groupby(keys, sort=True, dropna=False):
                 x = _numeric(line[opt])
-                if x is None or _numeric(g[opt]) is None:
+                if x is None or numeric is None:
                     x = np.array([categories.index(str(v)) for v in line[opt]], float)
                 order = np.argsort(x, kind="stable")
                 y = k * line[col.metric].to_numpy(float)[order] if col.metric in line else np.full(len(x), np.nan)
@@ -523,8 +536,21 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 label = " / ".join(str(v) for v in key[2:3]) + "".join(
                     f", {o.removeprefix('option.')}={v}" for o, v in zip(others, key[3:]) if not pd.isna(v))
                 ax.errorbar(x[order], y, yerr=yerr, marker="o", ms=3, capsize=3, label=label)
-            if _numeric(g[opt]) is None:
+            if numeric is None:
                 ax.set_xticks(range(len(categories)), categories)
+            else:  # the grid's values, not matplotlib's round steps between them
+                grid = np.unique(numeric)
+                ax.set_xticks(grid, [f"{v:g}" for v in grid])
+            for i, (_, r) in enumerate(refs.iterrows()):
+                if col.metric not in r or not np.isfinite(float(r[col.metric])):
+                    continue
+                colour = f"C{7 + i % 3}"  # greys and olives, away from the swept lines' first colours
+                where = f", {r['setting']}" if refs["setting"].nunique() > 1 else ""
+                ax.axhline(k * float(r[col.metric]), color=colour, linestyle="--", linewidth=1.2,
+                           label=f"{r['variant']} (reference{where})")
+                lo, hi = float(r.get(f"{col.metric}_lo", np.nan)), float(r.get(f"{col.metric}_hi", np.nan))
+                if np.isfinite(lo) and np.isfinite(hi):
+                    ax.axhspan(k * lo, k * hi, color=colour, alpha=0.12, linewidth=0)
             arrow = "lower is better" if col.better == "lower" else "higher is better"
             ax.set_title(f"{col.label} ({arrow})")
             ax.set_xlabel(f"{method} option {name}" + (f" ({units[name]})" if units.get(name) else ""))
@@ -533,7 +559,8 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
             ax.set_visible(False)
         handles, labels = axes[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
-        fig.suptitle(f"ablation: {method} {name}; error bars = 95 % bootstrap interval over samples")
+        ref_note = "; dashed: the reference method, its band its interval" if len(refs) else ""
+        fig.suptitle(f"ablation: {method} {name}; error bars = 95 % bootstrap interval over samples{ref_note}")
     return fig
 
 

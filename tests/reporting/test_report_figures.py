@@ -524,3 +524,26 @@ def test_gallery_is_drawn_only_when_asked_for(made, tmp_path):
     assert paths["html"].read_text().count("src='data:image/png;base64,") == 3
     again = write_reports(store, tmp_path / "rep", ReportOptions(figures=True), plugins=_plugins())
     assert not any("gallery" in k for k in again) and not list((tmp_path / "rep" / "figures").glob("gallery-*"))
+
+
+def test_ablation_ticks_at_the_grid_values_and_draws_the_reference_method(made, tmp_path, monkeypatch):
+    """A grid of two values gets two ticks, at those values (not matplotlib's 0.6, 0.8, ...
+    between them), and the table's reference (copy-last) is a dashed horizontal line at its
+    value, in the legend."""
+    store = made[0]
+    lb = collect(store)
+    t = tables.build(lb, tables.get_preset("roi", tables.load_presets()))
+    drawn = {}
+    monkeypatch.setattr(figures, "save", lambda fig, out_dir, stem: drawn.setdefault(stem, fig) and {})
+    figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins())
+    fig = drawn["ablation-exp_shifted_dx"]
+    ref = lb.table[lb.table["is_reference"]].iloc[0]
+    assert ref["method"] == "copy-last"
+    for ax, col in zip(fig.axes, t.columns):
+        np.testing.assert_array_equal(ax.get_xticks(), [0.5, 1.5])
+        assert [x.get_text() for x in ax.get_xticklabels()] == ["0.5", "1.5"]
+        k, _ = figures._unit_scale(col.unit)
+        (line,) = [ln for ln in ax.lines if ln.get_label() == "copy-last (reference)"]
+        assert line.get_linestyle() == "--"
+        np.testing.assert_allclose(line.get_ydata(), [k * ref[col.metric]] * 2)
+    assert "copy-last (reference)" in [x.get_text() for x in fig.legends[0].get_texts()]
