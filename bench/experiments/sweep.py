@@ -562,7 +562,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
                 df["variant"] = [labels[_row_key(m, h, c)] for m, h, c in zip(df["method"], df["options_hash"], cks)]
         lb.reference = t.reference.label
         preset = dataclasses.replace(tables.get_preset(t.preset, presets), name=t.stem,
-                                     title=f"{t.title} (Copilot4D Tables 3-4 layout, columns of preset {t.preset})")
+                                     title=f"{t.title} (columns of preset {t.preset})")
         table = tables.build(lb, preset, t.ci, order=order, heading="pcfbench ablation")
         table.empty_note = "" if table.partial else "No complete cell of the sweep."
         tex, _fit = tables.latex(table)

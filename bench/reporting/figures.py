@@ -89,26 +89,42 @@ def _group_stem(kind: str, r: pd.Series) -> str:
 
 
 # -- error vs forecast time ------------------------------------------------------------------
-def horizon_figure(steps: pd.DataFrame, columns: list, title: str):
+def horizon_figure(steps: pd.DataFrame, columns: list, title: str, interval: str | None = None):
     """One panel per column (``tables.ShownColumn``): mean per future sweep against its time
-    (s) for each variant, with the interval as a band."""
+    (s) for each variant, with the interval (``m_lo``/``m_hi`` of the per-step rows) as a band,
+    as error bars where a variant has one point; ``interval`` says how it was computed
+    (``Resampling.describe()``, the default resampling's when None). A variant with no
+    interval at any step (fewer than 2 resampling units) says so in the legend."""
+    if interval is None:
+        from pcfbench.reporting.stats import Resampling
+
+        interval = Resampling().describe()
     with _rc():
         n = len(columns)
         ncols = min(3, n)
         nrows = math.ceil(n / ncols)
         fig = _new_figure(4.2 * ncols, 3.2 * nrows + 0.4)
         axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+        unbanded = {v for v, g in steps.groupby("variant", sort=False)
+                    if not any(np.isfinite(g[f"{c.metric}_{e}"].to_numpy(float)).any()
+                               for c in columns for e in ("lo", "hi") if f"{c.metric}_{e}" in g)}
         for ax, col in zip(axes, columns):
             k, unit = _unit_scale(col.unit)
             for variant, g in steps.groupby("variant", sort=False):
                 g = g.sort_values("time_s")
                 t = g["time_s"].to_numpy(float)
                 y = k * g[col.metric].to_numpy(float) if col.metric in g else np.full(len(g), np.nan)
-                (line,) = ax.plot(t, y, marker="o", ms=3, label=variant)
+                label = f"{variant} (no interval: < 2 resampling units)" if variant in unbanded else variant
+                (line,) = ax.plot(t, y, marker="o", ms=3, label=label)
                 lo, hi = g.get(f"{col.metric}_lo"), g.get(f"{col.metric}_hi")
-                if lo is not None and hi is not None:
-                    ax.fill_between(t, k * lo.to_numpy(float), k * hi.to_numpy(float), color=line.get_color(),
-                                    alpha=0.18, linewidth=0)
+                if lo is None or hi is None:
+                    continue
+                lo, hi = k * lo.to_numpy(float), k * hi.to_numpy(float)
+                if len(t) > 1:
+                    ax.fill_between(t, lo, hi, color=line.get_color(), alpha=0.18, linewidth=0)
+                elif np.isfinite(lo).all() and np.isfinite(hi).all():  # one point: a band would be 0 wide
+                    ax.errorbar(t, y, yerr=np.vstack([y - lo, hi - y]), color=line.get_color(), capsize=3,
+                                linestyle="none")
             arrow = "lower is better" if col.better == "lower" else "higher is better"
             ax.set_title(f"{col.label} ({arrow})")
             ax.set_xlabel("forecast time after t=0 (s)")
@@ -117,7 +133,7 @@ def horizon_figure(steps: pd.DataFrame, columns: list, title: str):
             ax.set_visible(False)
         handles, labels = axes[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
-        fig.suptitle(f"{title}: error per future sweep, band = 95 % bootstrap interval over samples")
+        fig.suptitle(f"{title}: error per future sweep\nband: {interval}")
     return fig
 
 
@@ -440,12 +456,15 @@ def gallery_figure(run: Rerun, title: str, horizon_label: str, extent_m: float =
 def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) -> dict[str, Path]:
     """For each option that varies among one method's variants of a sweep: each column's
     value (with its interval as error bars) against the option's value, a line per
-    (dataset, split, setting) group and per combination of the method's other options."""
+    (dataset, split, setting) group and per combination of the method's other options, ticks
+    at the grid's values; the table's reference row (``is_reference``, when it is another
+    method's) as a dashed horizontal line with its interval as a faint band."""
     df = lb.table if len(lb.table) else lb.partial
     paths: dict[str, Path] = {}
     if not len(df):
         return paths
     option_cols = [c for c in df.columns if c.startswith("option.")]
+    refs = df[df["is_reference"].fillna(False).astype(bool)] if "is_reference" in df else df.iloc[0:0]
     for method, g in df.groupby("method", sort=True):
         g = _with_defaults(g, method, option_cols, plugins)
         for opt in option_cols:
@@ -453,7 +472,8 @@ def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) 
             if values.nunique() < 2:
                 continue
             others = [c for c in option_cols if c != opt and g[c].notna().any()]
-            fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins))
+            fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins),
+                                   refs[refs["method"] != method])
             paths.update(save(fig, out_dir, "ablation-" + _slug(stem, method, opt.removeprefix("option."))))
     return paths
 
@@ -499,8 +519,17 @@ def _numeric(values: pd.Series) -> np.ndarray | None:
 
 
 def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list, method: str,
-                     units: dict[str, str]):
+                     units: dict[str, str], refs: pd.DataFrame | None = None):
+    """The figure of one option; ``refs``: reference rows drawn as horizontal lines, those of
+    the (dataset, split, setting) groups ``g`` plots."""
     name = opt.removeprefix("option.")
+    groups = ["dataset", "split", "setting"]
+    if refs is not None and len(refs):
+        plotted = set(g[groups].itertuples(index=False, name=None))
+        refs = refs[[tuple(r) in plotted for r in refs[groups].itertuples(index=False, name=None)]]
+    else:
+        refs = g.iloc[0:0]
+    numeric = _numeric(g[opt])
     with _rc():
         n = len(columns)
         ncols = min(3, n)
@@ -513,7 +542,7 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
             k, unit = _unit_scale(col.unit)
             for key, line in g.groupby(keys, sort=True, dropna=False):
                 x = _numeric(line[opt])
-                if x is None or _numeric(g[opt]) is None:
+                if x is None or numeric is None:
                     x = np.array([categories.index(str(v)) for v in line[opt]], float)
                 order = np.argsort(x, kind="stable")
                 y = k * line[col.metric].to_numpy(float)[order] if col.metric in line else np.full(len(x), np.nan)
@@ -523,8 +552,21 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 label = " / ".join(str(v) for v in key[2:3]) + "".join(
                     f", {o.removeprefix('option.')}={v}" for o, v in zip(others, key[3:]) if not pd.isna(v))
                 ax.errorbar(x[order], y, yerr=yerr, marker="o", ms=3, capsize=3, label=label)
-            if _numeric(g[opt]) is None:
+            if numeric is None:
                 ax.set_xticks(range(len(categories)), categories)
+            else:  # the grid's values, not matplotlib's round steps between them
+                grid = np.unique(numeric)
+                ax.set_xticks(grid, [f"{v:g}" for v in grid])
+            for i, (_, r) in enumerate(refs.iterrows()):
+                if col.metric not in r or not np.isfinite(float(r[col.metric])):
+                    continue
+                colour = f"C{7 + i % 3}"  # greys and olives, away from the swept lines' first colours
+                where = f", {r['setting']}" if refs["setting"].nunique() > 1 else ""
+                ax.axhline(k * float(r[col.metric]), color=colour, linestyle="--", linewidth=1.2,
+                           label=f"{r['variant']} (reference{where})")
+                lo, hi = float(r.get(f"{col.metric}_lo", np.nan)), float(r.get(f"{col.metric}_hi", np.nan))
+                if np.isfinite(lo) and np.isfinite(hi):
+                    ax.axhspan(k * lo, k * hi, color=colour, alpha=0.12, linewidth=0)
             arrow = "lower is better" if col.better == "lower" else "higher is better"
             ax.set_title(f"{col.label} ({arrow})")
             ax.set_xlabel(f"{method} option {name}" + (f" ({units[name]})" if units.get(name) else ""))
@@ -533,7 +575,8 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
             ax.set_visible(False)
         handles, labels = axes[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
-        fig.suptitle(f"ablation: {method} {name}; error bars = 95 % bootstrap interval over samples")
+        ref_note = "; dashed: the reference method, its band its interval" if len(refs) else ""
+        fig.suptitle(f"ablation: {method} {name}; error bars = 95 % bootstrap interval over samples{ref_note}")
     return fig
 
 
@@ -562,12 +605,13 @@ def _method_units(method: str, plugins=None) -> dict[str, str]:
 
 
 # -- everything for a leaderboard --------------------------------------------------------------
-def horizon_data(steps: pd.DataFrame, columns: list, title: str) -> dict:
+def horizon_data(steps: pd.DataFrame, columns: list, title: str, interval: str | None = None) -> dict:
     """Everything :func:`horizon_figure` plots, for its key (``figcache``): the per-step rows'
-    columns it reads, in its order, and each column's label, unit and direction."""
+    columns it reads (the means and their intervals), in its order, each column's label, unit
+    and direction, and how the intervals were computed."""
     used = ["variant", "time_s"] + [c for col in columns for c in (col.metric, f"{col.metric}_lo", f"{col.metric}_hi")
                                     if c in steps]
-    return {"title": title, "steps": steps[used],
+    return {"title": title, "interval": interval, "steps": steps[used],
             "columns": [(c.metric, c.label, str(c.better), c.unit) for c in columns]}
 
 
@@ -618,8 +662,9 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
             gs = gs[gs[k] == first[k]] if len(gs) else gs
         gs = gs[gs["variant"].isin(set(g["variant"]))] if len(gs) else gs
         if len(gs) and columns:
-            draw("horizon", _group_stem("horizon", first), horizon_data(gs, columns, title),
-                 lambda: horizon_figure(gs, columns, title))
+            how = lb.resampling.describe()
+            draw("horizon", _group_stem("horizon", first), horizon_data(gs, columns, title, how),
+                 lambda: horizon_figure(gs, columns, title, how))
         found = ranges[key] if ranges is not None and key in ranges else stored_ranges(store_root, g)
         draw("range", _group_stem("range", first), range_data(found, title), lambda: range_figure(found, title))
         if not gallery or samples <= 0:

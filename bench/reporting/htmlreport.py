@@ -168,6 +168,7 @@ def page(t: tables.Table, lb, figures: dict[str, Path] | None = None, generated:
         parts.append("<div class='partial'><h2>PARTIAL runs (--limit): the first N samples only, "
                      "not comparable with the table above</h2>")
         parts.append(_table(t, t.partial, "partial runs", ids) + "</div>")
+    parts += [f"<p class='footnote'>{e(x)}</p>" for x in tables.footnote_lines(t)]
     if len(getattr(lb, "incomplete", [])):
         parts.append("<h2>Incomplete cells (not ranked)</h2><ul>")
         for _, r in lb.incomplete.iterrows():

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import html as _html
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -144,6 +145,9 @@ class Group:
     rows: pd.DataFrame
     reference: str | None
     best: dict[str, float] = field(default_factory=dict)
+    #: variant -> the row's label where it is not the variant itself (a trained method's
+    #: short name and footnote marker, :func:`footnote_labels`)
+    short: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -161,6 +165,30 @@ class Table:
     empty_note: str = "No complete cells in the store yet: run `pcfbench run` first."
     #: which filters made this view of the store (``Leaderboard.scope``), "" for all of it
     scope: str = ""
+    #: (marker, text) of each footnote the row labels point to, in marker order
+    footnotes: list[tuple[str, str]] = field(default_factory=list)
+
+
+#: ``copilot4d-token-copy [trained on synthetic-town-realistic:train, ck 84120cdf]``
+#: (``labels.trained_label``): the bracket goes to a footnote, the row keeps the name
+_TRAINED = re.compile(r"^(?P<name>.*?) \[trained on (?P<data>[^\]]*?), ck (?P<ck>[0-9a-f]+)(?P<own>, ON ITS TRAINING DATA)?\]$")
+
+
+def footnote_labels(variants: list[str]) -> tuple[dict[str, str], list[tuple[str, str]]]:
+    """Short row labels for ``variants``: a trained method's bracket (training data and
+    checkpoint, 75 characters wide in a first column) becomes a superscript marker and a
+    footnote, one per distinct bracket in the given order; scoring on the training data stays
+    in the row, as a warning. Returns (variant -> label, [(marker, footnote)])."""
+    short: dict[str, str] = {}
+    notes: dict[str, str] = {}  # footnote text -> marker
+    for v in variants:
+        m = _TRAINED.match(str(v))
+        if m is None or v in short:
+            continue
+        note = f"{m['name']} trained on {m['data']}, checkpoint sha256 {m['ck']}"
+        marker = notes.setdefault(note, str(len(notes) + 1).translate(_SUPERSCRIPT))
+        short[v] = m["name"] + marker + (" (ON ITS TRAINING DATA)" if m["own"] else "")
+    return short, [(marker, note) for note, marker in notes.items()]
 
 
 def _title(r: pd.Series, horizon_s: float | None) -> str:
@@ -263,10 +291,13 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
         "-: no sweep could be scored",
     ]
     elsewhere = _failed_by_group(getattr(lb, "incomplete", pd.DataFrame()))
-    return Table(preset, columns, _groups(lb.table, columns, rank, order, elsewhere),
-                 _groups(lb.partial, columns, rank, order, elsewhere),
-                 legend, notes + list(lb.notes), ci, 1.0 - lb.resampling.confidence, heading,
-                 scope=getattr(lb, "scope", ""))
+    groups = _groups(lb.table, columns, rank, order, elsewhere)
+    partial = _groups(lb.partial, columns, rank, order, elsewhere)
+    short, footnotes = footnote_labels([v for g in groups + partial for v in g.rows["variant"]])
+    for g in groups + partial:
+        g.short = {v: short[v] for v in g.rows["variant"] if v in short}
+    return Table(preset, columns, groups, partial, legend, notes + list(lb.notes), ci,
+                 1.0 - lb.resampling.confidence, heading, scope=getattr(lb, "scope", ""), footnotes=footnotes)
 
 
 # -- formatting ------------------------------------------------------------------------
@@ -337,7 +368,14 @@ def _show_failed(t: Table) -> bool:
 
 
 def _label(row: pd.Series, group: Group) -> str:
-    return row["variant"] + (" (ref)" if row["variant"] == group.reference else "")
+    v = row["variant"]
+    return group.short.get(v, v) + (" (ref)" if v == group.reference else "")
+
+
+def footnote_lines(t: Table) -> list[str]:
+    """``¹ copilot4d-token-copy trained on synthetic-town-realistic:train, checkpoint sha256
+    84120cdf``: one line per footnote."""
+    return [f"{marker} {note}" for marker, note in t.footnotes]
 
 
 # -- Markdown --------------------------------------------------------------------------
@@ -376,6 +414,7 @@ def markdown(t: Table, heading: str = "#") -> str:
     if t.partial:
         lines += [f"{heading}# PARTIAL runs (--limit): the first N samples only, not comparable with the tables above", ""]
         lines += _md_groups(t, t.partial, heading + "##")
+    lines += [f"{x}  " for x in footnote_lines(t)]
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -399,6 +438,7 @@ def text(t: Table) -> str:
             out += [title + g.title, fmt(head)] + [fmt(r) for r in rows] + [""]
     if out:
         out.append("*: best in its column; ±: half the 95 % interval; +x %: against the reference; †: not significant")
+        out += footnote_lines(t)
     return "\n".join(out)
 
 
@@ -412,7 +452,8 @@ def tex_escape(s: str) -> str:
 
 
 _TEX_SYMBOLS = {"±": r"$\pm$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "†": r"$^\dagger$", ">=": r"$\geq$",
-                "<=": r"$\leq$", "<": r"$<$", ">": r"$>$", "²": r"$^2$"}
+                "<=": r"$\leq$", "<": r"$<$", ">": r"$>$",
+                **{sup: f"$^{d}$" for d, sup in zip("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")}}
 
 
 def tex_text(s: str) -> str:
@@ -529,6 +570,8 @@ def latex(t: Table) -> tuple[str, str]:
     lines += [r"\bottomrule", r"\end{tabular}"]
     if resize:
         lines.append("}")
+    if t.footnotes:  # under the table, inside its float, in the table's own size
+        lines.append(r"\par\smallskip" + r"\\".join(tex_text(x) for x in footnote_lines(t)))
     lines.append(rf"\end{{{env}}}")
     return "\n".join(lines) + "\n", fit
 
@@ -586,6 +629,7 @@ def html_page(t: Table) -> str:
         parts.append("<div class='partial'><h2>PARTIAL runs (--limit): the first N samples only, "
                      "not comparable with the table above</h2>")
         parts.append(html_table(t, t.partial, "partial runs") + "</div>")
+    parts += [f"<p class='footnote'>{_html.escape(x)}</p>" for x in footnote_lines(t)]
     return ("<!doctype html><html><head><meta charset='utf-8'>"
             f"<title>{_html.escape(t.heading)}: {_html.escape(t.preset.title)}</title>"
             f"<style>body{{font-family:sans-serif}}{HTML_STYLE}</style></head><body>\n"

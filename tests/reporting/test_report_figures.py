@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -524,3 +525,84 @@ def test_gallery_is_drawn_only_when_asked_for(made, tmp_path):
     assert paths["html"].read_text().count("src='data:image/png;base64,") == 3
     again = write_reports(store, tmp_path / "rep", ReportOptions(figures=True), plugins=_plugins())
     assert not any("gallery" in k for k in again) and not list((tmp_path / "rep" / "figures").glob("gallery-*"))
+
+
+def test_ablation_ticks_at_the_grid_values_and_draws_the_reference_method(made, tmp_path, monkeypatch):
+    """A grid of two values gets two ticks, at those values (not matplotlib's 0.6, 0.8, ...
+    between them), and the table's reference (copy-last) is a dashed horizontal line at its
+    value, in the legend."""
+    store = made[0]
+    lb = collect(store)
+    t = tables.build(lb, tables.get_preset("roi", tables.load_presets()))
+    drawn = {}
+    monkeypatch.setattr(figures, "save", lambda fig, out_dir, stem: drawn.setdefault(stem, fig) and {})
+    figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins())
+    fig = drawn["ablation-exp_shifted_dx"]
+    ref = lb.table[lb.table["is_reference"]].iloc[0]
+    assert ref["method"] == "copy-last"
+    for ax, col in zip(fig.axes, t.columns):
+        np.testing.assert_array_equal(ax.get_xticks(), [0.5, 1.5])
+        assert [x.get_text() for x in ax.get_xticklabels()] == ["0.5", "1.5"]
+        k, _ = figures._unit_scale(col.unit)
+        (line,) = [ln for ln in ax.lines if ln.get_label() == "copy-last (reference)"]
+        assert line.get_linestyle() == "--"
+        np.testing.assert_allclose(line.get_ydata(), [k * ref[col.metric]] * 2)
+    assert "copy-last (reference)" in [x.get_text() for x in fig.legends[0].get_texts()]
+
+
+def _hand_steps(values_by_step: dict[int, list[float]]) -> pd.DataFrame:
+    """Per-step rows of one variant, its means and intervals from ``stats`` (what ``collect``
+    does): three samples of one sequence, l1_mean per (sample, step)."""
+    from pcfbench.reporting import stats
+
+    rows = pd.DataFrame([{"sample_id": f"s/{i}", "sequence": "s", "ref_index": i, "step": step, "status": "ok",
+                          "l1_mean": v} for step, vs in values_by_step.items() for i, v in enumerate(vs)])
+    out = []
+    for step, g in rows.groupby("step"):
+        iv = stats.interval(stats.sample_sums(g, ["l1_mean"]), stats.Resampling())
+        out.append({"variant": "v", "time_s": 0.2 * (step + 1), "l1_mean": g["l1_mean"].mean(),
+                    "l1_mean_lo": iv.lo[0], "l1_mean_hi": iv.hi[0]})
+    return pd.DataFrame(out)
+
+
+L1 = SimpleNamespace(metric="l1_mean", label="L1 Mean", unit="m", better="lower")
+
+
+def test_horizon_band_is_the_bootstrap_interval_and_brackets_the_mean_by_hand():
+    """Three samples, L1 1, 2, 6 m at the first step and 0, 3, 3 m at the second. The mean is 3
+    and 2 m; a resample of three is all one sample with probability 1/27 = 3.7 % > 2.5 %, so the
+    95 % percentile interval runs from the smallest to the largest value: [1, 6] and [0, 3] m."""
+    steps = _hand_steps({0: [1.0, 2.0, 6.0], 1: [0.0, 3.0, 3.0]})
+    np.testing.assert_allclose(steps[["l1_mean", "l1_mean_lo", "l1_mean_hi"]].to_numpy(), [[3, 1, 6], [2, 0, 3]])
+    ax = figures.horizon_figure(steps, [L1], "x").axes[0]
+    np.testing.assert_allclose(ax.lines[0].get_ydata(), [3, 2])
+    (band,) = ax.collections
+    xy = band.get_paths()[0].vertices
+    for t, mean, lo, hi in [(0.2, 3, 1, 6), (0.4, 2, 0, 3)]:
+        ys = xy[np.isclose(xy[:, 0], t), 1]
+        assert ys.min() == pytest.approx(lo) and ys.max() == pytest.approx(hi)
+        assert ys.min() <= mean <= ys.max()
+
+
+def test_a_one_step_curve_gets_error_bars_and_a_curve_without_interval_says_so():
+    """A band over one point is 0 wide: the interval is drawn as an error bar instead. One
+    sample has no interval (fewer than 2 resampling units): its legend entry says so."""
+    ax = figures.horizon_figure(_hand_steps({0: [1.0, 2.0, 6.0]}), [L1], "x").axes[0]
+    (bars,) = ax.containers
+    segments = bars.lines[2][0].get_segments()
+    np.testing.assert_allclose(segments[0], [[0.2, 1.0], [0.2, 6.0]])
+    one = _hand_steps({0: [1.0], 1: [2.0]})
+    assert one["l1_mean_lo"].isna().all()
+    fig = figures.horizon_figure(one, [L1], "x")
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["v (no interval: < 2 resampling units)"]
+
+
+def test_the_horizon_figure_states_and_is_keyed_on_how_its_interval_was_computed():
+    from pcfbench.reporting import figcache, stats
+
+    steps = _hand_steps({0: [1.0, 2.0, 6.0], 1: [0.0, 3.0, 3.0]})
+    by_sequence = stats.Resampling("sequence").describe()
+    assert by_sequence in figures.horizon_figure(steps, [L1], "x", by_sequence)._suptitle.get_text()
+    keys = {figcache.figure_key("horizon", **figures.horizon_data(steps, [L1], "x", how))
+            for how in (stats.Resampling().describe(), by_sequence)}
+    assert len(keys) == 2
