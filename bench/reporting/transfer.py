@@ -46,13 +46,17 @@ def transfer_rows(lb) -> pd.DataFrame:
     return out.reindex(columns=cols).reset_index(drop=True)
 
 
-def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "") -> str:
-    """``scope``: the line that says which filters made a filtered view (``Leaderboard.scope``)."""
+def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "",
+             higher_is_better: dict[str, bool] | None = None) -> str:
+    """``scope``: the line that says which filters made a filtered view (``Leaderboard.scope``);
+    ``higher_is_better``: each metric's direction (``Leaderboard.higher_is_better``; a metric
+    missing from it is lower-is-better), shown by its column's arrow."""
+    up = higher_is_better or {}
     lines = ["# Zero-shot transfer (layout of Copilot4D Table 5)", ""]
     lines += [f"**{scope}**", ""] if scope else []
     lines += ["Rows: method and its training data (`-`: the method does not train); a block per evaluation "
               "dataset and horizon. Values are flat means over (sample, future sweep), as in the leaderboard; "
-              "↓: lower is better.", ""]
+              "↓: lower is better, ↑: higher is better.", ""]
     metrics = [(m, h) for m, h in COLUMNS if m in rows]
     for key, g in rows.groupby(["dataset", "split", "setting", "policy", "limit"], sort=False, dropna=False):
         dataset, split, setting, policy, limit = key
@@ -64,7 +68,7 @@ def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "") -> str:
         if pd.notna(limit):
             extra.append(f"PARTIAL: first {int(limit)} samples")
         lines += [f"## {title} ({', '.join(extra)})", ""]
-        head = ["Method", "Trained on"] + [f"{h} ↓ ({tables.unit_text(units.get(m, ''))})" for m, h in metrics] + ["n"]
+        head = ["Method", "Trained on"] + [f"{h} {'↑' if up.get(m) else '↓'} ({tables.unit_text(units.get(m, ''))})" for m, h in metrics] + ["n"]
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for _, r in g.iterrows():
             train = r["train_on"] or "-"
@@ -86,6 +90,6 @@ def write_transfer(lb, out_dir: Path) -> dict[str, Path]:
         for p in paths.values():
             p.unlink(missing_ok=True)
         return {}
-    paths["transfer_md"].write_text(markdown(rows, lb.units, getattr(lb, "scope", "")))
+    paths["transfer_md"].write_text(markdown(rows, lb.units, getattr(lb, "scope", ""), getattr(lb, "higher_is_better", None)))
     rows.to_csv(paths["transfer_csv"], index=False)
     return paths

@@ -61,3 +61,20 @@ def test_one_checkpoint_on_two_rows_shares_one_footnote_and_plain_rows_have_none
 def test_the_shipped_presets_titles_say_what_the_table_is_not_whose_layout_it_borrows():
     for preset in tables.load_presets().values():
         assert "Copilot4D" not in preset.title, preset.title
+
+
+def test_the_transfer_table_arrows_follow_each_metric_s_direction():
+    import pandas as pd
+
+    from pcfbench.reporting.transfer import markdown
+
+    rows = pd.DataFrame([{
+        "dataset": "kitti", "split": "test", "setting": "kitti-1s", "policy": "full-context", "limit": float("nan"),
+        "horizon_s": 1.0, "method_label": "m", "train_on": "town:train", "checkpoint_sha256": "ab" * 32,
+        "on_training_data": False, "samples": 3, "chamfer_nf": 0.5, "l1_mean": 0.25,
+    }])
+    text = markdown(rows, {"chamfer_nf": "m^2", "l1_mean": "m"}, higher_is_better={"l1_mean": True})
+    head = next(line for line in text.splitlines() if line.startswith("| Method"))
+    assert "Chamfer ↓" in head and "L1 Mean ↑" in head and "L1 Mean ↓" not in head
+    # no directions given: every column is lower-is-better, as before
+    assert "L1 Mean ↓" in markdown(rows, {"chamfer_nf": "m^2", "l1_mean": "m"})
