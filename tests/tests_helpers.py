@@ -1,7 +1,37 @@
 """Helpers importable by test modules (conftest fixtures cover the common cases)."""
 
+import dataclasses
+
+import numpy as np
+
+import pcfbench
 from conftest import write_tiny_kitti
+from pcfbench.data import Forecast
+from pcfbench.method import Method
+from pcfbench.plugins import load_plugins
 
 
 def write_kitti_tree(root, sequences=("08",), num_sweeps=24):
     return write_tiny_kitti(root, sequences=sequences, num_sweeps=num_sweeps)
+
+
+class Shifted(Method):
+    """The last past sweep moved by ``dx`` metres along x."""
+
+    name = "shifted"
+
+    @dataclasses.dataclass(frozen=True)
+    class Options:
+        dx: float = pcfbench.option(0.0, help="shift along x (m)")
+
+    def forecast(self, sample):
+        last = sample.past_points_ref[-1] + np.array([self.options.dx, 0, 0], dtype=np.float32)
+        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
+
+
+def shifted_plugins():
+    """The built-in plugins and the test method ``shifted``."""
+    plugins = load_plugins()
+    if "shifted" not in plugins.methods:
+        plugins.methods.add("shifted", Shifted, "test")
+    return plugins

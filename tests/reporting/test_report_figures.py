@@ -4,7 +4,6 @@ store only (no method runs), the range bins stored at run time."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from types import SimpleNamespace
 
@@ -14,37 +13,16 @@ import pytest
 
 import pcfbench
 from conftest import write_tiny_kitti
+from tests_helpers import Shifted, shifted_plugins as _plugins
 from pcfbench.reporting import figures, tables
 from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, options_hash, parse_options
-from pcfbench.plugins import load_plugins
 from pcfbench.reporting.report import ReportOptions, collect, write_reports
 from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
-
-
-class Shifted(Method):
-    """The last past sweep moved by ``dx`` metres along x."""
-
-    name = "shifted"
-
-    @dataclasses.dataclass(frozen=True)
-    class Options:
-        dx: float = pcfbench.option(0.0, help="shift along x (m)")
-
-    def forecast(self, sample):
-        last = sample.past_points_ref[-1] + np.array([self.options.dx, 0, 0], dtype=np.float32)
-        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
-
-
-def _plugins():
-    plugins = load_plugins()
-    if "shifted" not in plugins.methods:
-        plugins.methods.add("shifted", Shifted, "test")
-    return plugins
 
 
 def _spec(root, method="copy-last", raw=None):
