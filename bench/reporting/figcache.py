@@ -16,7 +16,6 @@ import functools
 import hashlib
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -106,7 +105,7 @@ class FigureCache:
 
     def write(self) -> None:
         """Replace the manifest (temporary file, rename): this report's figures only."""
+        from pcfbench.store.cells import atomic_write_json
+
         self.dir.mkdir(parents=True, exist_ok=True)
-        tmp = self.dir / f"{MANIFEST}.{os.getpid()}.tmp"
-        tmp.write_text(json.dumps({"version": MANIFEST_VERSION, "figures": self.entries}, indent=1, sort_keys=True))
-        os.replace(tmp, self.dir / MANIFEST)
+        atomic_write_json(self.dir / MANIFEST, {"version": MANIFEST_VERSION, "figures": self.entries})

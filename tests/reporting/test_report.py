@@ -1,7 +1,6 @@
 """The leaderboard: point estimates unchanged, paper-layout presets, intervals and comparisons
 in every format, partial cells in their own table, option columns, seconds per horizon."""
 
-import dataclasses
 import re
 import shutil
 import subprocess
@@ -14,10 +13,9 @@ from click.testing import CliRunner
 import pcfbench
 import pcfbench.plugins
 from conftest import write_tiny_kitti
-from pcfbench.data import Forecast
+from tests_helpers import shifted_plugins as _plugins
 from pcfbench.errors import PcfbenchError
-from pcfbench.method import Method, options_hash, parse_options
-from pcfbench.plugins import load_plugins
+from pcfbench.method import options_hash, parse_options
 from pcfbench.reporting.report import ReportOptions, collect, summary, write_reports
 from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec, iter_cells, spec_from_meta
@@ -26,32 +24,11 @@ from pcfbench.reporting import tables
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
 
 
-class Shifted(Method):
-    """The last past sweep moved by ``dx`` metres along x."""
-
-    name = "shifted"
-
-    @dataclasses.dataclass(frozen=True)
-    class Options:
-        dx: float = pcfbench.option(0.0, help="shift along x, metres")
-
-    def forecast(self, sample):
-        last = sample.past_points_ref[-1] + np.array([self.options.dx, 0, 0], dtype=np.float32)
-        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
-
-
 def _spec(root, method="copy-last", raw=None, limit=None):
     plugins = _plugins()
     opts = parse_options(plugins.methods.get(method).Options, raw or {}, method)
     return CellSpec(method, dict(raw or {}), options_hash(opts), "kitti", str(root), "test", "kitti-1s",
                     "full-context", limit, METRICS)
-
-
-def _plugins():
-    plugins = load_plugins()
-    if "shifted" not in plugins.methods:
-        plugins.methods.add("shifted", Shifted, "test")
-    return plugins
 
 
 @pytest.fixture(scope="module")

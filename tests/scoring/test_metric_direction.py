@@ -5,7 +5,6 @@ in a preset that does not say ``better``; a preset that contradicts a metric is 
 naming both; the kinds that were bare strings are enums that still read and write the same
 strings."""
 
-import dataclasses
 import json
 import types
 
@@ -13,14 +12,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-import pcfbench
 from pcfbench.reporting import tables
-from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError, PluginError
 from pcfbench.hookspecs import hookimpl
 from pcfbench.kinds import Better, Needs, PolicyKind
 from pcfbench.metrics.base import Metric
-from pcfbench.method import Method, options_hash, parse_options
+from pcfbench.method import options_hash, parse_options
 from pcfbench.plugins import Plugins, load_plugins
 from pcfbench.protocol import SamplePolicy
 from pcfbench.reporting.report import ReportOptions, collect, metric_directions, write_reports
@@ -28,20 +25,7 @@ from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import CellSpec, iter_cells
 
 from conftest import write_tiny_kitti
-
-
-class Shifted(Method):
-    """The last past sweep moved by ``dx`` metres along x."""
-
-    name = "shifted"
-
-    @dataclasses.dataclass(frozen=True)
-    class Options:
-        dx: float = pcfbench.option(0.0, help="shift along x, metres")
-
-    def forecast(self, sample):
-        last = sample.past_points_ref[-1] + np.array([self.options.dx, 0, 0], dtype=np.float32)
-        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
+from tests_helpers import Shifted
 
 
 def _near_share(ctx) -> float:
