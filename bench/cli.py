@@ -648,7 +648,7 @@ def _checkpoint_lines(row: dict) -> list[str]:
 
 
 def _ls_samples(dataset, setting, split, policy, as_json) -> None:
-    from pcfbench.protocol import SampleBuilder, check_compatible
+    from pcfbench.protocol import SampleBuilder, check_compatible, sample_id
 
     if not dataset or not setting:
         raise PcfbenchError("usage: pcfbench ls samples DATASET[=ROOT] --setting SETTING [--split SPLIT]")
@@ -665,7 +665,7 @@ def _ls_samples(dataset, setting, split, policy, as_json) -> None:
 
         raise unknown_name(f"split of dataset {name}", split, adapter.splits())
     builder = SampleBuilder(adapter, s, policy)
-    ids = [f"{seq}/{i:06d}" for seq, i in builder.sample_keys(split)]
+    ids = [sample_id(seq, i) for seq, i in builder.sample_keys(split)]
     if not ids:  # why, and the option that fixes it (pcfbench.protocol.nosamples), beside the empty list
         from pcfbench.protocol.nosamples import explain
 

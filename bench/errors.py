@@ -33,14 +33,19 @@ def unknown_name(kind: str, name: str, known: Iterable[str], note: str = "") -> 
 
     ``note`` is appended after the list of known names (e.g. plugins that failed to load).
     """
-    import difflib
-
     known = sorted(known)
     msg = f"unknown {kind} {name!r}"
-    close = difflib.get_close_matches(str(name), known, n=3, cutoff=0.5)
+    close = close_names(name, known)
     if close:
         msg += f"; did you mean {' or '.join(repr(c) for c in close)}?"
     msg += f" (known: {', '.join(known) or 'none'})"
     if note:
         msg += f"; {note}"
     return UnknownNameError(msg)
+
+
+def close_names(name: str, known: Iterable[str]) -> list[str]:
+    """The (at most three) names of ``known`` close to ``name``: what a "did you mean" offers."""
+    import difflib
+
+    return difflib.get_close_matches(str(name), list(known), n=3, cutoff=0.5)

@@ -13,7 +13,7 @@ import shlex
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
 
-from pcfbench.errors import PcfbenchError
+from pcfbench.errors import PcfbenchError, close_names
 
 #: (option, CellSpec field) of each filter, in the order they are printed
 FIELDS = (("dataset", "dataset"), ("setting", "setting"), ("method", "method"))
@@ -64,7 +64,5 @@ class Selection:
 
 
 def _did_you_mean(pattern: str, names: list[str]) -> str:
-    import difflib
-
-    close = difflib.get_close_matches(pattern, names, n=3, cutoff=0.5)
+    close = close_names(pattern, names)
     return f" (did you mean {' or '.join(shlex.quote(c) for c in close)}?)" if close else ""
