@@ -29,6 +29,10 @@ class Sequence:
     T_world_sensor: np.ndarray
     timestamps_ns: np.ndarray
     loader: Callable[[str, int], np.ndarray]
+    #: (N,) float32 per-point reflectance (intensity) of sweep ``index``, in the order of
+    #: ``loader``'s points, as the dataset stores it; None: the layout has none. Read only by
+    #: what shows sweeps (``pcfbench export``), never by a method or a metric.
+    intensity_loader: Callable[[str, int], np.ndarray] | None = None
 
     def __len__(self) -> int:
         return int(self.timestamps_ns.shape[0])
@@ -36,6 +40,13 @@ class Sequence:
     def load_points(self, index: int) -> np.ndarray:
         """(N, 3) float32 points of sweep ``index`` in its own sensor frame."""
         return self.loader(self.name, index)
+
+    def load_intensity(self, index: int) -> np.ndarray | None:
+        """(N,) float32 reflectance of sweep ``index``'s points (:meth:`load_points`' order), or
+        None when the dataset has none."""
+        if self.intensity_loader is None:
+            return None
+        return np.asarray(self.intensity_loader(self.name, index), np.float32)
 
     def sweep(self, index: int) -> Sweep:
         """Sweep ``index`` with its pose and timestamp (not validated: see pcfbench.protocol.validate)."""

@@ -113,17 +113,109 @@ def add_commands(cli) -> None:
             click.echo(f"{a} -> {b}")
 
     @cli.command(name="export")
-    @click.option("--dataset", "-d", "dataset", required=True, metavar="NAME[=ROOT]")
-    @click.option("--setting", "-s", required=True)
-    @click.option("--sample", "sample_id", default=None, help="Sample id SEQUENCE/INDEX (default: the split's first sample).")
-    @click.option("--split", default=None, help="Split (default: the dataset's evaluation split).")
-    @click.option("--method", "-m", "methods", multiple=True, metavar="NAME[:k=v,...]", help="Method whose forecast to include (repeatable).")
-    @click.option("--policy", type=click.Choice(["full-context", "every-frame"]), default="full-context", show_default=True)
-    @click.option("--out", "-o", required=True, type=click.Path(dir_okay=False), help="The .mcap file to write.")
-    def export_cmd(dataset, setting, sample_id, split, methods, policy, out):
-        """Write a sample's past sweeps, forecasts and ground truth to an MCAP for Foxglove."""
-        path, n = export(dataset, setting, out, sample_id, split, methods, policy)
-        click.echo(f"wrote {path} ({n} point clouds)")
+    @click.option("--store", default=None, type=click.Path(file_okay=False),
+                  help="Export a run's stored forecasts from this results store: each method is re-run on the cells' "
+                       "samples and its forecast written only when its scores equal the stored rows. -d/-s/-m are "
+                       "then shell-style patterns that pick cells.")
+    @click.option("--dataset", "-d", "datasets", multiple=True, metavar="NAME[=ROOT]",
+                  help="Without --store: the dataset (ROOT may end in ?key=value options). With --store: dataset name "
+                       "pattern(s).")
+    @click.option("--setting", "-s", "settings", multiple=True, help="Without --store: the setting. With --store: pattern(s).")
+    @click.option("--method", "-m", "methods", multiple=True, metavar="NAME[:k=v,...]",
+                  help="Without --store: a method variant to run (repeatable). With --store: method name pattern(s).")
+    @click.option("--cell", "cells", multiple=True, metavar="PATTERN",
+                  help="With --store: pattern(s) on the cell's folder under the store (kitti/kitti-1s/test/copy-last.*).")
+    @click.option("--sample", "sample_ids", multiple=True, metavar="SEQUENCE/INDEX",
+                  help="A sample to export (repeatable). Default: with --store every sample the cells hold, "
+                       "without it the split's first.")
+    @click.option("--samples", "count", type=click.IntRange(min=1), default=None, metavar="N",
+                  help="Export the first N samples instead.")
+    @click.option("--split", default=None, help="Without --store: the split (default: the dataset's evaluation split).")
+    @click.option("--policy", type=click.Choice(["full-context", "every-frame"]), default=None,
+                  help="Without --store: the sample policy (default: full-context).")
+    @click.option("--per-sample", is_flag=True, help="Write one .mcap per sample into the folder --out (SEQUENCE_INDEX.mcap).")
+    @click.option("--out", "-o", required=True, type=click.Path(), help="The .mcap file to write (a folder with --per-sample).")
+    def export_cmd(store, datasets, settings, methods, cells, sample_ids, count, split, policy, per_sample, out):
+        """Write samples' past sweeps, forecasts and ground truth to MCAP for Foxglove.
+
+        \b
+        pcfbench export --store STORE [-d/-s/-m/--cell PATTERN] [--samples N] -o run.mcap
+            the forecasts a run scored (re-made, and refused unless they score exactly as stored)
+        pcfbench export -d NAME=ROOT -s SETTING -m METHOD [--sample ID] -o sample.mcap
+            forecasts made now, without a run
+
+        Several samples in one file each get their own span of the timeline (shifts in the file's
+        pcfbench.samples metadata). Topics: /past/points, /ground_truth/points (with the dataset's
+        intensity), /forecast/<method>/<option>_<value>/points (with a per-point error), /tf, /ego/*.
+        """
+        if sample_ids and count:
+            raise PcfbenchError("--sample names the samples and --samples N takes the first N: give one of them")
+        if store is not None:
+            if split or policy:
+                raise PcfbenchError("--split and --policy pick samples to make; with --store the cells say them "
+                                    "(pick cells with -d/-s/-m/--cell)")
+            written, n = export_stored(store, out, datasets, settings, methods, cells, count, sample_ids, per_sample)
+        else:
+            if cells:
+                raise PcfbenchError("--cell picks cells of a results store: pass --store DIR")
+            if len(datasets) != 1 or len(settings) != 1:
+                raise PcfbenchError("without --store, give one --dataset NAME[=ROOT] and one --setting "
+                                    "(or --store DIR to export a run's stored forecasts)")
+            written, n = export(datasets[0], settings[0], out, sample_ids, split, methods, policy or "full-context",
+                                count, per_sample)
+        for path in written:
+            click.echo(f"wrote {path}")
+        click.echo(f"{len(written)} file(s), {n} point clouds")
+
+
+def _write(out: str | Path, items: list, topics: dict, record: dict, per_sample: bool) -> tuple[list[Path], int]:
+    """``items`` into the MCAP ``out``, or one per sample into the folder ``out``."""
+    from pcfbench.datasets.export_mcap import per_sample_name, write_mcap
+
+    out = Path(out)
+    n = sum(it.clouds for it in items)
+    if not per_sample:
+        if out.is_dir():
+            raise PcfbenchError(f"--out {out} is a folder: name the .mcap file to write, or pass --per-sample")
+        return [write_mcap(out, items, topics, record)], n
+    if out.exists() and not out.is_dir():
+        raise PcfbenchError(f"--out {out} is a file: with --per-sample it is the folder to write one .mcap per sample into")
+    names = [per_sample_name(it.sample.sample_id) for it in items]
+    if len(set(names)) != len(names):
+        raise PcfbenchError(f"--per-sample: two samples would share the file name {next(x for x in names if names.count(x) > 1)}")
+    return [write_mcap(out / name, [it], topics, record) for name, it in zip(names, items)], n
+
+
+def export_stored(store: str | Path, out: str | Path, datasets: tuple[str, ...] = (), settings: tuple[str, ...] = (),
+                  methods: tuple[str, ...] = (), cells: tuple[str, ...] = (), count: int | None = None,
+                  sample_ids: tuple[str, ...] = (), per_sample: bool = False, plugins=None) -> tuple[list[Path], int]:
+    """A run's stored forecasts (the cells of ``store`` the patterns pick; every one checked
+    against its stored rows: :mod:`pcfbench.datasets.export_forecasts`) to ``out``; returns the
+    files written and the number of point clouds."""
+    from pcfbench.datasets.export_forecasts import stored_forecasts
+    from pcfbench.reporting.select import Selection
+
+    import os
+
+    from tqdm import tqdm
+
+    selection = Selection(tuple(datasets), tuple(settings), tuple(methods))
+    bar = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=total, desc="re-making the stored forecasts", unit="sample",
+                       disable=True if os.environ.get("CI") or os.environ.get("PCFBENCH_NO_PROGRESS") else None)
+        bar.update(1)
+
+    try:
+        items, topics, record = stored_forecasts(Path(store), selection, tuple(cells), count, tuple(sample_ids), plugins,
+                                                 progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    return _write(out, items, topics, record, per_sample)
 
 
 def check_sample(builder, split: str, sample_id: str, where: str = "--sample") -> tuple[str, int]:
@@ -164,17 +256,13 @@ def check_sample(builder, split: str, sample_id: str, where: str = "--sample") -
     raise PcfbenchError(f"{where} {sample_id!r}: {why} ({span}); {hint}")
 
 
-def variant_topic(method) -> str:
-    """A method variant's topic name: its spec as on the command line (``raycast-voxel:voxel=0.4``),
-    the bare name without options, so two options of one method never share a topic."""
-    raw = dict(method.raw)
-    return method.name + (":" + ",".join(f"{k}={v}" for k, v in sorted(raw.items())) if raw else "")
-
-
-def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = None, split: str | None = None,
-           methods: tuple[str, ...] = (), policy: str = "full-context") -> tuple[Path, int]:
-    """Write one sample, its ground truth and each method variant's forecast (scored) to the MCAP
-    ``out``; returns the path and the number of point clouds."""
+def export(dataset: str, setting: str, out: str | Path, sample_ids: tuple[str, ...] | str | None = (),
+           split: str | None = None, methods: tuple[str, ...] = (), policy: str = "full-context", count: int | None = None,
+           per_sample: bool = False) -> tuple[list[Path], int]:
+    """Write samples (``sample_ids``; else the first ``count``; else the split's first), their
+    ground truth and each method variant's forecast made now (scored) to the MCAP ``out`` (one
+    per sample into the folder ``out`` with ``per_sample``); returns the files and the number
+    of point clouds."""
     from pcfbench.metrics.base import score_sample
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
@@ -182,11 +270,13 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
     from pcfbench.protocol import SampleBuilder, check_compatible
     from pcfbench.running.runner import default_metrics
     from pcfbench.protocol.validate import validate_forecast
-    from pcfbench.datasets.export_mcap import export_sample
+    from pcfbench.datasets.export_forecasts import sample_intensity
+    from pcfbench.datasets.export_mcap import SampleExport, forecast_topic, unique_topics
 
+    if isinstance(sample_ids, str):
+        sample_ids = (sample_ids,)
     plugins = get_plugins()
     resolved = [resolve_method(spec, plugins) for spec in methods]  # a bad spec fails before any work
-    topics = [variant_topic(m) for m in resolved]
     seen: dict[tuple[str, str], str] = {}
     for m, spec in zip(resolved, methods):
         key = (m.name, m.options_hash)
@@ -194,6 +284,8 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
             raise PcfbenchError(f"--method {spec!r} is the same variant as {seen[key]!r} (same method and options): "
                                 "give each variant once")
         seen[key] = spec
+    labels = [m.name + (":" + ",".join(f"{k}={v}" for k, v in sorted(dict(m.raw).items())) if m.raw else "") for m in resolved]
+    topics = unique_topics({label: forecast_topic(m.name, dict(m.raw)) for label, m in zip(labels, resolved)})
     adapter = open_adapter(dataset)
     s = get_setting(setting)
     check_compatible(s, adapter)
@@ -203,24 +295,29 @@ def export(dataset: str, setting: str, out: str | Path, sample_id: str | None = 
         from pcfbench.errors import unknown_name
 
         raise unknown_name(f"split of dataset {adapter.name}", split, adapter.splits())
-    if sample_id is None:
+    if sample_ids:
+        keys = [check_sample(builder, split, sid) for sid in sample_ids]
+    else:
         keys = builder.sample_keys(split)
         if not keys:
             from pcfbench.protocol.nosamples import explain
 
             settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
             raise PcfbenchError(explain(builder, split, settings=settings).message)
-        seq, index = keys[0]
-    else:
-        seq, index = check_sample(builder, split, sample_id)
-    sample, truth = builder.build(seq, index)
+        keys = keys[: count or 1]
     metrics = [plugins.metrics.get(m) for m in default_metrics(plugins)]
-    forecasts, scores = {}, {}
-    for topic, method in zip(topics, resolved):
-        fc = validate_forecast(sample, method.create().forecast(sample.for_method()))
-        forecasts[topic] = fc
-        scores[topic] = score_sample(sample, truth, fc, metrics)
-    meta = {"split": split, "setting": setting, "policy": policy,
-            "metric_versions": ", ".join(f"{m.name} v{m.version}" for m in metrics)}
-    path = export_sample(out, sample, truth, forecasts, metadata=meta, scores=scores)
-    return path, len(sample.past_points_ref) + len(truth.future_points_ref) * (1 + len(forecasts))
+    instances = [m.create() for m in resolved]
+    items = []
+    for seq, index in keys:
+        sample, truth = builder.build(seq, index)
+        forecasts, scores = {}, {}
+        for label, method in zip(labels, instances):
+            fc = validate_forecast(sample, method.forecast(sample.for_method()))
+            forecasts[topics[label]] = fc
+            scores[topics[label]] = score_sample(sample, truth, fc, metrics, protocol=builder.protocol)
+        intensity = sample_intensity(builder, sample, truth)
+        items.append(SampleExport(sample, truth, forecasts, scores, {}, *(intensity or (None, None))))
+    record = {"source": "recomputed (no results store)", "split": split, "setting": setting, "policy": policy,
+              "metric_versions": ", ".join(f"{m.name} v{m.version}" for m in metrics)}
+    described = {topics[label]: {"method": m.name, "options": dict(m.raw), "spec": label} for label, m in zip(labels, resolved)}
+    return _write(out, items, described, record, per_sample)

@@ -144,6 +144,10 @@ class KittiOdometry(DatasetAdapter):
         path = self._seq_dir(sequence) / "velodyne" / f"{index:06d}.bin"
         return read_bin(path)[:, :3]
 
+    def load_intensity(self, sequence: str, index: int) -> np.ndarray:
+        """(N,) float32 reflectance of sweep ``index`` (the .bin's fourth column), points in order."""
+        return read_bin(self._seq_dir(sequence) / "velodyne" / f"{index:06d}.bin")[:, 3]
+
     def data_files(self, split: str) -> list[Path]:
         """What ``split`` reads: each sequence's velodyne/*.bin, calib.txt, times.txt and poses."""
         files: list[Path] = []
@@ -182,7 +186,8 @@ def _open_sequence(root: str, name: str, rate_hz: float = 10.0) -> Sequence:
         bad = int(np.argmax(np.diff(times) <= 0)) + 1
         raise DataError(f"KITTI times file {times_path}: timestamps not increasing at line {bad + 1}")
     check_sweep_times(times, rate_hz, f"KITTI times file {times_path}")
-    return Sequence(name=name, T_world_sensor=T_world_velo, timestamps_ns=times, loader=adapter.load_points)
+    return Sequence(name=name, T_world_sensor=T_world_velo, timestamps_ns=times, loader=adapter.load_points,
+                    intensity_loader=adapter.load_intensity)
 
 
 def _check_count(where: str, what: str, have: int, n: int, velo: Path) -> None:

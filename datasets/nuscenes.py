@@ -248,7 +248,10 @@ class NuScenes(DatasetAdapter):
         def load(_seq: str, index: int) -> np.ndarray:
             return read_pcd_bin(files[index])[:, :3]
 
-        return Sequence(name=name, T_world_sensor=np.stack(poses), timestamps_ns=ts, loader=load)
+        def intensity(_seq: str, index: int) -> np.ndarray:
+            return read_pcd_bin(files[index])[:, 3]
+
+        return Sequence(name=name, T_world_sensor=np.stack(poses), timestamps_ns=ts, loader=load, intensity_loader=intensity)
 
     def check(self) -> CheckReport:
         report = CheckReport(layout=f"nuscenes {getattr(self, 'release', '?')}", root=str(self.root))

@@ -31,10 +31,13 @@ def test_export_reads_back(tiny_kitti, tmp_path):
     res = CliRunner().invoke(build_cli(), ["export", "-d", f"kitti={tiny_kitti}", "-s", "kitti-1s", "--sample", "08/000010",
                                            "-m", "copy-last", "-o", str(out)])
     assert res.exit_code == 0, res.output
-    assert "15 point clouds" in res.output
+    assert "1 file(s), 15 point clouds" in res.output
     sample, truth = SampleBuilder(KittiOdometry(tiny_kitti), SETTINGS["kitti-1s"]).build("08", 10)
     topics = _read_back(out)
-    assert set(topics) == {"/tf", "/ego/pose", "/ego/trajectory", "/past/points", "/ground_truth/points", "/forecast/copy-last/points"}
+    assert set(topics) == {"/tf", "/ego/pose", "/ego/trajectory", "/past/points", "/ground_truth/points",
+                           "/forecast/copy_last/points", "/pcfbench/sample"}
+    assert [m[2].message for m in topics["/pcfbench/sample"]] == [
+        "sample 08/000010 (kitti sequence 08, reference sweep 10); times shifted by 0 ns"]
     schemas = {t: {m[0] for m in msgs} for t, msgs in topics.items()}
     assert schemas["/past/points"] == {"foxglove.PointCloud"} and schemas["/tf"] == {"foxglove.FrameTransform"}
     assert schemas["/ego/trajectory"] == {"foxglove.PosesInFrame"} and schemas["/ego/pose"] == {"foxglove.PoseInFrame"}
@@ -43,8 +46,9 @@ def test_export_reads_back(tiny_kitti, tmp_path):
     assert [len(m[2].data) // m[2].point_stride for m in past] == [len(p) for p in sample.past_points_ref]
     gt = topics["/ground_truth/points"]
     assert [m[1] for m in gt] == list(sample.future_timestamps_ns)
-    assert [len(m[2].data) // 12 for m in gt] == [len(p) for p in truth.future_points_ref]
-    fc = topics["/forecast/copy-last/points"]
+    assert [len(m[2].data) // 16 for m in gt] == [len(p) for p in truth.future_points_ref]  # x, y, z, intensity
+    assert [f.name for f in gt[0][2].fields] == ["x", "y", "z", "intensity"]
+    fc = topics["/forecast/copy_last/points"]
     assert [m[2].point_stride for m in fc] == [16] * 5 and [f.name for f in fc[0][2].fields] == ["x", "y", "z", "error"]
     assert [len(m[2].data) // 16 for m in fc] == [len(sample.past_points_ref[-1])] * 5
     assert len(topics["/tf"]) == 10 and len(topics["/ego/trajectory"][0][2].poses) == 10
@@ -57,7 +61,7 @@ def test_export_reads_back(tiny_kitti, tmp_path):
     r = tf[t].rotation
     T[:3, :3] = quat_wxyz_to_rotation(np.array([r.w, r.x, r.y, r.z]))
     T[:3, 3] = [tf[t].translation.x, tf[t].translation.y, tf[t].translation.z]
-    pts = np.frombuffer(msg.data, "<f4").reshape(-1, 3)
+    pts = np.frombuffer(msg.data, "<f4").reshape(-1, 4)[:, :3]
     np.testing.assert_allclose(transform_points(T, pts), transform_points(sample.T_world_ref, truth.future_points_ref[2]), atol=2e-3)
 
 
@@ -87,16 +91,22 @@ def test_export_keeps_variants_apart_with_per_point_errors_and_scores(tiny_kitti
     assert res.exit_code == 0, res.output
     assert "25 point clouds" in res.output  # 5 past + 5 truth + 3 x 5 forecasts
     topics = _read_back(out)
-    names = ["raycast-voxel:voxel=0.4", "raycast-voxel:voxel=0.8", "copy-last"]
-    assert {f"/forecast/{n}/points" for n in names} <= set(topics)
+    names = {"raycast-voxel:voxel=0.4": "/forecast/raycast_voxel/voxel_0p4/points",
+             "raycast-voxel:voxel=0.8": "/forecast/raycast_voxel/voxel_0p8/points", "copy-last": "/forecast/copy_last/points"}
+    assert set(names.values()) <= set(topics)
     sample, truth = SampleBuilder(KittiOdometry(tiny_kitti), SETTINGS["kitti-1s"]).build("08", 12)
     plugins = get_plugins()
     metrics = [plugins.metrics.get(m) for m in default_metrics(plugins)]
     meta = _metadata(out)
-    assert meta["pcfbench.sample"]["sample_id"] == "08/000012" and meta["pcfbench.sample"]["setting"] == "kitti-1s"
-    assert meta["pcfbench.sample"]["split"] == "test" and meta["pcfbench.sample"]["dataset"] == "kitti"
-    for name in names:
-        msgs = topics[f"/forecast/{name}/points"]
+    assert json.loads(meta["pcfbench.samples"]["08/000012"]) == {"sequence": "08", "ref_index": 12, "offset_ns": 0,
+                                                                 "start_ns": int(sample.past_timestamps_ns[0]),
+                                                                 "end_ns": int(sample.future_timestamps_ns[-1])}
+    assert meta["pcfbench.export"]["setting"] == "kitti-1s" and meta["pcfbench.export"]["split"] == "test"
+    assert meta["pcfbench.export"]["dataset"] == "kitti" and meta["pcfbench.export"]["samples"] == "1"
+    assert {t: json.loads(v)["spec"] for t, v in meta["pcfbench.topics"].items()} == {t: n for n, t in names.items()}
+    scores = json.loads(meta["pcfbench.scores"]["08/000012"])
+    for name, topic in names.items():
+        msgs = topics[topic]
         fc = resolve_method(name).create().forecast(sample.for_method())
         for k, (_, _, msg) in enumerate(msgs):
             data = np.frombuffer(msg.data, "<f4").reshape(-1, 4)
@@ -105,10 +115,10 @@ def test_export_keeps_variants_apart_with_per_point_errors_and_scores(tiny_kitti
             brute = np.sqrt(((pred[:, None] - gt[None]) ** 2).sum(-1)).min(1)
             np.testing.assert_allclose(data[:, 3], brute, rtol=1e-5, atol=1e-5)
         want = score_sample(sample, truth, fc, metrics)
-        got = json.loads(meta["pcfbench.scores"][name])
+        got = scores[topic]
         assert [r["l1_mean"] for r in got] == pytest.approx([r["l1_mean"] for r in want], rel=1e-12)
         assert [r["chamfer"] for r in got] == pytest.approx([r["chamfer"] for r in want], rel=1e-12)
-    a, b = (topics[f"/forecast/raycast-voxel:voxel={v}/points"] for v in ("0.4", "0.8"))
+    a, b = (topics[f"/forecast/raycast_voxel/voxel_{v}/points"] for v in ("0p4", "0p8"))
     assert len(a) == len(b) == 5 and a[-1][2].data != b[-1][2].data  # both variants' clouds, not one twice
 
 
