@@ -76,6 +76,12 @@ def read_lidar(path: Path) -> np.ndarray:
     return out
 
 
+def read_lidar_intensity(path: Path) -> np.ndarray:
+    """(N,) float32 intensity (0..255 as stored, uint8 in the real files) of one sweep's points, in order."""
+    t = read_feather(path, {"intensity": "int"}, "LiDAR sweep", only=True)
+    return t.column("intensity").to_numpy(zero_copy_only=False).astype(np.float32)
+
+
 def _poses(table: pa.Table, path: Path, key: str) -> tuple[np.ndarray, np.ndarray]:
     """(keys, (K, 4, 4) float64) from the qw..tz_m columns; zero-norm quaternions are errors."""
     q = np.stack([table.column(c).to_numpy().astype(np.float64) for c in POSE_COLUMNS[:4]], axis=1)
@@ -161,7 +167,8 @@ class Argoverse2(DatasetAdapter):
                 f"(the sweeps {', '.join(f'{m}.feather' for m in missing)} need one each)"
             )
         files = [lidar / f"{t}.feather" for t in ts]
-        return Sequence(name=name, T_world_sensor=T[idx], timestamps_ns=ts, loader=lambda _s, i: read_lidar(files[i]))
+        return Sequence(name=name, T_world_sensor=T[idx], timestamps_ns=ts, loader=lambda _s, i: read_lidar(files[i]),
+                        intensity_loader=lambda _s, i: read_lidar_intensity(files[i]))
 
     def check(self) -> CheckReport:
         base = super().check()

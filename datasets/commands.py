@@ -168,18 +168,25 @@ def add_commands(cli) -> None:
         click.echo(f"{len(written)} file(s), {n} point clouds")
 
 
+def check_out(out: str | Path, per_sample: bool) -> Path:
+    """``--out`` as a path, or one error when it is a folder for one file or a file for a folder
+    (checked before any work)."""
+    out = Path(out)
+    if not per_sample and out.is_dir():
+        raise PcfbenchError(f"--out {out} is a folder: name the .mcap file to write, or pass --per-sample")
+    if per_sample and out.exists() and not out.is_dir():
+        raise PcfbenchError(f"--out {out} is a file: with --per-sample it is the folder to write one .mcap per sample into")
+    return out
+
+
 def _write(out: str | Path, items: list, topics: dict, record: dict, per_sample: bool) -> tuple[list[Path], int]:
     """``items`` into the MCAP ``out``, or one per sample into the folder ``out``."""
     from pcfbench.datasets.export_mcap import per_sample_name, write_mcap
 
-    out = Path(out)
+    out = check_out(out, per_sample)
     n = sum(it.clouds for it in items)
     if not per_sample:
-        if out.is_dir():
-            raise PcfbenchError(f"--out {out} is a folder: name the .mcap file to write, or pass --per-sample")
         return [write_mcap(out, items, topics, record)], n
-    if out.exists() and not out.is_dir():
-        raise PcfbenchError(f"--out {out} is a file: with --per-sample it is the folder to write one .mcap per sample into")
     names = [per_sample_name(it.sample.sample_id) for it in items]
     if len(set(names)) != len(names):
         raise PcfbenchError(f"--per-sample: two samples would share the file name {next(x for x in names if names.count(x) > 1)}")
@@ -199,6 +206,7 @@ def export_stored(store: str | Path, out: str | Path, datasets: tuple[str, ...] 
 
     from tqdm import tqdm
 
+    check_out(out, per_sample)
     selection = Selection(tuple(datasets), tuple(settings), tuple(methods))
     bar = None
 
@@ -275,6 +283,7 @@ def export(dataset: str, setting: str, out: str | Path, sample_ids: tuple[str, .
 
     if isinstance(sample_ids, str):
         sample_ids = (sample_ids,)
+    check_out(out, per_sample)
     plugins = get_plugins()
     resolved = [resolve_method(spec, plugins) for spec in methods]  # a bad spec fails before any work
     seen: dict[tuple[str, str], str] = {}

@@ -176,6 +176,23 @@ def test_nuscenes_sequences_give_their_intensity_column(tmp_path):
         np.testing.assert_array_equal(seq.load_intensity(i), np.arange(n, dtype=np.float32) * 0.5)
 
 
+def test_av2_sequences_give_their_intensity_column(tmp_path):
+    import pyarrow.feather as feather
+    from test_adapter_av2 import write_tiny_av2
+    from pcfbench.datasets.av2 import Argoverse2
+
+    root = write_tiny_av2(tmp_path / "av2", n=4)
+    for path in (root / "train").rglob("sensors/lidar/*.feather"):
+        t = feather.read_table(path)
+        values = pa.array((np.arange(t.num_rows) % 256).astype(np.uint8))
+        feather.write_feather(t.set_column(t.schema.get_field_index("intensity"), "intensity", values), path)
+    adapter = Argoverse2(root)
+    seq = adapter.sequence(adapter.sequence_names("train")[0])
+    for i in range(len(seq)):
+        n = len(seq.load_points(i))
+        np.testing.assert_array_equal(seq.load_intensity(i), (np.arange(n) % 256).astype(np.float32))
+
+
 # -- a run's stored forecasts ----------------------------------------------------------------
 
 def _spec(root, method="copy-last", raw=None, setting="kitti-1s"):
@@ -326,3 +343,20 @@ def test_store_export_needs_one_set_of_samples_and_records_failed_samples(run_st
     scores = json.loads(meta["pcfbench.scores"]["08/000008"])
     assert scores["/forecast/shifted/dx_0p5/points"] == {"failed": "ValueError: boom"}
     assert "/forecast/shifted/dx_0p5/points" not in topics and len(topics["/forecast/copy_last/points"]) == 5
+
+
+@pytest.mark.parametrize("args, message", [
+    (["-d", "kitti", "-d", "nuscenes", "-s", "kitti-1s"], "without --store, give one --dataset NAME[=ROOT] and one --setting"),
+    (["-d", "kitti", "-s", "kitti-1s", "--cell", "kitti/*"], "--cell picks cells of a results store: pass --store DIR"),
+    (["--store", "STORE", "--split", "val"], "--split and --policy pick samples to make; with --store the cells say them"),
+    (["--store", "STORE", "--per-sample", "-o", "FILE"], "with --per-sample it is the folder to write one .mcap per sample into"),
+    (["--store", "STORE", "-o", "DIR"], "is a folder: name the .mcap file to write, or pass --per-sample"),
+])
+def test_export_arguments_that_cannot_go_together_are_one_error(run_store, tmp_path, args, message):
+    (tmp_path / "FILE").write_text("")
+    (tmp_path / "DIR").mkdir()
+    args = [str(run_store) if a == "STORE" else str(tmp_path / a) if a in ("FILE", "DIR") else a for a in args]
+    if "-o" not in args:
+        args += ["-o", str(tmp_path / "x.mcap")]
+    res = CliRunner().invoke(build_cli(), ["export", "-m", "copy-last", "--samples", "1", *args])
+    assert res.exit_code == 2 and message in res.output, res.output
