@@ -179,18 +179,23 @@ def check_out(out: str | Path, per_sample: bool) -> Path:
     return out
 
 
-def _write(out: str | Path, items: list, topics: dict, record: dict, per_sample: bool) -> tuple[list[Path], int]:
-    """``items`` into the MCAP ``out``, or one per sample into the folder ``out``."""
+def _write(out: str | Path, items, topics: dict, record: dict, per_sample: bool) -> tuple[list[Path], int]:
+    """``items`` (written as they come) into the MCAP ``out``, or one per sample into the folder ``out``."""
     from pcfbench.datasets.export_mcap import per_sample_name, write_mcap
 
     out = check_out(out, per_sample)
-    n = sum(it.clouds for it in items)
     if not per_sample:
-        return [write_mcap(out, items, topics, record)], n
-    names = [per_sample_name(it.sample.sample_id) for it in items]
-    if len(set(names)) != len(names):
-        raise PcfbenchError(f"--per-sample: two samples would share the file name {next(x for x in names if names.count(x) > 1)}")
-    return [write_mcap(out / name, [it], topics, record) for name, it in zip(names, items)], n
+        path, n = write_mcap(out, items, topics, record)
+        return [path], n
+    written: dict[str, Path] = {}
+    total = 0
+    for it in items:
+        name = per_sample_name(it.sample.sample_id)
+        if name in written:
+            raise PcfbenchError(f"--per-sample: two samples would share the file name {name}")
+        written[name], n = write_mcap(out / name, [it], topics, record)
+        total += n
+    return list(written.values()), total
 
 
 def export_stored(store: str | Path, out: str | Path, datasets: tuple[str, ...] = (), settings: tuple[str, ...] = (),
@@ -220,10 +225,10 @@ def export_stored(store: str | Path, out: str | Path, datasets: tuple[str, ...] 
     try:
         items, topics, record = stored_forecasts(Path(store), selection, tuple(cells), count, tuple(sample_ids), plugins,
                                                  progress)
+        return _write(out, items, topics, record, per_sample)
     finally:
         if bar is not None:
             bar.close()
-    return _write(out, items, topics, record, per_sample)
 
 
 def check_sample(builder, split: str, sample_id: str, where: str = "--sample") -> tuple[str, int]:
@@ -316,17 +321,19 @@ def export(dataset: str, setting: str, out: str | Path, sample_ids: tuple[str, .
         keys = keys[: count or 1]
     metrics = [plugins.metrics.get(m) for m in default_metrics(plugins)]
     instances = [m.create() for m in resolved]
-    items = []
-    for seq, index in keys:
-        sample, truth = builder.build(seq, index)
-        forecasts, scores = {}, {}
-        for label, method in zip(labels, instances):
-            fc = validate_forecast(sample, method.forecast(sample.for_method()))
-            forecasts[topics[label]] = fc
-            scores[topics[label]] = score_sample(sample, truth, fc, metrics, protocol=builder.protocol)
-        intensity = sample_intensity(builder, sample, truth)
-        items.append(SampleExport(sample, truth, forecasts, scores, {}, *(intensity or (None, None))))
+
+    def items():
+        for seq, index in keys:
+            sample, truth = builder.build(seq, index)
+            forecasts, scores = {}, {}
+            for label, method in zip(labels, instances):
+                fc = validate_forecast(sample, method.forecast(sample.for_method()))
+                forecasts[topics[label]] = fc
+                scores[topics[label]] = score_sample(sample, truth, fc, metrics, protocol=builder.protocol)
+            intensity = sample_intensity(builder, sample, truth)
+            yield SampleExport(sample, truth, forecasts, scores, {}, *(intensity or (None, None)))
+
     record = {"source": "recomputed (no results store)", "split": split, "setting": setting, "policy": policy,
               "metric_versions": ", ".join(f"{m.name} v{m.version}" for m in metrics)}
     described = {topics[label]: {"method": m.name, "options": dict(m.raw), "spec": label} for label, m in zip(labels, resolved)}
-    return _write(out, items, described, record, per_sample)
+    return _write(out, items(), described, record, per_sample)

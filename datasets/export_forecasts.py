@@ -17,7 +17,7 @@ import math
 from dataclasses import dataclass
 from fnmatch import fnmatchcase
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import pandas as pd
@@ -180,12 +180,12 @@ def check_rows(cell: StoredCell, sid: str, stored: pd.DataFrame, fresh: list[dic
 
 def stored_forecasts(store: Path, selection, cells: tuple[str, ...] = (), count: int | None = None,
                      ids: tuple[str, ...] = (), plugins=None,
-                     progress: Callable[[int, int], None] | None = None) -> tuple[list[SampleExport], dict[str, dict], dict[str, str]]:
+                     progress: Callable[[int, int], None] | None = None
+                     ) -> tuple[Iterator[SampleExport], dict[str, dict], dict[str, str]]:
     """The selected cells' forecasts of the chosen samples, each checked against its stored
-    rows: (one :class:`SampleExport` per sample, topic -> what it shows, the export record)."""
-    from pcfbench.metrics.base import score_sample
+    rows: (one :class:`SampleExport` per sample, made as it is asked for; topic -> what it
+    shows; the export record). Cells and samples are checked before the first is made."""
     from pcfbench.protocol import ids_hash, sample_id
-    from pcfbench.protocol.validate import validate_forecast
     from pcfbench.running.runner import cell_identity, resolve, sample_keys
     from pcfbench.store.cells import Cell, check_identity
 
@@ -208,31 +208,13 @@ def stored_forecasts(store: Path, selection, cells: tuple[str, ...] = (), count:
                             for c in chosen})
     builder = resolved[0].builder
     chosen_keys = choose_samples(builder.sample_keys(chosen[0].spec.split), stored, count, ids)
-    items = []
-    for n, key in enumerate(chosen_keys):
-        sample, truth = builder.build(*key)
-        sid = sample.sample_id
-        forecasts, scores, failed = {}, {}, {}
-        for c, res in zip(chosen, resolved):
-            rows = stored[c.variant][sid]
-            topic = topics[c.variant]
-            if (rows["status"] == "failed").any():
-                failed[topic] = str(rows["error"].iloc[0]) if "error" in rows else "failed"
-                continue
-            try:
-                fc = validate_forecast(sample, res.method.forecast(sample.for_method()))
-            except DataError:
-                raise
-            except Exception as exc:  # noqa: BLE001 - it was scored in the run: a failure now is a mismatch
-                raise PcfbenchError(f"sample {sid} of {c.variant}: the method fails now ({type(exc).__name__}: {exc}) "
-                                    f"but was scored in the run; cell {c.dir}") from None
-            fresh = score_sample(sample, truth, fc, res.metrics, protocol=res.builder.protocol)
-            check_rows(c, sid, rows[rows["status"] == "ok"], fresh)
-            forecasts[topic], scores[topic] = fc, fresh
-        intensity = sample_intensity(builder, sample, truth)
-        items.append(SampleExport(sample, truth, forecasts, scores, failed, *(intensity or (None, None))))
-        if progress is not None:
-            progress(n + 1, len(chosen_keys))
+
+    def items() -> Iterator[SampleExport]:
+        for n, key in enumerate(chosen_keys):
+            yield _remade(key, builder, chosen, resolved, stored, topics)
+            if progress is not None:
+                progress(n + 1, len(chosen_keys))
+
     head = chosen[0]
     record = {"source": f"results store {store}", "dataset": head.spec.dataset, "split": head.spec.split,
               "setting": head.spec.setting, "policy": head.spec.policy,
@@ -241,4 +223,33 @@ def stored_forecasts(store: Path, selection, cells: tuple[str, ...] = (), count:
                                      "cell": str(c.dir.relative_to(store)), "checkpoint_sha256": c.spec.checkpoint_sha256,
                                      "train_on": c.spec.train_on, "method_version": c.meta.get("method_version")}
                  for c in chosen}
-    return items, described, record
+    return items(), described, record
+
+
+def _remade(key: tuple[str, int], builder, chosen: list[StoredCell], resolved: list, stored: dict, topics: dict[str, str]
+            ) -> SampleExport:
+    """One sample with each cell's forecast made again and checked against its stored rows."""
+    from pcfbench.metrics.base import score_sample
+    from pcfbench.protocol.validate import validate_forecast
+
+    sample, truth = builder.build(*key)
+    sid = sample.sample_id
+    forecasts, scores, failed = {}, {}, {}
+    for c, res in zip(chosen, resolved):
+        rows = stored[c.variant][sid]
+        topic = topics[c.variant]
+        if (rows["status"] == "failed").any():
+            failed[topic] = str(rows["error"].iloc[0]) if "error" in rows else "failed"
+            continue
+        try:
+            fc = validate_forecast(sample, res.method.forecast(sample.for_method()))
+        except DataError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - it was scored in the run: a failure now is a mismatch
+            raise PcfbenchError(f"sample {sid} of {c.variant}: the method fails now ({type(exc).__name__}: {exc}) "
+                                f"but was scored in the run; cell {c.dir}") from None
+        fresh = score_sample(sample, truth, fc, res.metrics, protocol=res.builder.protocol)
+        check_rows(c, sid, rows[rows["status"] == "ok"], fresh)
+        forecasts[topic], scores[topic] = fc, fresh
+    intensity = sample_intensity(builder, sample, truth)
+    return SampleExport(sample, truth, forecasts, scores, failed, *(intensity or (None, None)))

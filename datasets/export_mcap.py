@@ -47,7 +47,7 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -148,18 +148,6 @@ def _stamps(item: SampleExport) -> list[int]:
     return [int(t) for t in s.past_timestamps_ns] + [int(t) for t in s.future_timestamps_ns]
 
 
-def timeline(items: list[SampleExport]) -> list[int]:
-    """Each sample's time offset (ns): 0 for the first, then each starts ``SAMPLE_GAP_NS`` after
-    the previous one's last (shifted) time."""
-    offsets, end = [], None
-    for item in items:
-        stamps = _stamps(item)
-        offset = 0 if end is None else end + SAMPLE_GAP_NS - min(stamps)
-        offsets.append(offset)
-        end = max(stamps) + offset
-    return offsets
-
-
 def _sample_messages(item: SampleExport, offset: int) -> list[tuple[int, int, str, object]]:
     """(shifted time, order, topic, message) of one sample's messages."""
     from foxglove_schemas_protobuf.Log_pb2 import Log
@@ -205,56 +193,73 @@ def _sample_messages(item: SampleExport, offset: int) -> list[tuple[int, int, st
     return msgs
 
 
-def write_mcap(path: str | Path, items: list[SampleExport], topics: dict[str, dict] | None = None,
-               record: dict[str, Any] | None = None) -> Path:
-    """Write ``items`` (each sample on its own span of one timeline: :func:`timeline`) to ``path``.
+def write_mcap(path: str | Path, items: Iterable[SampleExport], topics: dict[str, dict] | None = None,
+               record: dict[str, Any] | None = None) -> tuple[Path, int]:
+    """Write ``items`` to ``path``, each sample on its own span of one timeline (the first at its
+    recorded times, each next one ``SAMPLE_GAP_NS`` after the previous one's last message);
+    returns the path and the number of point clouds.
 
-    ``topics``: forecast topic -> what it shows (method, options, spec, ...: ``pcfbench.topics``);
-    ``record``: the ``pcfbench.export`` record's fields."""
+    ``items`` may be a generator: each sample is written as it comes, so memory holds one
+    sample's clouds, and the file appears (renamed into place) only once every sample is
+    written: an error half-way leaves no file. ``topics``: forecast topic -> what it shows
+    (method, options, spec, ...: ``pcfbench.topics``); every forecast topic needs an entry when
+    given. ``record``: the ``pcfbench.export`` record's fields."""
+    import os
+
     import pcfbench
     from mcap_protobuf.writer import Writer
 
-    if not items:
-        raise PcfbenchError(f"{path}: no sample to export")
-    ids = [it.sample.sample_id for it in items]
-    if len(set(ids)) != len(ids):
-        raise PcfbenchError(f"{path}: sample {next(i for i in ids if ids.count(i) > 1)} given twice")
-    used = {t for it in items for t in (*it.forecasts, *it.scores, *it.failed)}
-    for topic in sorted(used):
+    path = Path(path)
+    for topic in sorted(topics or {}):
         if not TOPIC_CHARS.match(topic):
             raise PcfbenchError(f"{path}: topic {topic!r} holds characters Foxglove users must quote "
                                 "(only letters, digits, _ and / are written)")
-    unnamed = sorted(used - set(topics or {}))
-    if topics is not None and unnamed:
-        raise PcfbenchError(f"{path}: forecast topic(s) {', '.join(unnamed)} have no entry in the topic record")
-    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    offsets = timeline(items)
-    msgs, samples, scores = [], {}, {}
-    for item, offset in zip(items, offsets):
-        mine = _sample_messages(item, offset)
-        msgs.extend(mine)
-        s = item.sample
-        samples[s.sample_id] = json.dumps({"sequence": s.sequence, "ref_index": int(s.ref_index), "offset_ns": offset,
-                                           "start_ns": min(m[0] for m in mine), "end_ns": max(m[0] for m in mine)})
-        per_topic: dict[str, Any] = {t: rows for t, rows in item.scores.items()}
-        per_topic.update({t: {"failed": err} for t, err in item.failed.items()})
-        if per_topic:
-            scores[s.sample_id] = json.dumps(per_topic, allow_nan=True)
-    msgs.sort(key=lambda m: (m[0], m[1]))
-    head = items[0].sample
-    export = {"dataset": head.dataset, "samples": str(len(items)), "pcfbench_version": pcfbench.__version__,
-              **(record or {})}
-    with open(path, "wb") as f, Writer(f) as w:
-        for t, _, topic, msg in msgs:
-            w.write_message(topic, msg, log_time=t, publish_time=t)
-        w.add_metadata("pcfbench.export", {k: str(v) for k, v in export.items()})
-        w.add_metadata("pcfbench.samples", samples)
-        if topics:
-            w.add_metadata("pcfbench.topics", {t: json.dumps(v, sort_keys=True) for t, v in topics.items() if t in used})
-        if scores:
-            w.add_metadata("pcfbench.scores", scores)
-    return path
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    samples: dict[str, str] = {}
+    scores: dict[str, str] = {}
+    used: set[str] = set()
+    end, clouds, dataset = None, 0, ""
+    try:
+        with open(tmp, "wb") as f, Writer(f) as w:
+            for item in items:
+                s = item.sample
+                if s.sample_id in samples:
+                    raise PcfbenchError(f"{path}: sample {s.sample_id} given twice")
+                mine = set(item.forecasts) | set(item.scores) | set(item.failed)
+                bad = sorted(t for t in mine if not TOPIC_CHARS.match(t) or (topics is not None and t not in topics))
+                if bad:
+                    raise PcfbenchError(f"{path}: forecast topic(s) {', '.join(bad)} are not in the topic record "
+                                        "(or hold characters Foxglove users must quote)")
+                used |= mine
+                stamps = _stamps(item)
+                offset = 0 if end is None else end + SAMPLE_GAP_NS - min(stamps)
+                msgs = sorted(_sample_messages(item, offset), key=lambda m: (m[0], m[1]))
+                for t, _, topic, msg in msgs:
+                    w.write_message(topic, msg, log_time=t, publish_time=t)
+                end = msgs[-1][0]
+                samples[s.sample_id] = json.dumps({"sequence": s.sequence, "ref_index": int(s.ref_index),
+                                                   "offset_ns": offset, "start_ns": msgs[0][0], "end_ns": end})
+                per_topic: dict[str, Any] = dict(item.scores)
+                per_topic.update({t: {"failed": err} for t, err in item.failed.items()})
+                if per_topic:
+                    scores[s.sample_id] = json.dumps(per_topic, allow_nan=True)
+                clouds += item.clouds
+                dataset = s.dataset
+            if not samples:
+                raise PcfbenchError(f"{path}: no sample to export")
+            export = {"dataset": dataset, "samples": str(len(samples)), "pcfbench_version": pcfbench.__version__,
+                      **(record or {})}
+            w.add_metadata("pcfbench.export", {k: str(v) for k, v in export.items()})
+            w.add_metadata("pcfbench.samples", samples)
+            if topics:
+                w.add_metadata("pcfbench.topics", {t: json.dumps(v, sort_keys=True) for t, v in topics.items() if t in used})
+            if scores:
+                w.add_metadata("pcfbench.scores", scores)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path, clouds
 
 
 def per_sample_name(sample_id: str) -> str:

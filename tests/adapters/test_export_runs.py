@@ -293,7 +293,7 @@ def test_store_export_refuses_a_forecast_that_does_not_score_as_stored(run_store
     with pytest.raises(PcfbenchError, match=r"^sample 08/000009 sweep 2 of shifted:dx=0\.5: l1_mean is .* recomputed but "
                                              r".* stored; the forecast made now is not the one that was scored"):
         export_stored(store, out, count=3, plugins=shifted_plugins())
-    assert not out.exists()
+    assert not out.exists() and list(tmp_path.glob(".x.mcap*")) == []  # the first sample was written, then dropped
     export_stored(store, out, count=1, plugins=shifted_plugins())  # the samples before it are fine
     assert out.exists()
 
