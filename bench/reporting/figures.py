@@ -405,15 +405,17 @@ def range_intervals(found: StoredRanges, resampling=None) -> dict[str, pd.DataFr
     for variant, per in found.samples.items():
         if not len(per):
             continue
-        bins = np.sort(per["bin"].unique())
-        wide = per.pivot_table(index=["sample_id", "sequence", "ref_index"], columns="bin",
-                               values=["rays", "l1_sum", "absrel_sum"], aggfunc="sum", fill_value=0)
-        rays = wide["rays"].reindex(columns=bins, fill_value=0).to_numpy(float)
-        sums = np.hstack([wide[c].reindex(columns=bins, fill_value=0).to_numpy(float) for c in ("l1_sum", "absrel_sum")])
-        ids, seqs, refs = (wide.index.get_level_values(k) for k in ("sample_id", "sequence", "ref_index"))
+        # (samples, bins) matrices: a sample's rays and error sums in each bin, 0 where it has none
+        first, sample = np.unique(per["sample_id"].to_numpy(str), return_index=True, return_inverse=True)[1:]
+        bins, col = np.unique(per["bin"].to_numpy(np.int64), return_inverse=True)
+        n, k = len(first), len(bins)
+        rays, l1, absrel = np.zeros((n, k)), np.zeros((n, k)), np.zeros((n, k))
+        for m, c in ((rays, "rays"), (l1, "l1_sum"), (absrel, "absrel_sum")):
+            np.add.at(m, (sample, col), per[c].to_numpy(float))
+        ids, seqs, refs = (per[c].to_numpy()[first] for c in ("sample_id", "sequence", "ref_index"))
         metrics = [f"{m}@{b}" for m in ("l1", "absrel") for b in bins]
-        iv = stats.interval(stats.SampleSums.of(ids, seqs, refs, metrics, sums, np.hstack([rays, rays])), resampling)
-        k = len(bins)
+        ss = stats.SampleSums.of(ids, seqs, refs, metrics, np.hstack([l1, absrel]), np.hstack([rays, rays]))
+        iv = stats.interval(ss, resampling)
         out[variant] = pd.DataFrame({"lo_m": bins * RANGE_BIN_M, "l1_lo": iv.lo[:k], "l1_hi": iv.hi[:k],
                                      "absrel_lo": iv.lo[k:], "absrel_hi": iv.hi[k:], "units": iv.units})
     return out
