@@ -9,12 +9,17 @@ Every figure but the gallery is drawn from the store alone: no method runs in a 
   sweep of each cell pooled. The runner stores each sweep's bins (rays, error sums) beside its
   rows (``pcfbench.store.ranges``): the errors are those of ``SweepContext.ray_errors_wrapped``, the
   very errors ``l1_mean``/``absrel_mean`` average, so a sweep's ray-weighted mean over its bins
-  is its stored value. A cell made before the store kept them is left out of the figure and
-  named, with the command that recomputes them (``pcfbench backfill-ranges``).
+  is its stored value. The band of each bin is its bootstrap interval over the resampling
+  units (:func:`range_intervals`). A cell made before the store kept them is left out of the
+  figure and named, with the command that recomputes them (``pcfbench backfill-ranges``).
 - ``gallery-<group>``: only when asked for (``pcfbench report --gallery``), as it **re-runs**
-  the methods on a few samples (``figure_samples`` per group, chosen below): bird's-eye views
-  of those samples: the past sweeps, the ground truth at the horizon and each variant's
-  forecast of it, its points coloured by their distance to the nearest ground-truth point (m).
+  the methods on a few samples (``figure_samples`` per group, chosen below): bird's-eye views,
+  a column per sample, a row each for the past sweeps, the ground truth at the horizon and
+  each variant's forecast of it, its points coloured by their distance to the nearest
+  ground-truth point (m) on one scale with one colour bar.
+
+Legends name variants by their short labels (:func:`short_labels`): a trained method's
+training data and checkpoint go to a footnote under the figure.
 - ``ablation-<stem>``: a sweep's metric against an option's value (``pcfbench.experiments.sweep``).
 
 Chosen samples (the gallery): per group, the reference cell's (else the first cell's) samples
@@ -39,6 +44,8 @@ from pcfbench.store.ranges import RANGE_BIN_M
 
 FIGURES_DIR = "figures"
 FORMATS = ("png", "svg")
+#: the gallery's PNG resolution: a 1.3 inch panel of a 250-cell raster keeps every cell
+GALLERY_DPI = 200
 _RC = {"svg.hashsalt": "pcfbench", "font.size": 9, "axes.grid": True, "grid.alpha": 0.3}
 
 
@@ -60,9 +67,47 @@ def _new_figure(w: float, h: float):
     return Figure(figsize=(w, h), layout="constrained")
 
 
-def save(fig, out_dir: Path, stem: str) -> dict[str, Path]:
-    """Write ``fig`` as ``stem.png`` and ``stem.svg``, each through a temporary file renamed
-    into place (no date in the metadata: same data, same bytes)."""
+_NOTE_LINE_IN = 0.15  # height of one 7 pt footnote line (inches)
+
+
+def _wrap(text: str, width_in: float, pt: float) -> str:
+    """``text`` with each line wrapped to fit ``width_in`` inches at ``pt`` points (a DejaVu
+    Sans character is about 0.55 em wide on average); continuation lines indented."""
+    import textwrap
+
+    chars = max(30, int(width_in * 72 / (0.55 * pt)))
+    return "\n".join(part for line in text.split("\n")
+                     for part in (textwrap.wrap(line, chars, subsequent_indent="  ") or [""]))
+
+
+def _framed(w: float, h: float, notes: list[str]):
+    """A ``w`` x ``h`` inch figure and the (sub)figure to draw in; with ``notes``, a strip below
+    it holds them, one per line, left-aligned (the caption's footnotes: what a short legend
+    label's marker stands for). Returns (figure, body)."""
+    if not notes:
+        fig = _new_figure(w, h)
+        return fig, fig
+    notes = _wrap("\n".join(notes), w, 7).split("\n")
+    foot_h = _NOTE_LINE_IN * len(notes) + 0.1
+    fig = _new_figure(w, h + foot_h)
+    body, foot = fig.subfigures(2, 1, height_ratios=[h, foot_h])
+    foot.text(0.01, 1.0, "\n".join(notes), ha="left", va="top", fontsize=7)
+    return fig, body
+
+
+def short_labels(variants) -> tuple[dict[str, str], list[str]]:
+    """Legend labels for ``variants`` and the footnotes they point to: a trained method's
+    training data and checkpoint go to a footnote (the tables' ``footnote_labels``), the legend
+    keeps its name and marker. Returns (variant -> label, footnote lines)."""
+    from pcfbench.reporting.tables import footnote_labels
+
+    short, notes = footnote_labels(list(dict.fromkeys(str(v) for v in variants)))
+    return {str(v): short.get(str(v), str(v)) for v in variants}, [f"{m} {text}" for m, text in notes]
+
+
+def save(fig, out_dir: Path, stem: str, dpi: int = 110) -> dict[str, Path]:
+    """Write ``fig`` as ``stem.png`` (``dpi`` pixels per inch) and ``stem.svg``, each through a
+    temporary file renamed into place (no date in the metadata: same data, same bytes)."""
     import matplotlib
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -72,7 +117,7 @@ def save(fig, out_dir: Path, stem: str) -> dict[str, Path]:
             p = out_dir / f"{stem}.{ext}"
             tmp = out_dir / f".{stem}.{ext}.{os.getpid()}.tmp"
             meta = {"Date": None} if ext == "svg" else {"Software": None}
-            fig.savefig(tmp, format=ext, dpi=110, metadata=meta)
+            fig.savefig(tmp, format=ext, dpi=dpi, metadata=meta)
             os.replace(tmp, p)  # whole or not at all
             paths[f"{stem}.{ext}"] = p
     return paths
@@ -94,7 +139,8 @@ def horizon_figure(steps: pd.DataFrame, columns: list, title: str, interval: str
     (s) for each variant, with the interval (``m_lo``/``m_hi`` of the per-step rows) as a band,
     as error bars where a variant has one point; ``interval`` says how it was computed
     (``Resampling.describe()``, the default resampling's when None). A variant with no
-    interval at any step (fewer than 2 resampling units) says so in the legend."""
+    interval at any step (fewer than 2 resampling units) says so in the legend. Legends hold
+    :func:`short_labels`, with their footnotes under the figure."""
     if interval is None:
         from pcfbench.reporting.stats import Resampling
 
@@ -103,8 +149,9 @@ def horizon_figure(steps: pd.DataFrame, columns: list, title: str, interval: str
         n = len(columns)
         ncols = min(3, n)
         nrows = math.ceil(n / ncols)
-        fig = _new_figure(4.2 * ncols, 3.2 * nrows + 0.4)
-        axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+        names, notes = short_labels(steps["variant"].unique()) if len(steps) else ({}, [])
+        fig, body = _framed(4.2 * ncols, 3.2 * nrows + 0.4, notes)
+        axes = body.subplots(nrows, ncols, squeeze=False).ravel()
         unbanded = {v for v, g in steps.groupby("variant", sort=False)
                     if not any(np.isfinite(g[f"{c.metric}_{e}"].to_numpy(float)).any()
                                for c in columns for e in ("lo", "hi") if f"{c.metric}_{e}" in g)}
@@ -114,7 +161,8 @@ def horizon_figure(steps: pd.DataFrame, columns: list, title: str, interval: str
                 g = g.sort_values("time_s")
                 t = g["time_s"].to_numpy(float)
                 y = k * g[col.metric].to_numpy(float) if col.metric in g else np.full(len(g), np.nan)
-                label = f"{variant} (no interval: < 2 resampling units)" if variant in unbanded else variant
+                name = names.get(str(variant), str(variant))
+                label = f"{name} (no interval: < 2 resampling units)" if variant in unbanded else name
                 (line,) = ax.plot(t, y, marker="o", ms=3, label=label)
                 lo, hi = g.get(f"{col.metric}_lo"), g.get(f"{col.metric}_hi")
                 if lo is None or hi is None:
@@ -132,7 +180,7 @@ def horizon_figure(steps: pd.DataFrame, columns: list, title: str, interval: str
         for ax in axes[n:]:
             ax.set_visible(False)
         handles, labels = axes[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
+        body.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
         fig.suptitle(f"{title}: error per future sweep\nband: {interval}")
     return fig
 
@@ -288,12 +336,31 @@ class StoredRanges:
     """The range profiles of a group's cells, read from the store: ``profiles[variant]``
     (:func:`pcfbench.store.ranges.profile`), ``sweeps[variant]`` the scored sweeps pooled, and
     ``missing[variant]`` the cell folder of each cell whose range bins the store lacks, and
-    ``why[variant]`` why it lacks them."""
+    ``why[variant]`` why it lacks them; ``samples[variant]`` the bins summed per sample (one
+    row per sample and bin: ``sample_id``, ``sequence``, ``ref_index``, ``bin``, ``rays``,
+    ``l1_sum``, ``absrel_sum``), what :func:`range_intervals` resamples."""
 
     profiles: dict[str, pd.DataFrame] = field(default_factory=dict)
     sweeps: dict[str, int] = field(default_factory=dict)
     missing: dict[str, str] = field(default_factory=dict)
     why: dict[str, str] = field(default_factory=dict)
+    samples: dict[str, pd.DataFrame] = field(default_factory=dict)
+
+
+def _per_sample_bins(stored: pd.DataFrame, rows: pd.DataFrame) -> pd.DataFrame:
+    """The range rows ``stored`` (one per scored sweep, bins as lists) summed per (sample, bin),
+    with each sample's sequence and reference index from the cell's ``rows``."""
+    from pcfbench.store import ranges
+
+    cols = ["sample_id", "sequence", "ref_index", "bin", "rays", "l1_sum", "absrel_sum"]
+    lists = list(ranges.LIST_COLUMNS)
+    flat = stored[["sample_id", *lists]].explode(lists).dropna(subset=["bin"]) if len(stored) else stored
+    if not len(flat):
+        return pd.DataFrame(columns=cols)
+    flat = flat.astype({"bin": np.int64, "rays": np.int64, "l1_sum": float, "absrel_sum": float})
+    per = flat.groupby(["sample_id", "bin"], sort=True)[["rays", "l1_sum", "absrel_sum"]].sum().reset_index()
+    where = rows.drop_duplicates("sample_id").set_index("sample_id")[["sequence", "ref_index"]]
+    return per.join(where, on="sample_id")[cols]
 
 
 def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
@@ -320,6 +387,37 @@ def stored_ranges(store_root: Path, cells: pd.DataFrame) -> StoredRanges:
         mine = stored[[(s, int(k)) in keys for s, k in zip(stored["sample_id"], stored["step"])]] if len(stored) else stored
         out.profiles[row["variant"]] = ranges.profile(mine)
         out.sweeps[row["variant"]] = len(ok)
+        out.samples[row["variant"]] = _per_sample_bins(mine, ok)
+    return out
+
+
+def range_intervals(found: StoredRanges, resampling=None) -> dict[str, pd.DataFrame]:
+    """Per variant and range bin, the bootstrap interval of its L1 and AbsRel means
+    (``lo_m``, ``l1_lo``, ``l1_hi``, ``absrel_lo``, ``absrel_hi``, ``units``): the statistic is
+    the bin's ray-weighted mean, each resample draws whole resampling units (samples by
+    default: ``resampling``, a ``stats.Resampling``) with their rays, as the tables' intervals
+    do. NaN where a bin has no interval (fewer than 2 units, or in fewer than half the
+    resamples)."""
+    from pcfbench.reporting import stats
+
+    resampling = resampling or stats.Resampling()
+    out: dict[str, pd.DataFrame] = {}
+    for variant, per in found.samples.items():
+        if not len(per):
+            continue
+        # (samples, bins) matrices: a sample's rays and error sums in each bin, 0 where it has none
+        first, sample = np.unique(per["sample_id"].to_numpy(str), return_index=True, return_inverse=True)[1:]
+        bins, col = np.unique(per["bin"].to_numpy(np.int64), return_inverse=True)
+        n, k = len(first), len(bins)
+        rays, l1, absrel = np.zeros((n, k)), np.zeros((n, k)), np.zeros((n, k))
+        for m, c in ((rays, "rays"), (l1, "l1_sum"), (absrel, "absrel_sum")):
+            np.add.at(m, (sample, col), per[c].to_numpy(float))
+        ids, seqs, refs = (per[c].to_numpy()[first] for c in ("sample_id", "sequence", "ref_index"))
+        metrics = [f"{m}@{b}" for m in ("l1", "absrel") for b in bins]
+        ss = stats.SampleSums.of(ids, seqs, refs, metrics, np.hstack([l1, absrel]), np.hstack([rays, rays]))
+        iv = stats.interval(ss, resampling)
+        out[variant] = pd.DataFrame({"lo_m": bins * RANGE_BIN_M, "l1_lo": iv.lo[:k], "l1_hi": iv.hi[:k],
+                                     "absrel_lo": iv.lo[k:], "absrel_hi": iv.hi[k:], "units": iv.units})
     return out
 
 
@@ -348,19 +446,44 @@ def range_gaps(lb, store_root: Path, found: dict[tuple, StoredRanges] | None = N
             "recomputes them (it re-runs the method)" for g in found.values() for variant, cell_dir in g.missing.items()]
 
 
-def range_figure(found: StoredRanges, title: str):
-    """L1 and AbsRel per range bin of each variant with range bins in the store."""
+def _sweep_count(sweeps: dict[str, int]) -> str:
+    counts = sorted(set(sweeps.values()))
+    return f"{counts[0]}" if len(counts) == 1 else f"{counts[0]} to {counts[-1]}"
+
+
+def range_figure(found: StoredRanges, title: str, resampling=None):
+    """L1 and AbsRel per range bin of each variant with range bins in the store, each bin's
+    bootstrap interval (:func:`range_intervals`) as a band (as error bars for a one-bin curve).
+    The title says what a point pools and how the band was computed; a cell left out (no range
+    bins in the store) is named, with the command that recomputes them."""
+    from pcfbench.reporting import stats
     from pcfbench.store import ranges
 
+    resampling = resampling or stats.Resampling()
+    intervals = range_intervals(found, resampling)
+    shown = [v for v, prof in found.profiles.items() if len(prof)]
+    names, notes = short_labels(list(shown) + list(found.missing))
     with _rc():
-        fig = _new_figure(9.5, 3.6)
-        ax_l1, ax_ar = fig.subplots(1, 2)
-        for variant, prof in found.profiles.items():
-            if not len(prof):
-                continue
-            mid = (prof["lo_m"] + prof["hi_m"]) / 2
-            ax_l1.plot(mid, prof["l1_mean"], marker="o", ms=3, label=variant)
-            ax_ar.plot(mid, 100 * prof["absrel_mean"], marker="o", ms=3, label=variant)
+        fig, body = _framed(9.5, 3.8, notes)
+        ax_l1, ax_ar = body.subplots(1, 2)
+        for variant in shown:
+            prof = found.profiles[variant]
+            iv = intervals.get(variant)
+            banded = iv is not None and np.isfinite(iv[["l1_lo", "absrel_lo"]].to_numpy(float)).any()
+            label = names[variant] + ("" if banded else " (no interval: < 2 resampling units)")
+            mid = ((prof["lo_m"] + prof["hi_m"]) / 2).to_numpy(float)
+            for ax, what, k in ((ax_l1, "l1", 1.0), (ax_ar, "absrel", 100.0)):
+                y = k * prof[f"{what}_mean"].to_numpy(float)
+                (line,) = ax.plot(mid, y, marker="o", ms=3, label=label)
+                if not banded:
+                    continue
+                at = iv.set_index("lo_m").reindex(prof["lo_m"].to_numpy(float))
+                lo, hi = k * at[f"{what}_lo"].to_numpy(float), k * at[f"{what}_hi"].to_numpy(float)
+                if len(mid) > 1:
+                    ax.fill_between(mid, lo, hi, color=line.get_color(), alpha=0.18, linewidth=0)
+                else:  # one bin: a band would be 0 wide
+                    ax.errorbar(mid, y, yerr=np.vstack([y - lo, hi - y]), color=line.get_color(), capsize=3,
+                                linestyle="none")
         for ax, what in ((ax_l1, "L1 mean (m)"), (ax_ar, "AbsRel mean (%)")):
             ax.set_xlabel(f"ground-truth range, {RANGE_BIN_M:g} m bins (m)")
             ax.set_ylabel(what)
@@ -368,14 +491,16 @@ def range_figure(found: StoredRanges, title: str):
         ax_ar.set_title("AbsRel error by range (lower is better)")
         handles, labels = ax_l1.get_legend_handles_labels()
         if labels:
-            fig.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
-        sweeps = sorted(set(found.sweeps.values()))
-        note = (f"every scored sweep pooled ({'/'.join(map(str, sweeps))} per cell)" if sweeps
-                else "no cell with range bins")
+            body.legend(handles, labels, loc="outside lower center", ncols=min(4, max(1, len(labels))), fontsize=8)
+        if found.sweeps:
+            note = (f"a point: the mean over every ray in its bin, all {_sweep_count(found.sweeps)} scored "
+                    f"sweeps of a method pooled\nband: {resampling.describe()}")
+        else:
+            note = "no cell with range bins in the store"
         if found.missing:  # a line of its own: the title stays within the figure
-            note += (f")\nleft out, no range bins in the store: {', '.join(found.missing)} "
-                     f"(`{ranges.BACKFILL_COMMAND}` recomputes them")
-        fig.suptitle(f"{title}: error vs range ({note})")
+            note += (f"\nleft out, no range bins in the store: {', '.join(names[v] for v in found.missing)} "
+                     f"(`{ranges.BACKFILL_COMMAND}` recomputes them)")
+        fig.suptitle(f"{title}: error by ground-truth range\n{note}")
     return fig
 
 
@@ -397,17 +522,31 @@ def bev_grid(points: np.ndarray, values: np.ndarray | None, extent_m: float, pix
         return (total / count).reshape(pixels, pixels)
 
 
+def _row_label(text: str, width: int = 16) -> str:
+    """A gallery row's name on at most a few short lines (wrapped at spaces and hyphens)."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, width, break_on_hyphens=True, break_long_words=False)) or text
+
+
 def gallery_figure(run: Rerun, title: str, horizon_label: str, extent_m: float = 50.0, pixels: int = 250):
-    """Rows: the chosen samples. Columns: past, ground truth at the last future sweep, each
-    variant's forecast of it coloured by distance to the nearest ground-truth point (m).
+    """One column per chosen sample; rows: the past sweeps, the ground truth at the last future
+    sweep, then one row per variant: its forecast of that sweep, coloured by distance to the
+    nearest ground-truth point (m) on one scale, with one colour bar. Row names sit left of the
+    first column (legend labels, :func:`short_labels`, their footnotes under the figure), sample
+    ids above the first row: no title shares a line with another.
 
     Drawn as rasters (:func:`bev_grid`, 0.4 m cells by default: the mean error of the points in
-    a cell), which keeps the figure quick to render and small whatever the point count."""
+    a cell), which keeps the figure quick to render and small whatever the point count. A
+    panel is 1.3 to 2.2 inches square, smaller the more rows, so that up to seven rows keep
+    the figure within a page's height."""
     import matplotlib
 
     variants = list(run.errors)
-    ncols = 2 + len(variants)
-    nrows = max(1, len(run.sample_ids))
+    names, notes = short_labels(variants)
+    ncols = max(1, len(run.sample_ids))
+    nrows = 2 + len(variants)
+    side = min(2.2, max(1.3, 9.0 / nrows))
     errs = [e.pred_error_m[np.isfinite(e.pred_error_m)] for v in variants for sweeps in run.errors[v].values()
             for e in sweeps[-1:]]
     pooled = np.concatenate(errs) if errs else np.zeros(0)
@@ -415,40 +554,50 @@ def gallery_figure(run: Rerun, title: str, horizon_label: str, extent_m: float =
     box = (-extent_m, extent_m, -extent_m, extent_m)
     viridis = matplotlib.colormaps["viridis"].with_extremes(bad="white")
     greys = matplotlib.colormaps["Greys"].with_extremes(under="white")
+    ticks = [-extent_m * 0.8, 0.0, extent_m * 0.8]
     with _rc():
-        fig = _new_figure(2.6 * ncols + 0.9, 2.7 * nrows + 0.6)
-        axes = fig.subplots(nrows, ncols, squeeze=False, sharex=True, sharey=True)
+        width = max(5.0, side * ncols + 1.6)
+        fig, body = _framed(width, side * nrows + 1.8, notes)
+        axes = body.subplots(nrows, ncols, squeeze=False, sharex=True, sharey=True)
         mappable = None
-        for i, sid in enumerate(run.sample_ids):
+        for c, sid in enumerate(run.sample_ids):
             sample, truth = run.samples[sid]
-            row = axes[i]
+            col = axes[:, c]
             past = sample.past_points_ref
             # older sweeps lighter: each cell shows its most recent sweep's shade
             age = np.zeros((pixels, pixels))
             for j, pts in enumerate(past):
                 hit = bev_grid(pts, None, extent_m, pixels) > 0
                 age[hit] = (j + 1) / len(past)
-            row[0].imshow(age, extent=box, cmap=greys, vmin=1e-9, vmax=1.0, interpolation="nearest")
-            row[0].set_title(f"{sid}\npast, t <= 0 (dark: t=0)", fontsize=8)
+            col[0].imshow(age, extent=box, cmap=greys, vmin=1e-9, vmax=1.0, interpolation="nearest")
+            col[0].set_title(f"sample {sid}", fontsize=8)
             occ = bev_grid(truth.future_points_ref[-1], None, extent_m, pixels) > 0
-            row[1].imshow(occ.astype(float), extent=box, cmap=greys, vmin=1e-9, vmax=1.0, interpolation="nearest")
-            row[1].set_title(f"ground truth, {horizon_label}", fontsize=8)
+            col[1].imshow(occ.astype(float), extent=box, cmap=greys, vmin=1e-9, vmax=1.0, interpolation="nearest")
             for j, v in enumerate(variants):
                 e = run.errors[v][sid][-1]
                 grid = bev_grid(e.pred_points, e.pred_error_m, extent_m, pixels)
-                mappable = row[2 + j].imshow(grid, extent=box, cmap=viridis, vmin=0.0, vmax=vmax, interpolation="nearest")
-                row[2 + j].set_title(f"{v}\nforecast, {horizon_label}", fontsize=8)
-            for ax in row:
+                mappable = col[2 + j].imshow(grid, extent=box, cmap=viridis, vmin=0.0, vmax=vmax,
+                                             interpolation="nearest")
+        rows = ["past sweeps\n(darkest: t = 0)", f"ground truth\n{horizon_label}"] + [_row_label(names[v]) for v in variants]
+        for r, ax_row in enumerate(axes):
+            ax_row[0].set_ylabel(rows[r], rotation=0, ha="right", va="center", fontsize=8, labelpad=4)
+            for ax in ax_row:
                 ax.plot([0], [0], marker="^", color="r", ms=4)
                 ax.set_xlim(-extent_m, extent_m)
                 ax.set_ylim(-extent_m, extent_m)
-                if i == nrows - 1:
-                    ax.set_xlabel("x, reference frame (m)")
-            row[0].set_ylabel("y, reference frame (m)")
+                ax.set_aspect("equal")
+                ax.set_xticks(ticks)
+                ax.set_yticks(ticks)
+                ax.tick_params(labelsize=7)
+                ax.grid(False)
+        for ax in axes[-1]:
+            ax.set_xlabel("x (m)", fontsize=8)
         if mappable is not None:
-            fig.colorbar(mappable, ax=axes.ravel().tolist(), shrink=0.6,
-                         label="forecast point to nearest ground-truth point (m)")
-        fig.suptitle(f"{title}: bird's-eye view, {2 * extent_m / pixels:g} m cells (red triangle: sensor at t=0)")
+            body.colorbar(mappable, ax=axes.ravel().tolist(), location="bottom", extend="max", shrink=0.9,
+                          aspect=25, pad=0.01, label="forecast point to nearest ground-truth point (m)")
+        fig.suptitle(_wrap(f"{title}: bird's-eye view, forecasts of {horizon_label}\n"
+                           f"x, y in the reference frame (m), {2 * extent_m / pixels:g} m cells; "
+                           "red triangle: the sensor at t = 0", width, 9), fontsize=9)
     return fig
 
 
@@ -458,8 +607,11 @@ def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) 
     value (with its interval as error bars) against the option's value, a line per
     (dataset, split, setting) group and per combination of the method's other options, ticks
     at the grid's values; the table's reference row (``is_reference``, when it is another
-    method's) as a dashed horizontal line with its interval as a faint band."""
+    method's) as a dashed horizontal line with its interval as a faint band. The title says how
+    the intervals were computed (``lb.resampling``)."""
     df = lb.table if len(lb.table) else lb.partial
+    resampling = getattr(lb, "resampling", None)
+    interval = resampling.describe() if resampling is not None else None
     paths: dict[str, Path] = {}
     if not len(df):
         return paths
@@ -473,7 +625,7 @@ def ablation_figures(lb, columns: list, out_dir: Path, stem: str, plugins=None) 
                 continue
             others = [c for c in option_cols if c != opt and g[c].notna().any()]
             fig = _ablation_figure(g[g[opt].notna()], opt, others, columns, method, _method_units(method, plugins),
-                                   refs[refs["method"] != method])
+                                   refs[refs["method"] != method], interval)
             paths.update(save(fig, out_dir, "ablation-" + _slug(stem, method, opt.removeprefix("option."))))
     return paths
 
@@ -519,9 +671,15 @@ def _numeric(values: pd.Series) -> np.ndarray | None:
 
 
 def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list, method: str,
-                     units: dict[str, str], refs: pd.DataFrame | None = None):
+                     units: dict[str, str], refs: pd.DataFrame | None = None, interval: str | None = None):
     """The figure of one option; ``refs``: reference rows drawn as horizontal lines, those of
-    the (dataset, split, setting) groups ``g`` plots."""
+    the (dataset, split, setting) groups ``g`` plots, named in the legend by their short label
+    (:func:`short_labels`, the footnote under the figure); ``interval``: how the error bars were
+    computed (``Resampling.describe()``, the default resampling's when None)."""
+    if interval is None:
+        from pcfbench.reporting.stats import Resampling
+
+        interval = Resampling().describe()
     name = opt.removeprefix("option.")
     groups = ["dataset", "split", "setting"]
     if refs is not None and len(refs):
@@ -530,12 +688,13 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
     else:
         refs = g.iloc[0:0]
     numeric = _numeric(g[opt])
+    ref_names, notes = short_labels(refs["variant"]) if len(refs) else ({}, [])
     with _rc():
         n = len(columns)
         ncols = min(3, n)
         nrows = math.ceil(n / ncols)
-        fig = _new_figure(4.2 * ncols, 3.2 * nrows + 0.4)
-        axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+        fig, body = _framed(4.2 * ncols, 3.2 * nrows + 0.6, notes)
+        axes = body.subplots(nrows, ncols, squeeze=False).ravel()
         categories = sorted(g[opt].astype(str).unique())
         keys = ["dataset", "split", "setting"] + others
         for ax, col in zip(axes, columns):
@@ -551,6 +710,8 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 yerr = np.vstack([np.where(np.isfinite(lo), y - lo, 0), np.where(np.isfinite(hi), hi - y, 0)])
                 label = " / ".join(str(v) for v in key[2:3]) + "".join(
                     f", {o.removeprefix('option.')}={v}" for o, v in zip(others, key[3:]) if not pd.isna(v))
+                if not (np.isfinite(lo) & np.isfinite(hi)).any():  # every cell of the line has < 2 units
+                    label += " (no interval: < 2 resampling units)"
                 ax.errorbar(x[order], y, yerr=yerr, marker="o", ms=3, capsize=3, label=label)
             if numeric is None:
                 ax.set_xticks(range(len(categories)), categories)
@@ -563,7 +724,7 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 colour = f"C{7 + i % 3}"  # greys and olives, away from the swept lines' first colours
                 where = f", {r['setting']}" if refs["setting"].nunique() > 1 else ""
                 ax.axhline(k * float(r[col.metric]), color=colour, linestyle="--", linewidth=1.2,
-                           label=f"{r['variant']} (reference{where})")
+                           label=f"{ref_names[str(r['variant'])]} (reference{where})")
                 lo, hi = float(r.get(f"{col.metric}_lo", np.nan)), float(r.get(f"{col.metric}_hi", np.nan))
                 if np.isfinite(lo) and np.isfinite(hi):
                     ax.axhspan(k * lo, k * hi, color=colour, alpha=0.12, linewidth=0)
@@ -574,9 +735,9 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
         for ax in axes[n:]:
             ax.set_visible(False)
         handles, labels = axes[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
+        body.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
         ref_note = "; dashed: the reference method, its band its interval" if len(refs) else ""
-        fig.suptitle(f"ablation: {method} {name}; error bars = 95 % bootstrap interval over samples{ref_note}")
+        fig.suptitle(f"ablation: {method} {name}\nerror bars: {interval}{ref_note}")
     return fig
 
 
@@ -612,15 +773,21 @@ def horizon_data(steps: pd.DataFrame, columns: list, title: str, interval: str |
     used = ["variant", "time_s"] + [c for col in columns for c in (col.metric, f"{col.metric}_lo", f"{col.metric}_hi")
                                     if c in steps]
     return {"title": title, "interval": interval, "steps": steps[used],
-            "columns": [(c.metric, c.label, str(c.better), c.unit) for c in columns]}
+            "columns": [(c.metric, c.label, str(c.better), c.unit) for c in columns],
+            "legend": short_labels(steps["variant"].unique()) if len(steps) else None}
 
 
-def range_data(found: StoredRanges, title: str) -> dict:
-    """Everything :func:`range_figure` plots, for its key (``figcache``)."""
+def range_data(found: StoredRanges, title: str, resampling=None) -> dict:
+    """Everything :func:`range_figure` plots, for its key (``figcache``): the profiles, their
+    intervals and how they were computed, the legend's labels and footnotes."""
+    from pcfbench.reporting import stats
     from pcfbench.store import ranges
 
+    resampling = resampling or stats.Resampling()
     return {"title": title, "profiles": found.profiles, "sweeps": found.sweeps, "missing": found.missing,
-            "bin_m": RANGE_BIN_M, "backfill": ranges.BACKFILL_COMMAND}
+            "bin_m": RANGE_BIN_M, "backfill": ranges.BACKFILL_COMMAND, "interval": resampling.describe(),
+            "intervals": range_intervals(found, resampling),
+            "legend": short_labels([v for v, p in found.profiles.items() if len(p)] + list(found.missing))}
 
 
 def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 2, plugins=None,
@@ -666,7 +833,8 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
             draw("horizon", _group_stem("horizon", first), horizon_data(gs, columns, title, how),
                  lambda: horizon_figure(gs, columns, title, how))
         found = ranges[key] if ranges is not None and key in ranges else stored_ranges(store_root, g)
-        draw("range", _group_stem("range", first), range_data(found, title), lambda: range_figure(found, title))
+        draw("range", _group_stem("range", first), range_data(found, title, lb.resampling),
+             lambda: range_figure(found, title, lb.resampling))
         if not gallery or samples <= 0:
             continue
         ref = g[g["is_reference"]] if "is_reference" in g else g.iloc[0:0]
@@ -685,5 +853,5 @@ def write_figures(lb, table, store_root: Path, out_dir: Path, *, samples: int = 
             horizon = f"t = +{s.step_seconds(s.future - 1):g} s"
         except PcfbenchError:
             horizon = "last future sweep"
-        paths.update(save(gallery_figure(run, title, horizon), out_dir, _group_stem("gallery", first)))
+        paths.update(save(gallery_figure(run, title, horizon), out_dir, _group_stem("gallery", first), GALLERY_DPI))
     return paths

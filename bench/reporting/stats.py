@@ -99,6 +99,20 @@ class SampleSums:
     def __len__(self) -> int:
         return len(self.sample_ids)
 
+    @classmethod
+    def of(cls, sample_ids, sequences, ref_index, metrics, sums, counts) -> "SampleSums":
+        """Per-sample ``sums`` and ``counts`` (samples, metrics) given in any order, put in the
+        stable order (sequence, reference index, sample id). A count need not be a number of
+        values: the range figure's is each bin's rays, so the mean is ray-weighted."""
+        ids = np.asarray(sample_ids, dtype=object).astype(str)
+        seq = np.asarray(sequences, dtype=object).astype(str)
+        ref = np.asarray(ref_index, dtype=np.int64)
+        if len(set(ids)) != len(ids):
+            raise PcfbenchError("SampleSums.of: a sample id occurs twice; sum each sample's values first")
+        order = np.lexsort((ids, ref, seq))
+        return cls(ids[order].astype(object), seq[order].astype(object), ref[order], tuple(metrics),
+                   np.asarray(sums, np.float64)[order], np.asarray(counts, np.float64)[order])
+
     def take(self, sample_ids) -> "SampleSums":
         """The rows of ``sample_ids`` (which must all be present), in this object's order."""
         keep = np.isin(self.sample_ids, np.asarray(list(sample_ids), dtype=object))

@@ -59,9 +59,9 @@ def drawn(monkeypatch):
     calls: list[str] = []
     save = figures.save
 
-    def counting(fig, out_dir, stem):
+    def counting(fig, out_dir, stem, *args):
         calls.append(stem)
-        return save(fig, out_dir, stem)
+        return save(fig, out_dir, stem, *args)
 
     monkeypatch.setattr(figures, "save", counting)
     return calls

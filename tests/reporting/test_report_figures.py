@@ -140,22 +140,88 @@ def test_chosen_samples_are_the_median_and_the_worst():
     assert figures.choose_samples(rows, "chamfer_nf", 1) == ["c"]
 
 
-def test_gallery_colours_each_forecast_by_its_per_point_error(made):
+LONG = "copilot4d-token-copy [trained on synthetic-town-realistic:train, ck 84120cdf]"
+FOOTNOTE = "¹ copilot4d-token-copy trained on synthetic-town-realistic:train, checkpoint sha256 84120cdf"
+
+
+def _legend_texts(fig) -> list[str]:
+    """The legend entries of ``fig`` and of its subfigures (the body above the footnotes)."""
+    return [t.get_text() for f in (fig, *fig.subfigs) for lg in f.legends for t in lg.get_texts()]
+
+
+def _footnotes(fig) -> list[str]:
+    return [t.get_text() for f in fig.subfigs for t in f.texts]
+
+
+def _texts_do_not_collide(fig) -> None:
+    """Every title, axis label and the suptitle, drawn: inside the figure, and no two overlap."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    texts = [fig._suptitle] + [t for f in fig.subfigs for t in f.texts]
+    for ax in fig.axes:
+        texts += [ax.title, ax.xaxis.label, ax.yaxis.label]
+    boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in texts
+             if t is not None and t.get_visible() and t.get_text()]
+    page = fig.bbox
+    for text, box in boxes:
+        assert box.x0 >= page.x0 - 0.5 and box.x1 <= page.x1 + 0.5 and box.y0 >= page.y0 - 0.5 \
+            and box.y1 <= page.y1 + 0.5, f"{text!r} is cut off at the figure's edge"
+    for i, (ta, a) in enumerate(boxes):
+        for tb, b in boxes[i + 1:]:
+            assert not a.overlaps(b), f"{ta!r} overlaps {tb!r}"
+
+
+def _gallery_run(made, samples=2):
     store = made[0]
     lb = collect(store)
-    g = lb.table
-    sid = Cell.at(store, g.iloc[0]["cell_dir"]).read_rows()["sample_id"].iloc[0]
-    run = figures.rerun(store, g, [sid], _plugins())
+    rows = Cell.at(store, lb.table.iloc[0]["cell_dir"]).read_rows()
+    ids = list(dict.fromkeys(rows["sample_id"]))[:samples]
+    return figures.rerun(store, lb.table, ids, _plugins())
+
+
+def test_gallery_has_a_row_per_method_a_column_per_sample_and_one_colour_bar(made):
+    """Rows: past, ground truth, then one per variant; columns: the samples; each forecast
+    panel coloured by its per-point error on one scale with a single colour bar."""
+    run = _gallery_run(made)
+    variants = list(run.errors)
+    assert len(variants) == 3 and len(run.sample_ids) == 2
     fig = figures.gallery_figure(run, "t", "t = +1 s")
-    panels = [ax for ax in fig.axes if ax.get_title().endswith("forecast, t = +1 s")]
-    assert len(panels) == 3
-    for ax in panels:
-        variant = ax.get_title().split("\n")[0]
-        e = run.errors[variant][sid][-1]
-        shown = np.ma.filled(ax.images[0].get_array().astype(float), np.nan)
-        np.testing.assert_array_equal(shown, figures.bev_grid(e.pred_points, e.pred_error_m, 50.0, 250))
-        assert ax.get_xlabel() == "x, reference frame (m)"
-    assert any(ax.get_ylabel() == "forecast point to nearest ground-truth point (m)" for ax in fig.axes)
+    panels = [ax for ax in fig.axes if ax.images and ax.get_label() != "<colorbar>"]
+    assert len(panels) == (2 + 3) * 2
+    grid = np.array(panels, dtype=object).reshape(5, 2)  # subplots are added row by row
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(bars) == 1 and bars[0].get_xlabel() == "forecast point to nearest ground-truth point (m)"
+    rows = [ax.get_ylabel() for ax in grid[:, 0]]
+    assert rows == ["past sweeps\n(darkest: t = 0)", "ground truth\nt = +1 s", *variants]
+    assert [ax.get_title() for ax in grid[0]] == [f"sample {sid}" for sid in run.sample_ids]
+    assert all(ax.get_title() == "" for ax in grid[1:].ravel())  # one title per column, none between rows
+    for r, v in enumerate(variants, start=2):
+        for c, sid in enumerate(run.sample_ids):
+            e = run.errors[v][sid][-1]
+            shown = np.ma.filled(grid[r, c].images[0].get_array().astype(float), np.nan)
+            np.testing.assert_array_equal(shown, figures.bev_grid(e.pred_points, e.pred_error_m, 50.0, 250))
+            assert grid[r, c].images[0].get_clim() == grid[2, 0].images[0].get_clim()  # one scale
+    assert all(ax.get_xlabel() == "x (m)" for ax in grid[-1])
+    assert not _footnotes(fig)
+
+
+def test_gallery_titles_never_collide_and_a_long_label_becomes_a_footnote(made):
+    """A trained method's 75-character label: its row says its name and a marker, the training
+    data and checkpoint are a footnote; no title or label overlaps another or leaves the page;
+    the figure is taller than wide (a page's column of rows, not a strip)."""
+    run = _gallery_run(made)
+    last = list(run.errors)[-1]
+    run.errors = {(LONG if v == last else v): e for v, e in run.errors.items()}
+    fig = figures.gallery_figure(run, "kitti / test / kitti-1s", "t = +1 s")
+    rows = [ax.get_ylabel() for ax in fig.axes if ax.get_ylabel()]
+    assert rows[-1] == "copilot4d-token-\ncopy¹" and all(len(line) <= 20 for r in rows for line in r.split("\n"))
+    assert _footnotes(fig) == [FOOTNOTE]
+    _texts_do_not_collide(fig)
+    w, h = fig.get_size_inches()
+    assert h > w
 
 
 def test_ablation_figure_plots_the_metric_against_the_option_value(made, tmp_path):
@@ -393,6 +459,8 @@ def test_range_bins_stored_at_run_time_are_those_a_rerun_recomputes(made):
 
 
 def test_range_figure_pools_every_stored_sweep(made):
+    import matplotlib.colors
+
     from pcfbench.store import ranges
 
     store = made[0]
@@ -408,7 +476,13 @@ def test_range_figure_pools_every_stored_sweep(made):
         np.testing.assert_array_equal(line.get_ydata(), prof["l1_mean"].to_numpy(float))
         np.testing.assert_array_equal(line.get_xdata(), ((prof["lo_m"] + prof["hi_m"]) / 2).to_numpy(float))
         assert found.sweeps[r["variant"]] == r["sweeps"]
-    assert "every scored sweep pooled (30 per cell)" in fig.get_suptitle()
+    assert "a point: the mean over every ray in its bin, all 30 scored sweeps of a method pooled\n" \
+        "band: 95 % percentile bootstrap over samples, 2000 resamples, seed 17" in fig.get_suptitle()
+    # every curve has its band: one filled area per line, in its colour
+    for ax in fig.axes:
+        assert len(ax.collections) == len(ax.lines) == 3
+        for line, band in zip(ax.lines, ax.collections):
+            assert tuple(band.get_facecolor()[0][:3]) == pytest.approx(matplotlib.colors.to_rgb(line.get_color()))
 
 
 def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(made, tmp_path, monkeypatch):
@@ -513,7 +587,7 @@ def test_ablation_ticks_at_the_grid_values_and_draws_the_reference_method(made, 
     lb = collect(store)
     t = tables.build(lb, tables.get_preset("roi", tables.load_presets()))
     drawn = {}
-    monkeypatch.setattr(figures, "save", lambda fig, out_dir, stem: drawn.setdefault(stem, fig) and {})
+    monkeypatch.setattr(figures, "save", lambda fig, out_dir, stem, *a: drawn.setdefault(stem, fig) and {})
     figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins())
     fig = drawn["ablation-exp_shifted_dx"]
     ref = lb.table[lb.table["is_reference"]].iloc[0]
@@ -525,7 +599,7 @@ def test_ablation_ticks_at_the_grid_values_and_draws_the_reference_method(made, 
         (line,) = [ln for ln in ax.lines if ln.get_label() == "copy-last (reference)"]
         assert line.get_linestyle() == "--"
         np.testing.assert_allclose(line.get_ydata(), [k * ref[col.metric]] * 2)
-    assert "copy-last (reference)" in [x.get_text() for x in fig.legends[0].get_texts()]
+    assert "copy-last (reference)" in _legend_texts(fig)
 
 
 def _hand_steps(values_by_step: dict[int, list[float]]) -> pd.DataFrame:
@@ -572,7 +646,7 @@ def test_a_one_step_curve_gets_error_bars_and_a_curve_without_interval_says_so()
     one = _hand_steps({0: [1.0], 1: [2.0]})
     assert one["l1_mean_lo"].isna().all()
     fig = figures.horizon_figure(one, [L1], "x")
-    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["v (no interval: < 2 resampling units)"]
+    assert _legend_texts(fig) == ["v (no interval: < 2 resampling units)"]
 
 
 def test_the_horizon_figure_states_and_is_keyed_on_how_its_interval_was_computed():
@@ -584,3 +658,108 @@ def test_the_horizon_figure_states_and_is_keyed_on_how_its_interval_was_computed
     keys = {figcache.figure_key("horizon", **figures.horizon_data(steps, [L1], "x", how))
             for how in (stats.Resampling().describe(), by_sequence)}
     assert len(keys) == 2
+
+
+def _hand_ranges(bins_by_sample: dict[str, list[tuple[int, int, float]]]) -> figures.StoredRanges:
+    """The stored ranges of one variant 'v' from (bin, rays, L1 sum) per sample, one future
+    sweep per sample of sequence 's' (AbsRel sum = L1 sum / 10), read as ``stored_ranges``
+    reads a cell's."""
+    from pcfbench.store import ranges
+
+    stored = pd.DataFrame([{"sample_id": sid, "step": 0, "bin": [b for b, _, _ in bins],
+                            "rays": [n for _, n, _ in bins], "l1_sum": [x for _, _, x in bins],
+                            "absrel_sum": [x / 10 for _, _, x in bins]} for sid, bins in bins_by_sample.items()])
+    rows = pd.DataFrame({"sample_id": list(bins_by_sample), "sequence": "s", "ref_index": range(len(bins_by_sample)),
+                         "step": 0, "status": "ok"})
+    return figures.StoredRanges({"v": ranges.profile(stored)}, {"v": len(rows)}, {}, {},
+                                {"v": figures._per_sample_bins(stored, rows)})
+
+
+def test_range_band_is_the_bootstrap_interval_of_each_bin_by_hand():
+    """Three samples. Bin [0, 10) m: 1 ray of L1 1 m, 1 ray of 2 m, 2 rays summing to 12 m: the
+    ray-weighted mean is 15 / 4 m; a resample of three is all one sample with probability
+    1/27 = 3.7 % > 2.5 %, so the 95 % interval runs from the smallest sample mean to the
+    largest: [1, 6] m. Bin [10, 20) m: one ray each, 0, 3, 3 m: mean 2, interval [0, 3] m."""
+    found = _hand_ranges({"s/0": [(0, 1, 1.0), (1, 1, 0.0)], "s/1": [(0, 1, 2.0), (1, 1, 3.0)],
+                          "s/2": [(0, 2, 12.0), (1, 1, 3.0)]})
+    iv = figures.range_intervals(found)["v"]
+    np.testing.assert_allclose(iv[["lo_m", "l1_lo", "l1_hi"]].to_numpy(), [[0, 1, 6], [10, 0, 3]])
+    np.testing.assert_allclose(iv[["absrel_lo", "absrel_hi"]].to_numpy(), [[0.1, 0.6], [0, 0.3]])
+    assert (iv["units"] == 3).all()
+    fig = figures.range_figure(found, "x")
+    ax_l1, ax_ar = fig.axes
+    np.testing.assert_allclose(ax_l1.lines[0].get_ydata(), [15 / 4, 2])
+    (band,) = ax_l1.collections
+    xy = band.get_paths()[0].vertices
+    for mid, mean, lo, hi in [(5, 15 / 4, 1, 6), (15, 2, 0, 3)]:
+        ys = xy[np.isclose(xy[:, 0], mid), 1]
+        assert ys.min() == pytest.approx(lo) and ys.max() == pytest.approx(hi) and lo <= mean <= hi
+    ys = ax_ar.collections[0].get_paths()[0].vertices[:, 1]
+    assert ys.min() == pytest.approx(0) and ys.max() == pytest.approx(60)  # AbsRel in %
+
+
+def test_a_one_bin_range_curve_gets_error_bars_and_one_sample_says_it_has_no_interval():
+    found = _hand_ranges({"s/0": [(2, 1, 1.0)], "s/1": [(2, 1, 2.0)], "s/2": [(2, 2, 12.0)]})
+    ax = figures.range_figure(found, "x").axes[0]
+    (bars,) = ax.containers
+    np.testing.assert_allclose(bars.lines[2][0].get_segments()[0], [[25, 1], [25, 6]])
+    one = _hand_ranges({"s/0": [(0, 3, 3.0), (1, 1, 2.0)]})
+    assert figures.range_intervals(one)["v"][["l1_lo", "l1_hi"]].isna().all().all()
+    fig = figures.range_figure(one, "x")
+    assert _legend_texts(fig) == ["v (no interval: < 2 resampling units)"] and not fig.axes[0].collections
+
+
+def test_range_intervals_follow_the_resampling_and_it_is_in_the_title_and_the_key():
+    """Whole sequences as the unit: two sequences, the interval differs from the samples' one;
+    the title names it and the figure's key changes with it."""
+    from pcfbench.reporting import figcache, stats
+
+    found = _hand_ranges({f"s/{i}": [(0, 1, float(i))] for i in range(6)})
+    found.samples["v"]["sequence"] = ["a", "a", "a", "b", "b", "b"]
+    by_seq = stats.Resampling("sequence")
+    a, b = figures.range_intervals(found)["v"], figures.range_intervals(found, by_seq)["v"]
+    assert a["units"].iloc[0] == 6 and b["units"].iloc[0] == 2
+    np.testing.assert_allclose(b[["l1_lo", "l1_hi"]].to_numpy(), [[1, 4]])  # the two sequences' means
+    assert by_seq.describe() in figures.range_figure(found, "x", by_seq).get_suptitle()
+    keys = {figcache.figure_key("range", **figures.range_data(found, "x", r)) for r in (None, by_seq)}
+    assert len(keys) == 2
+
+
+def test_legends_hold_short_names_and_the_training_data_is_a_footnote(made, tmp_path, monkeypatch):
+    """A trained method's label (75 characters) sets no legend's width: every figure's legend
+    names it `copilot4d-token-copy¹` and the footnote under the figure says what it was trained
+    on and which checkpoint."""
+    store = made[0]
+    lb = collect(store)
+    for df in (lb.table, lb.by_step):  # the reference, copy-last, named as a trained method would be
+        df["variant"] = df["variant"].replace({"copy-last": LONG})
+    assert lb.table.loc[lb.table["is_reference"], "variant"].tolist() == [LONG]
+    t = tables.build(lb, tables.get_preset("paper", tables.load_presets()))
+    found = figures.stored_ranges(store, lb.table)
+    horizon = figures.horizon_figure(lb.by_step, t.columns, "x")
+    ranged = figures.range_figure(found, "x")
+    drawn = {}
+    monkeypatch.setattr(figures, "save", lambda fig, out_dir, stem, *a: drawn.setdefault(stem, fig) and {})
+    figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins())
+    ablation = drawn["ablation-exp_shifted_dx"]
+    for fig, want in ((horizon, "copilot4d-token-copy¹"), (ranged, "copilot4d-token-copy¹"),
+                      (ablation, "copilot4d-token-copy¹ (reference)")):
+        texts = _legend_texts(fig)
+        assert want in texts and max(map(len, texts)) <= 40, texts
+        assert _footnotes(fig) == [FOOTNOTE]
+        _texts_do_not_collide(fig)
+    data = figures.horizon_data(lb.by_step, t.columns, "x")
+    assert data["legend"] == figures.short_labels(lb.by_step["variant"].unique())
+
+
+def test_ablation_title_names_the_resampling_of_its_error_bars(made, tmp_path, monkeypatch):
+    from pcfbench.reporting import stats
+
+    store = made[0]
+    lb = collect(store, stats.Resampling("block", 3))
+    t = tables.build(lb, tables.get_preset("roi", tables.load_presets()))
+    drawn = {}
+    monkeypatch.setattr(figures, "save", lambda fig, out_dir, stem, *a: drawn.setdefault(stem, fig) and {})
+    figures.ablation_figures(lb, t.columns, tmp_path, "exp", _plugins())
+    title = drawn["ablation-exp_shifted_dx"].get_suptitle()
+    assert "error bars: 95 % percentile bootstrap over blocks of 3 consecutive samples" in title

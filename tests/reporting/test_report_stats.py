@@ -195,3 +195,18 @@ def _coverage(resample_sweeps: bool, datasets=300, n=30, sweeps=5, seed=0):
 def test_coverage_of_the_sample_bootstrap_and_why_sweeps_are_the_wrong_unit():
     assert 0.90 <= _coverage(False) <= 0.985
     assert _coverage(True) < 0.8  # sweeps of a sample are correlated: intervals far too narrow
+
+
+def test_sample_sums_of_given_sums_orders_them_as_sample_sums_does_and_refuses_a_repeated_id():
+    """Sums given per sample in any order come out in (sequence, reference index, id) order,
+    the order ``sample_sums`` makes from rows (block resampling relies on it)."""
+    rows = pd.DataFrame({"sample_id": ["b/2", "a/9", "b/1", "a/3"], "sequence": ["b", "a", "b", "a"],
+                         "ref_index": [2, 9, 1, 3], "step": 0, "status": "ok", "m": [1.0, 2.0, 3.0, 4.0]})
+    want = stats.sample_sums(rows, ["m"])
+    got = stats.SampleSums.of(rows["sample_id"], rows["sequence"], rows["ref_index"], ["m"],
+                              rows[["m"]].to_numpy(), np.ones((4, 1)))
+    assert list(got.sample_ids) == list(want.sample_ids) == ["a/3", "a/9", "b/1", "b/2"]
+    np.testing.assert_array_equal(got.sums, want.sums)
+    np.testing.assert_array_equal(got.counts, want.counts)
+    with pytest.raises(PcfbenchError, match="a sample id occurs twice"):
+        stats.SampleSums.of(["a/1", "a/1"], ["a", "a"], [1, 1], ["m"], np.ones((2, 1)), np.ones((2, 1)))
