@@ -23,6 +23,7 @@ from pathlib import Path
 import pandas as pd
 
 from pcfbench.errors import PcfbenchError, unknown_name
+from pcfbench.reporting.escape import md_text
 from pcfbench.kinds import Better, parse
 
 PRESETS_FILE = "tables.toml"
@@ -287,7 +288,7 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
         f"values are flat means over (sample, future sweep); {'±: half the width of' if ci == 'pm' else '[lo, hi]:' if ci == 'interval' else 'the CSV has'} "
         f"the {lb.resampling.describe()}",
         f"(+x %): relative change against the reference {lb.reference!r} on the samples both scored; "
-        f"†: not significantly different from it (paired bootstrap, p >= {1 - lb.resampling.confidence:g})",
+        f"†: not significantly different from it (paired bootstrap, p ≥ {1 - lb.resampling.confidence:g})",
         "-: no sweep could be scored",
     ]
     elsewhere = _failed_by_group(getattr(lb, "incomplete", pd.DataFrame()))
@@ -390,13 +391,13 @@ def _md_cell(p: Parts) -> str:
 
 def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
     failed = _show_failed(t)
-    head = ["method", "n"] + (["failed"] if failed else []) + [_header_label(c) for c in t.columns]
+    head = ["method", "n"] + (["failed"] if failed else []) + [md_text(_header_label(c)) for c in t.columns]
     out = []
     for g in groups:
-        out += [f"{level} {g.title}", "", "| " + " | ".join(head) + " |",
+        out += [f"{level} {md_text(g.title)}", "", "| " + " | ".join(head) + " |",
                 "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
         for _, r in g.rows.iterrows():
-            cells = [_label(r, g).replace("|", "\\|"), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
+            cells = [md_text(_label(r, g)), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
             cells += [_md_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
@@ -404,17 +405,18 @@ def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
 
 
 def markdown(t: Table, heading: str = "#") -> str:
-    lines = [f"{heading} {t.heading}: {t.preset.title}", ""]
-    lines += [f"**{t.scope}**", ""] if t.scope else []
-    lines += [f"- {x}" for x in t.legend] + [""]
-    lines += [f"> note: {n}" for n in t.notes] + ([""] if t.notes else [])
+    """The table as Markdown; every name, label, title and note in it is escaped (``escape.md_text``)."""
+    lines = [f"{heading} {md_text(t.heading)}: {md_text(t.preset.title)}", ""]
+    lines += [f"**{md_text(t.scope)}**", ""] if t.scope else []
+    lines += [f"- {md_text(x)}" for x in t.legend] + [""]
+    lines += [f"> note: {md_text(n)}" for n in t.notes] + ([""] if t.notes else [])
     if not t.groups and t.empty_note:
         lines += [t.empty_note, ""]
     lines += _md_groups(t, t.groups, heading + "#")
     if t.partial:
         lines += [f"{heading}# PARTIAL runs (--limit): the first N samples only, not comparable with the tables above", ""]
         lines += _md_groups(t, t.partial, heading + "##")
-    lines += [f"{x}  " for x in footnote_lines(t)]
+    lines += [f"{md_text(x)}  " for x in footnote_lines(t)]
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -451,7 +453,7 @@ def tex_escape(s: str) -> str:
     return "".join(_TEX_ESCAPES.get(ch, ch) for ch in str(s))
 
 
-_TEX_SYMBOLS = {"±": r"$\pm$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "†": r"$^\dagger$", ">=": r"$\geq$",
+_TEX_SYMBOLS = {"±": r"$\pm$", "≥": r"$\geq$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "†": r"$^\dagger$", ">=": r"$\geq$",
                 "<=": r"$\leq$", "<": r"$<$", ">": r"$>$",
                 **{sup: f"$^{d}$" for d, sup in zip("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")}}
 

@@ -20,6 +20,7 @@ from pcfbench.reporting.report import ReportOptions, collect, summary, write_rep
 from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec, iter_cells, spec_from_meta
 from pcfbench.reporting import tables
+from pcfbench.reporting.escape import md_text
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
 
@@ -225,8 +226,8 @@ def test_every_preset_is_written_and_reports_are_deterministic(board, tmp_path):
         for ext in ("md", "tex", "html"):
             assert (out / "tables" / f"{name}.{ext}").is_file()
     full = (out / "tables" / "full.md").read_text()
-    for m in METRICS:
-        assert f"| {m} ↓" in full or f"{m} ↓ (" in full
+    for m in METRICS:  # a metric's name is Markdown-escaped: chamfer\_nf
+        assert f"| {md_text(m)} ↓" in full or f"{md_text(m)} ↓ (" in full
     assert "Chamfer (full)" not in (out / "tables" / "roi.md").read_text()
     again = write_reports(store, tmp_path / "again")
     for key in ("md", "csv", "tex", "html", "by_step", "comparisons"):
