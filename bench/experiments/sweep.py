@@ -543,6 +543,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
     limited or incomplete cell writes under ``reports/partial/`` instead, in the same layout: a
     partial table never replaces a complete one."""
     from pcfbench.reporting import report, tables
+    from pcfbench.reporting.escape import csv_text
 
     presets = tables.load_presets()
     labels = {_row_key(c.method, c.options_hash, getattr(c, "checkpoint_sha256", None)): row_label(c) for c in cells}
@@ -569,7 +570,7 @@ def ablation_tables(exp: Experiment, store: Path, reports: Path, cells: list[Cel
         contents[f"{t.stem}.md"] = tables.markdown(table)
         contents[f"{t.stem}.tex"] = tex
         contents[f"{t.stem}.html"] = tables.html_page(table)
-        contents[f"{t.stem}.csv"] = _csv(lb, order).to_csv(index=False)
+        contents[f"{t.stem}.csv"] = csv_text(_csv(lb, order))
         summaries.append(f"{table.heading}: {preset.title}\n{tables.text(table)}")
         from pcfbench.reporting.figures import FIGURES_DIR, ablation_figures  # metric vs option value
 

@@ -28,7 +28,7 @@ PROVENANCE_COLUMNS = (
 
 STYLE = tables.HTML_STYLE + (
     "body{font-family:system-ui,sans-serif;margin:1.5em;max-width:1500px}"
-    ".pcf thead th{cursor:pointer;user-select:none;background:#f3f3f3;position:sticky;top:0}"
+    ".pcf thead th{cursor:pointer;user-select:none;background:#f3f3f3}"
     ".pcf thead th[aria-sort=ascending]::after{content:' \\25B2'}"
     ".pcf thead th[aria-sort=descending]::after{content:' \\25BC'}"
     ".pcf tbody tr:hover td{background:#fafae8}.pcf td a{text-decoration:none;color:#36c;font-size:80%}"
@@ -108,7 +108,8 @@ def _table(t: tables.Table, groups: list[tables.Group], caption: str, ids: dict[
     e = html.escape
     head = [("method", "method", "method"), ("n", "samples", ""), ("failed", "failed", "")]
     head += [(tables._header_label(c), c.metric, "") for c in t.columns]
-    ths = "".join(f"<th data-key='{e(k)}' class='{cls}' title='click to sort'>{e(label)}</th>" for label, k, cls in head)
+    ths = "".join(f"<th data-key='{e(k)}' class='{cls}' title='click to sort'>{tables.html_head(label)}</th>"
+                  for label, k, cls in head)
     bodies = []
     for g in groups:
         rows = [f"<tr class='group'><th colspan='{len(head)}'>{e(g.title)}</th></tr>"]
@@ -124,8 +125,8 @@ def _table(t: tables.Table, groups: list[tables.Group], caption: str, ids: dict[
                 cells.append(cell.replace("<td", f"<td data-v='{e(_value(r, c.metric))}'", 1))
             rows.append(f"<tr class='cell' id='row-{n}'>" + "".join(cells) + "</tr>")
         bodies.append("<tbody>\n" + "\n".join(rows) + "\n</tbody>")
-    return (f"<table class='pcf sortable'><caption>{e(caption)}</caption><thead><tr>{ths}</tr></thead>\n"
-            + "\n".join(bodies) + "</table>")
+    return (f"<div class='pcf-wrap'><table class='{tables.html_class(t)} sortable'><caption>{e(caption)}</caption>"
+            f"<thead><tr>{ths}</tr></thead>\n" + "\n".join(bodies) + "</table></div>")
 
 
 def _provenance(frames: list[pd.DataFrame], ids: dict[str, int]) -> str:

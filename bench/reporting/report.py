@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from pcfbench.reporting import stats, tables
+from pcfbench.reporting.escape import write_csv
 from pcfbench.reporting.select import Selection
 from pcfbench.errors import PcfbenchError, unknown_name
 from pcfbench.reporting.labels import cell_label, method_label, trained_label  # noqa: F401 - re-exported
@@ -490,20 +491,20 @@ def write_reports(store_root: Path, out_dir: Path, options: ReportOptions | None
             "each cell's date is in its provenance")))
         rel["html"] = Path("leaderboard.html")
         rel["csv"] = Path("leaderboard.csv")
-        _csv_frame(lb, lb.table).to_csv(stage / rel["csv"], index=False)
+        write_csv(_csv_frame(lb, lb.table), stage / rel["csv"])
         rel["partial_csv"] = Path("leaderboard_partial.csv")
-        _csv_frame(lb, lb.partial).to_csv(stage / rel["partial_csv"], index=False)
+        write_csv(_csv_frame(lb, lb.partial), stage / rel["partial_csv"])
         for key, name, keep in (("by_step", "leaderboard_by_step.csv", False), ("partial_by_step", "leaderboard_partial_by_step.csv", True)):
             rel[key] = Path(name)
             steps = lb.by_step[lb.by_step["partial"] == keep] if len(lb.by_step) else lb.by_step
-            steps.drop(columns="partial", errors="ignore").to_csv(stage / name, index=False)
+            write_csv(steps.drop(columns="partial", errors="ignore"), stage / name)
         rel["incomplete_csv"] = Path("leaderboard_incomplete.csv")
         incomplete = _csv_frame(lb, lb.incomplete)
         incomplete.insert(CSV_LEAD.index("samples"), "coverage", lb.incomplete["coverage"] if len(lb.incomplete) else [])
         incomplete.insert(CSV_LEAD.index("failed") + 2, "missing", lb.incomplete["missing"] if len(lb.incomplete) else [])
-        incomplete.to_csv(stage / rel["incomplete_csv"], index=False)
+        write_csv(incomplete, stage / rel["incomplete_csv"])
         rel["comparisons"] = Path("leaderboard_comparisons.csv")
-        lb.comparisons.to_csv(stage / rel["comparisons"], index=False)
+        write_csv(lb.comparisons, stage / rel["comparisons"])
         from pcfbench.reporting.transfer import write_transfer  # trained cells: the zero-shot table (Copilot4D Table 5)
 
         for key, p in write_transfer(lb, stage).items():

@@ -12,9 +12,12 @@ reference cell (``pcfbench.reporting.stats``).
 
 from __future__ import annotations
 
+import dataclasses
 import html as _html
+import itertools
 import math
 import re
+import textwrap
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -23,21 +26,13 @@ from pathlib import Path
 import pandas as pd
 
 from pcfbench.errors import PcfbenchError, unknown_name
+from pcfbench.reporting.escape import md_text
 from pcfbench.kinds import Better, parse
 
 PRESETS_FILE = "tables.toml"
 CI_STYLES = ("pm", "interval", "none")
 _PRESET_KEYS = {"title", "description", "columns", "rank_by"}
 _COLUMN_KEYS = {"metric", "label", "better"}
-
-# LaTeX page geometry (A4, 2.5 cm margins: 455 x 702 pt) and a \small tabular's glyph width
-# (calibrated on pdflatex output, rounded up), in pt.
-A4_TEXTWIDTH_PT = 455.0
-A4_TEXTHEIGHT_PT = 700.0
-_CHAR_PT = 5.0
-_COLSEP_PT = 8.0
-_FOOTNOTE_SCALE = 8 / 9  # \footnotesize (8 pt) against \small (9 pt)
-
 
 @dataclass(frozen=True)
 class Column:
@@ -287,7 +282,7 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
         f"values are flat means over (sample, future sweep); {'±: half the width of' if ci == 'pm' else '[lo, hi]:' if ci == 'interval' else 'the CSV has'} "
         f"the {lb.resampling.describe()}",
         f"(+x %): relative change against the reference {lb.reference!r} on the samples both scored; "
-        f"†: not significantly different from it (paired bootstrap, p >= {1 - lb.resampling.confidence:g})",
+        f"†: not significantly different from it (paired bootstrap, p ≥ {1 - lb.resampling.confidence:g})",
         "-: no sweep could be scored",
     ]
     elsewhere = _failed_by_group(getattr(lb, "incomplete", pd.DataFrame()))
@@ -390,13 +385,13 @@ def _md_cell(p: Parts) -> str:
 
 def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
     failed = _show_failed(t)
-    head = ["method", "n"] + (["failed"] if failed else []) + [_header_label(c) for c in t.columns]
+    head = ["method", "n"] + (["failed"] if failed else []) + [md_text(_header_label(c)) for c in t.columns]
     out = []
     for g in groups:
-        out += [f"{level} {g.title}", "", "| " + " | ".join(head) + " |",
+        out += [f"{level} {md_text(g.title)}", "", "| " + " | ".join(head) + " |",
                 "|" + "|".join(["---"] + ["---:"] * (len(head) - 1)) + "|"]
         for _, r in g.rows.iterrows():
-            cells = [_label(r, g).replace("|", "\\|"), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
+            cells = [md_text(_label(r, g)), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
             cells += [_md_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
@@ -404,17 +399,18 @@ def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
 
 
 def markdown(t: Table, heading: str = "#") -> str:
-    lines = [f"{heading} {t.heading}: {t.preset.title}", ""]
-    lines += [f"**{t.scope}**", ""] if t.scope else []
-    lines += [f"- {x}" for x in t.legend] + [""]
-    lines += [f"> note: {n}" for n in t.notes] + ([""] if t.notes else [])
+    """The table as Markdown; every name, label, title and note in it is escaped (``escape.md_text``)."""
+    lines = [f"{heading} {md_text(t.heading)}: {md_text(t.preset.title)}", ""]
+    lines += [f"**{md_text(t.scope)}**", ""] if t.scope else []
+    lines += [f"- {md_text(x)}" for x in t.legend] + [""]
+    lines += [f"> note: {md_text(n)}" for n in t.notes] + ([""] if t.notes else [])
     if not t.groups and t.empty_note:
         lines += [t.empty_note, ""]
     lines += _md_groups(t, t.groups, heading + "#")
     if t.partial:
         lines += [f"{heading}# PARTIAL runs (--limit): the first N samples only, not comparable with the tables above", ""]
         lines += _md_groups(t, t.partial, heading + "##")
-    lines += [f"{x}  " for x in footnote_lines(t)]
+    lines += [f"{md_text(x)}  " for x in footnote_lines(t)]
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -451,7 +447,7 @@ def tex_escape(s: str) -> str:
     return "".join(_TEX_ESCAPES.get(ch, ch) for ch in str(s))
 
 
-_TEX_SYMBOLS = {"±": r"$\pm$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "†": r"$^\dagger$", ">=": r"$\geq$",
+_TEX_SYMBOLS = {"±": r"$\pm$", "≥": r"$\geq$", "↓": r"$\downarrow$", "↑": r"$\uparrow$", "†": r"$^\dagger$", ">=": r"$\geq$",
                 "<=": r"$\leq$", "<": r"$<$", ">": r"$>$",
                 **{sup: f"$^{d}$" for d, sup in zip("0123456789", "⁰¹²³⁴⁵⁶⁷⁸⁹")}}
 
@@ -474,126 +470,323 @@ def tex_unit(unit: str) -> str:
     return rf"$\mathrm{{{tex_escape(base)}}}" + (f"^{{{power}}}" if power else "") + "$"
 
 
-def _tex_cell(p: Parts) -> tuple[str, float]:
-    """The LaTeX of a cell and its approximate printed width in characters of the body font.
+@dataclass
+class _TexCell:
+    """A LaTeX table cell: its main line and the lines under it (text, unescaped)."""
 
-    The interval and the change go on a second, smaller line under the value, which keeps
-    a six-column table within a portrait A4 page.
-    """
-    value = rf"\textbf{{{p.value}}}" if p.best else p.value
-    extra = []
-    if p.ci:
-        extra.append(tex_escape(p.ci).replace("±", r"$\pm$"))
-    if p.change:
-        extra.append("(" + tex_escape(p.change).replace("-", "$-$") + (r"$^\dagger$" if p.tie else "") + ")")
-    if not extra:
-        return value, len(p.value)
-    small = " ".join(extra)
-    width = max(len(p.value), 0.85 * (len(p.ci) + len(p.change) + 3 + int(p.tie)))
-    return r"\begin{tabular}[t]{@{}r@{}}" + value + r"\\[-2pt]{\scriptsize " + small + r"}\end{tabular}", width
+    main: str
+    subs: tuple[str, ...] = ()
+    bold: bool = False
+    align: str = "r"
+    #: the lines under the main one are \scriptsize (a value's interval and change, a method's
+    #: options); False: the table's size (a header's second line)
+    small: bool = True
+
+    def tex(self) -> str:
+        main = rf"\textbf{{{tex_text(self.main)}}}" if self.bold else tex_text(self.main)
+        if not self.subs:
+            return main
+        subs = "".join(r"\\[-2pt]{\scriptsize " + _tex_sub(x) + "}" if self.small else r"\\" + tex_text(x)
+                       for x in self.subs)
+        return (rf"\begin{{tabular}}[{'t' if self.small else 'b'}]{{@{{}}{self.align}@{{}}}}" + main + subs
+                + r"\end{tabular}")
+
+    def width(self, size: str) -> float:
+        """Its printed width in pt, estimated on the wide side."""
+        sub = _CHAR_PT["scriptsize" if self.small else size]
+        return max([_chars(self.main) * _CHAR_PT[size]] + [_chars(x) * sub for x in self.subs])
+
+    def height(self, size: str) -> float:
+        return _LINE_PT[size] + _LINE_PT["scriptsize" if self.small else size] * len(self.subs)
+
+    def on_one_line(self) -> _TexCell:
+        """A value cell with its interval and change on one small line, not two."""
+        return dataclasses.replace(self, subs=(" ".join(self.subs),)) if len(self.subs) > 1 else self
 
 
-def _tex_head(c: ShownColumn) -> tuple[str, int]:
+def _chars(s: str) -> int:
+    """``s``'s width in average glyphs: an arrow (math, 1 em) counts two."""
+    return len(s) + sum(s.count(a) for a in "↓↑±")
+
+
+def _tex_sub(s: str) -> str:
+    return tex_text(s).replace(" -", " $-$").replace("(-", "($-$")
+
+
+def _value_cell(p: Parts) -> _TexCell:
+    """A value with its interval and its change on two small lines under it."""
+    change = f"({p.change}{'†' if p.tie else ''})" if p.change else ""
+    return _TexCell(p.value, tuple(x for x in (p.ci, change) if x), p.best)
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    """``text`` broken after its commas into lines of at most ``width`` characters where it can."""
+    lines: list[str] = []
+    for part in text.split(", "):
+        if lines and len(lines[-1]) + 2 + len(part) <= width:
+            lines[-1] += ", " + part
+        else:
+            if lines:
+                lines[-1] += ","
+            lines.append(part)
+    return lines
+
+
+def _label_cell(row: pd.Series, group: Group) -> _TexCell:
+    """The row's method name (with its footnote marker and "(ref)") on the main line; its
+    options and a scored-on-its-training-data warning on small lines under it, so that the
+    first column is as wide as the longest method name, not the longest label."""
+    variant, method = str(row["variant"]), str(row.get("method", ""))
+    base, marker, own = variant, "", False
+    if variant in group.short:  # a trained method's: its bracket is a footnote
+        short = group.short[variant].removesuffix(_OWN)
+        own = group.short[variant].endswith(_OWN)
+        base = variant.split(" [trained on ")[0]
+        marker = short[len(base):] if short.startswith(base) else ""
+    name, opts = (method, base[len(method):].strip()) if method and base.startswith(method + " (") else (base, "")
+    main = name + marker + (" (ref)" if variant == group.reference else "")
+    return _TexCell(main, tuple((_wrap(opts, _LABEL_SUB_CHARS) if opts else []) + ([_OWN.strip()] if own else [])),
+                    align="l")
+
+
+def _tex_head(c: ShownColumn) -> _TexCell:
     """A column header on two lines (split at the space nearest the middle) with its arrow."""
-    arrow = r" $\downarrow$" if c.better == Better.LOWER else r" $\uparrow$"
+    arrow = " ↓" if c.better == Better.LOWER else " ↑"
     words = c.label.split(" ")
     if len(words) == 1:
-        return tex_text(c.label) + arrow, len(c.label) + 2
+        return _TexCell(c.label + arrow)
     cut = min(range(1, len(words)), key=lambda k: abs(len(" ".join(words[:k])) - len(" ".join(words[k:]))))
-    top, bottom = " ".join(words[:cut]), " ".join(words[cut:])
-    return (r"\begin{tabular}[b]{@{}r@{}}" + tex_text(top) + r"\\" + tex_text(bottom) + arrow + r"\end{tabular}",
-            max(len(top), len(bottom) + 2))
+    return _TexCell(" ".join(words[:cut]), (" ".join(words[cut:]) + arrow,), small=False)
+
+
+_OWN = " (ON ITS TRAINING DATA)"
+# LaTeX page geometry: A4 with 2.5 cm margins (article, 10 pt): 455 x 703 pt of text.
+A4_TEXTWIDTH_PT = 455.0
+A4_TEXTHEIGHT_PT = 703.0
+#: the most of a page a table's float may fill
+_FLOAT_HEIGHT_PT = 0.9 * A4_TEXTHEIGHT_PT
+#: an average glyph's width per font size, pt (Computer Modern's digits are 0.5 em), rounded up
+#: so that the estimate errs wide (tests/reporting/test_table_fit.py compiles the tables)
+_CHAR_PT = {"small": 5.0, "footnotesize": 4.5, "scriptsize": 3.9}
+_LINE_PT = {"small": 11.0, "footnotesize": 9.5, "scriptsize": 7.0}
+_COLSEP_PT = 8.0  # \tabcolsep 4 pt on each side
+_LABEL_SUB_CHARS = 30  # a method's options under its name wrap at this many characters
+_TITLE_CHARS = 72  # a row group's title wraps at this many characters
+
+
+@dataclass
+class _TexLayout:
+    """How a table is set: its font size, each value's interval and change stacked on two
+    lines or on one, the metric columns of each table (part), and the widest part in pt."""
+
+    size: str
+    stacked: bool
+    parts: list[list[int]]
+    width: float
+
+
+def _layouts(fixed_w: dict[str, float], cols: list[list[_TexCell]], least_w: dict[str, float]):
+    """Every layout in the order of preference: one table in \\small with each value's
+    interval and change on one small line, then on two, then \\footnotesize; then the metric
+    columns split into 2, 3, ... tables (each repeating the method column). ``fixed_w``: the
+    width of the method and count columns per size; ``cols``: each metric column's cells;
+    ``least_w``: the width of the widest row-group title per size (a table is at least that wide)."""
+    n = len(cols)
+    for k in range(1, max(n, 1) + 1):
+        for stacked, size in ((False, "small"), (True, "small"), (True, "footnotesize")):
+            widths = [max((c if stacked else c.on_one_line()).width(size) for c in col) + _COLSEP_PT for col in cols]
+            parts = _balanced(list(range(n)), widths, k)
+            width = max(fixed_w[size] + sum(widths[i] for i in p) for p in parts)
+            yield _TexLayout(size, stacked, parts, max(width, least_w[size]))
+
+
+def _balanced(items: list[int], widths: list[float], k: int) -> list[list[int]]:
+    """``items`` cut into ``k`` contiguous parts whose widest part is as narrow as it can be."""
+    if not items:
+        return [items]
+    k = min(k, len(items))
+    best: tuple[float, list[list[int]]] | None = None
+    for cuts in itertools.combinations(range(1, len(items)), k - 1):
+        bounds = [0, *cuts, len(items)]
+        parts = [items[a:b] for a, b in zip(bounds, bounds[1:])]
+        w = max(sum(widths[i] for i in p) for p in parts)
+        if best is None or w < best[0]:
+            best = (w, parts)
+    return best[1] if best else [items]
 
 
 def latex(t: Table) -> tuple[str, str]:
-    """The booktabs table (a fragment for \\input) and how it was fitted to an A4 page.
+    """The booktabs table (a fragment for \\input; needs \\usepackage{booktabs}) and a line
+    saying how it was fitted to a portrait A4 page. Nothing is scaled or turned.
 
-    Needs \\usepackage{booktabs,graphicx,rotating}. The width is estimated from the longest
-    entry of each column; a table wider than the text width turns landscape
-    (sidewaystable), and one wider than the landscape text width is also scaled down.
+    The width is estimated from the longest entry of each column. The first that fits the text
+    width of: \\small with each value's interval and change on one small line under it, on two
+    lines, \\footnotesize; else the metric columns are split into tables of fewer columns (each
+    repeating the method column). A table taller than a page is split between row groups (a
+    group taller than a page, between its rows, marked "continued").
     """
     failed = _show_failed(t)
     groups = [(g, False) for g in t.groups] + [(g, True) for g in t.partial]
-    ncols = 2 + int(failed) + len(t.columns)
     heads = [_tex_head(c) for c in t.columns]
-    head1 = ["Method", "$n$"] + (["failed"] if failed else []) + [h for h, _ in heads]
-    head2 = ["", ""] + ([""] if failed else []) + [f"[{tex_unit(c.unit)}]" if c.unit else "" for c in t.columns]
-    widths: list[float] = [max(w, 6) for _, w in heads]
-    widths = [max(len("Method"), 1), 3] + ([6] if failed else []) + widths
-    body = []
-    for g, partial in groups:
-        body.append(r"\midrule")
-        title = ("PARTIAL (--limit), not comparable: " if partial else "") + g.title
-        body.append(rf"\multicolumn{{{ncols}}}{{l}}{{\textit{{{tex_text(title)}}}}} \\")
+    units = [f"[{tex_unit(c.unit)}]" if c.unit else "" for c in t.columns]
+    rows = []  # (group index, label cell, count cells, value cells)
+    for gi, (g, _) in enumerate(groups):
         for _, r in g.rows.iterrows():
-            label = _label(r, g)
-            cells = [tex_text(label), str(int(r["samples"]))] + ([str(int(r["failed"]))] if failed else [])
-            widths[0] = max(widths[0], len(label))
-            for i, c in enumerate(t.columns):
-                s, w = _tex_cell(cell_parts(r, c, g.best, t.ci, t.alpha))
-                cells.append(s)
-                j = 2 + int(failed) + i
-                widths[j] = max(widths[j], w)
-            body.append(" & ".join(cells) + r" \\")
-    chars = sum(widths)
-    est = _CHAR_PT * chars + _COLSEP_PT * len(widths)  # set in \small
-    est_fn = _CHAR_PT * _FOOTNOTE_SCALE * chars + _COLSEP_PT * len(widths)  # in \footnotesize
-    env, size, resize = "table", r"\small", False
-    fit = "fits the A4 text width"
-    if est > A4_TEXTWIDTH_PT and est_fn <= A4_TEXTWIDTH_PT:
-        size = r"\footnotesize"
-        fit = (f"set in \\footnotesize to fit the A4 text width ({A4_TEXTWIDTH_PT:.0f} pt): "
-               f"about {est:.0f} pt wide in \\small, {est_fn:.0f} pt in \\footnotesize")
-    elif est > A4_TEXTWIDTH_PT:
-        env = "sidewaystable"
-        fit = (f"switched to a landscape table (sidewaystable): about {est:.0f} pt wide, "
-               f"the A4 text width is {A4_TEXTWIDTH_PT:.0f} pt")
-        if est > A4_TEXTHEIGHT_PT:
-            resize = True
-            fit = (f"switched to a landscape table scaled to the page: about {est:.0f} pt wide, "
-                   f"more than the A4 landscape text width of {A4_TEXTHEIGHT_PT:.0f} pt")
-    caption = tex_text(t.preset.title) + ". " + tex_text("; ".join(t.legend[:4]))
-    lines = [
-        f"% {t.heading}, preset {t.preset.name}: {fit}",
-        r"% needs \usepackage{booktabs,graphicx,rotating}",
-        *([f"% {t.scope}"] if t.scope else []),
-        rf"\begin{{{env}}}" + ("[p]" if env == "sidewaystable" else "[t]"),
-        r"\centering" + size + r"\setlength{\tabcolsep}{4pt}",
-        rf"\caption{{{caption}}}",
-        rf"\label{{tab:pcfbench-{tex_escape(t.preset.name)}}}",
-    ]
-    if resize:
-        lines.append(r"\resizebox{\linewidth}{!}{%")
-    lines += [rf"\begin{{tabular}}{{l{'r' * (ncols - 1)}}}", r"\toprule",
-              " & ".join(head1) + r" \\", " & ".join(head2) + r" \\"]
-    lines += body or [r"\midrule", rf"\multicolumn{{{ncols}}}{{l}}{{no complete cells in the store}} \\"]
+            counts = [_TexCell(str(int(r["samples"])))] + ([_TexCell(str(int(r["failed"])))] if failed else [])
+            rows.append((gi, _label_cell(r, g), counts,
+                         [_value_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]))
+    fixed_cols = [[_TexCell("Method", align="l")] + [r[1] for r in rows], [_TexCell("n")] + [r[2][0] for r in rows]]
+    fixed_cols += [[_TexCell("failed")] + [r[2][1] for r in rows]] if failed else []
+    fixed_w = {s: sum(max(c.width(s) for c in col) + _COLSEP_PT for col in fixed_cols) for s in ("small", "footnotesize")}
+    unit_cells = [_TexCell(f"[{unit_text(c.unit)}]") for c in t.columns]
+    value_cols = [[heads[i], unit_cells[i]] + [r[3][i] for r in rows] for i in range(len(t.columns))]
+    titles = [_group_title(g, partial) for g, partial in groups]
+    least_w = {s: max([len(x) * _CHAR_PT[s] + _COLSEP_PT for lines in titles for x in lines], default=0.0)
+               for s in ("small", "footnotesize")}
+    layout = one_line = None
+    for layout in _layouts(fixed_w, value_cols, least_w):
+        one_line = one_line or layout.width
+        if layout.width <= A4_TEXTWIDTH_PT:
+            break
+    assert layout is not None and one_line is not None
+    blocks = _row_blocks(t, titles, rows, layout.size)
+    parts = layout.parts
+    fit = f"fits the A4 text width ({A4_TEXTWIDTH_PT:.0f} pt) in \\{layout.size}: about {layout.width:.0f} pt wide"
+    if layout.stacked:
+        fit += f", each value's interval and change on two small lines under it ({one_line:.0f} pt on one line)"
+    if len(parts) > 1:
+        fit = (f"split into {len(parts)} tables of columns to fit the A4 text width ({A4_TEXTWIDTH_PT:.0f} pt): "
+               f"the widest about {layout.width:.0f} pt in \\{layout.size} ({one_line:.0f} pt as one table)")
+    if layout.width > A4_TEXTWIDTH_PT:
+        fit = (f"WIDER than the A4 text width ({A4_TEXTWIDTH_PT:.0f} pt) even with one metric column per table: "
+               f"about {layout.width:.0f} pt in \\{layout.size}, for its long method names")
+    if len(blocks) > 1:
+        fit += f"; split into {len(blocks)} tables of rows to fit the A4 text height ({A4_TEXTHEIGHT_PT:.0f} pt)"
+    out = [f"% {_tex_comment(t.heading)}, preset {_tex_comment(t.preset.name)}: {fit}", r"% needs \usepackage{booktabs}"]
+    out += [f"% {_tex_comment(t.scope)}"] if t.scope else []
+    floats = [(part, block) for part in parts for block in blocks]
+    for n, (part, block) in enumerate(floats, 1):
+        out += _tex_float(t, titles, rows, block, part, heads, units, layout, failed, n, len(floats))
+    return "\n".join(out) + "\n", fit
+
+
+def _group_title(g: Group, partial: bool) -> list[str]:
+    """A row group's title on lines of at most 72 characters (the title of a group in a
+    narrow table would otherwise set the width of its last column)."""
+    title = ("PARTIAL (--limit), not comparable: " if partial else "") + g.title
+    return textwrap.wrap(title, _TITLE_CHARS, break_long_words=False) or [""]
+
+
+def _row_blocks(t: Table, titles: list[list[str]], rows, size: str) -> list[list[tuple[int, list[int]]]]:
+    """The rows of each table float, as (group index, row indices) pairs: every row in one
+    float unless that is taller than a page (estimated), then split before the row that
+    would overflow it (a group's title is repeated, "continued", in the next)."""
+    caption = len(t.preset.title + ". " + "; ".join(t.legend[:4])) * _CHAR_PT["small"] / A4_TEXTWIDTH_PT
+    overhead = (caption + 5) * _LINE_PT["small"] + (len(t.footnotes) + 1) * _LINE_PT[size]
+    blocks: list[list[tuple[int, list[int]]]] = [[]]
+    used = overhead
+    for i, (gi, label, _, values) in enumerate(rows):
+        h = max(c.height(size) for c in [label, *values]) + 1  # a row's strut
+        new_group = not blocks[-1] or blocks[-1][-1][0] != gi
+        title_h = _LINE_PT[size] * len(titles[gi]) + 4
+        if blocks[-1] and used + h + (title_h if new_group else 0) > _FLOAT_HEIGHT_PT:
+            blocks.append([])
+            used, new_group = overhead, True
+        if new_group:
+            blocks[-1].append((gi, []))
+            used += title_h
+        blocks[-1][-1][1].append(i)
+        used += h
+    return blocks
+
+
+def _tex_comment(s: str) -> str:
+    """``s`` on one line: a line break in a name would end the % comment and run as TeX."""
+    return " ".join(str(s).splitlines())
+
+
+def _tex_float(t: Table, titles: list[list[str]], rows, block, part: list[int], heads: list[_TexCell], units: list[str],
+               layout: _TexLayout, failed: bool, n: int, total: int) -> list[str]:
+    """Table float ``n`` of ``total``: the rows of ``block`` ((group index, row indices) pairs),
+    the metric columns ``part``; the first has the legend in its caption, the others say
+    which part they are."""
+    ncols = 2 + int(failed) + len(part)
+    caption = tex_text(t.preset.title)
+    if n == 1:
+        caption += ". " + tex_text("; ".join(t.legend[:4]))
+    else:
+        caption += tex_text(f" (continued, {n} of {total}: {', '.join(t.columns[i].label for i in part)})")
+    head1 = ["Method", "$n$"] + (["failed"] if failed else []) + [heads[i].tex() for i in part]
+    head2 = [""] * (2 + int(failed)) + [units[i] for i in part]
+    lines = [r"\begin{table}[tp]", rf"\centering\{layout.size}\setlength{{\tabcolsep}}{{4pt}}",
+             rf"\caption{{{caption}}}", rf"\label{{tab:pcfbench-{tex_escape(t.preset.name)}{'' if n == 1 else f'-{n}'}}}",
+             rf"\begin{{tabular}}{{l{'r' * (ncols - 1)}}}", r"\toprule",
+             " & ".join(head1) + r" \\", " & ".join(head2) + r" \\"]
+    markers: set[str] = set()
+    for gi, members in block:
+        title = list(titles[gi])
+        if members[0] != next(i for i, r in enumerate(rows) if r[0] == gi):
+            title[-1] += " (continued)"
+        lines.append(r"\midrule")
+        lines += [rf"\multicolumn{{{ncols}}}{{l}}{{\textit{{{tex_text(x)}}}}} \\" for x in title]
+        for i in members:
+            _, label, counts, values = rows[i]
+            cells = [label, *counts] + [values[j] if layout.stacked else values[j].on_one_line() for j in part]
+            markers |= set(label.main) & set(_SUPERSCRIPT_DIGITS)
+            lines.append(" & ".join(c.tex() for c in cells) + r" \\")
+    if not block:
+        lines += [r"\midrule", rf"\multicolumn{{{ncols}}}{{l}}{{no complete cells in the store}} \\"]
     lines += [r"\bottomrule", r"\end{tabular}"]
-    if resize:
-        lines.append("}")
-    if t.footnotes:  # under the table, inside its float, in the table's own size
-        lines.append(r"\par\smallskip" + r"\\".join(tex_text(x) for x in footnote_lines(t)))
-    lines.append(rf"\end{{{env}}}")
-    return "\n".join(lines) + "\n", fit
+    notes = [f"{m} {x}" for m, x in t.footnotes if set(m) & markers]
+    if notes:  # under the table, inside its float, in the table's own size
+        lines.append(r"\par\smallskip" + r"\\".join(tex_text(x) for x in notes))
+    lines.append(r"\end{table}")
+    return lines
+
+
+_SUPERSCRIPT_DIGITS = "⁰¹²³⁴⁵⁶⁷⁸⁹"
 
 
 # -- HTML ------------------------------------------------------------------------------
+# A table fits a 1400 px window: each value's interval and change on a small line under it,
+# headers wrap (at spaces, after _ and @); values and method names never do. A table wider
+# than its page scrolls inside its own box (a scroll bar, nothing cut off) with the method
+# column held in view.
 HTML_STYLE = (
-    "table.pcf{border-collapse:collapse;font-variant-numeric:tabular-nums;margin-bottom:1.5em}"
-    ".pcf th,.pcf td{padding:2px 10px;text-align:right;white-space:nowrap}"
+    ".pcf-wrap{overflow-x:auto;max-width:100%;margin-bottom:1.5em}"
+    "table.pcf{border-collapse:collapse;font-variant-numeric:tabular-nums}"
+    ".pcf th,.pcf td{padding:2px 8px;text-align:right;white-space:nowrap;vertical-align:top}"
+    ".pcf thead th{white-space:normal;vertical-align:bottom;min-width:4em}"
     ".pcf th.method,.pcf td.method{text-align:left}"
-    ".pcf tr.group th{text-align:left;font-style:italic;border-top:1px solid #999;padding-top:6px}"
-    ".pcf .ci,.pcf .chg{font-size:80%;color:#555}.pcf caption{text-align:left;font-weight:bold}"
+    ".pcf td.method{position:sticky;left:0;background:#fff}"
+    ".pcf tr.group th{text-align:left;font-style:italic;border-top:1px solid #999;padding-top:6px;white-space:normal}"
+    ".pcf .sub{display:block;font-size:80%;color:#555}.pcf caption{text-align:left;font-weight:bold}"
+    ".pcf.stacked .chg{display:block}"
     ".partial{border-left:4px solid #c60;padding-left:8px}"
 )
+
+
+#: a table with more metric columns than this stacks each value's change under its interval
+HTML_STACK_COLUMNS = 7
+
+
+def html_class(t: Table) -> str:
+    """The table's classes: ``pcf``, and ``stacked`` when it has many metric columns."""
+    return "pcf stacked" if len(t.columns) > HTML_STACK_COLUMNS else "pcf"
+
+
+def html_head(label: str) -> str:
+    """A column header as HTML: escaped, with break opportunities after _ and @ too."""
+    return _html.escape(label).replace("_", "_<wbr>").replace("@", "@<wbr>")
 
 
 def _html_cell(p: Parts) -> str:
     v = _html.escape(p.value)
     s = f"<strong>{v}</strong>" if p.best else v
-    if p.ci:
-        s += f" <span class='ci'>{_html.escape(p.ci)}</span>"
-    if p.change:
-        s += f" <span class='chg'>({_html.escape(p.change)}{'†' if p.tie else ''})</span>"
+    sub = [f"<span class='ci'>{_html.escape(p.ci)}</span>"] if p.ci else []
+    sub += [f"<span class='chg'>({_html.escape(p.change)}{'†' if p.tie else ''})</span>"] if p.change else []
+    if sub:  # on a line of its own under the value
+        s += f"<span class='sub'>{' '.join(sub)}</span>"
     title = f" title='{_html.escape(p.title)}'" if p.title else ""
     return f"<td{title}>{s}</td>"
 
@@ -601,7 +794,7 @@ def _html_cell(p: Parts) -> str:
 def html_table(t: Table, groups: list[Group], caption: str) -> str:
     failed = _show_failed(t)
     head = ["<th class='method'>method</th>", "<th>n</th>"] + (["<th>failed</th>"] if failed else [])
-    head += [f"<th>{_html.escape(_header_label(c))}</th>" for c in t.columns]
+    head += [f"<th>{html_head(_header_label(c))}</th>" for c in t.columns]
     rows = []
     for g in groups:
         rows.append(f"<tr class='group'><th colspan='{len(head)}'>{_html.escape(g.title)}</th></tr>")
@@ -610,8 +803,8 @@ def html_table(t: Table, groups: list[Group], caption: str) -> str:
             cells += [f"<td>{int(r['failed'])}</td>"] if failed else []
             cells += [_html_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             rows.append("<tr>" + "".join(cells) + "</tr>")
-    return (f"<table class='pcf'><caption>{_html.escape(caption)}</caption><thead><tr>{''.join(head)}</tr></thead>"
-            f"<tbody>\n" + "\n".join(rows) + "\n</tbody></table>")
+    return (f"<div class='pcf-wrap'><table class='{html_class(t)}'><caption>{_html.escape(caption)}</caption>"
+            f"<thead><tr>{''.join(head)}</tr></thead><tbody>\n" + "\n".join(rows) + "\n</tbody></table></div>")
 
 
 def html_page(t: Table) -> str:

@@ -16,6 +16,7 @@ from pathlib import Path
 import pandas as pd
 
 from pcfbench.reporting import tables
+from pcfbench.reporting.escape import md_text, write_csv
 
 #: Table 5's columns: (metric, header).
 COLUMNS = (("chamfer_nf", "Chamfer"), ("l1_mean", "L1 Mean"), ("absrel_mean", "AbsRel"), ("chamfer", "Chamfer (full)"))
@@ -48,19 +49,21 @@ def transfer_rows(lb) -> pd.DataFrame:
 
 def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "",
              higher_is_better: dict[str, bool] | None = None) -> str:
-    """``scope``: the line that says which filters made a filtered view (``Leaderboard.scope``);
+    """The transfer table as Markdown, every name in it escaped (``escape.md_text``).
+    ``scope``: the line that says which filters made a filtered view (``Leaderboard.scope``);
     ``higher_is_better``: each metric's direction (``Leaderboard.higher_is_better``; a metric
     missing from it is lower-is-better), shown by its column's arrow."""
     up = higher_is_better or {}
     lines = ["# Zero-shot transfer (layout of Copilot4D Table 5)", ""]
-    lines += [f"**{scope}**", ""] if scope else []
+    lines += [f"**{md_text(scope)}**", ""] if scope else []
     lines += ["Rows: method and its training data (`-`: the method does not train); a block per evaluation "
               "dataset and horizon. Values are flat means over (sample, future sweep), as in the leaderboard; "
               "↓: lower is better, ↑: higher is better.", ""]
     metrics = [(m, h) for m, h in COLUMNS if m in rows]
     for key, g in rows.groupby(["dataset", "split", "setting", "policy", "limit"], sort=False, dropna=False):
         dataset, split, setting, policy, limit = key
-        sources = sorted({t.split(":")[0] for t in g["train_on"] if t})
+        sources = [md_text(x) for x in sorted({t.split(":")[0] for t in g["train_on"] if t})]
+        dataset, split, setting, policy = (md_text(x) for x in (dataset, split, setting, policy))
         horizon = g["horizon_s"].iloc[0]
         title = f"[{', '.join(sources)} → {dataset}] {horizon:g}s Prediction" if pd.notna(horizon) else \
             f"[{', '.join(sources)} → {dataset}] {setting}"
@@ -68,14 +71,15 @@ def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "",
         if pd.notna(limit):
             extra.append(f"PARTIAL: first {int(limit)} samples")
         lines += [f"## {title} ({', '.join(extra)})", ""]
-        head = ["Method", "Trained on"] + [f"{h} {'↑' if up.get(m) else '↓'} ({tables.unit_text(units.get(m, ''))})" for m, h in metrics] + ["n"]
+        head = ["Method", "Trained on"] + [f"{h} {'↑' if up.get(m) else '↓'} ({md_text(tables.unit_text(units.get(m, '')))})"
+                                           for m, h in metrics] + ["n"]
         lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         for _, r in g.iterrows():
             train = r["train_on"] or "-"
             if r["train_on"]:
                 train += f" (ck {r['checkpoint_sha256'][:8]})" + (" ON ITS TRAINING DATA" if r["on_training_data"] else "")
             vals = [tables._num(r[m], units.get(m, "")) for m, _ in metrics]
-            lines.append("| " + " | ".join([r["method_label"], train, *vals, str(int(r["samples"]))]) + " |")
+            lines.append("| " + " | ".join([md_text(r["method_label"]), md_text(train), *vals, str(int(r["samples"]))]) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -91,5 +95,5 @@ def write_transfer(lb, out_dir: Path) -> dict[str, Path]:
             p.unlink(missing_ok=True)
         return {}
     paths["transfer_md"].write_text(markdown(rows, lb.units, getattr(lb, "scope", ""), getattr(lb, "higher_is_better", None)))
-    rows.to_csv(paths["transfer_csv"], index=False)
+    write_csv(rows, paths["transfer_csv"])
     return paths

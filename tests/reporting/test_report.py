@@ -20,6 +20,7 @@ from pcfbench.reporting.report import ReportOptions, collect, summary, write_rep
 from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec, iter_cells, spec_from_meta
 from pcfbench.reporting import tables
+from pcfbench.reporting.escape import md_text
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1_median", "absrel_mean", "absrel_median")
 
@@ -147,14 +148,13 @@ def test_latex_booktabs_right_aligned_real_units_and_fit_note(board):
     _, out, paths = board
     tex = paths["tex"].read_text()
     first = tex.splitlines()[0]
-    assert first.startswith("% pcfbench leaderboard, preset paper: ")
-    assert any(k in first for k in ("fits the A4 text width", "footnotesize to fit", "landscape"))
-    assert ("sidewaystable" in tex) == ("landscape" in first)
+    assert first.startswith("% pcfbench leaderboard, preset paper: fits the A4 text width (455 pt) in \\small")
+    assert "sidewaystable" not in tex and "resizebox" not in tex and tex.count(r"\begin{table}[tp]") == 1
     assert r"\toprule" in tex and r"\midrule" in tex and r"\bottomrule" in tex
     assert re.search(r"\\begin\{tabular\}\{lr+\}", tex)
     assert r"$\mathrm{m}^{2}$" in tex and r"$\mathrm{m}$" in tex and "m^2" not in tex.replace(r"\mathrm{m}^{2}", "")
     assert r"$\downarrow$" in tex and r"$\pm$" in tex and r"\textbf{" in tex
-    assert "shifted (dx=0.5)" in tex and r"$^\dagger$" in tex
+    assert r"shifted\\[-2pt]{\scriptsize (dx=0.5)}" in tex and r"$^\dagger$" in tex  # options under the name
     assert [ch for ch in tex if ord(ch) > 127] == []  # pdflatex without inputenc setup chokes on the rest
 
 
@@ -169,16 +169,15 @@ def test_latex_text_escapes_and_symbols():
 def test_latex_width_estimate_picks_the_page_layout():
     lb = _tiny_board({"chamfer": 1.0})
     narrow = tables.latex(tables.build(lb, tables.Preset("n", "narrow", (tables.Column("chamfer", "CD"),)), "none"))
-    assert "fits the A4 text width" in narrow[1] and r"\begin{table}" in narrow[0] and "resizebox" not in narrow[0]
+    assert narrow[1].startswith("fits the A4 text width (455 pt) in \\small") and r"\centering\small" in narrow[0]
     seven = _tiny_board({f"metric_{i}": 1.0 + i for i in range(7)})
     small = tables.latex(tables.build(seven, tables.Preset("s", "seven", None), "pm"))
-    assert "footnotesize to fit" in small[1] and r"\centering\footnotesize" in small[0] and r"\begin{table}" in small[0]
-    nine = _tiny_board({f"metric_{i}": 1.0 + i for i in range(9)})
-    mid = tables.latex(tables.build(nine, tables.Preset("m", "nine", None), "pm"))
-    assert "switched to a landscape table (sidewaystable)" in mid[1] and "resizebox" not in mid[0]
+    assert small[1].startswith("fits the A4 text width") and small[0].count(r"\begin{table}") == 1
     wide = _tiny_board({f"metric_{i}": 1.0 + i for i in range(14)})
-    big = tables.latex(tables.build(wide, tables.Preset("w", "wide", None), "pm"))
-    assert "scaled to the page" in big[1] and r"\resizebox{\linewidth}" in big[0] and "sidewaystable" in big[0]
+    big = tables.latex(tables.build(wide, tables.Preset("w", "wide", None), "interval"))
+    assert big[1].startswith("split into ") and big[0].count(r"\begin{table}") > 1
+    for tex, _ in (narrow, small, big):
+        assert "resizebox" not in tex and "sidewaystable" not in tex
 
 
 def _tiny_board(values):
@@ -201,7 +200,7 @@ def test_latex_compiles_on_an_a4_page_without_overfull_boxes(board, tmp_path):
     for tex in sorted((out / "tables").glob("*.tex")):
         doc = tmp_path / f"doc-{tex.stem}.tex"
         doc.write_text("\\documentclass[a4paper]{article}\n\\usepackage[margin=2.5cm]{geometry}\n"
-                       "\\usepackage{booktabs,graphicx,rotating}\n\\begin{document}\n"
+                       "\\usepackage{booktabs}\n\\begin{document}\n"
                        f"\\input{{{tex}}}\n\\end{{document}}\n")
         res = subprocess.run([engine, "-interaction=nonstopmode", "-halt-on-error", doc.name], cwd=tmp_path,
                              capture_output=True, text=True, timeout=120)
@@ -215,6 +214,7 @@ def test_html_keeps_method_names_on_one_line(board):
     assert "white-space:nowrap" in page
     assert "<td class='method' data-v='shifted (dx=0.5)'>shifted (dx=0.5) <a href='#cell-" in page
     assert "<strong>" in page and "95% CI [" in page and "'>Chamfer (ROI) ↓ (m²)</th>" in page
+    assert "<span class='sub'><span class='ci'>±" in page  # the interval on a line under the value
     simple = (paths["html"].parent / "tables" / "paper.html").read_text()  # the per-preset pages stay plain tables
     assert "<td class='method'>shifted (dx=0.5)</td>" in simple and "<th>Chamfer (ROI) ↓ (m²)</th>" in simple
 
@@ -225,8 +225,8 @@ def test_every_preset_is_written_and_reports_are_deterministic(board, tmp_path):
         for ext in ("md", "tex", "html"):
             assert (out / "tables" / f"{name}.{ext}").is_file()
     full = (out / "tables" / "full.md").read_text()
-    for m in METRICS:
-        assert f"| {m} ↓" in full or f"{m} ↓ (" in full
+    for m in METRICS:  # a metric's name is Markdown-escaped: chamfer\_nf
+        assert f"| {md_text(m)} ↓" in full or f"{md_text(m)} ↓ (" in full
     assert "Chamfer (full)" not in (out / "tables" / "roi.md").read_text()
     again = write_reports(store, tmp_path / "again")
     for key in ("md", "csv", "tex", "html", "by_step", "comparisons"):

@@ -17,6 +17,7 @@ from tests_helpers import shifted_plugins as _plugins
 from pcfbench.cli import build_cli
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import options_hash, parse_options
+from pcfbench.reporting.escape import md_text
 from pcfbench.reporting.report import collect
 from pcfbench.reporting.select import Selection
 from pcfbench.running.runner import RunOptions, run_cell
@@ -81,14 +82,14 @@ def test_filtered_report_holds_only_the_selected_cells_with_the_numbers_of_the_f
     # copy-last is filtered out: no comparison, and the page says why
     assert csv["l1_mean_rel"].isna().all()
     md = (tmp_path / "rep" / "leaderboard.md").read_text()
-    assert md.splitlines()[2] == f"**{scope}**"
+    assert md.splitlines()[2] == f"**{md_text(scope)}**"  # its patterns' * escaped
     assert "no 'copy-last' cell to compare with" in md
     assert "copy-last" not in pd.read_csv(tmp_path / "rep" / "leaderboard_by_step.csv")["method"].tolist()
     shown = f"<p class='scope'><strong>{html.escape(scope)}</strong></p>"
     assert shown in (tmp_path / "rep" / "leaderboard.html").read_text()
     assert (tmp_path / "rep" / "leaderboard.tex").read_text().splitlines()[2] == f"% {scope}"
     for name in ("paper", "roi", "full"):
-        assert f"**{scope}**" in (tmp_path / "rep" / "tables" / f"{name}.md").read_text()
+        assert f"**{md_text(scope)}**" in (tmp_path / "rep" / "tables" / f"{name}.md").read_text()
         assert shown in (tmp_path / "rep" / "tables" / f"{name}.html").read_text()
 
 

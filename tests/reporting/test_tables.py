@@ -47,7 +47,7 @@ def test_a_trained_row_is_its_method_name_and_a_marker_with_the_training_data_in
     assert LONG not in md and LONG not in tables.text(t) and f"¹ {tc}" in tables.text(t)
     tex, _fit = tables.latex(t)
     assert r"copilot4d-token-copy$^1$ &" in tex and rf"$^1$ {tc} synthetic-town-realistic:train, checkpoint sha256 84120cdf" in tex
-    assert _fit == "fits the A4 text width"  # the 75-character label made it \footnotesize
+    assert _fit.startswith("fits the A4 text width (455 pt) in \\small")  # the 75-character label made it \footnotesize
     for page in (tables.html_page(t), htmlreport.page(t, _lb(["copy-last"]))):
         assert "copilot4d-token-copy¹" in page and "sha256 84120cdf" in page and LONG not in page
 
