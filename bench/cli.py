@@ -434,6 +434,9 @@ def report(store, reports, preset, tables_file, reference, ci, resample, resampl
         options = dataclasses.replace(options, figures=False)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
+    if not store_path.is_dir():  # a mistyped --store would otherwise replace the leaderboard with an empty one
+        raise PcfbenchError(f"results store {store_path} does not exist{'' if store else ' (the default, <reports>/store)'}: "
+                            "nothing to report and nothing written; pass the folder `pcfbench run --store` wrote")
     board = collect(store_path, options.resampling, options.reference, select=options.select)
     paths = write_reports(store_path, reports_path, options, leaderboard=board)
     click.echo(summary(store_path, options, leaderboard=board))

@@ -13,6 +13,7 @@ from typing import Any, Callable, ClassVar, Iterable
 import numpy as np
 
 from pcfbench.data import Sweep
+from pcfbench.datacheck import POSE_ATOL, check_points, check_rigid, pose_is_rigid
 from pcfbench.errors import DataError
 from pcfbench.options import NoOptions
 from pcfbench.boxes import EgoBox
@@ -23,6 +24,9 @@ class Sequence:
     """A time-ordered run of sweeps. Poses and timestamps are known up front; points load lazily.
 
     T_world_sensor: (T, 4, 4) float64; timestamps_ns: (T,) int64 strictly increasing.
+    ``points_source`` and ``pose_source`` name, for errors, where sweep ``index``'s points and
+    pose were read: the file (``KITTI sweep .../000003.bin``), and for a pose the line, row or
+    record (``KITTI poses file .../08.txt line 4``); called only to word an error.
     """
 
     name: str
@@ -33,6 +37,21 @@ class Sequence:
     #: ``loader``'s points, as the dataset stores it; None: the layout has none. Read only by
     #: what shows sweeps (``pcfbench export``), never by a method or a metric.
     intensity_loader: Callable[[str, int], np.ndarray] | None = None
+    points_source: Callable[[int], str] | None = None
+    pose_source: Callable[[int], str] | None = None
+
+    def __post_init__(self) -> None:
+        # the arrays every sample is cut from: a wrong shape or order is refused here, where the
+        # sequence is opened (by `run` and `datasets check` alike), not deep inside a sample
+        ts, T = np.asarray(self.timestamps_ns), np.asarray(self.T_world_sensor)
+        if ts.ndim != 1 or ts.dtype.kind not in "iu":
+            raise DataError(f"sequence {self.name}: timestamps must be a 1-D integer array of ns, got {ts.dtype} {ts.shape}")
+        if T.shape != (len(ts), 4, 4):
+            raise DataError(f"sequence {self.name}: poses must have shape ({len(ts)}, 4, 4) (one 4x4 per sweep), got {T.shape}")
+        if ts.size > 1 and np.any(np.diff(ts) <= 0):
+            i = int(np.argmax(np.diff(ts) <= 0)) + 1
+            raise DataError(f"sequence {self.name}: sweep {i} has timestamp {ts[i]} ns, not after sweep {i - 1}'s "
+                            f"{ts[i - 1]} ns (expected strictly increasing timestamps)")
 
     def __len__(self) -> int:
         return int(self.timestamps_ns.shape[0])
@@ -48,14 +67,46 @@ class Sequence:
             return None
         return np.asarray(self.intensity_loader(self.name, index), np.float32)
 
-    def sweep(self, index: int) -> Sweep:
-        """Sweep ``index`` with its pose and timestamp (not validated: see pcfbench.protocol.validate)."""
+    def where_points(self, index: int, dataset: str = "") -> str:
+        """Where sweep ``index``'s points are read (``dataset``: the adapter's name, for the
+        default wording when the adapter names no file)."""
+        if self.points_source is not None:
+            return self.points_source(index)
+        return f"{dataset} sequence {self.name} sweep {index}".lstrip()
+
+    def where_pose(self, index: int, dataset: str = "") -> str:
+        """Where sweep ``index``'s pose is read (a file and line, a table and record)."""
+        if self.pose_source is not None:
+            return self.pose_source(index)
+        return f"{dataset} sequence {self.name} sweep {index}'s pose".lstrip()
+
+    def sweep(self, index: int, dataset: str = "", points: np.ndarray | None = None) -> Sweep:
+        """Sweep ``index`` with its pose and timestamp (not validated: see :meth:`checked_sweep`)."""
         return Sweep(
-            points_sensor=self.load_points(index),
+            points_sensor=self.load_points(index) if points is None else points,
             T_world_sensor=self.T_world_sensor[index],
             timestamp_ns=int(self.timestamps_ns[index]),
-            source=f"sequence {self.name} sweep {index}",
+            source=self.where_points(index, dataset),
         )
+
+    def check_pose(self, index: int, dataset: str = "") -> None:
+        """One ``DataError`` naming the file and line of sweep ``index``'s pose when it is not
+        rigid within ``pcfbench.datacheck.POSE_ATOL`` (nothing is read)."""
+        T = self.T_world_sensor[index]
+        if not pose_is_rigid(T):
+            check_rigid(T, self.where_pose(index, dataset), atol=POSE_ATOL)
+
+    def checked_points(self, index: int, dataset: str = "") -> np.ndarray:
+        """(N, 3) float32 points of sweep ``index``, or one ``DataError`` naming the file when
+        they are not finite (x, y, z) floats."""
+        return check_points(self.load_points(index), self.where_points(index, dataset))
+
+    def checked_sweep(self, index: int, dataset: str = "") -> Sweep:
+        """Sweep ``index`` as ``pcfbench run`` reads it (:meth:`check_pose`, then
+        :meth:`checked_points`); ``pcfbench datasets check`` makes the same two checks of
+        every sweep."""
+        self.check_pose(index, dataset)
+        return self.sweep(index, dataset, points=self.checked_points(index, dataset))
 
 
 #: Above this many folders, a fingerprint's summary groups files by their top-level folder.
@@ -205,6 +256,26 @@ class CheckReport:
         return not self.problems
 
 
+#: ``datasets check`` lists this many of a sequence's bad sweeps, then counts the rest.
+MAX_SWEEP_PROBLEMS = 10
+
+
+def sweep_problems(seq: Sequence, dataset: str = "", most: int = MAX_SWEEP_PROBLEMS) -> list[str]:
+    """Every reason ``pcfbench run`` would refuse a sweep of ``seq``: the two checks of
+    :meth:`Sequence.checked_sweep` (pose, points) on every sweep, the first ``most`` problems
+    in full and a count of the rest."""
+    problems: list[str] = []
+    for i in range(len(seq)):
+        for step in (seq.check_pose, seq.checked_points):
+            try:
+                step(i, dataset)
+            except Exception as exc:  # noqa: BLE001 - a check collects every problem
+                problems.append(str(exc))
+    if len(problems) > most:
+        problems[most:] = [f"sequence {seq.name}: {len(problems) - most} more bad sweep(s) like the above"]
+    return problems
+
+
 class DatasetAdapter(ABC):
     """Base class of every dataset plugin.
 
@@ -305,7 +376,11 @@ class DatasetAdapter(ABC):
         return fingerprint_files(self.root, self.data_files(split))
 
     def check(self) -> CheckReport:
-        """Walk the whole dataset and report what was found and every problem (never raises)."""
+        """Walk the whole dataset and report what was found and every problem (never raises).
+
+        Each sequence is opened as ``pcfbench run`` opens it and each sweep read through
+        :meth:`Sequence.checked_sweep`, the check ``run`` makes, so whatever ``run`` would
+        refuse is reported, naming the file (and line). It reads every sweep once."""
         report = CheckReport(layout=self.name, root=str(self.root))
         for split in self.splits():
             try:
@@ -321,11 +396,8 @@ class DatasetAdapter(ABC):
                     dt = np.diff(seq.timestamps_ns) / 1e9
                     rate = f", {1.0 / np.median(dt):.2f} Hz" if dt.size else ""
                     report.found[f"sequence {seq_name}"] = f"{n} sweeps{rate}"
-                    for i in range(n):
-                        try:
-                            seq.load_points(i)
-                        except Exception as exc:  # noqa: BLE001
-                            report.problems.append(str(exc))
                 except Exception as exc:  # noqa: BLE001
                     report.problems.append(str(exc))
+                    continue
+                report.problems.extend(sweep_problems(seq, self.name))
         return report

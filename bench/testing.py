@@ -114,8 +114,9 @@ def check_method(method: Method, setting: str = "kitti-1s") -> Forecast:
 
 
 def check_adapter(adapter: DatasetAdapter, split: str, max_sweeps: int = 5) -> None:
-    """Assert that ``adapter`` lists sequences of ``split`` and yields valid sweeps and poses."""
-    from pcfbench.geometry import is_se3
+    """Assert that ``adapter`` lists sequences of ``split`` and yields valid sweeps and poses
+    (each sweep read through ``Sequence.checked_sweep``, the check ``pcfbench run`` makes)."""
+    from pcfbench.errors import DataError
 
     for attr in ("name", "version", "rate_hz", "ego_box"):
         assert getattr(adapter, attr, None) is not None, f"adapter is missing class attribute {attr!r}"
@@ -128,7 +129,9 @@ def check_adapter(adapter: DatasetAdapter, split: str, max_sweeps: int = 5) -> N
         assert seq.timestamps_ns.dtype == np.int64, f"{name}: timestamps must be int64 ns"
         assert np.all(np.diff(seq.timestamps_ns) > 0), f"{name}: timestamps must increase"
         for i in range(min(n, max_sweeps)):
-            assert is_se3(seq.T_world_sensor[i], atol=1e-4), f"{name} sweep {i}: pose is not rigid"
+            try:
+                seq.checked_sweep(i, adapter.name)
+            except DataError as exc:
+                raise AssertionError(str(exc)) from None
             pts = seq.load_points(i)
-            assert pts.dtype == np.float32 and pts.ndim == 2 and pts.shape[1] == 3, f"{name} sweep {i}: {pts.dtype} {pts.shape}"
-            assert np.isfinite(pts).all(), f"{name} sweep {i}: non-finite points"
+            assert pts.dtype == np.float32, f"{seq.where_points(i, adapter.name)}: points are {pts.dtype}, not float32"

@@ -168,7 +168,9 @@ class Argoverse2(DatasetAdapter):
             )
         files = [lidar / f"{t}.feather" for t in ts]
         return Sequence(name=name, T_world_sensor=T[idx], timestamps_ns=ts, loader=lambda _s, i: read_lidar(files[i]),
-                        intensity_loader=lambda _s, i: read_lidar_intensity(files[i]))
+                        intensity_loader=lambda _s, i: read_lidar_intensity(files[i]),
+                        points_source=lambda i: f"Argoverse 2 LiDAR sweep {files[i]}",
+                        pose_source=lambda i: f"Argoverse 2 pose file {pose_path} row {idx[i]} (timestamp_ns {ts[i]})")
 
     def check(self) -> CheckReport:
         base = super().check()

@@ -13,6 +13,7 @@ a sequence with a missing sweep is refused, not split).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 from pathlib import Path
@@ -69,6 +70,13 @@ def read_poses(path: Path) -> np.ndarray:
     if rows:
         T[:, :3, :] = np.asarray(rows).reshape(-1, 3, 4)
     return T
+
+
+def pose_line(path: Path, index: int) -> int:
+    """The line number (from 1) of pose ``index`` in ``path``, as :func:`read_poses` counts them
+    (blank lines skipped); read only to word an error."""
+    numbered = [n for n, line in enumerate(path.read_text().splitlines(), 1) if line.strip()]
+    return numbered[index]
 
 
 def read_times(path: Path) -> np.ndarray:
@@ -138,7 +146,13 @@ class KittiOdometry(DatasetAdapter):
         return [s for s in SPLITS[split] if self._seq_dir(s).is_dir()]
 
     def sequence(self, name: str) -> Sequence:
-        return _open_sequence(str(self.root), name, self.rate_hz)
+        seq = _open_sequence(str(self.root), name, self.rate_hz)
+        velo, poses = self._seq_dir(name) / "velodyne", self._require_poses(name)
+        return dataclasses.replace(
+            seq,
+            points_source=lambda i: f"KITTI sweep {velo / f'{i:06d}.bin'}",
+            pose_source=lambda i: f"KITTI poses file {poses} line {pose_line(poses, i)} (pose of sweep {i:06d}.bin)",
+        )
 
     def load_points(self, sequence: str, index: int) -> np.ndarray:
         path = self._seq_dir(sequence) / "velodyne" / f"{index:06d}.bin"

@@ -484,7 +484,9 @@ class McapRecording(DatasetAdapter):
             raise DataError(f"MCAP file {path} topic {topic}: no cloud at log time {t} ns")
 
         T = np.stack(poses) if poses else np.zeros((0, 4, 4))
-        out = Sequence(name=name, T_world_sensor=T, timestamps_ns=stamps, loader=load)
+        out = Sequence(name=name, T_world_sensor=T, timestamps_ns=stamps, loader=load,
+                       points_source=lambda i: f"MCAP file {path} topic {topic} cloud at {clouds[i][0]} ns",
+                       pose_source=lambda i: f"MCAP file {path}: transform to the frame of the cloud at {clouds[i][0]} ns")
         weakref.finalize(out, _close_state, state)  # the open reader goes with the sequence
         return out
 

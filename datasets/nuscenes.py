@@ -219,7 +219,7 @@ class NuScenes(DatasetAdapter):
             )
         if scene.get("nbr_samples") not in (None, len(chain)):
             raise DataError(f"nuScenes table {self._path('scene')}: scene {name} says nbr_samples {scene['nbr_samples']} but its chain has {len(chain)}")
-        poses, stamps, files = [], [], []
+        poses, stamps, files, egos = [], [], [], []
         for rec in chain:
             sd = self._keyframes.get(rec["token"])
             if sd is None:
@@ -236,6 +236,7 @@ class NuScenes(DatasetAdapter):
             poses.append(_pose(ego, self._path("ego_pose")) @ _pose(cs, self._path("calibrated_sensor")))
             stamps.append(_timestamp_us(sd, self._path("sample_data"), name) * 1000)
             files.append(self.root / sd["filename"])
+            egos.append(ego["token"])
         ts = np.asarray(stamps, dtype=np.int64)
         bad = np.flatnonzero(np.diff(ts) <= 0)
         if bad.size:
@@ -251,7 +252,9 @@ class NuScenes(DatasetAdapter):
         def intensity(_seq: str, index: int) -> np.ndarray:
             return read_pcd_bin(files[index])[:, 3]
 
-        return Sequence(name=name, T_world_sensor=np.stack(poses), timestamps_ns=ts, loader=load, intensity_loader=intensity)
+        return Sequence(name=name, T_world_sensor=np.stack(poses), timestamps_ns=ts, loader=load, intensity_loader=intensity,
+                        points_source=lambda i: f"nuScenes point file {files[i]}",
+                        pose_source=lambda i: f"nuScenes table {self._path('ego_pose')} token {egos[i]}")
 
     def check(self) -> CheckReport:
         report = CheckReport(layout=f"nuscenes {getattr(self, 'release', '?')}", root=str(self.root))

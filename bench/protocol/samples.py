@@ -18,7 +18,6 @@ from pcfbench.dataset import DatasetAdapter, Sequence
 from pcfbench.geometry import invert, rotate_vectors, transform_points
 from pcfbench.kinds import PolicyKind
 from pcfbench.protocol.settings import Protocol, SamplePolicy, Setting, active_protocol
-from pcfbench.protocol.validate import validate_sweep
 
 
 def _policy(policy: str | SamplePolicy) -> SamplePolicy:
@@ -105,8 +104,7 @@ class SampleBuilder:
         if cached is not None:
             self._cache.move_to_end(key)
             return cached
-        where = f"{self.adapter.name} sequence {seq.name} sweep {index}"
-        pts = validate_sweep(seq.sweep(index), where).points_sensor
+        pts = seq.checked_sweep(index, self.adapter.name).points_sensor  # errors name the file (and line)
         pts = self.adapter.ego_box.remove(pts)
         self._cache[key] = pts
         if len(self._cache) > self._cache_size:

@@ -3,24 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
-from pcfbench.data import FLOAT32_MAX, Forecast, Sample, Sweep
+from pcfbench.data import FLOAT32_MAX, Forecast, Sample
+from pcfbench.datacheck import check_points, check_rigid, validate_sweep
 from pcfbench.errors import DataError, ForecastError
-from pcfbench.geometry import is_se3
 
-
-def _check_points(arr, where: str, err=ForecastError) -> np.ndarray:
-    arr = np.asarray(arr)
-    if arr.dtype.kind != "f":
-        raise err(f"{where}: points must be floating point, got dtype {arr.dtype}")
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise err(f"{where}: points must have shape (N, 3), got {arr.shape}")
-    finite = np.isfinite(arr)
-    if not finite.all():
-        bad = int((~finite.all(axis=1)).sum())
-        raise err(f"{where}: {bad} point(s) with NaN or inf coordinates")
-    if arr.size and np.abs(arr).max() > FLOAT32_MAX:
-        raise err(f"{where}: coordinates outside float32 range")
-    return arr.astype(np.float32, copy=False)
+#: the sweep checks live in pcfbench.datacheck (the dataset layer reads them too); named here
+#: as well, where the adapters and plugins have imported them from
+__all__ = ["GAP_PERIODS", "RATE_TOLERANCE", "check_rigid", "check_sweep_times", "validate_forecast", "validate_sweep"]
 
 
 def validate_forecast(sample: Sample, forecast: Forecast) -> Forecast:
@@ -37,7 +26,8 @@ def validate_forecast(sample: Sample, forecast: Forecast) -> Forecast:
                 f"sample {sample.sample_id}: forecast has {len(forecast.points_ref)} point clouds, expected {F} future sweeps"
             )
         points = tuple(
-            _check_points(p, f"sample {sample.sample_id}, future sweep {k}") for k, p in enumerate(forecast.points_ref)
+            check_points(p, f"sample {sample.sample_id}, future sweep {k}", err=ForecastError)
+            for k, p in enumerate(forecast.points_ref)
         )
     if forecast.depths is not None:
         if len(forecast.depths) != F:
@@ -61,16 +51,6 @@ def validate_forecast(sample: Sample, forecast: Forecast) -> Forecast:
             checked.append(d.astype(np.float32, copy=False))
         depths = tuple(checked)
     return Forecast(points_ref=points, depths=depths)
-
-
-def validate_sweep(sweep: Sweep, where: str | None = None) -> Sweep:
-    """The sweep with float32 points, or DataError naming ``where`` (default: its source)
-    when the points or the pose break the contract."""
-    where = where or sweep.source or "sweep"
-    pts = _check_points(sweep.points_sensor, where, err=DataError)
-    if not is_se3(sweep.T_world_sensor, atol=1e-4):
-        raise DataError(f"{where}: pose is not a finite rigid 4x4 transform")
-    return sweep if pts is sweep.points_sensor else Sweep(pts, sweep.T_world_sensor, sweep.timestamp_ns, sweep.intensity, sweep.source)
 
 
 #: A gap between consecutive sweeps longer than this many nominal periods means at least one
@@ -111,18 +91,3 @@ def check_sweep_times(timestamps_ns: np.ndarray, rate_hz: float, where: str) -> 
                         f"more than {GAP_PERIODS:g} periods at {rate_hz:g} Hz: a sweep is missing{more}. The sequence is "
                         "refused rather than read with its later sweeps shifted in time; restore the sweep, or cut the "
                         "sequence at the gap")
-
-
-def check_rigid(T: np.ndarray, where: str, atol: float = 1e-3) -> np.ndarray:
-    """``T`` when it is a finite rigid 4x4 transform (rotation orthonormal within ``atol``,
-    determinant +1, last row 0 0 0 1), else one ``DataError`` naming ``where`` and what is off
-    (a scaled or sheared calibration would move every point silently)."""
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise DataError(f"{where}: expected a finite 4x4 transform, got shape {T.shape}")
-    if not is_se3(T, atol=atol):
-        R = T[:3, :3]
-        scales = np.linalg.svd(R, compute_uv=False)
-        raise DataError(f"{where}: not a rigid transform (rotation singular values {', '.join(f'{s:.6g}' for s in scales)}, "
-                        f"determinant {np.linalg.det(R):.6g}; expected 1, 1, 1 and +1 within {atol:g})")
-    return T

@@ -18,6 +18,14 @@ and publishes their rows itself as one chunk, ``rows/shard-START-STOP.parquet``
 - a sample running past ``timeout`` is a failure row (``SampleTimeout``) too: the task
   publishes what it finished, kills its worker, and Ray's retry does the rest of the shard.
 
+A driver that starts a Ray of its own records that Ray's processes (its GCS, raylet, the
+raylet's agents) in ``<cache>/ray-drivers/<driver pid>.json``; a driver killed with SIGKILL
+cannot stop them, and Ray's agents outlive it by minutes (about 175 MB), so the next
+``RayExecutor.start`` on this machine stops what a dead driver's record names (each process
+known by its pid and its start time, so a reused pid is never touched) and says so, or
+prints the ``kill`` command when it may not. A Ray that dies under a run (its raylet, or an
+agent the raylet goes down with) is one error saying what died and how to resume.
+
 A worker process keeps the last cell it resolved (the dataset adapter, the metrics, the
 method, a trained method with its checkpoint loaded), so a worker loads a checkpoint once
 for all the shards of a cell it runs, not once per sample or per shard. Trained methods'
@@ -31,6 +39,7 @@ import json
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -59,6 +68,148 @@ def check_gpus(wanted: float, available: float, label: str) -> None:
     if wanted > available:
         raise PcfbenchError(f"{label}: --gpus-per-task {wanted:g}, and the Ray cluster has {available:g} GPU(s): its "
                             "tasks would wait for ever; add GPU nodes (`ray start --num-gpus N`) or pass --gpus-per-task 0")
+
+
+#: Folder (under the cache) of the records of drivers that started a Ray of their own.
+RAY_RECORDS = "ray-drivers"
+#: Seconds a stale Ray process has to exit after SIGTERM before it gets SIGKILL.
+STOP_WAIT_S = 3.0
+
+
+def _proc_start(pid: int) -> int | None:
+    """The start time (clock ticks since boot, /proc/PID/stat) of a running process; None
+    when there is none (or only a zombie) or /proc cannot tell. With the pid, it names one
+    process: a pid reused by a later process has another start time."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()  # after "pid (comm) ": state, ppid, ...
+    return None if fields[0] in "ZX" else int(fields[19])
+
+
+def _ray_name(pid: int) -> str | None:
+    """A Ray process's name (``ray::DashboardAgent``, ``raylet``, ``gcs_server``, ``monitor.py``),
+    from its command line; None for a process that is not Ray's."""
+    try:
+        args = [a.decode(errors="replace") for a in Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0") if a]
+    except OSError:
+        return None
+    for a in args[:2]:
+        if a.startswith("ray::"):
+            return a.split()[0]
+        if f"{os.sep}ray{os.sep}" in a:
+            return a.rsplit(os.sep, 1)[-1]
+    return None
+
+
+def _proc_rss_mb(pid: int) -> float:
+    try:
+        return int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def _descendants(pid: int) -> list[int]:
+    """The pids of every process below ``pid`` (children, theirs, ...), read from /proc."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            children.setdefault(int(stat[stat.rindex(")") + 2:].split()[1]), []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def record_local_ray(records: Path, driver: int | None = None) -> Path | None:
+    """Write ``records/<driver pid>.json``: the driver (pid, start time) and every process
+    of Ray's below it now (its GCS, raylet, the raylet's agents, workers). None where /proc
+    is missing (not Linux)."""
+    driver = os.getpid() if driver is None else driver
+    start = _proc_start(driver)
+    if start is None:
+        return None
+    procs = []
+    for p in _descendants(driver):
+        name, t = _ray_name(p), _proc_start(p)
+        if name is not None and t is not None:
+            procs.append({"pid": p, "start": t, "name": name})
+    records.mkdir(parents=True, exist_ok=True)
+    path = records / f"{driver}.json"
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps({"driver": {"pid": driver, "start": start}, "processes": procs}))
+    os.replace(tmp, path)
+    return path
+
+
+def stop_stale_rays(records: Path, wait_s: float = STOP_WAIT_S) -> list[str]:
+    """Stop the Ray processes of every record in ``records`` whose driver is gone (killed
+    before it could stop its Ray): SIGTERM, then SIGKILL after ``wait_s``. A process counts
+    only with its recorded start time. Returns one line per record acted on, saying what was
+    stopped, or the command to run where this user may not stop it; the record is removed
+    once nothing of it is left."""
+    lines = []
+    for path in sorted(records.glob("*.json")) if records.is_dir() else []:
+        try:
+            rec = json.loads(path.read_text())
+            driver = rec["driver"]
+            procs = [(int(p["pid"]), int(p["start"]), str(p.get("name", "?"))) for p in rec["processes"]]
+        except (OSError, ValueError, KeyError, TypeError):
+            path.unlink(missing_ok=True)  # cut short by the kill itself: nothing to go by
+            continue
+        if _proc_start(int(driver["pid"])) == int(driver["start"]):
+            continue  # that driver is running: its Ray is in use
+        started = {pid: start for pid, start, _ in procs}
+        alive = [(pid, name) for pid, start, name in procs if _proc_start(pid) == start]
+        if not alive:
+            path.unlink(missing_ok=True)
+            continue
+        mb = sum(_proc_rss_mb(pid) for pid, _ in alive)
+        names = ", ".join(sorted({name for _, name in alive}))
+        left, refused = alive, []
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            for pid, name in left:
+                try:
+                    os.kill(pid, sig)
+                except ProcessLookupError:
+                    pass
+                except PermissionError:
+                    refused.append((pid, name))
+            left = [p for p in left if p not in refused]
+            deadline = time.monotonic() + wait_s
+            while left and time.monotonic() < deadline:
+                time.sleep(0.05)
+                left = [(pid, name) for pid, name in left if _proc_start(pid) == started[pid]]
+            if not left:
+                break
+        if refused or left:
+            stuck = refused + left
+            lines.append(f"Ray processes left running by driver {driver['pid']}, which was killed, could not be stopped: "
+                         f"{', '.join(f'{pid} ({name})' for pid, name in stuck)}; stop them with "
+                         f"`kill -9 {' '.join(str(pid) for pid, _ in stuck)}` (or `ray stop`, which stops every Ray "
+                         "on this machine)")
+        else:
+            path.unlink(missing_ok=True)
+            lines.append(f"stopped {len(alive)} Ray process(es) ({names}; {mb:.0f} MB) left running by driver "
+                         f"{driver['pid']}, which was killed before it could stop them")
+    return lines
+
+
+def _records_dir() -> Path:
+    from pcfbench.config import cache_dir
+
+    return cache_dir() / RAY_RECORDS
+
+
+def _note(message: str) -> None:
+    print(f"pcfbench: note: {message}", file=sys.stderr)
 
 
 def _import_ray():
@@ -91,8 +242,11 @@ class RayExecutor:
     timeout: float | None = None
     #: per shard run (this process's calls): samples, seconds in the task, worker pid, whether it resolved the cell
     log: list[dict[str, Any]] = field(default_factory=list)
+    #: where notes go (a stale Ray stopped at start): stderr
+    note: Callable[[str], Any] = field(default=_note, repr=False)
     _task: Any = field(default=None, repr=False)
     _started: bool = field(default=False, repr=False)
+    _record_path: Path | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if self.shard_samples < 1 or self.cpus_per_task < 1 or self.gpus_per_task < 0 or self.max_retries < 0:
@@ -106,6 +260,8 @@ class RayExecutor:
             return
         ray = _import_ray()
         if not ray.is_initialized():
+            for line in stop_stale_rays(_records_dir()):
+                self.note(line)
             kwargs: dict[str, Any] = {"include_dashboard": False, "logging_level": logging.WARNING}
             if self.address is None and self.num_cpus is not None:
                 kwargs["num_cpus"] = self.num_cpus
@@ -115,14 +271,22 @@ class RayExecutor:
                 raise PcfbenchError(f"--address {self.address}: no Ray cluster there ({exc}); start one with "
                                     "`ray start --head` (docs/cluster.md)") from None
             self._started = True
+            self._record()
         # max_calls=0: a worker process runs any number of tasks (Ray's default for GPU tasks
         # is one), so that it keeps the cell it resolved, a trained method's weights included.
         self._task = ray.remote(max_calls=0, retry_exceptions=False)(_run_shard)
 
+    def _record(self) -> None:
+        """Name this driver's own Ray's processes in its record (a Ray it joined is not its own)."""
+        if self._started and self.address is None:
+            self._record_path = record_local_ray(_records_dir())
+
     def shutdown(self) -> None:
         if self._started:
             _import_ray().shutdown()
-        self._task, self._started = None, False
+            if self._record_path is not None:
+                self._record_path.unlink(missing_ok=True)
+        self._task, self._started, self._record_path = None, False, None
 
     def __enter__(self) -> "RayExecutor":
         self.start()
@@ -136,12 +300,21 @@ class RayExecutor:
         """Compute every sample of ``keys`` (the cell's whole list) not in ``done`` as shard
         tasks; each writes its rows to ``cell.dir``. Returns how many samples failed. Bad
         data in a task stops the run with its error; a shard whose worker died on every try
-        runs again one task per sample, and such a sample is a failure row."""
+        runs again one task per sample, and such a sample is a failure row. Ray dying under
+        it (:class:`RayDied`) is one error saying so and how to resume."""
+        self.start()
+        ray = _import_ray()
+        try:
+            return self._run(ray, spec, cell, keys, done, progress)
+        except (ray.exceptions.LocalRayletDiedError, ray.exceptions.RaySystemError) as exc:
+            raise RayDied(exc, cell.dir) from None
+
+    def _run(self, ray, spec: Any, cell: Any, keys: list[tuple[str, int]], done: set[str],
+             progress: Callable[[int], Any]) -> int:
         from pcfbench.plugins import get_plugins
         from pcfbench.training import is_trained
 
-        self.start()
-        ray = _import_ray()
+        self._record()  # the raylet's agents and workers as they are now
         ids = [f"{s}/{i:06d}" for s, i in keys]
         trained = is_trained(get_plugins().methods.get(spec.method))
         gpus = self.gpus_per_task if trained else 0
@@ -187,7 +360,10 @@ class RayExecutor:
             raise  # the driver exits, and Ray ends its tasks with it
         except BaseException:
             for ref in pending:  # stopped by an error: what is left is not wanted now
-                ray.cancel(ref)
+                try:
+                    ray.cancel(ref)
+                except Exception:  # noqa: BLE001 - a dead Ray cannot cancel; the error that stopped the run is the one to show
+                    break
             raise
         return failed
 
@@ -202,6 +378,21 @@ class RayExecutor:
                                 f"{type(cause).__name__ if cause else 'an error'}: {cause or exc}") from None
         except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError, ray.exceptions.ObjectLostError) as exc:
             raise _WorkerLost(type(exc).__name__) from None
+
+
+class RayDied(PcfbenchError):
+    """Ray itself failed under a run: its raylet died (or an agent it goes down with)."""
+
+    def __init__(self, exc: BaseException, cell_dir: Path) -> None:
+        what = "its raylet (the process that runs tasks on this node) died"
+        if not isinstance(exc, _import_ray().exceptions.LocalRayletDiedError):
+            what = "it failed"
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        super().__init__(
+            f"Ray stopped the run: {what} ({type(exc).__name__}{': ' + detail if detail else ''}). The samples "
+            f"finished so far are kept in {cell_dir}: run the same command again to resume, and only the rest is "
+            "computed. If Ray processes are left over, the next run stops them (or `ray stop` does now)"
+        )
 
 
 class _WorkerLost(Exception):

@@ -152,6 +152,95 @@ def test_kitti_good_tree_still_checks_clean(tmp_path):
     assert code == 0 and "no problems found" in out
 
 
+def _nan_points(path: Path, rows=(3, 7)) -> None:
+    """Set x of ``rows`` of a KITTI .bin to NaN (the file keeps its size)."""
+    data = np.fromfile(path, np.float32).reshape(-1, 4)
+    data[list(rows), 0] = np.nan
+    data.tofile(path)
+
+
+def _scaled_pose(path: Path, line: int, scale: float = 1.5) -> None:
+    """Scale the rotation of the 3x4 pose on ``line`` (from 1) of a KITTI poses file."""
+    lines = path.read_text().splitlines()
+    P = np.array([float(v) for v in lines[line - 1].split()]).reshape(3, 4)
+    P[:, :3] *= scale
+    lines[line - 1] = " ".join(f"{v:.12e}" for v in P.reshape(-1))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _run_reads_every_sweep(root: Path) -> None:
+    """Build every kitti-1s sample of the test split, as ``pcfbench run`` does."""
+    builder = SampleBuilder(KittiOdometry(root), SETTINGS["kitti-1s"])
+    for key in builder.sample_keys("test"):
+        builder.build(*key)
+
+
+def test_kitti_nan_points_are_refused_by_run_and_check_alike_naming_the_file(tmp_path):
+    root = _kitti(tmp_path / "k")
+    bad = root / "sequences/08/velodyne/000012.bin"
+    _nan_points(bad)
+    message = f"KITTI sweep {bad}: 2 point(s) with NaN or inf coordinates"
+    with pytest.raises(DataError, match=rf"^{re.escape(message)}$"):
+        _run_reads_every_sweep(root)
+    code, out = _check(root, "kitti")
+    assert code == 1 and f"1 problem(s):\n  - {message}\n" in out
+
+
+def test_kitti_non_rigid_pose_is_refused_by_run_and_check_alike_naming_file_and_line(tmp_path):
+    root = _kitti(tmp_path / "k")
+    poses = root / "poses/08.txt"
+    poses.write_text("\n" + poses.read_text())  # a blank first line: pose i is on line i + 2
+    _scaled_pose(poses, 12)  # sweep 10's pose
+    message = (f"KITTI poses file {poses} line 12 (pose of sweep 000010.bin): not a rigid transform (rotation singular "
+               "values 1.5, 1.5, 1.5, determinant 3.375")
+    with pytest.raises(DataError, match=rf"^{re.escape(message)}"):
+        _run_reads_every_sweep(root)
+    code, out = _check(root, "kitti")
+    assert code == 1 and out.count("not a rigid transform") == 1 and f"  - {message}" in out
+
+
+def test_check_lists_ten_bad_sweeps_of_a_sequence_and_counts_the_rest(tmp_path):
+    root = _kitti(tmp_path / "k")
+    for i in range(N):
+        _nan_points(root / f"sequences/08/velodyne/{i:06d}.bin", rows=(0,))
+    code, out = _check(root, "kitti")
+    assert code == 1 and out.count("1 point(s) with NaN or inf coordinates") == 10
+    assert f"sequence 08: {N - 10} more bad sweep(s) like the above" in out
+
+
+def test_a_sequence_with_poses_of_the_wrong_shape_or_time_going_back_is_refused():
+    from pcfbench.dataset import Sequence
+
+    def load(_s, _i):
+        return np.zeros((1, 3), np.float32)
+
+    Sequence("s", np.tile(np.eye(4), (3, 1, 1)), np.array([0, 1, 2]), load)  # fine
+    with pytest.raises(DataError, match=r"^sequence s: poses must have shape \(3, 4, 4\) \(one 4x4 per sweep\), got \(2, 4, 4\)"):
+        Sequence("s", np.tile(np.eye(4), (2, 1, 1)), np.array([0, 1, 2]), load)
+    with pytest.raises(DataError, match=r"^sequence s: sweep 2 has timestamp 1 ns, not after sweep 1's 1 ns"):
+        Sequence("s", np.tile(np.eye(4), (3, 1, 1)), np.array([0, 1, 1]), load)
+    with pytest.raises(DataError, match=r"^sequence s: timestamps must be a 1-D integer array of ns, got float64"):
+        Sequence("s", np.tile(np.eye(4), (3, 1, 1)), np.array([0.0, 0.1, 0.2]), load)
+
+
+# -- nuScenes --------------------------------------------------------------------------------
+
+def test_nuscenes_nan_points_are_reported_naming_the_point_file(tmp_path):
+    pts, poses, times = toy_world_sweeps(6, beams=8, azimuths=90, rate_hz=2.0)
+    seq = SequenceData.from_arrays("scene-0003", "val", pts, poses,
+                                   1_531_000_000_000_000_000 + np.round(times * 1e9).astype(np.int64))
+    root = tmp_path / "nu"
+    write_nuscenes(root, [seq], version="v1.0-trainval")
+    files = sorted((root / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
+    data = read_pcd_bin(files[2])
+    data[5, 2] = np.inf
+    data.tofile(files[2])
+    message = f"nuScenes point file {files[2]}: 1 point(s) with NaN or inf coordinates"
+    with pytest.raises(DataError, match=rf"^{re.escape(message)}$"):
+        NuScenes(root).sequence("scene-0003").checked_sweep(2)
+    code, out = _check(root, "nuscenes")
+    assert code == 1 and f"  - {message}\n" in out
+
 # -- nuScenes --------------------------------------------------------------------------------
 
 def test_nuscenes_zero_length_pcd_bin_is_an_error(tmp_path):

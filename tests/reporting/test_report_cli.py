@@ -200,3 +200,19 @@ def test_report_leaves_the_figures_out_with_pcfbench_figures_0_or_no_figures(fai
                                            "--no-figures"])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "b" / "leaderboard.md").is_file() and not (tmp_path / "b" / "figures").exists()
+
+
+@pytest.mark.parametrize("explicit", [True, False], ids=["--store", "default-store"])
+def test_report_on_a_store_that_does_not_exist_is_one_error_and_writes_nothing(tmp_path, explicit):
+    reports = tmp_path / "reports"
+    reports.mkdir()
+    (reports / "leaderboard.md").write_text("the last real leaderboard\n")
+    missing = tmp_path / "stroe" if explicit else reports / "store"
+    args = ["report", "--reports", str(reports)] + (["--store", str(missing)] if explicit else [])
+    res = CliRunner().invoke(build_cli(), args)
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    errors = [line for line in res.stderr.splitlines() if line.startswith("pcfbench: error:")]
+    assert len(errors) == 1 and f"results store {missing} does not exist" in errors[0], res.stderr
+    assert not missing.exists()
+    assert [p.name for p in reports.iterdir()] == ["leaderboard.md"]
+    assert (reports / "leaderboard.md").read_text() == "the last real leaderboard\n"

@@ -218,6 +218,91 @@ def test_importing_pcfbench_does_not_import_ray():
     assert out.returncode == 0 and out.stdout.strip() == "False", out.stdout + out.stderr
 
 
+def _sleeper() -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+
+
+def _record(records: Path, driver: tuple[int, int], procs: list[tuple[int, int, str]]) -> Path:
+    records.mkdir(parents=True, exist_ok=True)
+    path = records / f"{driver[0]}.json"
+    path.write_text(json.dumps({"driver": {"pid": driver[0], "start": driver[1]},
+                                "processes": [{"pid": p, "start": t, "name": n} for p, t, n in procs]}))
+    return path
+
+
+def test_the_ray_processes_of_a_killed_driver_are_stopped_and_no_others(tmp_path):
+    """Records as a killed driver leaves them: its agents are stopped (SIGTERM); a process
+    whose start time differs from the record's (its pid reused) and the Ray of a driver that
+    still runs are left alone."""
+    from pcfbench.running.ray_executor import _proc_start, _ray_name, record_local_ray, stop_stale_rays
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a driver killed and gone: its pid names no process
+    agent, reused, other_agent = _sleeper(), _sleeper(), _sleeper()
+    try:
+        for p in (agent, reused, other_agent):
+            while _proc_start(p.pid) is None:
+                time.sleep(0.01)
+        records = tmp_path / "ray-drivers"
+        stale = _record(records, (dead.pid, 12345), [(agent.pid, _proc_start(agent.pid), "ray::DashboardAgent"),
+                                                     (reused.pid, _proc_start(reused.pid) - 1, "ray::RuntimeEnvAgent")])
+        mine = _record(records, (os.getpid(), _proc_start(os.getpid())),
+                       [(other_agent.pid, _proc_start(other_agent.pid), "ray::DashboardAgent")])
+        lines = stop_stale_rays(records, wait_s=10)
+        assert len(lines) == 1 and lines[0].startswith("stopped 1 Ray process(es) (ray::DashboardAgent; ")
+        assert f"left running by driver {dead.pid}, which was killed" in lines[0]
+        assert agent.wait(timeout=10) == -signal.SIGTERM
+        assert reused.poll() is None and other_agent.poll() is None
+        assert not stale.exists() and mine.exists()
+        assert stop_stale_rays(records) == []  # nothing more to do
+        # a driver's record names the Ray processes below it, with their start times, and no others
+        fake = subprocess.Popen(["bash", "-c", "exec -a ray::DashboardAgent sleep 120"])
+        deadline = time.monotonic() + 10
+        while _ray_name(fake.pid) != "ray::DashboardAgent" and time.monotonic() < deadline:
+            time.sleep(0.01)
+        rec = json.loads(record_local_ray(tmp_path / "own").read_text())
+        assert rec["driver"] == {"pid": os.getpid(), "start": _proc_start(os.getpid())}
+        assert [p for p in rec["processes"] if p["pid"] in (fake.pid, reused.pid)] == [
+            {"pid": fake.pid, "start": _proc_start(fake.pid), "name": "ray::DashboardAgent"}]
+        fake.kill()
+        fake.wait()
+    finally:
+        for p in (agent, reused, other_agent):
+            p.kill()
+            p.wait()
+
+
+def test_a_raylet_dying_under_a_run_is_one_error_saying_how_to_resume(tmp_path, monkeypatch):
+    """Ray raising LocalRayletDiedError (its raylet gone, e.g. with its dashboard agent
+    killed) ends the run in one pcfbench error, not Ray's traceback."""
+    import types
+
+    import ray.exceptions
+
+    from pcfbench.running import ray_executor
+
+    class Task:
+        def options(self, **_):
+            return self
+
+        def remote(self, *args):
+            return object()
+
+    def wait(refs, num_returns):
+        raise ray.exceptions.LocalRayletDiedError()
+
+    fake = types.SimpleNamespace(exceptions=ray.exceptions, is_initialized=lambda: True, put=lambda x: x, wait=wait,
+                                 remote=lambda **_: (lambda f: Task()), cancel=lambda ref: None)
+    monkeypatch.setattr(ray_executor, "_import_ray", lambda: fake)
+    cell = types.SimpleNamespace(dir=tmp_path / "cell")
+    spec = CellSpec("copy-last", {}, "", "kitti", None, "test", "kitti-1s")
+    with pytest.raises(ray_executor.RayDied, match=(
+            r"^Ray stopped the run: its raylet \(the process that runs tasks on this node\) died \(LocalRayletDiedError: "
+            rf"The task's local raylet died\..*\)\. The samples finished so far are kept in {tmp_path / 'cell'}: run the "
+            r"same command again to resume")):
+        ray_executor.RayExecutor().run(spec, cell, [("08", 10), ("08", 11)], set())
+
+
 # -- end to end: a local Ray -------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def town(tmp_path_factory) -> Path:
@@ -438,3 +523,99 @@ def test_a_trained_method_loads_its_checkpoint_once_per_worker_and_scores_as_loc
             .drop(columns=list(TIMINGS)).reset_index(drop=True) for d in (local, ray))
     pd.testing.assert_frame_equal(a, b, check_exact=True)
     assert len(b) == 6 * 5 and set(b["status"]) == {"ok"} and meta["checkpoint_sha256"]
+
+
+def _wait_for_rows(proc: subprocess.Popen, store: Path) -> None:
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        cell = _probe_cell(store)
+        if cell is not None and cell.chunk_paths():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"the run ended before its first rows: {proc.stderr.read()!r}")
+
+
+def _stat(pid: int) -> list[str] | None:
+    """/proc/PID/stat's fields after the name (state, ppid, ...); None for no process or a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()
+    return None if fields[0] in "ZX" else fields
+
+
+def _below(pid: int) -> dict[tuple[int, str], str]:
+    """(pid, start time) -> command name of every running process below ``pid``."""
+    parent = {int(d.name): int(f[1]) for d in Path("/proc").iterdir() if d.name.isdigit() and (f := _stat(int(d.name)))}
+    out, todo = {}, [pid]
+    while todo:
+        p = todo.pop()
+        for child in [c for c, pp in parent.items() if pp == p]:
+            try:
+                name = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")[0].decode()
+            except OSError:
+                continue
+            out[(child, _stat(child)[19] if _stat(child) else "")] = name
+            todo.append(child)
+    return out
+
+
+def _running(procs: dict[tuple[int, str], str]) -> list[str]:
+    return sorted(name for (pid, start), name in procs.items() if (f := _stat(pid)) and f[19] == start)
+
+
+@pytest.mark.slow
+def test_a_killed_drivers_ray_agents_are_stopped_by_the_next_run(tmp_path):
+    """SIGKILL the driver mid-run: Ray's agents outlive it; the next run stops them (and says
+    so) before it starts its own Ray, and resumes the cell."""
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=28)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    env = _env(tmp_path)
+    args = _probe_args(root, tmp_path, markers, 10, 2, delay=0.3)
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        _wait_for_rows(proc, tmp_path / "store")
+        ray_procs = _below(proc.pid)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=60)
+        time.sleep(3)
+        left = _running(ray_procs)
+        assert "ray::DashboardAgent" in left and "ray::RuntimeEnvAgent" in left, left  # what the driver could not stop
+        final = subprocess.run(args, capture_output=True, text=True, env=env, timeout=600)
+        assert final.returncode == 0, final.stdout + final.stderr
+        assert f"left running by driver {proc.pid}, which was killed before it could stop them" in final.stderr
+        assert _running(ray_procs) == []
+        assert not (tmp_path / "cache" / "ray-drivers" / f"{proc.pid}.json").exists()
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+@pytest.mark.slow
+def test_killing_rays_dashboard_agent_ends_the_run_in_one_error(tmp_path):
+    """Ray's raylet goes down with its dashboard agent; the run ends in one pcfbench error
+    saying so and how to resume, not in Ray's LocalRayletDiedError traceback."""
+    root = write_kitti_tree(tmp_path / "k", num_sweeps=28)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    args = _probe_args(root, tmp_path, markers, 10, 1, delay=0.5)
+    proc = subprocess.Popen(args, env=_env(tmp_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        _wait_for_rows(proc, tmp_path / "store")
+        agent = next(pid for (pid, _), name in _below(proc.pid).items() if name == "ray::DashboardAgent")
+        os.kill(agent, signal.SIGKILL)
+        out, err = proc.communicate(timeout=180)
+        assert proc.returncode != 0 and "Traceback" not in err, err  # Ray's core worker exits 1 after the error line
+        errors = [line for line in err.splitlines() if line.startswith("pcfbench: error:")]
+        assert len(errors) == 1 and "Ray stopped the run: its raylet" in errors[0], err
+        assert "run the same command again to resume" in errors[0]
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
