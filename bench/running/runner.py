@@ -19,13 +19,13 @@ from pcfbench.store import ranges
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
-from pcfbench.provenance import environment, git_commit
+from pcfbench.provenance import code_identity, code_unit, environment, git_commit
 from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash, sample_id
-from pcfbench.dataset import options_identity
+from pcfbench.dataset import FINGERPRINT_KIND, options_identity
 from pcfbench.store.cells import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.protocol.validate import validate_forecast
 
@@ -303,7 +303,7 @@ def run_cell(spec: CellSpec, store_root: Path, options: RunOptions | None = None
         meta = cell.read_meta()
         identity = cell_identity(res, spec, ids_hash(ids), fingerprint.digest, options.allow_train_split)
         if meta is not None:
-            check_identity(cell.dir, meta, identity, fingerprint)
+            check_identity(cell.dir, meta, identity, fingerprint, _code_meta(res.method)["method_code_files"])
         done = cell.done_ids()
         todo = [k for k, sid in zip(keys, ids) if sid not in done]
         if not todo and meta is not None and meta.get("status") == "complete":
@@ -365,18 +365,32 @@ def _layout_hint(spec: CellSpec, plugins: Plugins | None) -> str:
 
 def cell_identity(res: Resolved, spec: CellSpec, id_hash: str, digest: str, allow_train_split: bool) -> dict[str, Any]:
     """What a cell's rows depend on (its ``cell.json`` identity): the method's, dataset's and
-    metrics' versions, the samples, the protocol, the dataset's options and files, and a
-    trained method's checkpoint and training data."""
+    metrics' versions, the hash of the method's source (:func:`method_code`), the samples,
+    the protocol, the dataset's options and files (by content), and a trained method's
+    checkpoint and training data."""
     return {
         "method_version": res.method.version,
+        "method_code": method_code(res.method)["sha256"] or NO_SOURCE,
         "dataset_version": res.builder.adapter.version,
         "metric_versions": {m.name: m.version for m in res.metrics},
         "sample_ids_hash": id_hash,
         **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
         "dataset_options": options_identity(res.builder.adapter, config.split_root_options(spec.dataset_root)[1]),
         "data_fingerprint": digest,
+        "data_fingerprint_kind": FINGERPRINT_KIND,
         **_trained_identity(spec, res.method, digest, allow_train_split),
     }
+
+
+#: ``method_code`` of a method whose class has no source file (made at run time): its code
+#: cannot be told apart, only its version.
+NO_SOURCE = "no source file"
+
+
+def method_code(method: Method) -> dict[str, Any]:
+    """The identity of the code of ``method``'s class (:func:`pcfbench.provenance.code_identity`):
+    the hash of its package's sources, each file's hash, its distribution and version."""
+    return code_identity(code_unit(type(method).__module__))
 
 
 def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: dict[str, Any], fingerprint: Any,
@@ -388,6 +402,7 @@ def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: di
         "spec": spec_to_meta(spec),
         **identity,
         "data_files": fingerprint.summary(),
+        **_code_meta(res.method),
         "status": "running",
         "partial": spec.partial,
         "harness_version": pcfbench.__version__,
@@ -401,6 +416,14 @@ def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: di
     if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.store.ranges)
         meta["range_bins"] = ranges.meta()
     return meta
+
+
+def _code_meta(method: Method) -> dict[str, Any]:
+    """What cell.json records of the method's code beside its hash: the package hashed, each
+    of its files' hashes (to name the files a later change touches) and its distribution."""
+    code = method_code(method)
+    return {"method_code_unit": code["unit"], "method_code_files": code["files"],
+            "method_distribution": {"name": code["distribution"], "version": code["version"]}}
 
 
 def _compute(res: Resolved, spec: CellSpec, cell: Cell, keys: list[tuple[str, int]], todo: list[tuple[str, int]],
