@@ -113,36 +113,44 @@ class Sequence:
 MAX_FINGERPRINT_GROUPS = 256
 
 
+#: What ``data_fingerprint`` is a hash of (a cell records it as ``data_fingerprint_kind``):
+#: each file's path, size and content sha256. Cells whose cell.json lacks it were keyed by
+#: file sizes and modification times only.
+FINGERPRINT_KIND = "content-sha256"
+
+
 @dataclass(frozen=True)
 class DataFingerprint:
-    """A cheap identity of the files a split reads: each file's path relative to the root, its
-    size and its modification time (ns), hashed; contents are never read.
+    """The identity of the files a split reads: each file's path relative to the root, its
+    size and the sha256 of its content, hashed. Modification times are kept to say what
+    changed, never part of the digest: a file touched but not changed is the same data, and a
+    file edited with its size and time restored is not.
 
-    Equal digests mean no file was added, removed, resized or rewritten (writing a file
-    updates its modification time). ``files`` is sorted by path.
+    Content hashes come from :mod:`pcfbench.contenthash`: read once, then cached by a key an
+    in-place write cannot keep. ``files`` is sorted by path.
     """
 
     root: str
-    files: tuple[tuple[str, int, int], ...]  # (relative path, bytes, mtime ns)
+    files: tuple[tuple[str, int, int, str], ...]  # (relative path, bytes, mtime ns, content sha256)
 
     @staticmethod
-    def _hash(files: "Iterable[tuple[str, int, int]]") -> str:
+    def _hash(files: "Iterable[tuple[str, int, int, str]]") -> str:
         h = hashlib.sha256()
-        for rel, size, mtime_ns in files:
-            h.update(f"{rel}\0{size}\0{mtime_ns}\n".encode("utf-8", "surrogateescape"))
+        for rel, size, _mtime_ns, sha in files:
+            h.update(f"{rel}\0{size}\0{sha}\n".encode("utf-8", "surrogateescape"))
         return h.hexdigest()[:16]
 
     @property
     def digest(self) -> str:
         return self._hash(self.files)
 
-    def _grouped(self) -> dict[str, list[tuple[str, int, int]]]:
+    def _grouped(self) -> dict[str, list[tuple[str, int, int, str]]]:
         def parent(rel: str, depth: int | None) -> str:
             parts = rel.split("/")[:-1]
             return "/".join(parts[:depth]) or "."
 
         for depth in (None, 1):
-            groups: dict[str, list[tuple[str, int, int]]] = {}
+            groups: dict[str, list[tuple[str, int, int, str]]] = {}
             for f in self.files:
                 groups.setdefault(parent(f[0], depth), []).append(f)
             if len(groups) <= MAX_FINGERPRINT_GROUPS:
@@ -171,8 +179,8 @@ class DataFingerprint:
         lines = []
         for key in sorted(set(old_groups) | set(new_groups)):
             o, n = old_groups.get(key), new_groups.get(key)
-            if o == n:
-                continue
+            if o is not None and n is not None and o.get("digest") == n["digest"]:
+                continue  # the same contents (a file touched, not changed, included)
             if o is None:
                 lines.append(f"{key}: {n['files']} new file(s)")
             elif n is None:
@@ -181,7 +189,7 @@ class DataFingerprint:
                 parts = []
                 if o.get("files") != n["files"]:
                     parts.append(f"{o.get('files')} -> {n['files']} files")
-                newer = [rel for rel, _, mtime in grouped[key] if mtime > o.get("mtime_ns_max", 0)]
+                newer = [f[0] for f in grouped[key] if f[2] > o.get("mtime_ns_max", 0)]
                 if newer:
                     more = f" and {len(newer) - most} more" if len(newer) > most else ""
                     parts.append(f"modified since: {', '.join(newer[:most])}{more}")
@@ -189,17 +197,26 @@ class DataFingerprint:
                     before = o.get("bytes")
                     parts.append(f"{before:,}" if isinstance(before, int) else repr(before))
                     parts[-1] += f" -> {n['bytes']:,} bytes"
-                lines.append(f"{key}: {'; '.join(parts) or 'file sizes or modification times differ'}")
+                lines.append(f"{key}: {'; '.join(parts) or SAME_STAT_EDIT}")
         if not lines:
-            return "the files' sizes or modification times differ"
+            return SAME_STAT_EDIT
         more = f"; and {len(lines) - most} more folder(s)" if len(lines) > most else ""
         return "; ".join(lines[:most]) + more
 
 
-def fingerprint_files(root: Path | None, paths: "Iterable[Path]") -> DataFingerprint:
-    """The :class:`DataFingerprint` of ``paths`` (stat only), named relative to ``root``."""
+#: How :meth:`DataFingerprint.changes_since` names a change that only the contents show.
+SAME_STAT_EDIT = ("file contents differ with the same sizes and modification times "
+                  "(edited in place, or copied or restored with their times kept)")
+
+
+def fingerprint_files(root: Path | None, paths: "Iterable[Path]", cache: Path | None = None) -> DataFingerprint:
+    """The :class:`DataFingerprint` of ``paths``, named relative to ``root``: each file's
+    stat, and its content's sha256 (read once, then cached: :mod:`pcfbench.contenthash`;
+    ``cache`` names the cache file, default the cache folder's)."""
+    from pcfbench.contenthash import hash_files
+
     base = None if root is None else (Path(root) if Path(root).is_dir() else Path(root).parent)
-    files = {}
+    stats: dict[str, tuple[Path, os.stat_result]] = {}
     for p in paths:
         p = Path(p)
         try:
@@ -207,8 +224,14 @@ def fingerprint_files(root: Path | None, paths: "Iterable[Path]") -> DataFingerp
         except OSError as exc:
             raise DataError(f"dataset file {p} cannot be read for the data fingerprint: {exc.strerror or exc}") from None
         rel = p.as_posix() if base is None else Path(os.path.relpath(p, base)).as_posix()
-        files[rel] = (rel, int(st.st_size), int(st.st_mtime_ns))
-    return DataFingerprint(str(root), tuple(files[k] for k in sorted(files)))
+        stats[rel] = (p, st)
+    try:
+        shas = hash_files(stats.values(), cache)
+    except OSError as exc:
+        name = exc.filename or "a dataset file"
+        raise DataError(f"dataset file {name} cannot be read for the data fingerprint: {exc.strerror or exc}") from None
+    files = tuple((rel, int(st.st_size), int(st.st_mtime_ns), shas[p]) for rel, (p, st) in sorted(stats.items()))
+    return DataFingerprint(str(root), files)
 
 
 def options_identity(adapter: "DatasetAdapter", raw: dict[str, str]) -> dict[str, Any]:
@@ -372,7 +395,7 @@ class DatasetAdapter(ABC):
         return files_under(self.root)
 
     def fingerprint(self, split: str) -> DataFingerprint:
-        """Sizes and modification times of :meth:`data_files`, hashed: part of a cell's identity."""
+        """Paths, sizes and content hashes of :meth:`data_files`, hashed: part of a cell's identity."""
         return fingerprint_files(self.root, self.data_files(split))
 
     def check(self) -> CheckReport:

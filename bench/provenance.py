@@ -1,21 +1,26 @@
-"""What produced a result, beyond its inputs: the code's git commit and the environment.
+"""What produced a result, beyond its inputs: the code's git commit, the environment, and
+the identity of a plugin's code (its distribution and a hash of its source files).
 
-A leaf of the import graph: the runner records both in a cell, training in a checkpoint's
+A leaf of the import graph: the runner records them in a cell, training in a checkpoint's
 manifest.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import importlib.metadata
 import os
 import platform
 import subprocess
 import sys
+import weakref
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["environment", "git_commit"]
+__all__ = ["code_identity", "code_unit", "environment", "git_commit", "source_files_sha256"]
 
 
 def git_commit() -> str | None:
@@ -46,3 +51,79 @@ def environment() -> dict[str, Any]:
     if "torch" in sys.modules:
         env["torch"] = sys.modules["torch"].__version__
     return env
+
+
+def code_unit(module_name: str) -> str:
+    """The importable package whose source is hashed for code defined in ``module_name``:
+    its top-level package (or module), and for pcfbench's own built-ins the sub-package
+    under ``pcfbench`` (``pcfbench.methods``): the built-in methods' code, not the harness's,
+    whose rows are versioned by the protocol and metric versions."""
+    parts = module_name.split(".")
+    return ".".join(parts[:2]) if parts[0] == "pcfbench" and len(parts) > 1 else parts[0]
+
+
+def source_files_sha256(path: Path) -> tuple[str, dict[str, str]]:
+    """The hash of a module file, or of a package folder's Python sources (``*.py`` of the
+    folder and of each sub-folder that is a package, i.e. has an ``__init__.py``), and each
+    file's sha256 (16 hex digits) by its path relative to the folder. Only relative paths and
+    contents count, so an installed wheel and an editable checkout of the same sources agree."""
+    path = Path(path)
+    if path.is_file():
+        files = {path.name: path}
+    else:
+        files = {}
+        stack = [path]
+        while stack:
+            d = stack.pop()
+            for child in d.iterdir():
+                if child.is_dir() and (child / "__init__.py").is_file():
+                    stack.append(child)
+                elif child.is_file() and child.suffix == ".py":
+                    files[child.relative_to(path).as_posix()] = child
+    per_file = {rel: hashlib.sha256(files[rel].read_bytes()).hexdigest()[:16] for rel in sorted(files)}
+    h = hashlib.sha256()
+    for rel, sha in per_file.items():
+        h.update(f"{rel}\0{sha}\n".encode("utf-8", "surrogateescape"))
+    return h.hexdigest()[:16], per_file
+
+
+@functools.cache
+def _distributions() -> dict[str, list[str]]:
+    return importlib.metadata.packages_distributions()
+
+
+def code_identity(unit: str) -> dict[str, Any]:
+    """What a cell records of the code of package ``unit`` (:func:`code_unit`): ``sha256``
+    and ``files`` (:func:`source_files_sha256`; None and {} for code with no source file, a
+    class made at run time), its ``distribution`` and that distribution's ``version`` (None
+    when no installed distribution provides it). Computed once per imported module: the code
+    a process runs is the code it imported (a module imported again is hashed again)."""
+    module = sys.modules.get(unit)
+    found = _CODE.get(module) if module is not None else None
+    if found is None:
+        found = _code_identity(unit, getattr(module, "__file__", None))
+        if module is not None:
+            _CODE[module] = found
+    return {**found, "files": dict(found["files"])}
+
+
+_CODE: "weakref.WeakKeyDictionary[Any, dict[str, Any]]" = weakref.WeakKeyDictionary()
+
+
+def _code_identity(unit: str, file: str | None) -> dict[str, Any]:
+    sha, files = None, {}
+    if file:
+        source = Path(file).parent if Path(file).name == "__init__.py" else Path(file)
+        try:
+            sha, files = source_files_sha256(source)
+        except OSError:
+            sha, files = None, {}
+    dists = _distributions().get(unit.split(".")[0]) or []
+    dist = dists[0] if len(dists) == 1 else None
+    version = None
+    if dist is not None:
+        try:
+            version = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            version = None
+    return {"unit": unit, "sha256": sha, "files": files, "distribution": dist, "version": version}

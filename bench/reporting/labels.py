@@ -20,11 +20,17 @@ def method_label(method: str, options: dict) -> str:
 
 def trained_label(spec: CellSpec, meta: dict[str, Any]) -> str:
     """A trained method's row names its training data and checkpoint (two checkpoints side by
-    side stay two rows), and says so when it was scored on that very data."""
+    side stay two rows), and says so when it was scored on that very data; an unfinished
+    training or a training-data claim not verified is marked beside the data
+    (``pcfbench.training.claims.claim_marks``), so it goes where the data goes (a footnote)."""
+    from pcfbench.training.claims import claim_marks
+
     if not spec.train_on:
         return ""
     mark = ", ON ITS TRAINING DATA" if meta.get("evaluated_on_training_data") else ""
-    return f" [trained on {spec.train_on}, ck {str(spec.checkpoint_sha256)[:8]}{mark}]"
+    claims = claim_marks(meta)
+    data = f"{spec.train_on} ({'; '.join(claims)})" if claims else spec.train_on
+    return f" [trained on {data}, ck {str(spec.checkpoint_sha256)[:8]}{mark}]"
 
 
 def cell_label(spec: CellSpec) -> str:

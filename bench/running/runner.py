@@ -19,13 +19,13 @@ from pcfbench.store import ranges
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
-from pcfbench.provenance import environment, git_commit
+from pcfbench.provenance import code_identity, code_unit, environment, git_commit
 from pcfbench.method import Method, resolve_method
 from pcfbench.metrics.base import Metric, score_sample
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash, sample_id
-from pcfbench.dataset import options_identity
+from pcfbench.dataset import FINGERPRINT_KIND, options_identity
 from pcfbench.store.cells import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.protocol.validate import validate_forecast
 
@@ -301,9 +301,9 @@ def run_cell(spec: CellSpec, store_root: Path, options: RunOptions | None = None
         if options.force:  # whatever is there, a cut-short cell.json or a damaged chunk included
             cell.clear()
         meta = cell.read_meta()
-        identity = cell_identity(res, spec, ids_hash(ids), fingerprint.digest, options.allow_train_split)
+        identity = cell_identity(res, spec, ids_hash(ids), fingerprint.digest, options.allow_train_split, fingerprint)
         if meta is not None:
-            check_identity(cell.dir, meta, identity, fingerprint)
+            check_identity(cell.dir, meta, identity, fingerprint, _code_meta(res.method)["method_code_files"])
         done = cell.done_ids()
         todo = [k for k, sid in zip(keys, ids) if sid not in done]
         if not todo and meta is not None and meta.get("status") == "complete":
@@ -363,20 +363,35 @@ def _layout_hint(spec: CellSpec, plugins: Plugins | None) -> str:
     return f"; {root} holds the {found[0]} layout: pass --dataset {found[0]}={root}"
 
 
-def cell_identity(res: Resolved, spec: CellSpec, id_hash: str, digest: str, allow_train_split: bool) -> dict[str, Any]:
+def cell_identity(res: Resolved, spec: CellSpec, id_hash: str, digest: str, allow_train_split: bool,
+                  fingerprint: Any = None) -> dict[str, Any]:
     """What a cell's rows depend on (its ``cell.json`` identity): the method's, dataset's and
-    metrics' versions, the samples, the protocol, the dataset's options and files, and a
-    trained method's checkpoint and training data."""
+    metrics' versions, the hash of the method's source (:func:`method_code`), the samples,
+    the protocol, the dataset's options and files (by content), and a trained method's
+    checkpoint and training data."""
     return {
         "method_version": res.method.version,
+        "method_code": method_code(res.method)["sha256"] or NO_SOURCE,
         "dataset_version": res.builder.adapter.version,
         "metric_versions": {m.name: m.version for m in res.metrics},
         "sample_ids_hash": id_hash,
         **res.builder.identity(),  # protocol version, ROI, minimum range, setting, policy, ego box
         "dataset_options": options_identity(res.builder.adapter, config.split_root_options(spec.dataset_root)[1]),
         "data_fingerprint": digest,
-        **_trained_identity(spec, res.method, digest, allow_train_split),
+        "data_fingerprint_kind": FINGERPRINT_KIND,
+        **_trained_identity(spec, res.method, digest, allow_train_split, fingerprint),
     }
+
+
+#: ``method_code`` of a method whose class has no source file (made at run time): its code
+#: cannot be told apart, only its version.
+NO_SOURCE = "no source file"
+
+
+def method_code(method: Method) -> dict[str, Any]:
+    """The identity of the code of ``method``'s class (:func:`pcfbench.provenance.code_identity`):
+    the hash of its package's sources, each file's hash, its distribution and version."""
+    return code_identity(code_unit(type(method).__module__))
 
 
 def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: dict[str, Any], fingerprint: Any,
@@ -388,6 +403,8 @@ def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: di
         "spec": spec_to_meta(spec),
         **identity,
         "data_files": fingerprint.summary(),
+        **_code_meta(res.method),
+        **_claims_meta(res.method, fingerprint),
         "status": "running",
         "partial": spec.partial,
         "harness_version": pcfbench.__version__,
@@ -401,6 +418,25 @@ def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: di
     if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.store.ranges)
         meta["range_bins"] = ranges.meta()
     return meta
+
+
+def _code_meta(method: Method) -> dict[str, Any]:
+    """What cell.json records of the method's code beside its hash: the package hashed, each
+    of its files' hashes (to name the files a later change touches) and its distribution."""
+    code = method_code(method)
+    return {"method_code_unit": code["unit"], "method_code_files": code["files"],
+            "method_distribution": {"name": code["distribution"], "version": code["version"]}}
+
+
+def _claims_meta(method: Method, fingerprint: Any) -> dict[str, Any]:
+    """A trained method's checkpoint claims as checked (``pcfbench.training.claims``): steps
+    trained of planned, its training data verified by content or not; {} for other methods."""
+    ck = getattr(method, "checkpoint", None)
+    if ck is None:
+        return {}
+    from pcfbench.training.claims import claims_meta
+
+    return claims_meta(ck, fingerprint)
 
 
 def _compute(res: Resolved, spec: CellSpec, cell: Cell, keys: list[tuple[str, int]], todo: list[tuple[str, int]],
@@ -464,22 +500,33 @@ def _complete_meta(meta: dict[str, Any], df: Any, samples: int, elapsed: float) 
     }
 
 
-def _trained_identity(spec: CellSpec, method: Method, digest: str, allow_train_split: bool) -> dict[str, Any]:
+def _trained_identity(spec: CellSpec, method: Method, digest: str, allow_train_split: bool,
+                      fingerprint: Any = None) -> dict[str, Any]:
     """A trained method's part of the cell identity: the checkpoint's sha256, its training
-    data and whether this cell evaluates on that very data (refused unless allowed)."""
+    data and whether this cell evaluates on that very data (refused unless allowed): by name
+    and fingerprint, or by content (``pcfbench.training.claims.overlap``: the evaluated files
+    found among the training files, a renamed copy included)."""
+    from pcfbench.training.claims import OVERLAP_FRACTION, overlap
+
     ck = getattr(method, "checkpoint", None)
     if not spec.checkpoint_sha256 or ck is None:
         return {}
     t = ck.train_on
     # A shipped checkpoint was trained on its dataset's split as made elsewhere: its recorded
-    # fingerprint (file sizes and times there) never equals this machine's, so the same
-    # dataset and split is taken for that data.
-    on_train = (t.get("dataset") == spec.dataset and t.get("split") == spec.split
-                and (t.get("fingerprint") == digest or bool(getattr(ck, "shipped", False))))
+    # fingerprint (of a manifest from before content fingerprints, or of a generated split
+    # whose bytes differ by CPU) need not equal this machine's, so the same dataset and split
+    # is taken for that data.
+    by_name = (t.get("dataset") == spec.dataset and t.get("split") == spec.split
+               and (t.get("fingerprint") == digest or bool(getattr(ck, "shipped", False))))
+    shared = overlap(ck, fingerprint) if fingerprint is not None else None
+    by_content = shared is not None and shared["files"] > 0 and shared["bytes_fraction"] >= OVERLAP_FRACTION
+    on_train = by_name or by_content
     if on_train and not allow_train_split:
+        how = (f"{shared['files']} of its {shared['of']} files, {100 * shared['bytes_fraction']:.0f} % of its bytes, "
+               f"are in the training data {ck.train_on_label}" if by_content else f"fingerprint {digest}")
         raise PcfbenchError(
             f"{spec.label}: checkpoint {ck.manifest_path} was trained on this very data ({spec.dataset}:{spec.split}, "
-            f"fingerprint {digest}); evaluate another split, or pass --allow-train-split to score it anyway "
+            f"{how}); evaluate another split, or pass --allow-train-split to score it anyway "
             "(the cell and the leaderboard then mark it)")
     return {"checkpoint_sha256": ck.sha256, "train_on": t, "evaluated_on_training_data": on_train}
 

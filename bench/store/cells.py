@@ -6,8 +6,9 @@ without losing or duplicating rows: a chunk either exists whole or not at all.
 
 A cell's folder is named by its :class:`CellSpec`; what its rows were computed with (method,
 dataset and metric versions, sample ids, protocol version, setting, policy, ROI, dataset
-options, the dataset files' fingerprint) is its identity in ``cell.json``. A rerun whose
-identity differs stops with one error (:func:`check_identity`) instead of adding rows.
+options, the dataset files' fingerprint by content, a hash of the method's sources) is its
+identity in ``cell.json``. A rerun whose identity differs stops with one error
+(:func:`check_identity`) instead of adding rows.
 A trained method's cell also records its checkpoint's sha256 and training data
 (``pcfbench.training``), and its folder name carries the sha256, so each checkpoint has its
 own cell.
@@ -383,6 +384,12 @@ PROTOCOL_IDENTITY = (
 )
 
 
+#: Identity fields of cells written since data is known by content and code by hash. A cell
+#: with the protocol identity but without them was keyed by its files' sizes and modification
+#: times and by its method's version only: "data identity changed format", recompute it.
+CONTENT_IDENTITY = ("data_fingerprint_kind", "method_code")
+
+
 def _plain(value: Any) -> Any:
     """``value`` as it reads back from cell.json (tuples become lists, keys strings)."""
     return json.loads(json.dumps(value, sort_keys=True, default=str))
@@ -395,22 +402,48 @@ def _difference(old: Any, new: Any) -> str:
     return f"{old!r} -> {new!r}"
 
 
-def check_identity(cell_dir: Path, meta: dict[str, Any], identity: dict[str, Any], fingerprint: Any = None) -> None:
+def _code_changes(old: Any, new: dict[str, str], most: int = 5) -> str:
+    """Which source files differ between two ``method_code_files`` maps."""
+    old = old if isinstance(old, dict) else {}
+    edited = [f for f in sorted(set(old) & set(new)) if old[f] != new[f]]
+    parts = [f"{what}: {', '.join(fs[:most])}{f' and {len(fs) - most} more' if len(fs) > most else ''}"
+             for what, fs in (("edited", edited), ("new", sorted(set(new) - set(old))), ("gone", sorted(set(old) - set(new))))
+             if fs]
+    return "; ".join(parts)
+
+
+def check_identity(cell_dir: Path, meta: dict[str, Any], identity: dict[str, Any], fingerprint: Any = None,
+                   code_files: dict[str, str] | None = None) -> None:
     """Raise one error naming every identity field on which ``meta`` (a cell's cell.json) and
     ``identity`` (this run's) differ, and how to recompute; return when the cell may be reused.
 
     ``fingerprint`` (a :class:`pcfbench.dataset.DataFingerprint`) says which dataset files
-    changed, from the summary the cell keeps under ``data_files``.
+    changed, from the summary the cell keeps under ``data_files``; ``code_files`` (each
+    source file's hash) which of the method's files changed, from ``method_code_files``.
     """
     identity = _plain(identity)
     legacy = "protocol_version" not in meta
-    fields = [k for k in identity if not (legacy and k in PROTOCOL_IDENTITY)]
+    if not legacy and any(k in identity and k not in meta for k in CONTENT_IDENTITY):
+        raise PcfbenchError(
+            f"cell {cell_dir} predates content identities: data identity changed format (its data was known by "
+            "file sizes and modification times, which an in-place edit or a copy with times kept can preserve, and "
+            "its method's code by its version alone; now files are known by their contents and code by a hash of "
+            "its sources), so it cannot be told whether its rows match this data and code: rerun with --force "
+            "to recompute it"
+        )
+    fields = [k for k in identity if not (legacy and k in PROTOCOL_IDENTITY + CONTENT_IDENTITY)]
     changed = [k for k in fields if meta.get(k) != identity[k]]
     if changed:
         details = []
         for k in changed:
             if k == "data_fingerprint" and fingerprint is not None:
                 details.append(f"dataset files changed: {fingerprint.changes_since(meta.get('data_files'))}")
+            elif k == "method_code":
+                which = _code_changes(meta.get("method_code_files"), code_files or {})
+                same = (f", its version {identity['method_version']!r} unchanged"
+                        if "method_version" not in changed and "method_version" in identity else "")
+                details.append(f"the method's code changed ({which or _difference(meta.get(k), identity[k])}"
+                               f"{same}; a plugin author bumps the version with each change)")
             else:
                 details.append(f"{k}: {_difference(meta.get(k), identity[k])}")
         raise PcfbenchError(

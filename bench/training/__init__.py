@@ -4,6 +4,7 @@ one training loop. The names below are the API a trained method imports; the mod
     data.py         the training data (TrainOn, TrainSource, open_training_data)
     checkpoints.py  checkpoints with identity, in the cache and shipped (Checkpoint, ship)
     trained.py      the contract (TrainedMethod), the run handed to fit, the driver (train)
+    claims.py       a manifest's claims checked: steps of planned, training data by content
     loop.py         the one training loop (fit_loop) and its generic pieces
 
 A method that learns subclasses :class:`TrainedMethod` and implements ``fit`` (train on a
@@ -19,8 +20,9 @@ A checkpoint is a folder keyed by method, version, options hash and training dat
 split, a hash of the dataset's file fingerprint and root options) under
 ``<cache>/checkpoints``::
 
-    manifest.json            what it is: method, version, options, train_on, steps, wall and
-                             CPU time, device, git commit, the sha256 of each file below
+    manifest.json            what it is: method, version, options, train_on, the training
+                             files' content hashes, steps (and planned), wall and CPU time,
+                             device, git commit, the sha256 of each file below
     weights-<step>.pt        the model's tensors (loads with torch.load(weights_only=True))
     state-<step>.pt          optimiser and RNG state to resume from (weights_only too)
 

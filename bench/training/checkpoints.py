@@ -230,8 +230,9 @@ def shipped_root(cls: type) -> Path | None:
 
 def shipped_dir(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPLIT) -> Path | None:
     """``<shipped root>/<method>/v<version>/<options hash>/<dataset>.<split>``. The folder is
-    not keyed by the data's fingerprint (file times differ on every machine): the shipped
-    manifest holds the data's content sha256, checked by :func:`find_shipped`."""
+    not keyed by the data's fingerprint (a generated split's bytes differ by CPU, and older
+    manifests record file times): the shipped manifest holds the data's content sha256,
+    checked by :func:`find_shipped`."""
     root = shipped_root(spec.cls)
     return (None if root is None else
             root / spec.name / f"v{spec.cls.version}" / checkpoint_options_hash(spec) / f"{dataset}.{split}")

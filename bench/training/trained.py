@@ -12,6 +12,7 @@ from abc import abstractmethod
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Mapping
 
+from pcfbench.dataset import FINGERPRINT_KIND
 from pcfbench.errors import PcfbenchError
 from pcfbench.method import Method, MethodSpec, options_dict
 from pcfbench.training.checkpoints import (FORMAT, MANIFEST, Checkpoint, CheckpointError, checkpoint_dir,
@@ -84,6 +85,7 @@ class TrainingRun:
         #: the steps of the whole training (``start``); None before
         self.total: int | None = None
         self.saved_steps: int | None = None
+        self._train_shas: list[str] | None = None
 
     # resume -----------------------------------------------------------------------------------
     def resume(self) -> dict[str, Any] | None:
@@ -170,6 +172,15 @@ class TrainingRun:
             self._bar = None
 
     # save -----------------------------------------------------------------------------------------
+    def _train_files_sha256(self) -> list[str]:
+        """The training files' content hashes (:mod:`pcfbench.training.claims`), read once per run:
+        what lets a cell tell its evaluated data is this data, whatever its name."""
+        if self._train_shas is None:
+            from pcfbench.training.claims import train_files_sha256
+
+            self._train_shas = train_files_sha256(self.train_on.files)
+        return self._train_shas
+
     def save(self, step: int, weights: Mapping[str, Any], state: Mapping[str, Any] | None = None, *,
              config: Mapping[str, Any] | None = None, complete: bool = False) -> Checkpoint:
         """Write ``weights`` (tensors) and ``state`` (to resume: optimiser, RNG, curve) for
@@ -202,8 +213,10 @@ class TrainingRun:
             "options": options_dict(training_options(self.spec)),
             "options_hash": checkpoint_options_hash(self.spec),
             "config": dict(config or {}),
-            "train_on": self.train_on.to_meta(),
+            "train_on": {**self.train_on.to_meta(), "fingerprint_kind": FINGERPRINT_KIND},
+            "train_files_sha256": self._train_files_sha256(),
             "steps": int(step),
+            "steps_planned": self.total,
             "complete": bool(complete),
             "wall_s": round(self._base_wall + self.elapsed_s(), 3),
             "cpu_s": round(self._base_cpu + time.process_time() - self._c0, 3),

@@ -3,10 +3,11 @@
 import importlib.metadata
 import sys
 import types
+from pathlib import Path
 
 import pytest
 
-from pcfbench.errors import PluginError, UnknownNameError
+from pcfbench.errors import PcfbenchError, PluginError, UnknownNameError
 from pcfbench.hookspecs import hookimpl
 from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import Plugins, is_builtin_entry_point, load_plugins
@@ -126,3 +127,104 @@ def test_docs_metrics_page_takes_builtins_by_distribution_not_name(third_party):
     assert "rogue" in load_plugins().metrics  # it is loaded (no allow-list)...
     names = [m.name for m in docs.builtin_metrics()]
     assert "rogue" not in names and "chamfer" in names  # ... but it is not a built-in
+
+
+# -- issue 45: a cell knows its method's code ------------------------------------------------------
+
+PLUGIN_SOURCE = '''
+from pcfbench.data import Forecast
+from pcfbench.method import Method
+
+
+class Edited(Method):
+    name = "edited"
+    version = "1"
+
+    def forecast(self, sample):
+        last = sample.past_points_ref[-1] * {scale}
+        return Forecast(points_ref=tuple(last for _ in range(sample.num_future)))
+'''
+
+
+def _edited_plugin(tmp_path, monkeypatch, scale):
+    """Write (or rewrite) the plugin module ``pcfb_edited`` and import it afresh."""
+    (tmp_path / "pcfb_edited.py").write_text(PLUGIN_SOURCE.format(scale=scale))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "pcfb_edited", raising=False)
+    import importlib
+
+    module = importlib.import_module("pcfb_edited")
+    plugins = load_plugins()
+    plugins.methods.add("edited", module.Edited, "test")
+    return plugins
+
+
+def _cell(root):
+    from pcfbench.method import options_hash
+    from pcfbench.store.cells import CellSpec
+
+    return CellSpec("edited", {}, options_hash(None), "kitti", str(root), "test", "kitti-1s", "full-context", None,
+                    ("chamfer",))
+
+
+def test_plugin_code_edited_with_the_same_version_is_not_reused(tiny_kitti, tmp_path, monkeypatch):
+    from pcfbench.running.runner import RunOptions, run_cell
+
+    store = tmp_path / "store"
+    code = tmp_path / "code"
+    code.mkdir()
+    first = run_cell(_cell(tiny_kitti), store, RunOptions(progress=False), plugins=_edited_plugin(code, monkeypatch, 1.0))
+    assert first.processed == 6
+    again = _edited_plugin(code, monkeypatch, 1.0)  # imported again, the same source: the same cell
+    assert run_cell(_cell(tiny_kitti), store, RunOptions(progress=False), plugins=again).processed == 0
+    edited = _edited_plugin(code, monkeypatch, 1.5)  # the author forgot to bump version = "1"
+    with pytest.raises(PcfbenchError, match=r"(?s)different method_code \(the method's code changed "
+                                            r"\(edited: pcfb_edited.py, its version '1' unchanged.*--force"):
+        run_cell(_cell(tiny_kitti), store, RunOptions(progress=False), plugins=edited)
+    assert run_cell(_cell(tiny_kitti), store, RunOptions(progress=False, force=True), plugins=edited).processed == 6
+
+
+def test_cell_json_records_the_methods_distribution_and_code(tiny_kitti, tmp_path):
+    import json
+
+    import pcfbench.methods
+    from pcfbench.method import options_hash
+    from pcfbench.provenance import source_files_sha256
+    from pcfbench.running.runner import RunOptions, run_cell
+    from pcfbench.store.cells import Cell, CellSpec
+
+    spec = CellSpec("copy-last", {}, options_hash(None), "kitti", str(tiny_kitti), "test", "kitti-1s", "full-context",
+                    None, ("chamfer",))
+    run_cell(spec, tmp_path / "store", RunOptions(progress=False))
+    meta = json.loads((Cell(tmp_path / "store", spec).dir / "cell.json").read_text())
+    assert meta["method_distribution"] == {"name": "pcfbench", "version": importlib.metadata.version("pcfbench")}
+    sha, files = source_files_sha256(Path(pcfbench.methods.__file__).parent)
+    assert meta["method_code"] == sha and meta["method_code_unit"] == "pcfbench.methods"
+    assert meta["method_code_files"] == files and "copy_last.py" in files and "raycast/__init__.py" in files
+
+
+def test_the_code_hash_is_of_relative_paths_and_contents_only(tmp_path):
+    """A wheel's copy and an editable checkout of the same sources agree: no absolute path,
+    modification time, byte-code cache or non-package folder counts."""
+    import hashlib
+    import os
+    import shutil
+
+    import pcfbench.methods
+    from pcfbench.provenance import source_files_sha256
+
+    here = Path(pcfbench.methods.__file__).parent
+    copy = tmp_path / "site-packages" / "pcfbench" / "methods"
+    shutil.copytree(here, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    for f in copy.rglob("*.py"):
+        os.utime(f, ns=(1, 1))
+    (copy / "__pycache__").mkdir(exist_ok=True)
+    (copy / "__pycache__" / "x.py").write_text("# not a package folder")
+    assert source_files_sha256(copy) == source_files_sha256(here)
+    # against a hand-built hash of two files
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_bytes(b"")
+    (tmp_path / "pkg" / "a.py").write_bytes(b"x = 1\n")
+    sha = {n: hashlib.sha256(b).hexdigest()[:16] for n, b in (("__init__.py", b""), ("a.py", b"x = 1\n"))}
+    blob = "".join(f"{n}\0{sha[n]}\n" for n in sorted(sha)).encode()
+    assert source_files_sha256(tmp_path / "pkg") == (hashlib.sha256(blob).hexdigest()[:16], sha)

@@ -44,13 +44,15 @@ def test_fingerprint_against_a_hand_built_hash(tmp_path):
     os.utime(tmp_path / "a" / "x.bin", ns=(1, 1_000_000_007))
     os.utime(tmp_path / "b.txt", ns=(1, 2_000_000_009))
     fp = fingerprint_files(tmp_path, [tmp_path / "b.txt", tmp_path / "a" / "x.bin"])
-    assert fp.files == (("a/x.bin", 5, 1_000_000_007), ("b.txt", 2, 2_000_000_009))
-    expected = hashlib.sha256(b"a/x.bin\x005\x001000000007\nb.txt\x002\x002000000009\n").hexdigest()[:16]
+    sha_x, sha_b = hashlib.sha256(b"12345").hexdigest(), hashlib.sha256(b"xy").hexdigest()
+    assert fp.files == (("a/x.bin", 5, 1_000_000_007, sha_x), ("b.txt", 2, 2_000_000_009, sha_b))
+    # path, size and content; the modification time only says what changed
+    expected = hashlib.sha256(f"a/x.bin\x005\x00{sha_x}\nb.txt\x002\x00{sha_b}\n".encode()).hexdigest()[:16]
     assert fp.digest == expected
     summary = fp.summary()
     assert summary["files"] == 2 and summary["bytes"] == 7 and set(summary["groups"]) == {".", "a"}
     assert summary["groups"]["a"] == {"files": 1, "bytes": 5, "mtime_ns_max": 1_000_000_007,
-                                      "digest": hashlib.sha256(b"a/x.bin\x005\x001000000007\n").hexdigest()[:16]}
+                                      "digest": hashlib.sha256(f"a/x.bin\x005\x00{sha_x}\n".encode()).hexdigest()[:16]}
 
 
 def test_fingerprint_says_which_files_changed(tmp_path):
@@ -58,7 +60,8 @@ def test_fingerprint_says_which_files_changed(tmp_path):
         (tmp_path / f"{i}.bin").write_bytes(b"0" * 8)
         os.utime(tmp_path / f"{i}.bin", ns=(1, 10**9))
     before = fingerprint_files(tmp_path, sorted(tmp_path.iterdir()))
-    os.utime(tmp_path / "1.bin", ns=(1, 2 * 10**9))  # rewritten later, same size
+    (tmp_path / "1.bin").write_bytes(b"1" * 8)  # rewritten later, same size
+    os.utime(tmp_path / "1.bin", ns=(1, 2 * 10**9))
     after = fingerprint_files(tmp_path, sorted(tmp_path.iterdir()))
     assert after.digest != before.digest
     assert after.changes_since(before.summary()) == ".: modified since: 1.bin"
