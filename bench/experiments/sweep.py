@@ -497,12 +497,14 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
 def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None = None, jobs: int | None = None,
               threads: int | None = None, force: bool = False, progress: bool = True,
               plugins: Plugins | None = None, echo: Callable[[str], None] = print, executor: Any = None,
-              timeout: float | None = None, isolate: bool | None = None) -> SweepResult:
+              timeout: float | None = None, isolate: bool | None = None,
+              limits: dict[str, Any] | None = None) -> SweepResult:
     """Run (or resume) every cell of ``exp`` through ``run_cell``, then write its ablation
     tables to ``reports/sweeps/``. Complete cells are reused without calling the method;
     ``force`` recomputes them. ``limit``/``jobs`` override the file's. ``executor``: run_cell's
     (``pcfbench.running.ray_executor.RayExecutor``; the file's ``jobs`` then does not apply).
-    ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes."""
+    ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes; ``limits``:
+    RunOptions' other limits (``scoring_timeout``, ``max_memory_gb``, ``forecast_ratio``)."""
     from tqdm import tqdm
 
     from pcfbench.running.runner import RunOptions, _progress_disabled, run_cell
@@ -518,7 +520,7 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
             line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             tqdm.write(line) if not bar.disable else echo(line)
             options = RunOptions(jobs=jobs, force=force, progress=progress, threads=threads, executor=executor,
-                                 progress_label=line, timeout=timeout, isolate=isolate)
+                                 progress_label=line, timeout=timeout, isolate=isolate, **(limits or {}))
             r = run_cell(spec, store, options, plugins=plugins)
             results.append(r)
             done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
