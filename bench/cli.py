@@ -547,7 +547,9 @@ def failures(store, tracebacks, as_json):
 @click.option("--force", is_flag=True, help="Recompute cells that are already complete.")
 @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
-@click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells; run nothing.")
+@click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells as they are planned; run nothing.")
+@click.option("--max-cells", type=click.IntRange(min=1), default=None, metavar="N",
+              help="The most cells the grid may have (default: the file's max_cells, else 1000).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 @click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
               help="Per-sample time limit, as for run (0: no limit).")
@@ -555,23 +557,23 @@ def failures(store, tracebacks, as_json):
               help="Exit 0 even when samples failed (their cells are incomplete and not in the tables either way).")
 @limit_options
 @executor_options
-def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, timeout, keep_going, scoring_timeout,
-          max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
+def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_cells, quiet, timeout, keep_going,
+          scoring_timeout, max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
     from pcfbench.reporting.labels import cell_label
-    from pcfbench.experiments.sweep import load_experiment, plan, run_sweep
+    from pcfbench.experiments.sweep import count_cells, iter_plan, load_experiment, run_sweep
 
     plugins = get_plugins()
     warn_failed(plugins)
-    exp = load_experiment(experiment, plugins)
+    exp = load_experiment(experiment, plugins, max_cells=max_cells)
     ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
-    if dry_run:
-        cells = plan(exp, limit=limit, plugins=plugins, progress=not quiet)
-        for i, spec in enumerate(cells, 1):
-            click.echo(f"cell {i}/{len(cells)}: {cell_label(spec)} -> {store_path / spec.relpath()}")
+    if dry_run:  # each cell as it is planned
+        n = count_cells(exp, plugins)
+        for i, spec in enumerate(iter_plan(exp, limit=limit, plugins=plugins, progress=not quiet), 1):
+            click.echo(f"cell {i}/{n}: {cell_label(spec)} -> {store_path / spec.relpath()}")
         where = reports_path if (exp.limit if limit is None else limit) is None else config.partial_reports_dir(reports_path)
         click.echo(f"tables: {', '.join(str(where / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
         return
