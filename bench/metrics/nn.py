@@ -204,9 +204,28 @@ def angles_az_el(rel: np.ndarray) -> np.ndarray:
     )
 
 
+#: a fine-grid cell holding more points than this sends a search to the k-d tree (``_Search2D``)
+DENSE_CELL = 256
+#: ... as do more than this share of the queries outside the points' box
+OUTSIDE_SHARE = 0.25
+#: ... when there are at least this many (distinct) points; fewer are searched fast either way
+TREE_MIN_POINTS = 1024
+#: nearest candidates the k-d tree returns per query
+CANDIDATES = 8
+
+
 class _Search2D:
     """One exact 2D nearest-neighbour search in pieces (grid pass over any slice of the queries,
-    then the far queries), so that threads can share the grid pass out (see nearest_angles)."""
+    then the far queries), so that threads can share the grid pass out (see nearest_angles).
+
+    The bucket grid (pcfbench.nn2d) is fast when its cells hold a few points each and the
+    queries lie among the points: the points of one sweep against another's. Points packed in
+    a few cells (a forecast whose points sit around one spot) or queries mostly outside the
+    points' box (a compact cluster seen from the whole sweep) make it scan most points per
+    query; those searches take ``CANDIDATES`` nearest from a k-d tree (the periodic axis as three
+    copies of the points) and keep the answer where it is provably the grid's: the exact distance
+    of nn2d's formula, ties to the lowest index, and the last candidate's tree distance clearly
+    beyond the best (so no point left out can tie). The few queries left go to the grid."""
 
     def __init__(self, data: np.ndarray, queries: np.ndarray, period: float, per_cell: float = PER_CELL) -> None:
         data = np.asarray(data, dtype=np.float64)
@@ -215,17 +234,58 @@ class _Search2D:
         self.qx = np.ascontiguousarray(queries[:, 0], dtype=np.float64)
         self.qy = np.ascontiguousarray(queries[:, 1], dtype=np.float64)
         self.first = distinct(data)  # None, or the grid holds data[first]
-        self.grid = NN2D(data if self.first is None else data[self.first], period, per_cell)
+        self.data = np.ascontiguousarray(data if self.first is None else data[self.first])
+        self.period = float(period)
+        self.grid = NN2D(self.data, period, per_cell)
+        self.crowded = self._crowded()
+
+    def _crowded(self) -> bool:
+        """Whether the grid would scan most points per query (see the class docstring)."""
+        n = self.data.shape[0]
+        if n < TREE_MIN_POINTS or self.qx.shape[0] == 0:
+            return False
+        if int(np.diff(self.grid.fine[0]).max()) > DENSE_CELL:
+            return True
+        x0, x1, y0, y1, _ = self.grid._box  # the points' box
+        qx, qy = self.qx[::16], self.qy[::16]  # a share: every 16th query tells it well enough
+        outside = (qy < y0) | (qy > y1)
+        if self.period == 0.0:
+            outside |= (qx < x0) | (qx > x1)
+        return int(np.count_nonzero(outside)) > OUTSIDE_SHARE * qx.shape[0]
 
     def grid_pass(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Nearest grid index of queries[start:stop]; -1 where the grid's first pass leaves it."""
+        """Nearest grid index of queries[start:stop]; -1 where the grid's first pass leaves it
+        (every query of a crowded search: ``finish`` answers them)."""
+        if self.crowded:
+            return np.full(self.qx[start:stop].shape[0], -1, np.int64)
         return self.grid.near((self.qx[start:stop], self.qy[start:stop]))
 
     def finish(self, idx: np.ndarray) -> np.ndarray:
         """Answer the queries the grid pass left at -1 (``idx``: the grid passes' answers, in
         place) and return the nearest data index of every query."""
+        if self.crowded:
+            idx[:] = self._tree_pass()
         idx = self.grid.settle((self.qx, self.qy), idx)
         return idx if self.first is None else self.first[idx]
+
+    def _tree_pass(self) -> np.ndarray:
+        """Nearest grid index per query from the k-d tree's candidates; -1 where not sure."""
+        d, p = self.data, self.period
+        ext = d if p == 0.0 else np.concatenate([d, d + (p, 0.0), d - (p, 0.0)])
+        k = min(CANDIDATES, ext.shape[0])
+        tree_d2, cand = KDTree(ext, leafsize=16).query(np.stack([self.qx, self.qy], 1), k=k, sqr_dists=True)
+        tree_d2, cand = tree_d2.reshape(-1, k), cand.reshape(-1, k).astype(np.int64) % d.shape[0]
+        dx = np.abs(d[cand, 0] - self.qx[:, None])
+        if p > 0.0:
+            dx = np.minimum(dx, p - dx)
+        dy = d[cand, 1] - self.qy[:, None]
+        d2 = dx * dx + dy * dy  # nn2d's formula, term for term
+        best = d2.min(axis=1)
+        out = np.where(d2 == best[:, None], cand, d.shape[0]).min(axis=1)
+        if k < ext.shape[0]:  # a point beyond the candidates is farther for sure, or the grid decides
+            sure = tree_d2[:, -1] > best * (1.0 + 1e-9) + 1e-300
+            out[~sure] = -1
+        return out
 
 
 def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0, per_cell: float = PER_CELL) -> np.ndarray:

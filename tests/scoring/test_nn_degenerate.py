@@ -107,3 +107,65 @@ def test_degenerate_forecasts_score_as_the_plain_searches_and_the_reference(layo
     for name in NAMES:
         assert new[name] == old[name] or (np.isnan(new[name]) and np.isnan(old[name])), name
         assert close(new[name], ref[name], rel=1e-6, abs_=1e-9), f"{name}: {new[name]!r} vs reference {ref[name]!r}"
+
+
+@pytest.mark.parametrize("periodic", [False, True])
+@pytest.mark.parametrize("layout", ["lattice", "cluster", "few"])
+def test_the_tree_path_of_crowded_angle_searches_is_the_brute_force_argmin(periodic, layout, monkeypatch):
+    """Forced onto the k-d tree path, every answer is the brute-force argmin of nn2d's
+    distance, ties (a lattice has many) to the lowest index; wrap-around included."""
+    from pcfbench.metrics import nn
+
+    monkeypatch.setattr(nn, "TREE_MIN_POINTS", 1)
+    monkeypatch.setattr(nn, "DENSE_CELL", -1)
+    rng = np.random.default_rng(5)
+    period = (8.0 if layout == "lattice" else 2 * np.pi) if periodic else 0.0  # 8: exact in binary, as the lattice
+    if layout == "lattice":
+        data = rng.integers(-12, 12, (900, 2)) * 0.25
+        queries = rng.integers(-26, 26, (700, 2)) * 0.125
+    elif layout == "cluster":
+        data = np.clip(rng.normal([3.1, 0.2], 1e-4, (900, 2)), -np.pi, np.pi)
+        queries = rng.uniform([-np.pi, -1.5], [np.pi, 1.5], (700, 2))
+    else:  # fewer points than candidates
+        data = rng.uniform([-np.pi, -1], [np.pi, 1], (5, 2))
+        queries = rng.uniform([-np.pi, -1.5], [np.pi, 1.5], (300, 2))
+    search = nn._Search2D(data, queries, period)
+    assert search.crowded
+    dx = np.abs(data[None, :, 0] - queries[:, None, 0])
+    if periodic:
+        dx = np.minimum(dx, period - dx)
+    d2 = dx * dx + (data[None, :, 1] - queries[:, None, 1]) ** 2
+    np.testing.assert_array_equal(search.finish(search.grid_pass()), d2.argmin(axis=1))
+
+
+def test_a_tight_cluster_far_from_the_queries_takes_the_tree_path():
+    """Distinct forecast points within a millimetre of one spot: the grid would scan them all for
+    every ray (seconds on a few thousand points); the search is marked crowded instead."""
+    from pcfbench.metrics.nn import _Search2D, angles_4docc, angles_az_el
+
+    rng = np.random.default_rng(6)
+    pred = np.array([[10.0, 5.0, -1.0]]) + rng.normal(0, 1e-3, (3000, 3))
+    gt = _street(rng, 3000).astype(np.float64)
+    assert _Search2D(angles_4docc(pred), angles_4docc(gt), 0.0).crowded
+    assert _Search2D(angles_az_el(pred), angles_az_el(gt), 2 * np.pi).crowded
+    assert not _Search2D(angles_4docc(gt[::-1] * 1.01), angles_4docc(gt), 0.0).crowded  # a normal pair
+
+
+def test_more_ties_than_candidates_go_to_the_grid(monkeypatch):
+    """Twelve points at exactly 5 from the query (3-4-5 triangles): the tree's eight candidates
+    cannot show the lowest index among them, so the grid answers that query."""
+    from pcfbench.metrics import nn
+
+    monkeypatch.setattr(nn, "TREE_MIN_POINTS", 1)
+    monkeypatch.setattr(nn, "DENSE_CELL", -1)
+    ring = [(a * sa, b * sb) for a, b in ((3, 4), (4, 3)) for sa in (1, -1) for sb in (1, -1)]
+    ring += [(5, 0), (-5, 0), (0, 5), (0, -5)]
+    rng = np.random.default_rng(7)
+    far = rng.uniform(6, 9, (40, 2)) * rng.choice([-1, 1], (40, 2))
+    order = rng.permutation(52)
+    data = np.concatenate([far, np.array(ring, float)])[order] * 0.25
+    queries = np.array([[0.0, 0.0], [0.25, 0.0]])
+    search = nn._Search2D(data, queries, 0.0)
+    assert search.crowded and search._tree_pass()[0] == -1
+    d2 = ((data[None] - queries[:, None]) ** 2).sum(axis=2)
+    np.testing.assert_array_equal(search.finish(search.grid_pass()), d2.argmin(axis=1))
