@@ -31,7 +31,7 @@ PER_CELL_WRAPPED = 4.0
 
 
 #: rows drawn to look for repeated points before a full pass (see ``distinct``)
-SAMPLE = 4096
+SAMPLE = 1024
 
 
 @numba.njit(cache=True, nogil=True)
