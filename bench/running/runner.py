@@ -216,7 +216,8 @@ def _failure_row(key: tuple[str, int], kind: str, reason: str) -> list[dict[str,
 
 #: per failure kind of pcfbench.running.workers: the error's name and what to do about it
 _FAILURES = {
-    "timeout": ("SampleTimeout", "the method hung or is too slow: raise the limit with --timeout SECONDS (0: none)"),
+    "timeout": ("SampleTimeout", "the method hung or is too slow (on Ray the limit covers its scoring too): raise "
+                                 "the limit with --timeout SECONDS (0: none)"),
     "scoring-timeout": ("ScoringTimeout", "the metrics took too long on this forecast (the method had returned it): "
                                           "raise the limit with --scoring-timeout SECONDS (0: none)"),
     "memory": ("SampleMemory", "the worker went over --max-memory GIB (raise it, or 0: no limit)"),
