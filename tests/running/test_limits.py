@@ -64,8 +64,8 @@ def test_a_slow_scoring_is_a_scoring_failure_not_the_methods_timeout():
 
 
 def test_the_methods_limit_does_not_count_the_scoring():
-    # 0.8 s of method and 0.8 s of scoring: each phase within its 1.2 s limit, together over it
-    out = _supervise([(0.8, 0.8)], two_phases, timeout=1.2, scoring_timeout=1.2)
+    # 1.5 s of method and 1.5 s of scoring: each phase within its 2.5 s limit, together over it
+    out = _supervise([(1.5, 1.5)], two_phases, timeout=2.5, scoring_timeout=2.5)
     assert out == ["ok"]
     slow = _supervise([(5.0, 0.0)], two_phases, timeout=0.5, scoring_timeout=30.0)
     assert slow[0][2] == "timeout" and "per-sample time limit of 0.5 s" in slow[0][3]
