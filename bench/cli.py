@@ -22,6 +22,9 @@ from pcfbench.protocol import SAMPLE_POLICIES
 #: ``pcfbench run --timeout``: ten minutes per sample, far above any built-in method's CPU time
 #: per sample (seconds), so that only a hung or runaway method meets it.
 DEFAULT_TIMEOUT_S = 600.0
+#: ``pcfbench run --scoring-timeout``: scoring a sample's forecast, timed apart from the method
+#: (a KITTI-sized sample scores in about a second; docs/performance.md)
+DEFAULT_SCORING_TIMEOUT_S = 120.0
 
 if TYPE_CHECKING:  # pragma: no cover
     from pcfbench.method import MethodSpec
@@ -115,6 +118,40 @@ def executor_options(command):
     return command
 
 
+def limit_options(command):
+    """The per-sample limits besides --timeout: scoring time, memory, forecast size."""
+    from pcfbench.protocol.validate import FORECAST_FLOOR, FORECAST_RATIO
+
+    options = [
+        click.option("--scoring-timeout", type=click.FloatRange(min=0), default=DEFAULT_SCORING_TIMEOUT_S,
+                     show_default=True, metavar="SECONDS",
+                     help="Time limit for scoring one sample's forecast, apart from the method's --timeout; a sample "
+                          "over it is a scoring failure (ScoringTimeout), not the method's timeout (0: no limit)."),
+        click.option("--max-memory", type=click.FloatRange(min=0), default=0.0, show_default=True, metavar="GIB",
+                     help="Per-sample memory limit: a worker process holding more resident memory is stopped and its "
+                          "sample recorded failed (SampleMemory) (0: no limit)."),
+        click.option("--max-forecast-ratio", type=click.FloatRange(min=0), default=FORECAST_RATIO, show_default=True,
+                     metavar="RATIO",
+                     help=f"A forecast sweep with more than RATIO x its ground truth's points (at least "
+                          f"{FORECAST_FLOOR:,}) is refused as the method's failure, before scoring (0: no cap)."),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def _limits(executor: str, scoring_timeout: float, max_memory: float, max_forecast_ratio: float) -> dict:
+    """RunOptions' limit fields from limit_options' values (0: none); the Ray executor times a
+    sample as a whole under --timeout and keeps the default cap, so it refuses the others."""
+    from pcfbench.protocol.validate import FORECAST_RATIO
+
+    if executor == "ray" and (max_memory or max_forecast_ratio != FORECAST_RATIO):
+        raise click.UsageError("--max-memory and --max-forecast-ratio apply to the local executor only; the Ray "
+                               "executor limits a sample by --timeout (docs/cluster.md)")
+    return {"scoring_timeout": scoring_timeout or None, "max_memory_gb": max_memory or None,
+            "forecast_ratio": max_forecast_ratio or None}
+
+
 def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout=None):
     """The Ray executor for ``--executor ray`` (None: the local one); options of the other
     executor are refused rather than ignored."""
@@ -162,11 +199,13 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
 @click.option("--keep-going", is_flag=True,
               help="Exit 0 even when samples failed (their cells are reported incomplete and not ranked either way).")
 @click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
-              help="Per-sample time limit; a sample over it is recorded failed and the run goes on (0: no limit).")
+              help="Per-sample time limit of loading and the method's forecast; a sample over it is recorded failed "
+                   "and the run goes on (0: no limit).")
+@limit_options
 @executor_options
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
-        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, executor, address, shard_samples, cpus_per_task,
-        gpus_per_task):
+        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, scoring_timeout, max_memory,
+        max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
 
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
@@ -183,7 +222,8 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     options = RunOptions(jobs=jobs, force=force, progress=not quiet, threads=threads, allow_train_split=allow_train_split,
-                         executor=ray_executor, timeout=timeout or None, isolate=True)
+                         executor=ray_executor, timeout=timeout or None, isolate=True,
+                         **_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
     failures, failed_cells = _run_cells(cells, store_path, options, plugins)
     if not no_report:
         board = collect(store_path)
@@ -510,37 +550,41 @@ def failures(store, tracebacks, as_json):
 @click.option("--force", is_flag=True, help="Recompute cells that are already complete.")
 @click.option("--store", type=click.Path(file_okay=False), default=None, help="Results store (default: <reports>/store).")
 @click.option("--reports", type=click.Path(file_okay=False), default=None, help="Reports folder (default: ./reports).")
-@click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells; run nothing.")
+@click.option("--dry-run", is_flag=True, help="Check the experiment file and list its cells as they are planned; run nothing.")
+@click.option("--max-cells", type=click.IntRange(min=1), default=None, metavar="N",
+              help="The most cells the grid may have (default: the file's max_cells, else 1000).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 @click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
               help="Per-sample time limit, as for run (0: no limit).")
 @click.option("--keep-going", is_flag=True,
               help="Exit 0 even when samples failed (their cells are incomplete and not in the tables either way).")
+@limit_options
 @executor_options
-def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, quiet, timeout, keep_going, executor, address,
-          shard_samples, cpus_per_task, gpus_per_task):
+def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_cells, quiet, timeout, keep_going,
+          scoring_timeout, max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
     from pcfbench.reporting.labels import cell_label
-    from pcfbench.experiments.sweep import load_experiment, plan, run_sweep
+    from pcfbench.experiments.sweep import count_cells, iter_plan, load_experiment, run_sweep
 
     plugins = get_plugins()
     warn_failed(plugins)
-    exp = load_experiment(experiment, plugins)
+    exp = load_experiment(experiment, plugins, max_cells=max_cells)
     ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
-    if dry_run:
-        cells = plan(exp, limit=limit, plugins=plugins, progress=not quiet)
-        for i, spec in enumerate(cells, 1):
-            click.echo(f"cell {i}/{len(cells)}: {cell_label(spec)} -> {store_path / spec.relpath()}")
+    if dry_run:  # each cell as it is planned
+        n = count_cells(exp, plugins)
+        for i, spec in enumerate(iter_plan(exp, limit=limit, plugins=plugins, progress=not quiet), 1):
+            click.echo(f"cell {i}/{n}: {cell_label(spec)} -> {store_path / spec.relpath()}")
         where = reports_path if (exp.limit if limit is None else limit) is None else config.partial_reports_dir(reports_path)
         click.echo(f"tables: {', '.join(str(where / 'sweeps' / t.stem) + '.{md,csv,tex,html}' for t in exp.tables)}")
         return
     with interrupted_note(store_path, None, 0):
         result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
                            progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor,
-                           timeout=timeout or None, isolate=True)
+                           timeout=timeout or None, isolate=True,
+                           limits=_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
     failed = sum(r.failed for r in result.results)
     for text in result.summaries:
         click.echo(text)

@@ -26,7 +26,7 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import pandas as pd
 
@@ -37,15 +37,19 @@ from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.reporting.labels import cell_label, method_label
 from pcfbench.store.cells import CellSpec, atomic_write_bytes
 
-__all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "load_experiment", "plan", "run_sweep", "ablation_tables"]
+__all__ = ["Experiment", "SweepResult", "TableSpec", "Variant", "ablation_tables", "count_cells", "iter_plan",
+           "load_experiment", "plan", "run_sweep"]
 
 #: top-level keys of an experiment file, and those of its [[methods]] and [[tables]] entries
 EXPERIMENT_KEYS = ("name", "description", "methods", "datasets", "settings", "splits", "policy", "metrics",
-                   "seeds", "train_on", "train_split", "limit", "jobs", "tables")
+                   "seeds", "train_on", "train_split", "limit", "jobs", "max_cells", "tables")
 METHOD_KEYS = ("name", "options", "grid", "variants", "seeds")
 TABLE_KEYS = ("preset", "reference", "stem", "title", "ci")
 #: the reference row of a table when the file names none, if the grid has it
 DEFAULT_REFERENCE = "copy-last"
+#: the most cells a grid may have unless the file (``max_cells``) or ``--max-cells`` raises it:
+#: a typo in a grid (one list too many) is refused at once, before anything is expanded or run
+MAX_CELLS = 1000
 SWEEPS_DIR = "sweeps"
 _STEM = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -94,6 +98,8 @@ class Experiment:
     limit: int | None
     jobs: int
     tables: tuple[TableSpec, ...]
+    #: the cap on the grid's cells this file was checked against
+    max_cells: int = MAX_CELLS
 
 
 class _Reader:
@@ -136,6 +142,29 @@ def _option_text(value: Any, key: str, reader: _Reader) -> str:
     if isinstance(value, str):
         return value
     raise reader.error(key, f"an option value must be a string, number or boolean, got {value!r}")
+
+
+def _count_variants(entry: Any, seeds: Any) -> int:
+    """How many variants a [[methods]] entry makes (grid: the product of its lists' lengths;
+    times its seeds), counted without making them; malformed entries count 1 (and are refused
+    with their own error when they are read)."""
+    if not isinstance(entry, dict):
+        return 1
+    seeds = entry.get("seeds", seeds)
+    n = len(seeds) if isinstance(seeds, list) and seeds else 1
+    if isinstance(entry.get("grid"), dict):
+        for values in entry["grid"].values():
+            n *= max(1, len(values)) if isinstance(values, list) else 1
+    elif isinstance(entry.get("variants"), list):
+        n *= max(1, len(entry["variants"]))
+    return n
+
+
+def _check_size(reader: _Reader, cells: int, cap: int, what: str) -> None:
+    if cells > cap:
+        raise reader.error("max_cells", f"the grid has {cells:,} cells ({what}), over the cap of {cap:,}: check the "
+                                        f"grid's lists, or raise the cap (max_cells = {cells} in the file, or "
+                                        f"--max-cells {cells})")
 
 
 def _variants_of(entry: Any, index: int, seeds: Any, plugins: Plugins, reader: _Reader) -> list[Variant]:
@@ -230,9 +259,13 @@ def _datasets(value: Any, reader: _Reader, plugins: Plugins) -> tuple[tuple[str,
     return tuple(out)
 
 
-def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experiment:
+def load_experiment(path: str | Path, plugins: Plugins | None = None, max_cells: int | None = None) -> Experiment:
     """Read and validate experiment file ``path``; every problem is one error naming the
-    file and the key (``PcfbenchError``, ``UnknownNameError`` with a did-you-mean)."""
+    file and the key (``PcfbenchError``, ``UnknownNameError`` with a did-you-mean).
+
+    A grid of more than ``max_cells`` cells (default: the file's ``max_cells``, else
+    ``MAX_CELLS``) is refused, naming the count: first from the method variants alone, counted
+    before any is made, then from every dataset, split, setting and checkpoint."""
     from pcfbench.reporting import tables as tables_mod
     from pcfbench.plugins import get_setting
     from pcfbench.protocol import SAMPLE_POLICIES, check_compatible
@@ -255,6 +288,13 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
     methods = doc.get("methods")
     if not isinstance(methods, list) or not methods:
         raise reader.error("methods", "expected at least one [[methods]] table (name = \"METHOD\", grid = {...})")
+    if max_cells is None:
+        max_cells = doc.get("max_cells", MAX_CELLS)
+        if not isinstance(max_cells, int) or isinstance(max_cells, bool) or max_cells < 1:
+            raise reader.error("max_cells", f"expected a positive integer (the most cells the grid may have), "
+                                            f"got {max_cells!r}")
+    n_variants = sum(_count_variants(entry, doc.get("seeds")) for entry in methods)
+    _check_size(reader, n_variants, max_cells, f"{n_variants:,} method variants, before datasets and settings")
     variants: list[Variant] = []
     for i, entry in enumerate(methods):
         variants += _variants_of(entry, i, doc.get("seeds"), plugins, reader)
@@ -346,8 +386,20 @@ def load_experiment(path: str | Path, plugins: Plugins | None = None) -> Experim
         if stem in [s.stem for s in specs]:
             raise reader.error(f"{where}.stem", f"{stem!r} is already the stem of another table")
         specs.append(TableSpec(preset, reference, stem, title, ci))
-    return Experiment(path, name, description, tuple(variants), datasets, settings, splits, policy, tuple(metrics),
-                      train_on, train_split, limit, jobs, tuple(specs))
+    exp = Experiment(path, name, description, tuple(variants), datasets, settings, splits, policy, tuple(metrics),
+                     train_on, train_split, limit, jobs, tuple(specs), max_cells)
+    n = count_cells(exp, plugins)
+    _check_size(reader, n, max_cells, f"{len(variants):,} method variants x datasets, splits, settings and checkpoints")
+    return exp
+
+
+def count_cells(exp: Experiment, plugins: Plugins | None = None) -> int:
+    """How many cells :func:`plan` yields for ``exp``, counted without making them."""
+    plugins = plugins or get_plugins()
+    per_data = sum(len(exp.splits or (1,)) * len(exp.settings or plugins.datasets.get(name).default_settings)
+                   for name, _ in exp.datasets)
+    per_variant = sum(len(exp.train_on or (None,)) if _is_trained(v.method.cls) else 1 for v in exp.variants)
+    return per_data * per_variant
 
 
 def _reference(value: Any, variants: list[Variant], key: str, reader: _Reader, plugins: Plugins) -> Variant:
@@ -454,13 +506,19 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
     """The grid's cells: dataset x split x setting x variant, in the file's order. Resolves
     the roots (an embedded dataset prepares its data now), checks every split and that every
     (dataset, split, setting) has samples, before any cell runs."""
+    return list(iter_plan(exp, limit=limit, plugins=plugins, progress=progress))
+
+
+def iter_plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None = None,
+              progress: bool = True) -> Iterator[CellSpec]:
+    """:func:`plan`'s cells one at a time (``pcfbench sweep --dry-run`` prints each as it comes):
+    a dataset's roots, splits and samples are checked when its first cell is due."""
     from pcfbench.plugins import get_setting
     from pcfbench.protocol import SampleBuilder
 
     plugins = plugins or get_plugins()
     reader = _Reader(exp.path)
     limit = limit if limit is not None else exp.limit
-    cells = []
     checkpoints: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for name, root in exp.datasets:
         cls = plugins.datasets.get(name)
@@ -489,20 +547,21 @@ def plan(exp: Experiment, *, limit: int | None = None, plugins: Plugins | None =
             for v in exp.variants:
                 m = v.method
                 for ck in checkpoints.setdefault(v.key, _checkpoints(exp, v, plugins, progress)):
-                    cells.append(CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, policy,
-                                          limit, exp.metrics, **ck))
-    return cells
+                    yield CellSpec(m.name, dict(m.raw), m.options_hash, name, root, split, setting, policy, limit,
+                                   exp.metrics, **ck)
 
 
 def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None = None, jobs: int | None = None,
               threads: int | None = None, force: bool = False, progress: bool = True,
               plugins: Plugins | None = None, echo: Callable[[str], None] = print, executor: Any = None,
-              timeout: float | None = None, isolate: bool | None = None) -> SweepResult:
+              timeout: float | None = None, isolate: bool | None = None,
+              limits: dict[str, Any] | None = None) -> SweepResult:
     """Run (or resume) every cell of ``exp`` through ``run_cell``, then write its ablation
     tables to ``reports/sweeps/``. Complete cells are reused without calling the method;
     ``force`` recomputes them. ``limit``/``jobs`` override the file's. ``executor``: run_cell's
     (``pcfbench.running.ray_executor.RayExecutor``; the file's ``jobs`` then does not apply).
-    ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes."""
+    ``timeout``/``isolate``: run_cell's per-sample time limit and worker processes; ``limits``:
+    RunOptions' other limits (``scoring_timeout``, ``max_memory_gb``, ``forecast_ratio``)."""
     from tqdm import tqdm
 
     from pcfbench.running.runner import RunOptions, _progress_disabled, run_cell
@@ -518,7 +577,7 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
             line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             tqdm.write(line) if not bar.disable else echo(line)
             options = RunOptions(jobs=jobs, force=force, progress=progress, threads=threads, executor=executor,
-                                 progress_label=line, timeout=timeout, isolate=isolate)
+                                 progress_label=line, timeout=timeout, isolate=isolate, **(limits or {}))
             r = run_cell(spec, store, options, plugins=plugins)
             results.append(r)
             done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \

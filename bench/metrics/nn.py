@@ -5,6 +5,13 @@ cKDTree and open3d's searches: docs/performance.md, tests/benchmarks/test_bench_
 Distances are recomputed in float64 from the returned indices (one numba pass), so they are
 exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
 angle-space searches use the exact bucket grid of pcfbench.nn2d (ties to the lowest index).
+
+Both searches index each distinct point once (``distinct``): a forecast that puts all its
+points at one spot (or many on one ray, for the angle spaces) would otherwise fill one leaf or
+one grid cell that every query scans, a search quadratic in the point count. Equal points are
+equally near to every query, so the answers are unchanged: the first of each set of equal
+points stands for the set, kept in index order, so the angle searches' ties still go to the
+lowest index. Inputs without repeated points are indexed as before.
 """
 
 from __future__ import annotations
@@ -23,14 +30,94 @@ PER_CELL_4DOCC = 2.0
 PER_CELL_WRAPPED = 4.0
 
 
+#: rows drawn to look for repeated points before a full pass (see ``distinct``)
+SAMPLE = 1024
+
+
+@numba.njit(cache=True, nogil=True)
+def _sets(points: np.ndarray, bits: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, free), each (U,) int64: the first row of each set of equal rows of ``points``
+    (increasing), and the first row of each set that ``mask`` (N,) bool leaves, -1 where it
+    masks the whole set (an empty ``mask``: no mask, ``free`` is empty).
+
+    One pass over a hash table keyed by the rows' bit patterns ``bits`` (of ``points + 0.0``,
+    so that -0.0 and 0.0 agree); rows are compared with ``==`` (a row holding NaN equals no other)."""
+    n, d = points.shape
+    masked = mask.shape[0] > 0
+    size = 16
+    while size < 2 * n:
+        size *= 2
+    table = np.full(size, -1, np.int32)  # a set's number; 4 bytes a slot keep the table in cache
+    first = np.empty(n, np.int64)
+    free = np.full(n if masked else 0, -1, np.int64)
+    u = 0
+    for i in range(n):
+        h = np.uint64(0x9E3779B97F4A7C15)
+        for c in range(d):
+            h = (h ^ np.uint64(bits[i, c])) * np.uint64(0xBF58476D1CE4E5B9)
+            h ^= h >> np.uint64(31)
+        s = np.int64(h & np.uint64(size - 1))
+        while True:
+            g = table[s]
+            if g < 0:
+                g = u
+                table[s] = g
+                first[g] = i
+                u += 1
+                break
+            j = first[g]
+            same = True
+            for c in range(d):
+                if points[i, c] != points[j, c]:
+                    same = False
+                    break
+            if same:
+                break
+            s = (s + 1) & (size - 1)
+        if masked and not mask[i] and free[g] < 0:
+            free[g] = i
+    return first[:u], free[:u]
+
+
+def _first_of_sets(points: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``_sets`` of (N, D) float64 C-ordered ``points``."""
+    no_mask = np.zeros(0, dtype=bool)
+    return _sets(points, (points + 0.0).view(np.int64), no_mask if mask is None else mask)
+
+
+def distinct(points: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray | None:
+    """The first of each set of equal rows of (N, D) float64 ``points`` (increasing indices), or
+    None when no row repeats another (the common case: the caller indexes them as they are).
+
+    Above ``4 * SAMPLE`` rows, ``SAMPLE`` rows drawn at random (one from each of ``SAMPLE``
+    equal blocks) are checked first and the full pass
+    (about 2 ms on 120k rows) runs only when two of them are equal. A set of equal rows large
+    enough to slow a search (thousands) is then all but sure to be drawn twice; one that is missed
+    (or drawn on a normal input) changes the time, never an answer: the searches are exact either
+    way. ``rng``: the draw's generator (default: a fresh one, so no input can be shaped to avoid it).
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    n = points.shape[0]
+    if n > 4 * SAMPLE:
+        rng = rng if rng is not None else np.random.default_rng()
+        block = n // SAMPLE
+        rows = points[np.arange(SAMPLE) * block + rng.integers(0, block, SAMPLE)]
+        if _first_of_sets(rows)[0].shape[0] == rows.shape[0]:
+            return None
+    first = _first_of_sets(points)[0]
+    return None if first.shape[0] == n else first
+
+
 class Index:
-    """A k-d tree over (N, D) float64 points (N >= 1)."""
+    """A k-d tree over (N, D) float64 points (N >= 1); repeated points are indexed once."""
 
     def __init__(self, points: np.ndarray) -> None:
         self.points = np.ascontiguousarray(points, dtype=np.float64)
         if self.points.shape[0] == 0:
             raise ValueError("cannot index an empty point set")
-        self.tree = KDTree(self.points, leafsize=16)
+        self._sets = distinct(self.points)
+        indexed = self.points if self._sets is None else self.points[self._sets]
+        self.tree = KDTree(indexed, leafsize=16)
 
     def query(self, queries: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(squared distance float64, index int64) of each query's nearest indexed point.
@@ -42,8 +129,14 @@ class Index:
             return np.zeros(0), np.zeros(0, dtype=np.int64)
         if mask is None:
             _, idx = self.tree.query(q, k=1)
-        else:
+            if self._sets is not None:
+                idx = self._sets[idx]
+        elif self._sets is None:
             _, idx = self.tree.query(q, k=1, mask=np.ascontiguousarray(mask, dtype=bool))
+        else:  # a set is returned through its first member that is not masked
+            member = _first_of_sets(self.points, np.ascontiguousarray(mask, dtype=bool))[1]
+            _, idx = self.tree.query(q, k=1, mask=member < 0)
+            idx = member[idx]
         if q.shape[1] in (2, 3):
             return _sq_dist_to(q, self.points, idx)
         idx = idx.astype(np.int64)
@@ -111,9 +204,28 @@ def angles_az_el(rel: np.ndarray) -> np.ndarray:
     )
 
 
+#: a fine-grid cell holding more points than this sends a search to the k-d tree (``_Search2D``)
+DENSE_CELL = 256
+#: ... as do more than this share of the queries outside the points' box
+OUTSIDE_SHARE = 0.25
+#: ... when there are at least this many (distinct) points; fewer are searched fast either way
+TREE_MIN_POINTS = 1024
+#: nearest candidates the k-d tree returns per query
+CANDIDATES = 8
+
+
 class _Search2D:
     """One exact 2D nearest-neighbour search in pieces (grid pass over any slice of the queries,
-    then the far queries), so that threads can share the grid pass out (see nearest_angles)."""
+    then the far queries), so that threads can share the grid pass out (see nearest_angles).
+
+    The bucket grid (pcfbench.nn2d) is fast when its cells hold a few points each and the
+    queries lie among the points: the points of one sweep against another's. Points packed in
+    a few cells (a forecast whose points sit around one spot) or queries mostly outside the
+    points' box (a compact cluster seen from the whole sweep) make it scan most points per
+    query; those searches take ``CANDIDATES`` nearest from a k-d tree (the periodic axis as three
+    copies of the points) and keep the answer where it is provably the grid's: the exact distance
+    of nn2d's formula, ties to the lowest index, and the last candidate's tree distance clearly
+    beyond the best (so no point left out can tie). The few queries left go to the grid."""
 
     def __init__(self, data: np.ndarray, queries: np.ndarray, period: float, per_cell: float = PER_CELL) -> None:
         data = np.asarray(data, dtype=np.float64)
@@ -121,15 +233,59 @@ class _Search2D:
             raise ValueError("nearest_2d: no data points to search (an empty prediction has no nearest point)")
         self.qx = np.ascontiguousarray(queries[:, 0], dtype=np.float64)
         self.qy = np.ascontiguousarray(queries[:, 1], dtype=np.float64)
-        self.grid = NN2D(data, period, per_cell)
+        self.first = distinct(data)  # None, or the grid holds data[first]
+        self.data = np.ascontiguousarray(data if self.first is None else data[self.first])
+        self.period = float(period)
+        self.grid = NN2D(self.data, period, per_cell)
+        self.crowded = self._crowded()
+
+    def _crowded(self) -> bool:
+        """Whether the grid would scan most points per query (see the class docstring)."""
+        n = self.data.shape[0]
+        if n < TREE_MIN_POINTS or self.qx.shape[0] == 0:
+            return False
+        if int(np.diff(self.grid.fine[0]).max()) > DENSE_CELL:
+            return True
+        x0, x1, y0, y1, _ = self.grid._box  # the points' box
+        qx, qy = self.qx[::16], self.qy[::16]  # a share: every 16th query tells it well enough
+        outside = (qy < y0) | (qy > y1)
+        if self.period == 0.0:
+            outside |= (qx < x0) | (qx > x1)
+        return int(np.count_nonzero(outside)) > OUTSIDE_SHARE * qx.shape[0]
 
     def grid_pass(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Nearest data index of queries[start:stop]; -1 where the grid's first pass leaves it."""
+        """Nearest grid index of queries[start:stop]; -1 where the grid's first pass leaves it
+        (every query of a crowded search: ``finish`` answers them)."""
+        if self.crowded:
+            return np.full(self.qx[start:stop].shape[0], -1, np.int64)
         return self.grid.near((self.qx[start:stop], self.qy[start:stop]))
 
     def finish(self, idx: np.ndarray) -> np.ndarray:
-        """Answer the queries the grid pass left at -1 (in place; returns ``idx``)."""
-        return self.grid.settle((self.qx, self.qy), idx)
+        """Answer the queries the grid pass left at -1 (``idx``: the grid passes' answers, in
+        place) and return the nearest data index of every query."""
+        if self.crowded:
+            idx[:] = self._tree_pass()
+        idx = self.grid.settle((self.qx, self.qy), idx)
+        return idx if self.first is None else self.first[idx]
+
+    def _tree_pass(self) -> np.ndarray:
+        """Nearest grid index per query from the k-d tree's candidates; -1 where not sure."""
+        d, p = self.data, self.period
+        ext = d if p == 0.0 else np.concatenate([d, d + (p, 0.0), d - (p, 0.0)])
+        k = min(CANDIDATES, ext.shape[0])
+        tree_d2, cand = KDTree(ext, leafsize=16).query(np.stack([self.qx, self.qy], 1), k=k, sqr_dists=True)
+        tree_d2, cand = tree_d2.reshape(-1, k), cand.reshape(-1, k).astype(np.int64) % d.shape[0]
+        dx = np.abs(d[cand, 0] - self.qx[:, None])
+        if p > 0.0:
+            dx = np.minimum(dx, p - dx)
+        dy = d[cand, 1] - self.qy[:, None]
+        d2 = dx * dx + dy * dy  # nn2d's formula, term for term
+        best = d2.min(axis=1)
+        out = np.where(d2 == best[:, None], cand, d.shape[0]).min(axis=1)
+        if k < ext.shape[0]:  # a point beyond the candidates is farther for sure, or the grid decides
+            sure = tree_d2[:, -1] > best * (1.0 + 1e-9) + 1e-300
+            out[~sure] = -1
+        return out
 
 
 def nearest_2d(data: np.ndarray, queries: np.ndarray, period: float = 0.0, per_cell: float = PER_CELL) -> np.ndarray:

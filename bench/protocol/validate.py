@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-from pcfbench.data import FLOAT32_MAX, Forecast, Sample
+from pcfbench.data import FLOAT32_MAX, Forecast, GroundTruth, Sample
 from pcfbench.datacheck import check_points, check_rigid, validate_sweep
 from pcfbench.errors import DataError, ForecastError
 
 #: the sweep checks live in pcfbench.datacheck (the dataset layer reads them too); named here
 #: as well, where the adapters and plugins have imported them from
-__all__ = ["GAP_PERIODS", "RATE_TOLERANCE", "check_rigid", "check_sweep_times", "validate_forecast", "validate_sweep"]
+__all__ = ["FORECAST_FLOOR", "FORECAST_RATIO", "GAP_PERIODS", "RATE_TOLERANCE", "check_forecast_size", "check_rigid",
+           "check_sweep_times", "forecast_cap", "validate_forecast", "validate_sweep"]
 
 
 def validate_forecast(sample: Sample, forecast: Forecast) -> Forecast:
@@ -51,6 +52,35 @@ def validate_forecast(sample: Sample, forecast: Forecast) -> Forecast:
             checked.append(d.astype(np.float32, copy=False))
         depths = tuple(checked)
     return Forecast(points_ref=points, depths=depths)
+
+
+#: the most points a forecast sweep may hold, as a multiple of its ground truth's point count
+#: (``pcfbench run --max-forecast-ratio``): scoring time and memory grow with the forecast
+FORECAST_RATIO = 8.0
+#: ... but never fewer than this many points, so a sparse ground-truth sweep leaves room
+FORECAST_FLOOR = 200_000
+
+
+def forecast_cap(n_gt: int, ratio: float = FORECAST_RATIO) -> int:
+    """The most points a forecast sweep whose ground truth has ``n_gt`` points may hold."""
+    return max(int(ratio * n_gt), FORECAST_FLOOR)
+
+
+def check_forecast_size(sample: Sample, truth: GroundTruth, forecast: Forecast, method: str,
+                        ratio: float | None = FORECAST_RATIO) -> None:
+    """Refuse (:class:`~pcfbench.errors.ForecastError`) a point forecast with a sweep over
+    :func:`forecast_cap` points, naming the method, sample, sweep, count and cap, before it
+    is scored. ``ratio`` None: no cap. Depth forecasts have one depth per query ray already."""
+    if ratio is None or forecast.points_ref is None:
+        return
+    for k, (pred, gt) in enumerate(zip(forecast.points_ref, truth.future_points_ref)):
+        cap = forecast_cap(int(gt.shape[0]), ratio)
+        if pred.shape[0] > cap:
+            raise ForecastError(
+                f"method {method}, sample {sample.sample_id}, future sweep {k}: the forecast has {pred.shape[0]:,} "
+                f"points, over the cap of {cap:,} ({ratio:g} x the ground truth's {gt.shape[0]:,} points, at least "
+                f"{FORECAST_FLOOR:,}); scoring time grows with it. Raise the cap with --max-forecast-ratio "
+                "(0: no cap)")
 
 
 #: A gap between consecutive sweeps longer than this many nominal periods means at least one

@@ -16,6 +16,7 @@ from tqdm import tqdm
 import pcfbench
 from pcfbench import config
 from pcfbench.store import ranges
+from pcfbench.running import workers
 from pcfbench.errors import DataError, PcfbenchError
 from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
@@ -27,7 +28,7 @@ from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash, sample_id
 from pcfbench.dataset import FINGERPRINT_KIND, options_identity
 from pcfbench.store.cells import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
-from pcfbench.protocol.validate import validate_forecast
+from pcfbench.protocol.validate import FORECAST_RATIO, check_forecast_size, validate_forecast
 
 #: Flush a chunk after this many samples or seconds, whichever comes first.
 CHUNK_SAMPLES = int(os.environ.get("PCFBENCH_CHUNK_SAMPLES", 64))
@@ -51,6 +52,8 @@ class Resolved:
     metrics: list[Metric]
     #: the thread budget of the method and the metrics (None: the process's); set by ``bind``
     execution: ExecutionContext | None = None
+    #: the forecast size cap, a multiple of the ground truth's points (``check_forecast_size``; None: none)
+    forecast_ratio: float | None = FORECAST_RATIO
 
     def bind(self, execution: ExecutionContext) -> None:
         """Give the method and the metrics ``execution``'s thread budget."""
@@ -111,7 +114,9 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
     try:
         # the method gets a read-only copy; the forecast is checked and scored against `sample`
         forecast = validate_forecast(sample, res.method.forecast(sample.for_method()))
+        check_forecast_size(sample, truth, forecast, res.method.name, res.forecast_ratio)
         t2 = time.perf_counter()
+        workers.phase(workers.SCORING)  # in a worker: the scoring limit applies from here, not the method's
         rows = score_sample(sample, truth, forecast, res.metrics, res.execution, keep_bins if record else None,
                             protocol=res.builder.protocol)
     except DataError:
@@ -182,13 +187,15 @@ class CellPlugins:
         self.settings = _Chosen("setting", settings)
 
 
-def _worker_init(spec: CellSpec, execution: ExecutionContext, plugins: CellPlugins | None = None) -> None:
+def _worker_init(spec: CellSpec, execution: ExecutionContext, plugins: CellPlugins | None = None,
+                 forecast_ratio: float | None = FORECAST_RATIO) -> None:
     """Pin this worker process to its share of the threads (before resolving, so that what
     the method imports starts within it), then resolve the cell and hand the share on."""
     global _WORKER
     apply_execution(execution)
     _WORKER = resolve(spec, plugins)  # type: ignore[arg-type]
     _WORKER.bind(execution)
+    _WORKER.forecast_ratio = forecast_ratio
 
 
 def _worker_task(key: tuple[str, int]) -> list[dict[str, Any]]:
@@ -197,14 +204,25 @@ def _worker_task(key: tuple[str, int]) -> list[dict[str, Any]]:
 
 
 def _failure_row(key: tuple[str, int], kind: str, reason: str) -> list[dict[str, Any]]:
-    """The one failure row of a sample whose worker crashed or ran out of time."""
+    """The one failure row of a sample whose worker crashed, ran out of time (the method's, or
+    the scoring's: ``kind`` "timeout" or "scoring-timeout") or went over the memory limit."""
     sequence, ref_index = key
     sid = sample_id(sequence, ref_index)
-    error = ("SampleTimeout" if kind == "timeout" else "SampleCrash") + f": sample {sid}: {reason}"
-    note = ("the method (or a metric) hung or is too slow: raise the limit with --timeout SECONDS (0: none)"
-            if kind == "timeout" else "a native crash, os._exit() or the out-of-memory killer; no Python traceback")
+    name, note = _FAILURES[kind]
+    error = f"{name}: sample {sid}: {reason}"
     return [{"sample_id": sid, "sequence": sequence, "ref_index": ref_index, "step": -1, "status": "failed",
              "error": error, "traceback": f"{error}\n({note})", "t_load": float("nan")}]
+
+
+#: per failure kind of pcfbench.running.workers: the error's name and what to do about it
+_FAILURES = {
+    "timeout": ("SampleTimeout", "the method hung or is too slow (on Ray the limit covers its scoring too): raise "
+                                 "the limit with --timeout SECONDS (0: none)"),
+    "scoring-timeout": ("ScoringTimeout", "the metrics took too long on this forecast (the method had returned it): "
+                                          "raise the limit with --scoring-timeout SECONDS (0: none)"),
+    "memory": ("SampleMemory", "the worker went over --max-memory GIB (raise it, or 0: no limit)"),
+    "crash": ("SampleCrash", "a native crash, os._exit() or the out-of-memory killer; no Python traceback"),
+}
 
 
 @dataclass
@@ -235,8 +253,12 @@ class RunOptions:
 
     ``isolate`` (default: when a ``timeout`` is given) runs even a serial cell's samples in a
     worker process; a pool (``jobs`` > 1) always does. There a sample whose worker crashes (a
-    native crash, ``os._exit``) or runs past ``timeout`` seconds is recorded failed and the
-    cell goes on (:mod:`pcfbench.running.workers`). Unisolated, the method runs in this process.
+    native crash, ``os._exit``), runs past ``timeout`` seconds (loading and the method's
+    forecast) or ``scoring_timeout`` seconds (scoring the forecast, timed on its own), or holds
+    more than ``max_memory_gb`` GiB, is recorded failed and the cell goes on
+    (:mod:`pcfbench.running.workers`). Unisolated, the method runs in this process, unlimited.
+    ``forecast_ratio``: the forecast size cap, in either case
+    (:func:`pcfbench.protocol.validate.check_forecast_size`; None: none).
 
     ``wait``: a cell another process is computing (it holds the cell's lock) is waited for,
     else refused at once with :class:`pcfbench.store.cells.CellLocked`. ``progress_label``:
@@ -253,11 +275,17 @@ class RunOptions:
     isolate: bool | None = None
     wait: bool = True
     progress_label: str | None = None
+    scoring_timeout: float | None = None
+    max_memory_gb: float | None = None
+    forecast_ratio: float | None = FORECAST_RATIO
 
     def __post_init__(self) -> None:
-        t = self.timeout
-        if t is not None and not (isinstance(t, (int, float)) and not isinstance(t, bool) and t > 0 and t == t):
-            raise PcfbenchError(f"the per-sample time limit must be a number of seconds > 0, not {t!r}")
+        for what, t, unit in (("per-sample time limit", self.timeout, "a number of seconds"),
+                              ("scoring time limit", self.scoring_timeout, "a number of seconds"),
+                              ("per-sample memory limit", self.max_memory_gb, "a number of GiB"),
+                              ("forecast size cap", self.forecast_ratio, "a multiple of the ground truth's points")):
+            if t is not None and not (isinstance(t, (int, float)) and not isinstance(t, bool) and 0 < t < float("inf")):
+                raise PcfbenchError(f"the {what} must be {unit} > 0 (or None: none), not {t!r}")
 
     @property
     def isolated(self) -> bool:
@@ -463,7 +491,7 @@ def _compute(res: Resolved, spec: CellSpec, cell: Cell, keys: list[tuple[str, in
         if options.executor is not None:  # its tasks write the rows, a shard at a time; nothing to buffer here
             return options.executor.run(spec, cell, keys, done, bar.update)
         for rows in _execute(res, spec, todo, options.workers(len(todo)), options.execution(), options.timeout,
-                             options.isolated, plugins):
+                             options.isolated, plugins, options):
             buffer.extend(rows)
             buffered_samples += 1
             failed += rows[0]["status"] == "failed"
@@ -537,29 +565,34 @@ def _median_timings(df) -> dict[str, float]:
         return out
     per_sample = df.drop_duplicates("sample_id")
     for col in ("t_load", "t_method", "t_metrics"):
-        if col in per_sample:
-            out[f"median_{col}"] = float(np.nanmedian(per_sample[col].to_numpy(dtype=float)))
+        values = per_sample[col].to_numpy(dtype=float) if col in per_sample else np.zeros(0)
+        if np.isfinite(values).any():  # a cell whose samples all failed in their workers has no timings
+            out[f"median_{col}"] = float(np.nanmedian(values))
     return out
 
 
 def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: int,
              execution: ExecutionContext, timeout: float | None = None, isolate: bool = False,
-             plugins: Plugins | None = None) -> Iterable[list[dict[str, Any]]]:
+             plugins: Plugins | None = None, options: RunOptions | None = None) -> Iterable[list[dict[str, Any]]]:
     """Yield each sample's rows: in this process within ``execution`` (``isolate`` false,
     serial), else from ``jobs`` supervised worker processes (``pcfbench.running.workers``), each
     pinned to its share of ``execution``, where a sample whose worker crashes or runs past
-    ``timeout`` seconds is one failure row."""
+    ``timeout`` seconds (or ``options``' scoring time or memory limit) is one failure row."""
+    options = options or RunOptions()
     if not isolate and (jobs <= 1 or len(keys) < 2):
         with applied(execution):
             res.bind(execution)
+            res.forecast_ratio = options.forecast_ratio
             for key in keys:
                 yield process_sample(res, key)
         return
     from pcfbench.running.workers import run_supervised
 
     jobs = max(1, min(jobs, len(keys)))
-    yield from run_supervised(keys, jobs, _worker_init, (spec, execution.share(jobs), CellPlugins(spec, plugins or get_plugins())),
-                              _worker_task, _failure_row, timeout)
+    init_args = (spec, execution.share(jobs), CellPlugins(spec, plugins or get_plugins()), options.forecast_ratio)
+    memory = None if options.max_memory_gb is None else int(options.max_memory_gb * 2**30)
+    yield from run_supervised(keys, jobs, _worker_init, init_args, _worker_task, _failure_row, timeout,
+                              options.scoring_timeout, memory)
 
 
 def default_metrics(plugins: Plugins) -> tuple[str, ...]:

@@ -3,9 +3,14 @@ and no orphans.
 
 A method runs a sample in a worker process, never in the driver, so that what it does to its
 process cannot take the run down: a worker that dies (a native crash, ``os._exit``, the
-kernel's out-of-memory killer) or exceeds the per-sample time limit is killed and replaced,
-and only the sample it held is recorded failed (:func:`failure_row`). The driver hands out one
-sample per message, so it always knows which sample a dead worker held.
+kernel's out-of-memory killer), exceeds a time limit or the memory limit is killed and
+replaced, and only the sample it held is recorded failed (``on_failure``). The driver hands
+out one sample per message, so it always knows which sample a dead worker held.
+
+A sample has two timed phases: the task's own work (loading and the method's forecast), under
+``timeout``, and from the task's :func:`phase` ``"scoring"`` message on, the scoring, under
+``scoring_timeout``; each phase's clock starts when it does, and a sample over the scoring
+limit is a scoring failure, not the method's timeout.
 
 Workers die with the driver, even one SIGKILLed: they start from the ``forkserver``, which
 exits when the driver does, and each worker asks the kernel for SIGKILL when its parent (the
@@ -35,6 +40,29 @@ STOP_GRACE_S = 5.0
 #: seconds a timed-out worker gets to exit on SIGTERM before it is killed (the run waits meanwhile)
 TERM_GRACE_S = 1.0
 _PR_SET_PDEATHSIG = 1
+#: seconds between two looks at the busy workers' resident memory (with a memory limit)
+MEMORY_POLL_S = 0.25
+#: the phase a task reports when the method's work is done and its scoring begins
+SCORING = "scoring"
+
+#: this process's pipe to the driver, in a worker (None elsewhere): :func:`phase` writes to it
+_CONN: Connection | None = None
+
+
+def phase(name: str) -> None:
+    """Tell the driver that the task in this worker entered phase ``name`` (``SCORING``): its
+    clock restarts under that phase's limit. Outside a worker process it does nothing."""
+    if _CONN is not None:
+        _CONN.send(("phase", name))
+
+
+def resident_bytes(pid: int) -> int | None:
+    """Resident memory of process ``pid`` in bytes (Linux ``/proc``), None when unknown."""
+    try:
+        with open(f"/proc/{pid}/statm", "rb") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def _context() -> multiprocessing.context.BaseContext:
@@ -89,6 +117,8 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
     # grace, a crash) leaves none behind.
     multiprocessing.set_start_method("spawn", force=True)
     _die_with_driver(conn)
+    global _CONN
+    _CONN = conn
     try:
         init(*init_args)
     except SystemExit:  # told to stop while setting up
@@ -146,7 +176,8 @@ class _Worker:
         self.stopping = False  # told to exit (None sent)
         self.exiting = False  # sent an error and exits on its own
         self.key: Any = None
-        self.started = 0.0
+        self.started = 0.0  # when the key's current phase began (time.monotonic)
+        self.phase: str | None = None  # None: the task's own work; SCORING once it says so
 
     def kill(self) -> None:
         if self.process.is_alive():
@@ -163,14 +194,18 @@ def run_supervised(
     task: Callable[[Any], Any],
     on_failure: Callable[[Any, str, str], Any],
     timeout: float | None = None,
+    scoring_timeout: float | None = None,
+    max_memory: int | None = None,
 ) -> Iterator[Any]:
     """Yield ``task(key)`` for every key (in completion order) from ``jobs`` worker processes.
 
-    Each worker runs ``init(*init_args)`` once, then one key at a time. A key whose worker dies
-    or runs past ``timeout`` seconds yields ``on_failure(key, kind, message)`` (``kind``:
-    ``"crash"`` or ``"timeout"``) instead, and a new worker takes over the remaining keys. An
-    exception raised by ``init`` or ``task`` in a worker is raised here (the run stops), as
-    is a worker dying during ``init`` (it would die again in every replacement).
+    Each worker runs ``init(*init_args)`` once, then one key at a time. A key whose worker dies,
+    runs past ``timeout`` seconds before it reports :func:`phase` ``SCORING`` or past
+    ``scoring_timeout`` seconds after, or whose process holds more than ``max_memory`` bytes of
+    resident memory, yields ``on_failure(key, kind, message)`` (``kind``: ``"crash"``,
+    ``"timeout"``, ``"scoring-timeout"`` or ``"memory"``) instead, and a new worker takes over
+    the remaining keys. An exception raised by ``init`` or ``task`` in a worker is raised here
+    (the run stops), as is a worker dying during ``init`` (it would die again in every replacement).
 
     ``init``, ``init_args`` and ``task`` are sent to the workers (picklable, importable).
     """
@@ -188,15 +223,16 @@ def run_supervised(
             for w in workers:
                 if w.ready and w.key is None and not w.stopping:
                     if todo:
-                        w.key, w.started = todo.popleft(), time.monotonic()
+                        w.key, w.started, w.phase = todo.popleft(), time.monotonic(), None
                         w.conn.send(w.key)
                     else:  # nothing left for it (also one that got ready after the others took every key)
                         w.stopping = True
                         w.conn.send(None)
             busy = [w for w in workers if w.key is not None]
-            wait_s = None
-            if timeout is not None and busy:
-                wait_s = max(0.0, min(w.started for w in busy) + timeout - time.monotonic())
+            ends = [w.started + limit for w in busy if (limit := _limit(w, timeout, scoring_timeout)) is not None]
+            wait_s = max(0.0, min(ends) - time.monotonic()) if ends else None
+            if max_memory is not None and busy:
+                wait_s = MEMORY_POLL_S if wait_s is None else min(wait_s, MEMORY_POLL_S)
             ready = set(wait_ready([w.conn for w in workers] + [w.process.sentinel for w in workers], wait_s))
             for w in list(workers):
                 message = None
@@ -212,6 +248,8 @@ def run_supervised(
                         raise value
                     if kind == "ready":
                         w.ready = True
+                    elif kind == "phase":
+                        w.phase, w.started = value, time.monotonic()
                     else:
                         w.key = None
                         yield value
@@ -229,16 +267,36 @@ def run_supervised(
                     if todo:
                         spawn()
                     continue
-                if timeout is not None and w.key is not None and time.monotonic() - w.started > timeout:
+                if w.key is None:
+                    continue
+                limit = _limit(w, timeout, scoring_timeout)
+                failure = None
+                if limit is not None and time.monotonic() - w.started > limit:
+                    failure = (("timeout", f"it ran longer than the per-sample time limit of {limit:g} s")
+                               if w.phase is None else
+                               ("scoring-timeout", f"scoring its forecast took longer than the scoring time limit of "
+                                                   f"{limit:g} s (the method's forecast was done)"))
+                elif max_memory is not None:
+                    used = resident_bytes(w.process.pid)
+                    if used is not None and used > max_memory:
+                        failure = ("memory", f"its worker process held {used / 2**30:.2f} GiB of memory, over the "
+                                             f"per-sample memory limit of {max_memory / 2**30:g} GiB"
+                                             + (" (while scoring)" if w.phase == SCORING else ""))
+                if failure is not None:
                     workers.remove(w)
                     w.process.terminate()  # a sample hung in Python exits through its finalizers (_stop)
                     w.process.join(TERM_GRACE_S)
                     w.kill()
-                    yield on_failure(w.key, "timeout", f"it ran longer than the per-sample time limit of {timeout:g} s")
+                    yield on_failure(w.key, *failure)
                     if todo:
                         spawn()
     finally:
         _stop(workers)
+
+
+def _limit(w: _Worker, timeout: float | None, scoring_timeout: float | None) -> float | None:
+    """The time limit of the phase worker ``w``'s key is in (None: none)."""
+    return timeout if w.phase is None else scoring_timeout
 
 
 def _stop(workers: list[_Worker]) -> None:

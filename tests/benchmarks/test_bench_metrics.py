@@ -13,8 +13,13 @@
     P against all of G, one round, and is scaled by N_P / CDIST_ROWS: brute force costs exactly
     the same per row, and the full pair would take minutes. Small inputs run it whole.
 
-``test_ratios`` (last) prints suite / nn_pykdtree and cdist / suite from the medians of this run
-and, at full size, asserts the bars: suite <= 2x (b), cdist >= 100x suite.
+(d) ``suite_one_spot`` / ``suite_repeated``: the suite on degenerate forecasts of the same size, every
+    point at one spot, or each of 1% of the points repeated 100 times (a forecast no method
+    should make; the searches index each distinct point once, pcfbench.metrics.nn).
+
+``test_ratios`` (last) prints suite / nn_pykdtree, cdist / suite and each degenerate suite / suite
+from the medians of this run and, at full size, asserts the bars: suite <= 2x (b), cdist >= 100x
+suite, one spot <= 5x suite (it was over 1000x before the searches indexed distinct points).
 Without PCFBENCH_BENCH_FULL the pair is 16 x 360 rays, so the default test run stays fast.
 """
 
@@ -73,6 +78,17 @@ def test_suite(benchmark, pair):
     _record("suite", benchmark)
     assert out["chamfer"] > 0 and 0 < out["chamfer_nf"] <= out["chamfer"] * 10
     assert 0 < out["l1_mean"] < 10 and np.isnan(out["l1_ray"])
+    benchmark.extra_info.update(n_gt=len(gt), n_pred=len(pred))
+
+
+@pytest.mark.parametrize("layout", ["one_spot", "repeated"])
+def test_suite_degenerate(benchmark, pair, layout):
+    gt, pred, query = pair
+    pred = np.tile(pred[:1], (len(pred), 1)) if layout == "one_spot" else np.repeat(pred[: len(pred) // 100], 100, axis=0)
+    metrics = _suite()
+    out = benchmark(lambda: {m.name: m(SweepContext(gt, query, pred, None)) for m in metrics})
+    _record(f"suite_{layout}", benchmark)
+    assert out["chamfer"] > 0 and np.isfinite(out["l1_mean"])
     benchmark.extra_info.update(n_gt=len(gt), n_pred=len(pred))
 
 
@@ -162,7 +178,12 @@ def test_ratios():
     for k in ("nn_ckdtree", "nn_open3d"):
         if k in TIMES:
             lines.append(f"{k} / nn_pykdtree = {TIMES[k] / TIMES['nn_pykdtree']:.2f}x")
+    for k in ("suite_one_spot", "suite_repeated"):
+        if k in TIMES:
+            lines.append(f"{k} / suite = {TIMES[k] / TIMES['suite']:.2f}x")
     print("\n" + "\n".join(lines))
     if FULL:
         assert suite_vs_nn <= 2.0, lines
         assert cdist_vs_suite >= 100.0, lines
+        if "suite_one_spot" in TIMES:
+            assert TIMES["suite_one_spot"] <= 5.0 * TIMES["suite"], lines
