@@ -32,7 +32,7 @@ STYLE = tables.HTML_STYLE + (
     ".pcf thead th[aria-sort=ascending]::after{content:' \\25B2'}"
     ".pcf thead th[aria-sort=descending]::after{content:' \\25BC'}"
     ".pcf tbody tr:hover td{background:#fafae8}.pcf td a{text-decoration:none;color:#36c;font-size:80%}"
-    "figure{margin:0 0 1.5em 0}figure img{max-width:100%;border:1px solid #ddd}"
+    "figure{margin:0 0 1.5em 0}figure img{max-width:100%;max-height:90vh;border:1px solid #ddd}"
     "figcaption{font-size:90%;color:#444}table.prov{font-size:80%;border-collapse:collapse}"
     "table.prov td,table.prov th{border-bottom:1px solid #eee;padding:2px 6px;text-align:left;vertical-align:top}"
     "table.prov tr:target{background:#fff3b0}code{font-size:90%}"
