@@ -308,7 +308,7 @@ def test_store_export_refuses_a_cell_made_by_another_method_version(run_store, t
     assert plugins.methods.remove_plugin("test") == ["shifted"]
     plugins.methods.add("shifted", ShiftedV2, "test")
     with pytest.raises(PcfbenchError, match=r"cannot export the forecasts of shifted:dx=0\.5: cell .* was computed with "
-                                            r"a different method_version"):
+                                            r"a different (method_code, )?method_version"):
         export_stored(run_store, tmp_path / "x.mcap", plugins=plugins)
 
 
