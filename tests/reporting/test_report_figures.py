@@ -516,7 +516,9 @@ def test_a_cell_made_before_the_store_kept_range_bins_is_named_and_backfilled(ma
     title = figures.range_figure(found, "t").get_suptitle()
     assert "\nleft out, no range bins in the store: shifted (dx=0.5) (`pcfbench backfill-ranges`" in title
     md = paths["md"].read_text()
-    assert f"no range bins in the store for cell {old['cell_dir']}" in md and "pcfbench backfill-ranges" in md
+    from pcfbench.reporting.escape import md_text  # the note is text, escaped as Markdown like every other
+
+    assert md_text(f"no range bins in the store for cell {old['cell_dir']}") in md and "pcfbench backfill-ranges" in md
 
     done = backfill.backfill(store, _plugins(), log=lambda s: None)
     assert [d["status"] for d in done if d["cell"] == str(cell.dir)] == ["recomputed 1 chunk(s)"]
