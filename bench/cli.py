@@ -141,18 +141,20 @@ def limit_options(command):
 
 
 def _limits(executor: str, scoring_timeout: float, max_memory: float, max_forecast_ratio: float) -> dict:
-    """RunOptions' limit fields from limit_options' values (0: none); the Ray executor times a
-    sample as a whole under --timeout and keeps the default cap, so it refuses the others."""
+    """RunOptions' limit fields from limit_options' values (0: none); the Ray executor times the
+    method and the scoring apart as the local one does, but keeps the default forecast cap and
+    has no memory limit, so it refuses those two."""
     from pcfbench.protocol.validate import FORECAST_RATIO
 
     if executor == "ray" and (max_memory or max_forecast_ratio != FORECAST_RATIO):
         raise click.UsageError("--max-memory and --max-forecast-ratio apply to the local executor only; the Ray "
-                               "executor limits a sample by --timeout (docs/cluster.md)")
+                               "executor limits a sample by --timeout and --scoring-timeout (docs/cluster.md)")
     return {"scoring_timeout": scoring_timeout or None, "max_memory_gb": max_memory or None,
             "forecast_ratio": max_forecast_ratio or None}
 
 
-def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout=None):
+def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout=None,
+              scoring_timeout=None):
     """The Ray executor for ``--executor ray`` (None: the local one); options of the other
     executor are refused rather than ignored."""
     if executor == "local":
@@ -167,7 +169,7 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
     from pcfbench.running.ray_executor import RayExecutor
 
     return RayExecutor(address=address, shard_samples=shard_samples, cpus_per_task=cpus_per_task,
-                       gpus_per_task=gpus_per_task, timeout=timeout)
+                       gpus_per_task=gpus_per_task, timeout=timeout, scoring_timeout=scoring_timeout)
 
 
 @cli.command()
@@ -216,7 +218,8 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
     plugins = get_plugins()
     warn_failed(plugins)
-    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
+    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None,
+                             scoring_timeout or None)
     cells = _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, limit, train_on, train_split,
                         checkpoint, progress=not quiet, warm=executor == "local")
     reports_path = config.reports_dir(reports)
@@ -570,7 +573,8 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_
     plugins = get_plugins()
     warn_failed(plugins)
     exp = load_experiment(experiment, plugins, max_cells=max_cells)
-    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None)
+    ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None,
+                             scoring_timeout or None)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     if dry_run:  # each cell as it is planned

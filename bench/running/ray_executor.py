@@ -240,6 +240,8 @@ class RayExecutor:
     num_cpus: int | None = None
     #: seconds a sample may run before it is recorded as timed out (None: no limit)
     timeout: float | None = None
+    #: seconds its scoring may run, timed from when the method returned (None: no limit)
+    scoring_timeout: float | None = None
     #: per shard run (this process's calls): samples, seconds in the task, worker pid, whether it resolved the cell
     log: list[dict[str, Any]] = field(default_factory=list)
     #: where notes go (a stale Ray stopped at start): stderr
@@ -326,7 +328,7 @@ class RayExecutor:
 
         def submit(start: int, stop: int, todo: list[int]) -> None:
             ref = task.remote(spec_ref, str(cell.dir), start, stop, todo, [keys[i] for i in todo], self.cpus_per_task,
-                              self.timeout)
+                              self.timeout, self.scoring_timeout)
             pending[ref] = (start, stop, todo)
 
         for start, stop in shards(len(keys), self.shard_samples):
@@ -444,14 +446,18 @@ def _published(cell_dir: Path, start: int, stop: int) -> dict[str, bool]:
 
 
 def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, todo: list[int], keys: list[tuple[str, int]],
-               threads: int, timeout: float | None = None) -> dict[str, Any]:
+               threads: int, timeout: float | None = None, scoring_timeout: float | None = None) -> dict[str, Any]:
     """One task: the rows of ``keys`` (samples ``todo`` of shard [start, stop), not done when
     it was submitted), published as one chunk. A data error propagates (it stops the run).
 
-    With a ``timeout``, a watchdog thread ends a sample running past it the way the local
-    executor does: it publishes the rows done so far and a ``SampleTimeout`` row for that
-    sample (``shard-FIRST-HUNG+1``), then kills this worker process; Ray's retry of the task
-    skips what is published and writes the rest (``shard-HUNG+1-STOP``)."""
+    With a ``timeout`` or a ``scoring_timeout``, a watchdog thread ends a sample running past
+    the limit of its phase the way the local executor does (``timeout`` for loading and the
+    method's forecast; ``scoring_timeout`` from when the method returned, told by
+    :func:`pcfbench.running.workers.phase`): it publishes the rows done so far and a
+    ``SampleTimeout`` (or ``ScoringTimeout``) row for that sample (``shard-FIRST-HUNG+1``),
+    then kills this worker process; Ray's retry of the task skips what is published and writes
+    the rest (``shard-HUNG+1-STOP``)."""
+    from pcfbench.running import workers
     from pcfbench.running.runner import _failure_row, process_sample
 
     t0 = time.perf_counter()
@@ -468,29 +474,41 @@ def _run_shard(spec: Any, cell_dir: str, start: int, stop: int, todo: list[int],
     first = remaining[0][0]
     rows: list[dict[str, Any]] = []
     lock = threading.Lock()
-    current: list[Any] = [None]  # (index, key, start time) of the sample running now
+    current: list[Any] = [None]  # (index, key, start time of its phase, phase) of the sample running now
     finished = threading.Event()
+    limits = [t for t in (timeout, scoring_timeout) if t]
+
+    def scoring(name: str) -> None:  # workers.phase: the method returned; the scoring's clock starts
+        with lock:
+            if current[0] is not None:
+                current[0] = (*current[0][:2], time.monotonic(), name)
 
     def watchdog() -> None:
-        while not finished.wait(min(1.0, timeout / 10)):
+        while not finished.wait(min(1.0, min(limits) / 10)):
             with lock:
-                if current[0] is not None and time.monotonic() - current[0][2] > timeout:
-                    i, key, _ = current[0]
-                    reason = f"it ran past the time limit of {timeout:g} s on its Ray worker"
-                    write_shard(Path(cell_dir), first, i + 1, rows + _failure_row(key, "timeout", reason))
+                if current[0] is None:
+                    continue
+                i, key, began, ph = current[0]
+                limit = timeout if ph is None else scoring_timeout
+                if limit and time.monotonic() - began > limit:
+                    what = "time limit" if ph is None else "scoring time limit"
+                    reason = f"it ran past the {what} of {limit:g} s on its Ray worker"
+                    kind = "timeout" if ph is None else "scoring-timeout"
+                    write_shard(Path(cell_dir), first, i + 1, rows + _failure_row(key, kind, reason))
                     os.kill(os.getpid(), signal.SIGKILL)  # the only way to stop a hung method; Ray retries the task
 
-    if timeout:
+    if limits:
         threading.Thread(target=watchdog, name="pcfbench-timeout", daemon=True).start()
     try:
-        for i, key in remaining:
-            with lock:
-                current[0] = (i, key, time.monotonic())
-            sample_rows = process_sample(res, key)
-            with lock:
-                rows.extend(sample_rows)
-                current[0] = None
-            failed += sample_rows[0]["status"] == "failed"
+        with workers.phase_hook(scoring):
+            for i, key in remaining:
+                with lock:
+                    current[0] = (i, key, time.monotonic(), None)
+                sample_rows = process_sample(res, key)
+                with lock:
+                    rows.extend(sample_rows)
+                    current[0] = None
+                failed += sample_rows[0]["status"] == "failed"
     finally:
         finished.set()
     t2 = time.perf_counter()

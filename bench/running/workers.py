@@ -20,6 +20,7 @@ hang-up from a thread (:func:`_die_with_driver`).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import multiprocessing
 import os
@@ -47,13 +48,29 @@ SCORING = "scoring"
 
 #: this process's pipe to the driver, in a worker (None elsewhere): :func:`phase` writes to it
 _CONN: Connection | None = None
+#: in a process another executor runs tasks in (a Ray worker), what :func:`phase` calls instead
+_HOOK: Callable[[str], None] | None = None
 
 
 def phase(name: str) -> None:
     """Tell the driver that the task in this worker entered phase ``name`` (``SCORING``): its
-    clock restarts under that phase's limit. Outside a worker process it does nothing."""
+    clock restarts under that phase's limit. In a Ray task, the task's own watchdog is told
+    (:func:`phase_hook`). Elsewhere it does nothing."""
     if _CONN is not None:
         _CONN.send(("phase", name))
+    elif _HOOK is not None:
+        _HOOK(name)
+
+
+@contextlib.contextmanager
+def phase_hook(hook: Callable[[str], None]):
+    """Within the block, :func:`phase` calls ``hook`` (the Ray executor's watchdog of a task)."""
+    global _HOOK
+    before, _HOOK = _HOOK, hook
+    try:
+        yield
+    finally:
+        _HOOK = before
 
 
 def resident_bytes(pid: int) -> int | None:
