@@ -332,20 +332,15 @@ class Copilot4D(TrainedMethod):
     def forecast(self, sample: Sample) -> Forecast:
         import torch
 
-        from pcfbench.methods.copilot4d.evaluate import render_codes
+        from pcfbench.methods.copilot4d.evaluate import render_queries
 
         if self.world is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
         codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
         gen = torch.Generator(next(self.tokenizer.parameters()).device)
         gen.manual_seed(sample_seed(sample.sample_id, self.options.seed) ^ 1)
-        depths = []
-        for f, q in enumerate(sample.queries):
-            origin = T_s0_ref[:3, :3] @ q.origin_ref + T_s0_ref[:3, 3]
-            dirs = (q.directions_ref.astype(np.float64) @ T_s0_ref[:3, :3].T).astype(np.float32)
-            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen,
-                                       execution=self.execution, **self.render))
-        return Forecast.from_depths(sample, depths)
+        return Forecast.from_depths(sample, render_queries(self.tokenizer, list(codes), sample, T_s0_ref,
+                                                           generator=gen, execution=self.execution, **self.render))
 
     def world_inputs(self, sample: Sample):
         """What the world model is given: the past token maps (P, H, W) of the newest
