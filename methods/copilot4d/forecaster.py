@@ -193,19 +193,26 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     out = fit_loop(model, lambda m: D.make_optimizer(m, cfg), sample_batch, step_fn, run, steps=steps, seed=seed,
                    schedule=lambda step: D.lr_at(cfg, step), grad_clip=cfg.grad_clip, log_every=LOG_EVERY,
                    checkpoint_every=CHECKPOINT_EVERY, torch_generator=True,
-                   progress_values={"cross entropy": "loss", "token accuracy": "accuracy"}, weights_prefix="world.",
+                   progress_values={"cross entropy": "loss", "token accuracy": "accuracy",
+                                    "changed-token accuracy": "changed_accuracy"}, weights_prefix="world.",
                    extra_weights=extra_weights, manifest_config=manifest_config, resumed=resumed, log=log)
     return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
             "cpu_s": out.cpu_s}
 
 
 def world_curve_panels() -> list:
-    """The world model curve's figure: the loss; token accuracy on the scored and the masked tokens."""
+    """The world model curve's figure: the loss; token accuracy on the scored and the masked
+    tokens; loss and accuracy on the masked future tokens that changed since the last past
+    frame and on those that did not."""
     from pcfbench.training import Panel
 
     return [Panel((("loss", "cross entropy (label smoothing 0.1)"),)),
             Panel((("accuracy", "token accuracy (scored tokens)"), ("masked_accuracy", "token accuracy (masked tokens)")),
-                  ylim=(0, 1))]
+                  ylim=(0, 1)),
+            Panel((("changed_loss", "cross entropy, masked future tokens that changed"),
+                   ("unchanged_loss", "cross entropy, masked future tokens that did not"))),
+            Panel((("changed_accuracy", "accuracy, changed tokens"), ("unchanged_accuracy", "accuracy, unchanged tokens"),
+                   ("changed_share", "share of future tokens that changed")), ylim=(0, 1))]
 
 
 # --------------------------------------------------------------------------- the methods
