@@ -26,7 +26,8 @@ from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSourc
 
 @dataclass(frozen=True)
 class TokenCopyOptions(RenderingOptions):
-    config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale) or paper (A.2.1 sizes)")
+    config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale), tiny-moved (tiny, trained also on "
+                                      "sweeps seen from moved sensors) or paper (A.2.1 sizes)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)")
     seed: int = option(0, help="training seed (initialisation, batches, rays)")
 
