@@ -53,7 +53,7 @@ class SweepSource:
 class Batch:
     points: torch.Tensor  # (N, 3) encoder input, sensor frame
     point_batch: torch.Tensor  # (N,)
-    origins: torch.Tensor  # (R, 3) ray origins (the sensor, zeros)
+    origins: torch.Tensor  # (R, 3) ray origins: the sensor (zeros unless moved: make_batch)
     dirs: torch.Tensor  # (R, 3) unit directions
     depth: torch.Tensor  # (R,) ground-truth ranges
     ray_batch: torch.Tensor  # (R,)
@@ -68,22 +68,46 @@ def in_box(cfg: TokenizerConfig, pts: np.ndarray) -> np.ndarray:
             & (pts[:, 1] < cfg.y_range[1]) & (pts[:, 2] >= cfg.z_range[0]) & (pts[:, 2] < cfg.z_range[1]))
 
 
+def moved_sensor(cfg: TokenizerConfig, rng: np.random.Generator) -> np.ndarray:
+    """``T_grid_sensor`` (4, 4) for one training sweep: the identity, or with probability
+    ``cfg.sensor_moved_share`` a turn about z by up to ``cfg.sensor_turn`` degrees and a shift
+    by up to ``cfg.sensor_shift`` m in the ground plane (radius and direction uniform). Draws
+    nothing from ``rng`` when the share is 0 (the built-in configurations train as before)."""
+    T = np.eye(4)
+    if cfg.sensor_moved_share <= 0 or rng.random() >= cfg.sensor_moved_share:
+        return T
+    yaw = np.radians(rng.uniform(-cfg.sensor_turn, cfg.sensor_turn))
+    radius, heading = rng.uniform(0.0, cfg.sensor_shift), rng.uniform(-np.pi, np.pi)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:2, 3] = radius * np.cos(heading), radius * np.sin(heading)
+    return T
+
+
 def make_batch(cfg: TokenizerConfig, clouds: list[np.ndarray], rays: int | None, rng: np.random.Generator,
                min_range: float = 0.5) -> Batch:
     """Encoder input: every point inside the grid. Rays: ``rays`` random returns per sweep inside
-    the grid (all of them when ``rays`` is None), from the sensor origin."""
-    pts, pb, dirs, depth, rb = [], [], [], [], []
+    the grid (all of them when ``rays`` is None), from the sensor origin. With moved sensors
+    (``cfg.sensor_moved_share``), a sweep is first moved into a grid frame where its sensor sits
+    at ``T_grid_sensor``'s origin (:func:`moved_sensor`), and its rays start there."""
+    pts, pb, origins, dirs, depth, rb = [], [], [], [], [], []
     for b, p in enumerate(clouds):
+        T_grid_sensor = moved_sensor(cfg, rng)
+        moved = not np.array_equal(T_grid_sensor, np.eye(4))
+        if moved:
+            p = (p.astype(np.float64) @ T_grid_sensor[:3, :3].T + T_grid_sensor[:3, 3]).astype(np.float32)
         p = p[in_box(cfg, p)]
         pts.append(p)
         pb.append(np.full(len(p), b))
-        r = np.linalg.norm(p, axis=1)
+        o = T_grid_sensor[:3, 3].astype(np.float32)
+        v = p - o if moved else p
+        r = np.linalg.norm(v, axis=1)
         ok = np.nonzero(r > min_range)[0]
         if rays is not None and len(ok) > rays:
             ok = rng.choice(ok, rays, replace=False)
-        dirs.append(p[ok] / r[ok, None])
+        dirs.append(v[ok] / r[ok, None])
         depth.append(r[ok])
+        origins.append(np.broadcast_to(o, (len(ok), 3)))
         rb.append(np.full(len(ok), b))
     t = lambda a, dt=torch.float32: torch.from_numpy(np.concatenate(a)).to(dt)  # noqa: E731
-    d = t(dirs)
-    return Batch(t(pts), t(pb, torch.long), torch.zeros_like(d), d, t(depth), t(rb, torch.long), len(clouds))
+    return Batch(t(pts), t(pb, torch.long), t(origins), t(dirs), t(depth), t(rb, torch.long), len(clouds))

@@ -169,7 +169,12 @@ def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor
                   generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict]:
     """Algorithm 1 line 8: cross entropy (label smoothing) of the clean tokens given the
     corrupted sequence, averaged over the scored tokens of the batch. Returns the loss and
-    {"loss", "accuracy" (argmax on scored tokens), "masked_accuracy"} as floats."""
+    {"loss", "accuracy" (argmax on scored tokens), "masked_accuracy"} as floats, and apart for
+    the masked future tokens that differ from the last past frame's token at their place
+    ("changed_*") and those that do not ("unchanged_*"): cross entropy (``*_loss``) and
+    argmax accuracy (``*_accuracy``), with the share of changed tokens among the future's
+    ("changed_share"): a model that only copies scores well on the unchanged ones alone.
+    Measuring them draws no random number and changes no gradient."""
     c = corrupt(x0, n_past, model.mask_token, variant, generator)
     logits = model(c.tokens, T_ref_sensor, c.temporal_mask)
     sel = c.loss_mask
@@ -184,6 +189,15 @@ def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor
             "accuracy": float(hit.float().mean()),
             "masked_accuracy": float(hit[on_masked].float().mean()) if bool(on_masked.any()) else float("nan"),
         }
+        changed = x0 != x0[:, n_past - 1: n_past]  # (B, T, H, W): differs from the last past frame
+        future = torch.zeros_like(changed)
+        future[:, n_past:] = True
+        stats["changed_share"] = float(changed[future].float().mean())
+        ce = F.cross_entropy(picked, target, label_smoothing=label_smoothing, reduction="none")
+        for name, which in (("changed", changed[sel]), ("unchanged", ~changed[sel])):
+            on = on_masked & future[sel] & which
+            stats[f"{name}_loss"] = float(ce[on].mean()) if bool(on.any()) else float("nan")
+            stats[f"{name}_accuracy"] = float(hit[on].float().mean()) if bool(on.any()) else float("nan")
     return loss, stats
 
 

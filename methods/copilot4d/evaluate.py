@@ -118,6 +118,35 @@ def render_codes(model: Tokenizer, codes: torch.Tensor, dirs: np.ndarray, *, ski
     return out
 
 
+def render_queries(model: Tokenizer, codes, sample, T_frame_ref, *, generator: torch.Generator | None = None,
+                   decoded: tuple | None = None, execution: ExecutionContext | None = None, **render) -> list[np.ndarray]:
+    """Depths (m) along every future sweep's query rays of ``sample``, rendered from token maps.
+
+    ``codes``: a list of one (T, T) token map per future sweep, or one map for them all; map k was
+    tokenized in a frame ``g_k``, and ``T_frame_ref`` gives ``T_g_ref`` (4, 4) per future sweep
+    (or one for all): the query's origin and directions are moved from the reference frame into
+    ``g_k`` and rendered there (:func:`render_codes` with ``render``: threshold, noise, readout).
+    ``copilot4d-token-copy`` and ``copilot4d`` render the t=0 frame's maps (``T_g_ref`` = the
+    inverse of the last past sensor pose) from each future sensor; a map tokenized in its own
+    future sensor frame is rendered with ``T_g_ref`` = that sensor's inverse pose (origin 0)."""
+    F = len(sample.queries)
+    single = not isinstance(codes, (list, tuple))
+    Ts = [np.asarray(T_frame_ref, np.float64)] * F if np.ndim(T_frame_ref) == 2 else list(T_frame_ref)
+    if len(Ts) != F or (not single and len(codes) != F):
+        raise ValueError(f"render_queries: {F} future sweeps, {len(Ts)} frames, "
+                         f"{1 if single else len(codes)} token maps")
+    if single and decoded is None:
+        decoded = decode(model, codes)  # once: every future sweep renders the same tokens
+    depths = []
+    for k, q in enumerate(sample.queries):
+        R, t = Ts[k][:3, :3], Ts[k][:3, 3]
+        origin = R @ q.origin_ref + t
+        dirs = (q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)
+        depths.append(render_codes(model, codes if single else codes[k], dirs, origin=origin, generator=generator,
+                                   decoded=decoded if single else None, execution=execution, **render))
+    return depths
+
+
 #: Table 7's columns, each scored by the registered metric of that name (pcfbench.metrics).
 TABLE7_METRICS = ("chamfer_nf", "l1_median", "l1_mean", "chamfer")
 
@@ -290,27 +319,52 @@ def tokenize_split(model: Tokenizer, adapter, split: str, out_dir: Path, log=pri
     return written
 
 
-def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, threshold: float = 0.5,
-                    noise: bool = True, readout: str = "expected", max_samples: int | None = None, log=print) -> dict:
-    """The tokenizer's oracle bar: every ground-truth FUTURE sweep of the protocol's samples
-    (``setting`` on ``split``) tokenized in its own sensor frame (perfect tokens) and rendered
-    from that future sensor origin along the harness's query rays, with the rendering of
-    ``copilot4d-token-copy`` (spatial skipping at ``threshold``, Logistic noise seeded by the
-    sample id if ``noise``, the ``readout``). Each forecast and copy-last's are scored in the
-    same loop by every registered metric, as the runner scores them (``score_sample``). It
-    sees the future: a bound on what a world model on this tokenizer can reach, never a
-    method. Returns per-method flat means over (sample, future sweep)."""
-    import hashlib
+def changed_share(codes: torch.Tensor, last: torch.Tensor) -> float:
+    """The share of tokens of ``codes`` that differ from ``last`` (two maps of one shape)."""
+    if codes.shape != last.shape:
+        raise ValueError(f"token maps of shapes {tuple(codes.shape)} and {tuple(last.shape)}")
+    return float((codes != last).float().mean())
 
+
+#: the frames a world model's target can be tokenized in (issue 42): ``t0``, every sweep of a
+#: window moved into the t=0 sensor frame (what ``build_windows`` feeds the world model);
+#: ``own``, each sweep in its own sensor frame, rendered from its own origin.
+CEILING_FRAMES = ("t0", "own")
+
+
+def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, frame: str = "t0",
+                     threshold: float = 0.02, noise: bool = False, readout: str = "median",
+                     max_samples: int | None = None, log=print) -> dict:
+    """The ceiling of a world model on this tokenizer: a perfect prediction of its training
+    target, rendered exactly as ``copilot4d`` renders, scored beside ``copilot4d-token-copy``
+    (this very tokenizer) and copy-last on the same samples by every registered metric, as the
+    runner scores them (``score_sample``). It sees the future: a bound, never a method.
+
+    The target of each future sweep k of the protocol's samples (``setting`` on ``split``):
+    ``frame="t0"``: its points (ego returns removed) moved into the t=0 sensor frame and
+    tokenized there, rendered from the future sensor's origin in that frame; ``frame="own"``:
+    tokenized in its own sensor frame and rendered from its own origin (relative poses tell
+    the model where that is). Rendering: :func:`render_queries` with ``threshold``, ``noise``
+    and ``readout`` (the options of ``copilot4d``), spatial skipping seeded as ``copilot4d``
+    seeds it. Also per future sweep, the share of target tokens that differ from the last past
+    sweep's (token-copy's tokens): what a world model has to change.
+
+    Returns per-entry flat means over (sample, future sweep), ``changed`` (mean share and per
+    step) and the per-sample rows (``rows``) for paired comparisons."""
     from pcfbench.data import Forecast
     from pcfbench.metrics.base import score_sample
+    from pcfbench.methods.copilot4d.forecaster import sample_seed
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy, TokenCopyOptions
     from pcfbench.methods.copy_last import CopyLast
-    from pcfbench.plugins import get_plugins
-    from pcfbench.plugins import get_setting
+    from pcfbench.plugins import get_plugins, get_setting
     from pcfbench.protocol import SampleBuilder
-    from pcfbench.running.runner import default_metrics
     from pcfbench.protocol.validate import validate_forecast
+    from pcfbench.running.runner import default_metrics
 
+    if frame not in CEILING_FRAMES:
+        from pcfbench.errors import PcfbenchError
+
+        raise PcfbenchError(f"ceiling frame {frame!r}: expected one of {', '.join(CEILING_FRAMES)}")
     model.eval()
     plugins = get_plugins()
     metrics = [plugins.metrics.get(n) for n in default_metrics(plugins)]
@@ -321,80 +375,101 @@ def evaluate_oracle(model: Tokenizer, adapter, split: str, setting: str, *, thre
         from pcfbench.protocol.nosamples import Options, explain
 
         settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
-        why = explain(builder, split, settings=settings, options=Options(setting="--oracle {}", policy=None))
-        raise PcfbenchError(f"the oracle: {why.message}")
+        why = explain(builder, split, settings=settings, options=Options(setting="--ceiling {}", policy=None))
+        raise PcfbenchError(f"the ceiling: {why.message}")
     if max_samples:
         keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(max_samples, len(keys))).round().astype(int))]
-    rows: dict[str, list[dict]] = {"oracle": [], "copy-last": []}
+    render = {"threshold": threshold, "noise": noise, "readout": readout}
+    token_copy = TokenCopy(TokenCopyOptions(**render))
+    token_copy.model = model
     copy_last = CopyLast()
+    rows: dict[str, list[dict]] = {"ceiling": [], "copilot4d-token-copy": [], "copy-last": []}
+    changed: list[list[float]] = []
     t0 = time.monotonic()
     for n, (seq_name, ref) in enumerate(keys):
         sample, truth = builder.build(seq_name, ref)
         seq = builder.sequence(seq_name)
-        s = builder.setting
-        gen = torch.Generator().manual_seed(int.from_bytes(hashlib.sha256(sample.sample_id.encode()).digest()[:8], "little"))
-        depths = []
-        for k, q in enumerate(sample.queries):
-            codes = tokenize_sweep(model, builder.points_sensor(seq, ref + (k + 1) * s.stride))
-            R = sample.future_T_ref_sensor[k][:3, :3]
-            dirs = (q.directions_ref.astype(np.float64) @ R).astype(np.float32)  # into the future sensor frame
-            depths.append(render_codes(model, codes, dirs, generator=gen, threshold=threshold, noise=noise,
-                                       readout=readout))
-        for name, fc in (("oracle", Forecast.from_depths(sample, depths)), ("copy-last", copy_last.forecast(sample.for_method()))):
-            rows[name] += score_sample(sample, truth, validate_forecast(sample, fc), metrics)
-        if (n + 1) % 10 == 0:
-            log(f"oracle: {n + 1}/{len(keys)} samples, {time.monotonic() - t0:.0f} s")
+        stride = builder.setting.stride
+        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+        last = tokenize_sweep(model, builder.points_sensor(seq, ref))
+        codes, frames = [], []
+        for k in range(sample.num_future):
+            pts = builder.points_sensor(seq, ref + (k + 1) * stride)
+            if frame == "t0":
+                T_s0_sk = T_s0_ref @ sample.future_T_ref_sensor[k]
+                pts = (pts.astype(np.float64) @ T_s0_sk[:3, :3].T + T_s0_sk[:3, 3]).astype(np.float32)
+                frames.append(T_s0_ref)
+            else:
+                frames.append(np.linalg.inv(sample.future_T_ref_sensor[k]))
+            codes.append(tokenize_sweep(model, pts))
+        changed.append([changed_share(c, last) for c in codes])
+        gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
+        ceiling = Forecast.from_depths(sample, render_queries(model, codes, sample, frames, generator=gen, **render))
+        for name, fc in (("ceiling", ceiling), ("copilot4d-token-copy", token_copy.forecast(sample.for_method())),
+                         ("copy-last", copy_last.forecast(sample.for_method()))):
+            for r in score_sample(sample, truth, validate_forecast(sample, fc), metrics):
+                rows[name].append({"sample_id": sample.sample_id, **r})
+        if (n + 1) % 5 == 0:
+            log(f"ceiling ({frame}): {n + 1}/{len(keys)} samples, {time.monotonic() - t0:.0f} s")
+
     def mean(values: list[float]) -> float:  # flat over the sweeps that could be scored
         v = np.asarray(values, dtype=np.float64)
         return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
 
+    ch = np.asarray(changed, np.float64)
     means = {name: {m.name: mean([r[m.name] for r in rs]) for m in metrics} for name, rs in rows.items()}
-    return {"setting": setting, "split": split, "dataset": adapter.name, "samples": len(keys),
-            "sweeps": len(rows["oracle"]), "threshold": threshold, "noise": noise, "readout": readout,
-            "eval_s": time.monotonic() - t0,
-            "means": means}
+    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": len(keys),
+            "sweeps": len(rows["ceiling"]), **render, "eval_s": time.monotonic() - t0, "means": means,
+            "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
+            "rows": rows}
 
 
-def write_oracle(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
-    """The oracle bar as Markdown and CSV: the oracle's metric means, copy-last's from the same
-    loop, and their ratio, labelled as an oracle that sees the future (never a method)."""
+def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
+    """The ceiling as Markdown and CSV: its metric means, token-copy's and copy-last's from the
+    same loop, and the ceiling's ratios to both, labelled as a bound that sees the future."""
     import csv
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    o, c = result["means"]["oracle"], result["means"]["copy-last"]
-    names = [n for n in o if np.isfinite(o[n]) and np.isfinite(c[n])]
+    m = result["means"]
+    o, tc, c = m["ceiling"], m["copilot4d-token-copy"], m["copy-last"]
+    names = [n for n in o if all(np.isfinite(v[n]) for v in (o, tc, c))]
+    ratio = lambda a, b: (a / b) if b else float("nan")  # noqa: E731
+    table = [("ceiling: the world model's target for the ground-truth future (sees the future)", o),
+             ("copilot4d-token-copy", tc), ("copy-last", c),
+             ("ratio ceiling / copilot4d-token-copy", {n: ratio(o[n], tc[n]) for n in names}),
+             ("ratio ceiling / copy-last", {n: ratio(o[n], c[n]) for n in names})]
     csv_path = out_dir / f"{stem}.csv"
     with open(csv_path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["entry", "dataset", "split", "setting", "samples", "sweeps", *names])
-        for entry, vals in (("oracle: tokenizer reconstruction of the ground-truth future sweeps (sees the future)", o),
-                            ("copy-last", c)):
-            w.writerow([entry, result["dataset"], result["split"], result["setting"], result["samples"],
-                        result["sweeps"], *(f"{vals[n]:.6g}" for n in names)])
-        w.writerow(["ratio oracle / copy-last", result["dataset"], result["split"], result["setting"], result["samples"],
-                    result["sweeps"], *(f"{o[n] / c[n]:.4f}" if c[n] else "" for n in names)])
-    beats = {n: o[n] < c[n] for n in ("chamfer_nf", "l1_mean") if n in names}
+        w.writerow(["entry", "dataset", "split", "setting", "frame", "samples", "sweeps", *names])
+        for entry, vals in table:
+            w.writerow([entry, result["dataset"], result["split"], result["setting"], result["frame"],
+                        result["samples"], result["sweeps"], *(f"{vals[n]:.6g}" for n in names)])
+    frame = {"t0": "moved into the t=0 sensor frame and tokenized there, rendered from the future sensor's "
+                   "origin in that frame",
+             "own": "tokenized in its own sensor frame, rendered from its own origin"}[result["frame"]]
+    beats = {n: o[n] < tc[n] for n in ("chamfer_nf", "l1_mean", "l1_median") if n in names}
+    ch = result["changed"]
     lines = [
-        f"# Copilot4D tokenizer: the oracle bar ({meta.get('config')} config, {result['dataset']} {result['split']}, "
-        f"{result['setting']})",
+        f"# Copilot4D: the world model's ceiling ({meta.get('config')} tokenizer, {result['dataset']} "
+        f"{result['split']}, {result['setting']}, frame {result['frame']})",
         "",
-        "**An oracle, not a method: it sees the future.** Each ground-truth future sweep is tokenized in its own "
-        "sensor frame (perfect tokens) and rendered by the tokenizer's decoder from that future sensor origin along "
-        "the harness's query rays (the rendering of `copilot4d-token-copy`: spatial skipping at threshold "
-        f"{result['threshold']}, Logistic noise {'on' if result['noise'] else 'off'}, {result.get('readout', 'expected')} "
-        "depth). It bounds what a world model "
-        "on this tokenizer can reach; it is never ranked. copy-last is scored in the same loop on the same samples "
-        "by the same registered metrics; means are flat over (sample, future sweep).",
+        "**A bound, not a method: it sees the future.** Each ground-truth future sweep is " + frame + " (the world "
+        "model's training target, perfectly predicted), rendered as `copilot4d` renders (spatial skipping at "
+        f"threshold {result['threshold']}, Logistic noise {'on' if result['noise'] else 'off'}, {result['readout']} "
+        "depth). `copilot4d-token-copy` (the same tokenizer) and copy-last are scored in the same loop on the same "
+        "samples by the same registered metrics; means are flat over (sample, future sweep).",
         "",
-        f"{result['samples']} samples, {result['sweeps']} future sweeps; evaluation took {result['eval_s']:.0f} s.",
+        f"{result['samples']} samples, {result['sweeps']} future sweeps; evaluation took {result['eval_s']:.0f} s. "
+        f"Target tokens that differ from the last past sweep's: {ch['mean']:.1%} on average "
+        f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step).",
         "",
         "| entry | " + " | ".join(names) + " |",
         "|---|" + "---:|" * len(names),
-        "| oracle (sees the future) | " + " | ".join(f"{o[n]:.3f}" for n in names) + " |",
-        "| copy-last | " + " | ".join(f"{c[n]:.3f}" for n in names) + " |",
-        "| ratio oracle / copy-last | " + " | ".join(f"{o[n] / c[n]:.2f}" if c[n] else "-" for n in names) + " |",
+        *("| " + entry.split(":")[0] + " | " + " | ".join(f"{vals[n]:.3f}" if "ratio" not in entry else f"{vals[n]:.2f}"
+                                                          for n in names) + " |" for entry, vals in table),
         "",
-        "Bar (issue 14: the oracle beats copy-last on chamfer_nf and l1_mean): "
+        "Bar (issue 42: the ceiling beats copilot4d-token-copy on chamfer_nf, l1_mean and l1_median): "
         + ", ".join(f"{n} {'met' if ok else 'NOT met'}" for n, ok in beats.items()) + ".",
         "",
     ]

@@ -3,14 +3,16 @@ diffusion, Algorithms 1 and 2) and ``copilot4d-maskgit`` (the same network and t
 trained and sampled as MaskGIT). One class; the :class:`~.diffusion.Variant` is the only
 difference.
 
-**The common frame.** Every sweep of a window is tokenized in the sensor frame of its t=0
-sweep (the last past frame, the harness's reference sweep): past and future token maps of one
-window share that frame, so a static world has the same tokens in every frame and the world
-model only has to learn what moves. The actions are each frame's 4x4 sensor pose in that
-same t=0 sensor frame (``inv(T_ref_s0) @ T_ref_sensor_k``; identity at t=0). A predicted
-future token map is decoded by the tokenizer and rendered along the future sweep's query rays
-from the future sensor origin expressed in the t=0 sensor frame (expected depth with spatial
-skipping, :func:`~.evaluate.render_codes`, as the token-copy baseline renders the t=0 tokens).
+**The frame** (option ``frame``). ``t0``: every sweep of a window is tokenized in the sensor
+frame of its t=0 sweep (the last past frame, the harness's reference sweep), and a predicted
+future token map is rendered along the future sweep's query rays from the future sensor origin
+expressed in that frame, as the token-copy baseline renders the t=0 tokens. ``own``: every
+sweep is tokenized in its own sensor frame, and a future map is rendered from its own origin.
+Either way the actions are each frame's 4x4 sensor pose in the t=0 sensor frame
+(``inv(T_ref_s0) @ T_ref_sensor_k``; identity at t=0). A static world does NOT keep its tokens
+in the t=0 frame (the tokenizer's field moves with the sensor's distance from the grid's
+centre); ``pcfbench tokenizer-report --ceiling`` measures each frame's ceiling
+(docs/copilot4d.md).
 
 **Training** (``fit``): the ``copilot4d-token-copy`` checkpoint of the same configuration
 trained on the same data tokenizes every training window once (cached under
@@ -59,6 +61,15 @@ class WorldOptions(RenderingOptions):
     strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames, one "
                                                    "stride drawn per window (kitti-1s uses 2, kitti-3s 6)", min=1)
     anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
+    frame: str = option("t0", help="the frame every sweep of a window is tokenized in: t0 (moved into the t=0 "
+                                   "sensor frame) or own (its own sensor frame; the poses say where it is)")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        from pcfbench.methods.copilot4d.evaluate import CEILING_FRAMES
+
+        if self.frame not in CEILING_FRAMES:
+            raise PcfbenchError(f"frame={self.frame!r}: expected one of {', '.join(CEILING_FRAMES)}")
 
 
 def sample_seed(sample_id: str, seed: int) -> int:
@@ -96,13 +107,14 @@ def window_cache_dir(tokenizer_sha: str, train_on_key: str) -> Path:
 
 
 def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, strides: tuple[int, ...],
-                  anchor_every: int, cache: Path | None, log=print) -> dict[str, np.ndarray]:
+                  anchor_every: int, cache: Path | None, log=print, frame: str = "t0") -> dict[str, np.ndarray]:
     """Token maps of every training window: ``tokens`` (A, T, H, W) int16, ``poses`` (A, T, 4, 4)
     float32 (each frame's sensor pose in the window's t=0 sensor frame), ``stride`` (A,).
 
     A window of stride s anchored at sweep i holds sweeps i + (j - n_past + 1) s, j = 0..T-1,
-    each tokenized after moving its points (ego returns removed, sensor frame) into sweep i's
-    sensor frame. Cached per (sequence, stride, anchor spacing) under ``cache``."""
+    each tokenized (ego returns removed) in the ``frame`` of ``WorldOptions``: ``t0``, after
+    moving its points into sweep i's sensor frame; ``own``, in its own sensor frame. Cached per
+    (sequence, stride, anchor spacing, frame) under ``cache``."""
     from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
 
     T = n_past + n_future
@@ -110,7 +122,8 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
     for name in adapter.sequence_names(split):
         seq = None
         for s in strides:
-            path = None if cache is None else cache / f"P{n_past}F{n_future}-s{s}-every{anchor_every}" / f"{name}.npz"
+            key = f"P{n_past}F{n_future}-s{s}-every{anchor_every}" + ("" if frame == "t0" else f"-{frame}")
+            path = None if cache is None else cache / key / f"{name}.npz"
             if path is not None and path.is_file():
                 with np.load(path, allow_pickle=False) as z:
                     t, p = z["tokens"], z["poses"]
@@ -130,7 +143,8 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                             clouds[k] = adapter.ego_box.remove(seq.load_points(k))
                         T_s0_k = T_s0_world @ seq.T_world_sensor[k]
                         p[a, j] = T_s0_k
-                        t[a, j] = tokenize_sweep(tokenizer, transform(clouds[k], T_s0_k)).cpu().numpy()
+                        pts = transform(clouds[k], T_s0_k) if frame == "t0" else clouds[k]
+                        t[a, j] = tokenize_sweep(tokenizer, pts).cpu().numpy()
                     for k in [k for k in clouds if k < i + (1 - n_past) * s + anchor_every]:
                         del clouds[k]
                 log(f"{name} stride {s}: {len(anchors)} windows tokenized in {time.monotonic() - t0:.0f} s")
@@ -179,19 +193,26 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     out = fit_loop(model, lambda m: D.make_optimizer(m, cfg), sample_batch, step_fn, run, steps=steps, seed=seed,
                    schedule=lambda step: D.lr_at(cfg, step), grad_clip=cfg.grad_clip, log_every=LOG_EVERY,
                    checkpoint_every=CHECKPOINT_EVERY, torch_generator=True,
-                   progress_values={"cross entropy": "loss", "token accuracy": "accuracy"}, weights_prefix="world.",
+                   progress_values={"cross entropy": "loss", "token accuracy": "accuracy",
+                                    "changed-token accuracy": "changed_accuracy"}, weights_prefix="world.",
                    extra_weights=extra_weights, manifest_config=manifest_config, resumed=resumed, log=log)
     return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
             "cpu_s": out.cpu_s}
 
 
 def world_curve_panels() -> list:
-    """The world model curve's figure: the loss; token accuracy on the scored and the masked tokens."""
+    """The world model curve's figure: the loss; token accuracy on the scored and the masked
+    tokens; loss and accuracy on the masked future tokens that changed since the last past
+    frame and on those that did not."""
     from pcfbench.training import Panel
 
     return [Panel((("loss", "cross entropy (label smoothing 0.1)"),)),
             Panel((("accuracy", "token accuracy (scored tokens)"), ("masked_accuracy", "token accuracy (masked tokens)")),
-                  ylim=(0, 1))]
+                  ylim=(0, 1)),
+            Panel((("changed_loss", "cross entropy, masked future tokens that changed"),
+                   ("unchanged_loss", "cross entropy, masked future tokens that did not"))),
+            Panel((("changed_accuracy", "accuracy, changed tokens"), ("unchanged_accuracy", "accuracy, unchanged tokens"),
+                   ("changed_share", "share of future tokens that changed")), ylim=(0, 1))]
 
 
 # --------------------------------------------------------------------------- the methods
@@ -271,7 +292,8 @@ class Copilot4D(TrainedMethod):
                      f"(sha256 {tok_ck.sha256[:12]}), {train_source.train_on.label}")
         windows = build_windows(tokenizer, train_source.adapter, train_source.split, cfg.n_past, cfg.n_future,
                                 tuple(self.options.strides), self.options.anchor_every,
-                                window_cache_dir(tok_ck.sha256, train_source.train_on.key), log=progress.log)
+                                window_cache_dir(tok_ck.sha256, train_source.train_on.key), log=progress.log,
+                                frame=self.options.frame)
         progress.log(f"{len(windows['tokens'])} training windows of {cfg.n_frames} frames, "
                      f"{cfg.token_grid}x{cfg.token_grid} tokens")
         manifest_config = lambda model: {  # noqa: E731
@@ -280,6 +302,7 @@ class Copilot4D(TrainedMethod):
             "tokenizer_checkpoint": str(tok_ck.manifest_path), "tokenizer_steps": tok_ck.steps,
             "parameters": count_parameters(model), "steps_target": self.training_steps(),
             "windows": int(len(windows["tokens"])), "strides": list(self.options.strides),
+            "frame": self.options.frame,
         }
         # built on the CPU (then moved), so its initial weights do not depend on the device
         out = train_world(lambda: WorldModel(cfg).to(device), cfg, windows, self.variant, progress,
@@ -332,33 +355,31 @@ class Copilot4D(TrainedMethod):
     def forecast(self, sample: Sample) -> Forecast:
         import torch
 
-        from pcfbench.methods.copilot4d.evaluate import render_codes
+        from pcfbench.methods.copilot4d.evaluate import render_queries
 
         if self.world is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
         codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
         gen = torch.Generator(next(self.tokenizer.parameters()).device)
         gen.manual_seed(sample_seed(sample.sample_id, self.options.seed) ^ 1)
-        depths = []
-        for f, q in enumerate(sample.queries):
-            origin = T_s0_ref[:3, :3] @ q.origin_ref + T_s0_ref[:3, 3]
-            dirs = (q.directions_ref.astype(np.float64) @ T_s0_ref[:3, :3].T).astype(np.float32)
-            depths.append(render_codes(self.tokenizer, codes[f], dirs, origin=origin, generator=gen,
-                                       execution=self.execution, **self.render))
-        return Forecast.from_depths(sample, depths)
+        frames = (T_s0_ref if self.options.frame == "t0"
+                  else [np.linalg.inv(T) for T in sample.future_T_ref_sensor])  # each from its own origin
+        return Forecast.from_depths(sample, render_queries(self.tokenizer, list(codes), sample, frames,
+                                                           generator=gen, execution=self.execution, **self.render))
 
     def world_inputs(self, sample: Sample):
         """What the world model is given: the past token maps (P, H, W) of the newest
-        ``n_past`` past sweeps, each tokenized in the t=0 sensor frame; every past and future
-        sensor pose in that frame (P + F, 4, 4) float32; the transform from the reference frame
-        into it (4, 4) float64."""
+        ``n_past`` past sweeps, each tokenized in the t=0 sensor frame (``frame=t0``) or in its
+        own (``frame=own``); every past and future sensor pose in the t=0 sensor frame
+        (P + F, 4, 4) float32; the transform from the reference frame into it (4, 4) float64."""
         import torch
 
         from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
 
         T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
         past = list(range(len(sample.past_points_ref)))[-self.world_cfg.n_past:]  # the model's window at most
-        seq = torch.stack([tokenize_sweep(self.tokenizer, transform(sample.past_points_ref[k], T_s0_ref))
+        into = (lambda k: T_s0_ref) if self.options.frame == "t0" else (lambda k: np.linalg.inv(sample.past_T_ref_sensor[k]))
+        seq = torch.stack([tokenize_sweep(self.tokenizer, transform(sample.past_points_ref[k], into(k)))
                            for k in past])
         poses = np.concatenate([sample.past_T_ref_sensor[past], sample.future_T_ref_sensor])
         return seq, torch.from_numpy((T_s0_ref @ poses).astype(np.float32)), T_s0_ref

@@ -99,15 +99,21 @@ def register_commands(cli):  # noqa: ANN001
     @click.option("--split", default="val", show_default=True)
     @click.option("--sweeps", type=int, default=40, show_default=True)
     @click.option("--reports", default=None)
-    @click.option("--oracle", "oracle_setting", default=None, metavar="SETTING",
-                  help="Also the oracle bar on SETTING (e.g. kitti-1s) of --split: each ground-truth future sweep "
-                       "rendered from its own tokens, beside copy-last (it sees the future; never a method).")
-    @click.option("--oracle-samples", type=int, default=0, show_default=True,
-                  help="Oracle: this many evenly spaced samples (0: all).")
+    @click.option("--ceiling", "ceiling_setting", default=None, metavar="SETTING",
+                  help="Also the world model's ceiling on SETTING (e.g. kitti-1s) of --split: its training target "
+                       "for the ground-truth future, rendered as copilot4d renders, beside copilot4d-token-copy and "
+                       "copy-last (it sees the future; never a method).")
+    @click.option("--frame", type=click.Choice(["t0", "own"]), multiple=True, show_default=True,
+                  default=("t0", "own"),
+                  help="Ceiling: the frame the target is tokenized in (t0: moved into the t=0 sensor frame; own: "
+                       "each future sweep in its own sensor frame); repeat for several.")
+    @click.option("--ceiling-samples", type=int, default=0, show_default=True,
+                  help="Ceiling: this many evenly spaced samples (0: all).")
     def tokenizer_report(method, train_on, train_split, checkpoint, dataset_spec, split, sweeps, reports,
-                         oracle_setting, oracle_samples):
+                         ceiling_setting, frame, ceiling_samples):
         """Table-7-style reconstruction numbers (NFCD, L1 median/mean, CD) of a trained tokenizer,
-        scored by the registered metrics; with --oracle, the oracle bar beside copy-last."""
+        scored by the registered metrics (--sweeps 0: none); with --ceiling, the world model's
+        ceiling beside copilot4d-token-copy and copy-last, in each --frame."""
         from pcfbench.config import reports_dir
         from pcfbench.methods.copilot4d.data import SweepSource
         from pcfbench.methods.copilot4d.evaluate import (calibrate_skipping, evaluate_reconstruction, rendering_kwargs,
@@ -117,34 +123,37 @@ def register_commands(cli):  # noqa: ANN001
         model, ck = _tokenizer(method, train_on, train_split, checkpoint)
         adapter = _open(dataset_spec)
         train_adapter = _open(ck.train_on["dataset"] + (f"={ck.train_on['root']}" if ck.train_on.get("root") else ""))
-        skip = calibrate_skipping(model, SweepSource(train_adapter, ck.train_on["split"]))
-        click.echo(f"spatial skipping calibrated on {ck.train_on_label} sweeps: threshold {skip['threshold']}, "
-                   f"noise {skip['noise']}")
         render = rendering_kwargs(spec_options(method))
-        result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=sweeps, skip=skip, render=render)
         meta = {"config": model.cfg.name, "codebook_size": model.cfg.codebook_size,
                 "tokens": f"{model.cfg.bev_tokens}x{model.cfg.bev_tokens}", "parameters": count_parameters(model),
                 "trained_on": ck.train_on_label, "steps": ck.steps, "training_time_s": ck.manifest.get("wall_s"),
                 "training_cpu_s": ck.manifest.get("cpu_s"), "device": ck.manifest.get("device"),
                 "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256}
-        md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
-                             f"tokenizer-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}")
-        s = result.get("method", result["skipping"])
-        click.echo(f"reconstruction ({split}, {result['sweeps']} sweeps): L1 median {s['l1_median']:.3f} m, "
-                   f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
-                   f"codebook usage {result['codebook_usage']:.1%}")
-        click.echo(f"wrote {md}")
-        if oracle_setting:
-            from pcfbench.methods.copilot4d.evaluate import evaluate_oracle, write_oracle
+        if sweeps > 0:
+            skip = calibrate_skipping(model, SweepSource(train_adapter, ck.train_on["split"]))
+            click.echo(f"spatial skipping calibrated on {ck.train_on_label} sweeps: threshold {skip['threshold']}, "
+                       f"noise {skip['noise']}")
+            result = evaluate_reconstruction(model, SweepSource(adapter, split), max_sweeps=sweeps, skip=skip,
+                                             render=render)
+            md, _ = write_report(result, meta, reports_dir(reports) / "copilot4d",
+                                 f"tokenizer-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}")
+            s = result.get("method", result["skipping"])
+            click.echo(f"reconstruction ({split}, {result['sweeps']} sweeps): L1 median {s['l1_median']:.3f} m, "
+                       f"L1 mean {s['l1_mean']:.3f} m, NFCD {s['chamfer_nf']:.3f}, CD {s['chamfer']:.3f}; "
+                       f"codebook usage {result['codebook_usage']:.1%}")
+            click.echo(f"wrote {md}")
+        for fr in frame if ceiling_setting else ():
+            from pcfbench.methods.copilot4d.evaluate import evaluate_ceiling, write_ceiling
 
-            res = evaluate_oracle(model, adapter, split, oracle_setting, **render,
-                                  max_samples=oracle_samples or None, log=click.echo)
-            meta["regenerate"] = (f"pcfbench tokenizer-report --dataset {dataset_spec} --split {split} "
-                                  f"--oracle {oracle_setting} --oracle-samples {oracle_samples}")
-            md, csv_path = write_oracle(res, meta, reports_dir(reports) / "copilot4d",
-                                        f"oracle-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}-"
-                                        f"{oracle_setting}")
-            o, c = res["means"]["oracle"], res["means"]["copy-last"]
-            click.echo(f"oracle ({oracle_setting}, {res['samples']} samples): chamfer_nf {o['chamfer_nf']:.3f} vs "
-                       f"copy-last {c['chamfer_nf']:.3f}, l1_mean {o['l1_mean']:.3f} vs {c['l1_mean']:.3f}")
+            res = evaluate_ceiling(model, adapter, split, ceiling_setting, frame=fr, **render,
+                                   max_samples=ceiling_samples or None, log=click.echo)
+            meta["regenerate"] = (f"pcfbench tokenizer-report --method {method} --dataset {dataset_spec} "
+                                  f"--split {split} --sweeps 0 --ceiling {ceiling_setting} --frame {fr} "
+                                  f"--ceiling-samples {ceiling_samples}")
+            md, csv_path = write_ceiling(res, meta, reports_dir(reports) / "copilot4d",
+                                         f"ceiling-{model.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-"
+                                         f"{split}-{ceiling_setting}-{fr}")
+            o, tc = res["means"]["ceiling"], res["means"]["copilot4d-token-copy"]
+            click.echo(f"ceiling ({ceiling_setting}, frame {fr}, {res['samples']} samples) / token-copy: "
+                       + ", ".join(f"{n} {o[n] / tc[n]:.2f}" for n in ("chamfer_nf", "l1_mean", "l1_median")))
             click.echo(f"wrote {md} and {csv_path}")

@@ -26,7 +26,8 @@ from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSourc
 
 @dataclass(frozen=True)
 class TokenCopyOptions(RenderingOptions):
-    config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale) or paper (A.2.1 sizes)")
+    config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale), tiny-moved (tiny, trained also on "
+                                      "sweeps seen from moved sensors) or paper (A.2.1 sizes)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)")
     seed: int = option(0, help="training seed (initialisation, batches, rays)")
 
@@ -79,7 +80,7 @@ class TokenCopy(TrainedMethod):
     def forecast(self, sample: Sample) -> Forecast:
         import torch
 
-        from pcfbench.methods.copilot4d.evaluate import decode, render_codes, tokenize_sweep
+        from pcfbench.methods.copilot4d.evaluate import render_queries, tokenize_sweep
 
         if self.model is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
@@ -88,14 +89,8 @@ class TokenCopy(TrainedMethod):
         R, t = T_s0_ref[:3, :3], T_s0_ref[:3, 3]
         points_s0 = (sample.past_points_ref[-1].astype(np.float64) @ R.T + t).astype(np.float32)
         codes = tokenize_sweep(self.model, points_s0)
-        decoded = decode(self.model, codes)  # once: every future sweep renders the same tokens
         # Spatial skipping draws Logistic noise: seeded by the sample, so a forecast is reproducible.
         seed = int.from_bytes(hashlib.sha256(sample.sample_id.encode()).digest()[:8], "little")
         gen = torch.Generator().manual_seed(seed)
-        depths = []
-        for q in sample.queries:
-            origin = R @ q.origin_ref + t
-            dirs = (q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)
-            depths.append(render_codes(self.model, codes, dirs, origin=origin, generator=gen, decoded=decoded,
-                                       execution=self.execution, **self.render))
-        return Forecast.from_depths(sample, depths)
+        return Forecast.from_depths(sample, render_queries(self.model, codes, sample, T_s0_ref, generator=gen,
+                                                           execution=self.execution, **self.render))

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from pcfbench.methods.copilot4d.config import PAPER, TINY
-from pcfbench.methods.copilot4d.data import make_batch
+from pcfbench.methods.copilot4d.data import in_box, make_batch
 from pcfbench.methods.copilot4d.model import Tokenizer, VectorQuantizer, kmeans
 from pcfbench.methods.copilot4d.render import render_depth, sample_along_rays
 from pcfbench.methods.copilot4d.train import compute_losses, count_parameters, lr_at, make_optimizer, param_groups, train
@@ -439,11 +439,13 @@ def test_render_codes_chunking_and_candidate_cut_give_the_same_depths(toy_sweeps
     np.testing.assert_allclose(single, whole, rtol=1e-5, atol=1e-5)
 
 
-def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypatch):
-    """With a perfect tokenizer (tokens = the future sweep's own points; rendering = the range
-    of the point in each ray's direction, in that sweep's sensor frame) the oracle scores
-    zero on every depth metric and Chamfer: the future sweep's tokens, its origin and the
-    rays' frame are the right ones. copy-last in the same loop scores what the runner gives."""
+@pytest.mark.parametrize("frame", ["t0", "own"])
+def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch, frame):
+    """With a perfect tokenizer (tokens = the points it is given; rendering = the range, from the
+    ray's origin, of the point in the ray's direction) the ceiling scores zero on every depth
+    metric and Chamfer in either frame: the target's points, the frame they are moved into, the
+    rays' origin and directions in that frame all agree. copy-last in the same loop scores what
+    the runner gives; token-copy is the method's own forecast."""
     from conftest import write_tiny_kitti
 
     import pcfbench.methods.copilot4d.evaluate as ev
@@ -455,24 +457,23 @@ def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypa
     adapter = open_dataset("kitti", root)
 
     def perfect_tokens(model, points):
-        pts = points[np.linalg.norm(points, axis=1) > 0.01].astype(np.float64)
-        return pts
+        return points[np.linalg.norm(points, axis=1) > 0.01].astype(np.float64)
 
-    def perfect_render(model, pts, dirs, **kw):
-        unit = pts / np.linalg.norm(pts, axis=1, keepdims=True)
-        match = np.argmax(dirs.astype(np.float64) @ unit.T, axis=1)
-        assert np.all(np.einsum("ij,ij->i", dirs, unit[match]) > 1 - 1e-5)  # every ray is one of the sweep's
-        return np.linalg.norm(pts[match], axis=1)
+    def perfect_render(model, pts, dirs, origin=None, **kw):
+        v = pts - (0.0 if origin is None else origin)
+        unit = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return np.linalg.norm(v[np.argmax(dirs.astype(np.float64) @ unit.T, axis=1)], axis=1)
 
     monkeypatch.setattr(ev, "tokenize_sweep", perfect_tokens)
     monkeypatch.setattr(ev, "render_codes", perfect_render)
-    model = Tokenizer(MICRO)
-    res = ev.evaluate_oracle(model, adapter, "test", "kitti-1s", log=lambda *a: None)
-    o, c = res["means"]["oracle"], res["means"]["copy-last"]
+    monkeypatch.setattr(ev, "decode", lambda model, codes: None)
+    monkeypatch.setattr(ev, "changed_share", lambda codes, last: 0.0)
+    res = ev.evaluate_ceiling(Tokenizer(MICRO), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
+    o, tc, c = (res["means"][k] for k in ("ceiling", "copilot4d-token-copy", "copy-last"))
     assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
     for name in ("l1_mean", "l1_median", "chamfer_nf", "chamfer"):
         assert o[name] == pytest.approx(0.0, abs=1e-4), name
-    assert c["chamfer_nf"] > 0.01
+    assert c["chamfer_nf"] > 0.01 and tc["chamfer_nf"] > 0.01
     from pcfbench.method import options_hash
     from pcfbench.store.cells import Cell
 
@@ -483,3 +484,48 @@ def test_oracle_renders_each_future_sweep_from_its_own_origin(tmp_path, monkeypa
     assert len(rows) == res["sweeps"]
     for name in ("chamfer_nf", "l1_mean", "l1_median"):
         assert c[name] == pytest.approx(float(rows[name].mean()), rel=1e-9), name
+
+
+def test_moved_sensor_batches_start_their_rays_at_the_moved_sensor(toy_sweeps):
+    """tiny-moved's training sweeps: the moved cloud is the sweep under a rigid turn about z and a
+    ground-plane shift within the configured bounds, and every ray starts at the moved sensor and
+    ends on its return (origin + depth x direction = the moved point). Without moved sensors
+    the batch draws the same random numbers as before (the built-in configurations train as
+    they did)."""
+    from dataclasses import replace
+
+    from pcfbench.methods.copilot4d.config import TINY_MOVED
+    from pcfbench.methods.copilot4d.data import moved_sensor
+
+    cfg = replace(MICRO, sensor_moved_share=1.0, sensor_shift=20.0, sensor_turn=60.0)
+    rng = np.random.default_rng(3)
+    T = moved_sensor(cfg, rng)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+    assert T[2, 3] == 0 and np.linalg.norm(T[:2, 3]) <= 20.0 and abs(np.degrees(np.arctan2(T[1, 0], T[0, 0]))) <= 60
+    pts = toy_sweeps[0]
+    b = make_batch(cfg, [pts], None, np.random.default_rng(3))
+    o = b.origins.double().numpy()
+    np.testing.assert_allclose(o, np.broadcast_to(T[:3, 3], o.shape), atol=1e-5)
+    ends = o + b.depth.double().numpy()[:, None] * b.dirs.double().numpy()
+    moved = pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    d2 = ((ends[:, None] - moved[None]) ** 2).sum(-1).min(1)
+    assert d2.max() < 1e-6
+    # share 0: no draw for the sensor, identical batches to a configuration without the fields
+    a1 = make_batch(MICRO, [pts], 50, np.random.default_rng(5))
+    rng2 = np.random.default_rng(5)
+    ok = np.nonzero(np.linalg.norm(pts[in_box(MICRO, pts)], axis=1) > 0.5)[0]
+    picks = rng2.choice(ok, 50, replace=False) if len(ok) > 50 else ok
+    np.testing.assert_array_equal(a1.dirs.numpy(), (pts[in_box(MICRO, pts)][picks] / np.linalg.norm(
+        pts[in_box(MICRO, pts)][picks], axis=1, keepdims=True)).astype(np.float32))
+    assert not a1.origins.any()
+    assert TINY_MOVED.sensor_moved_share > 0 and TINY_MOVED.bev_tokens == 64
+
+
+def test_changed_share_counts_the_tokens_that_differ():
+    from pcfbench.methods.copilot4d.evaluate import changed_share
+
+    a = torch.tensor([[1, 2], [3, 4]])
+    assert changed_share(a, a.clone()) == 0.0
+    assert changed_share(a, torch.tensor([[1, 2], [0, 0]])) == 0.5
+    with pytest.raises(ValueError, match="shapes"):
+        changed_share(a, torch.zeros(3, 3, dtype=torch.long))

@@ -134,6 +134,59 @@ def test_windows_are_tokenized_in_the_t0_frame(monkeypatch, tmp_path):
         build_windows(tok, _Adapter(), "train", 5, 5, (2,), 1, None, log=lambda *_: None)
 
 
+def test_windows_in_their_own_frame_keep_each_sweep_sensor_centred(monkeypatch, tmp_path):
+    """frame=own: each sweep is tokenized as the sensor saw it (the point 10 m ahead stays 10 m
+    ahead in every frame), the poses are still each frame's pose in the t=0 frame, and the
+    cache keeps the two frames apart."""
+    from pcfbench.methods.copilot4d import evaluate
+
+    seen = []
+
+    def fake_tokenize(model, pts):
+        seen.append(float(pts[0, 0]))
+        return torch.full((2, 2), int(round(pts[0, 0])))
+
+    monkeypatch.setattr(evaluate, "tokenize_sweep", fake_tokenize)
+    tok = type("Tok", (), {"cfg": type("C", (), {"bev_tokens": 2})()})()
+    t0 = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 3, tmp_path / "c", log=lambda *_: None)
+    seen.clear()
+    own = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 3, tmp_path / "c", log=lambda *_: None, frame="own")
+    assert seen and set(seen) == {10.0} and np.all(own["tokens"] == 10)
+    np.testing.assert_array_equal(own["poses"], t0["poses"])
+    assert not np.array_equal(own["tokens"], t0["tokens"])
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["P2F1-s2-every3", "P2F1-s2-every3-own"]
+
+
+def test_own_frame_forecasts_tokenize_the_past_and_render_the_future_in_each_sensor_frame(monkeypatch):
+    """frame=own at inference: each past sweep is tokenized in its own sensor frame, and each
+    future map is rendered with the query moved into that future sensor's frame (origin 0)."""
+    from pcfbench.data import RayQuery, Sample
+    from pcfbench.methods.copilot4d import evaluate
+
+    P, F = 2, 2
+    poses = np.repeat(np.eye(4)[None], P + F, 0)
+    poses[:, 0, 3] = np.arange(P + F) * 3.0 + 50.0  # sensors 3 m apart, the reference 50 m away
+    pts = tuple(np.array([[poses[k, 0, 3] + 10.0, 0.0, 0.0]], np.float32) for k in range(P))  # 10 m ahead, ref frame
+    q = tuple(RayQuery(poses[P + f, :3, 3].copy(), np.array([[1.0, 0, 0]], np.float32)) for f in range(F))
+    s = Sample("s/1", "toy", "s", 1, pts, poses[:P], np.arange(P), poses[P:], np.arange(F), q)
+    tokenized, origins = [], []
+    monkeypatch.setattr(evaluate, "tokenize_sweep", lambda m, p: tokenized.append(p.copy()) or torch.zeros(2, 2))
+    monkeypatch.setattr(evaluate, "render_codes",
+                        lambda m, c, d, origin=None, **kw: origins.append(np.asarray(origin)) or np.ones(len(d)))
+    for frame, want_x, want_o in (("own", [10.0, 10.0], [0.0, 0.0]), ("t0", [7.0, 10.0], [3.0, 6.0])):
+        m = Copilot4D(resolve_method(f"copilot4d:frame={frame}").options)
+        m.world, m.tokenizer = torch.nn.Linear(1, 1), torch.nn.Linear(1, 1)
+        monkeypatch.setattr(m, "forecast_tokens", lambda smp: ([torch.zeros(2, 2)] * F, None,
+                                                                np.linalg.inv(smp.past_T_ref_sensor[-1])))
+        tokenized.clear(), origins.clear()
+        seq, _, _ = m.world_inputs(s)
+        assert [float(p[0, 0]) for p in tokenized] == pytest.approx(want_x)
+        m.forecast(s)
+        assert [float(o[0]) for o in origins] == pytest.approx(want_o)
+    with pytest.raises(PcfbenchError, match="frame='moved'"):
+        resolve_method("copilot4d:frame=moved")
+
+
 # --------------------------------------------------------------------------- the context window
 class _Recorder(torch.nn.Module):
     """A world model that records the temporal positions and poses it is given."""

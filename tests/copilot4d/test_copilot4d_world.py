@@ -499,3 +499,41 @@ def test_overfit_a_tiny_sequence():
         if step % 10 == 9 and forecast_accuracy() > 0.9:
             break
     assert forecast_accuracy() > 0.9
+
+
+def test_training_loss_reports_changed_and_unchanged_tokens_apart():
+    """A model that predicts, everywhere, the last past frame's token (a copier) is right on
+    every future token that did not change and wrong on every one that did; the share of
+    changed future tokens is counted by hand. The loss and its gradient are the plain ones."""
+    V, n_past = 6, 2
+
+    class Copier(nn.Module):
+        mask_token = V
+
+        def __init__(self, x0):
+            super().__init__()
+            self.x0, self.w = x0, nn.Parameter(torch.zeros(1))
+
+        def forward(self, tokens, poses, mask):
+            last = self.x0[:, n_past - 1: n_past].expand_as(self.x0)
+            return F.one_hot(last, V).float() * 10 + self.w
+
+    x0 = torch.zeros(1, 4, 2, 2, dtype=torch.long)
+    x0[0, 1] = torch.tensor([[1, 2], [3, 4]])  # the last past frame
+    x0[0, 2] = torch.tensor([[1, 2], [3, 5]])  # one token of four changed
+    x0[0, 3] = torch.tensor([[0, 0], [3, 4]])  # two changed
+    both = 0
+    for seed in range(8):  # which tokens are masked is random: every seed, and at least one with both kinds
+        gen = torch.Generator().manual_seed(seed)
+        loss, stats = D.training_loss(Copier(x0), x0, torch.eye(4).expand(1, 4, 4, 4), n_past, generator=gen)
+        assert stats["changed_share"] == pytest.approx(3 / 8)
+        assert math.isnan(stats["changed_accuracy"]) or stats["changed_accuracy"] == 0.0
+        assert math.isnan(stats["unchanged_accuracy"]) or stats["unchanged_accuracy"] == 1.0
+        if not (math.isnan(stats["changed_loss"]) or math.isnan(stats["unchanged_loss"])):
+            assert stats["changed_loss"] > stats["unchanged_loss"]
+            both += 1
+        # measuring draws nothing: the generator is where corrupt alone leaves it
+        gen2 = torch.Generator().manual_seed(seed)
+        D.corrupt(x0, n_past, V, D.COPILOT4D, gen2)
+        assert torch.equal(gen.get_state(), gen2.get_state())
+    assert both
