@@ -143,7 +143,7 @@ def register_commands(cli):  # noqa: ANN001
                        f"codebook usage {result['codebook_usage']:.1%}")
             click.echo(f"wrote {md}")
         for fr in frame if ceiling_setting else ():
-            from pcfbench.methods.copilot4d.evaluate import evaluate_ceiling, write_ceiling
+            from pcfbench.methods.copilot4d.ceiling import evaluate_ceiling, write_ceiling
 
             res = evaluate_ceiling(model, adapter, split, ceiling_setting, frame=fr, **render,
                                    max_samples=ceiling_samples or None, log=click.echo)

@@ -468,7 +468,9 @@ def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch
     monkeypatch.setattr(ev, "render_codes", perfect_render)
     monkeypatch.setattr(ev, "decode", lambda model, codes: None)
     monkeypatch.setattr(ev, "changed_share", lambda codes, last: 0.0)
-    res = ev.evaluate_ceiling(Tokenizer(MICRO), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
+    from pcfbench.methods.copilot4d.ceiling import evaluate_ceiling
+
+    res = evaluate_ceiling(Tokenizer(MICRO), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
     o, tc, c = (res["means"][k] for k in ("ceiling", "copilot4d-token-copy", "copy-last"))
     assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
     for name in ("l1_mean", "l1_median", "chamfer_nf", "chamfer"):

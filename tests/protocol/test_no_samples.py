@@ -144,10 +144,10 @@ def test_export_of_a_sample_id_in_an_empty_split_names_the_split(tmp_path):
 def test_the_world_model_ceiling_names_its_own_option(tmp_path):
     torch = pytest.importorskip("torch")
     from pcfbench.errors import PcfbenchError
-    from pcfbench.methods.copilot4d import evaluate
+    from pcfbench.methods.copilot4d import ceiling
 
     root = write_kitti_tree(tmp_path / "k", sequences=("08",), num_sweeps=24)
     with pytest.raises(PcfbenchError) as err:
-        evaluate.evaluate_ceiling(torch.nn.Module(), KittiOdometry(root), "test", "kitti-3s", log=lambda *a: None)
+        ceiling.evaluate_ceiling(torch.nn.Module(), KittiOdometry(root), "test", "kitti-3s", log=lambda *a: None)
     assert str(err.value).endswith("the longest of its 1 sequence(s) has 24 (08); pick a setting of a shorter "
                                    "horizon: --ceiling kitti-1s (needs 19)"), err.value
