@@ -35,3 +35,30 @@ def shifted_plugins():
     if "shifted" not in plugins.methods:
         plugins.methods.add("shifted", Shifted, "test")
     return plugins
+
+
+def chromium() -> str:
+    """Debian's chromium for the browser tests: skipped where it is missing, a failure in CI
+    (``bash .ci/setup test`` installs it)."""
+    import os
+    import shutil
+
+    import pytest
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        if os.environ.get("CI"):
+            pytest.fail("chromium is missing: bash .ci/setup test installs it (apt-get install chromium)")
+        pytest.skip("chromium is not installed (bash .ci/setup test installs it)")
+    return exe
+
+
+def headless(exe: str, *args: str) -> str:
+    """Run headless chromium with ``args``; its standard output (a dumped DOM)."""
+    import subprocess
+
+    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
+           "--hide-scrollbars", "--virtual-time-budget=5000", *args]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return res.stdout

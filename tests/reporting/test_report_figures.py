@@ -4,7 +4,6 @@ store only (no method runs), the range bins stored at run time."""
 
 from __future__ import annotations
 
-import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 
 import pcfbench
 from conftest import write_tiny_kitti
-from tests_helpers import Shifted, shifted_plugins as _plugins
+from tests_helpers import Shifted, shifted_plugins as _plugins, chromium, headless
 from pcfbench.reporting import figures, tables
 from pcfbench.data import Forecast
 from pcfbench.errors import PcfbenchError
@@ -286,34 +285,13 @@ def test_report_publishes_atomically_and_refuses_a_file_as_folder(made, tmp_path
     assert f.read_text() == "x"
 
 
-def _chromium() -> str:
-    import shutil
-
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("chromium is missing: bash .ci/setup test installs it (apt-get install chromium)")
-        pytest.skip("chromium is not installed (bash .ci/setup test installs it)")
-    return exe
-
-
-def _headless(exe: str, *args: str) -> str:
-    import subprocess
-
-    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-           "--hide-scrollbars", "--virtual-time-budget=5000", *args]
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr[-2000:]
-    return res.stdout
-
-
 @pytest.mark.slow
 def test_html_page_renders_in_headless_chromium(made, tmp_path):
     """Debian's chromium renders the page: every row and value, the figures decoded, sorting
     by a column (the #sort= address a header click sets) reorders each group; a screenshot is kept."""
     from html.parser import HTMLParser
 
-    exe = _chromium()
+    exe = chromium()
     store, _, paths = made
     lb = collect(store)
     url = paths["html"].resolve().as_uri()
@@ -341,7 +319,7 @@ def test_html_page_renders_in_headless_chromium(made, tmp_path):
 
     def dom(address):
         d = Dom()
-        d.feed(_headless(exe, "--dump-dom", address))
+        d.feed(headless(exe, "--dump-dom", address))
         return d
 
     plain = dom(url)
@@ -361,7 +339,7 @@ def test_html_page_renders_in_headless_chromium(made, tmp_path):
         if key == "l1_mean":
             assert [r[0] for r in d.rows] != ranked  # it did reorder
     shot = tmp_path / "leaderboard.png"
-    _headless(exe, f"--screenshot={shot}", "--window-size=1400,1800", url)
+    headless(exe, f"--screenshot={shot}", "--window-size=1400,1800", url)
     import matplotlib.image
 
     assert matplotlib.image.imread(shot).shape[:2] == (1800, 1400)

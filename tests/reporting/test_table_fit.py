@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from tests_helpers import chromium, headless
 
 from pcfbench.reporting import htmlreport, tables
 from pcfbench.reporting.report import Leaderboard
@@ -158,26 +159,9 @@ MEASURE = """<script>window.addEventListener('load', function(){
 });</script></body>"""
 
 
-def _chromium() -> str:
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("chromium is missing: bash .ci/setup test installs it (apt-get install chromium)")
-        pytest.skip("chromium is not installed (bash .ci/setup test installs it)")
-    return exe
-
-
-def _headless(exe: str, *args: str) -> str:
-    cmd = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-           "--hide-scrollbars", "--virtual-time-budget=5000", *args]
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr[-2000:]
-    return res.stdout
-
-
 def _measure(exe: str, page: str, path: Path, width: int = 1400) -> tuple[list[tuple[int, int, int, str]], tuple[int, int]]:
     path.write_text(page.replace("</body>", MEASURE))
-    dom = _headless(exe, f"--window-size={width},1000", "--dump-dom", path.resolve().as_uri())
+    dom = headless(exe, f"--window-size={width},1000", "--dump-dom", path.resolve().as_uri())
     fit = re.search(r'data-fit="([^"]*)"', dom).group(1)
     page_w = tuple(int(x) for x in re.search(r'data-page="([^"]*)"', dom).group(1).split(","))
     wraps = [(int(a), int(b), int(c), d) for a, b, c, d in (x.split(",") for x in fit.split(";"))]
@@ -188,7 +172,7 @@ def test_the_html_tables_fit_a_1400_px_window(tmp_path):
     """The leaderboard page (the paper preset, the 75-character trained label) and every
     per-preset page, `full`'s 11 metrics included, show the whole table at 1400 px; a wider
     table would scroll inside its own box (overflow-x: auto), never be cut off silently."""
-    exe = _chromium()
+    exe = chromium()
     cases = _cases()
     shot_dir = os.environ.get("PCFBENCH_TABLE_SHOTS")
     pages = {"leaderboard": htmlreport.page(cases["paper"], _board(PAPER, ALL)),
@@ -202,5 +186,5 @@ def test_the_html_tables_fit_a_1400_px_window(tmp_path):
             assert table_w <= box_w and scroll_w <= box_w, (name, table_w, box_w)
             assert overflow == "auto", name
         if shot_dir:
-            _headless(exe, f"--screenshot={Path(shot_dir) / f'html-{name}-1400.png'}", "--window-size=1400,1100",
+            headless(exe, f"--screenshot={Path(shot_dir) / f'html-{name}-1400.png'}", "--window-size=1400,1100",
                       (tmp_path / f"{name}.html").resolve().as_uri())
