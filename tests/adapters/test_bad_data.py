@@ -225,13 +225,18 @@ def test_a_sequence_with_poses_of_the_wrong_shape_or_time_going_back_is_refused(
 
 # -- nuScenes --------------------------------------------------------------------------------
 
-def test_nuscenes_nan_points_are_reported_naming_the_point_file(tmp_path):
+def _nuscenes_tree(tmp_path):
+    """A v1.0-trainval tree of one 6-sweep scene; its root and its point files in order."""
     pts, poses, times = toy_world_sweeps(6, beams=8, azimuths=90, rate_hz=2.0)
     seq = SequenceData.from_arrays("scene-0003", "val", pts, poses,
                                    1_531_000_000_000_000_000 + np.round(times * 1e9).astype(np.int64))
     root = tmp_path / "nu"
     write_nuscenes(root, [seq], version="v1.0-trainval")
-    files = sorted((root / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
+    return root, sorted((root / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
+
+
+def test_nuscenes_nan_points_are_reported_naming_the_point_file(tmp_path):
+    root, files = _nuscenes_tree(tmp_path)
     data = read_pcd_bin(files[2])
     data[5, 2] = np.inf
     data.tofile(files[2])
@@ -241,15 +246,9 @@ def test_nuscenes_nan_points_are_reported_naming_the_point_file(tmp_path):
     code, out = _check(root, "nuscenes")
     assert code == 1 and f"  - {message}\n" in out
 
-# -- nuScenes --------------------------------------------------------------------------------
 
 def test_nuscenes_zero_length_pcd_bin_is_an_error(tmp_path):
-    pts, poses, times = toy_world_sweeps(6, beams=8, azimuths=90, rate_hz=2.0)
-    seq = SequenceData.from_arrays("scene-0003", "val", pts, poses,
-                                   1_531_000_000_000_000_000 + np.round(times * 1e9).astype(np.int64))
-    root = tmp_path / "nu"
-    write_nuscenes(root, [seq], version="v1.0-trainval")
-    files = sorted((root / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
+    root, files = _nuscenes_tree(tmp_path)
     files[2].write_bytes(b"")
     with pytest.raises(DataError, match=rf"^nuScenes point file {re.escape(str(files[2]))} is empty \(0 bytes\)"):
         read_pcd_bin(files[2])
