@@ -28,8 +28,8 @@ GOLDEN_DEFAULT_HASHES = {
     # new with the trained-method contract (issue 13); moved on purpose when the rendering
     # options noise and readout came in and the threshold default went 0.5 -> 0.02 (issue 14)
     "copilot4d-token-copy": "399b687887eb",
-    "copilot4d": "0cf92097b60f",  # new with the world model (issue 14), moved with the same options
-    "copilot4d-maskgit": "0cf92097b60f",
+    "copilot4d": "caf63f429a20",  # issue 42 added the training option 'frame' (no copilot4d checkpoint ships)
+    "copilot4d-maskgit": "caf63f429a20",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {
