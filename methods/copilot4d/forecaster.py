@@ -121,6 +121,7 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
     toks, poses, strides_out = [], [], []
     for name in adapter.sequence_names(split):
         seq = None
+        own_tokens: dict[int, np.ndarray] = {}  # frame own: each sweep tokenized once, whatever its windows
         for s in strides:
             key = f"P{n_past}F{n_future}-s{s}-every{anchor_every}" + ("" if frame == "t0" else f"-{frame}")
             path = None if cache is None else cache / key / f"{name}.npz"
@@ -139,12 +140,17 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                     T_s0_world = np.linalg.inv(seq.T_world_sensor[i])
                     for j in range(T):
                         k = i + (j - n_past + 1) * s
-                        if k not in clouds:
-                            clouds[k] = adapter.ego_box.remove(seq.load_points(k))
                         T_s0_k = T_s0_world @ seq.T_world_sensor[k]
                         p[a, j] = T_s0_k
-                        pts = transform(clouds[k], T_s0_k) if frame == "t0" else clouds[k]
-                        t[a, j] = tokenize_sweep(tokenizer, pts).cpu().numpy()
+                        if frame == "own":  # a sweep's tokens in its own frame do not depend on the window
+                            if k not in own_tokens:
+                                points = adapter.ego_box.remove(seq.load_points(k))
+                                own_tokens[k] = tokenize_sweep(tokenizer, points).cpu().numpy()
+                            t[a, j] = own_tokens[k]
+                            continue
+                        if k not in clouds:
+                            clouds[k] = adapter.ego_box.remove(seq.load_points(k))
+                        t[a, j] = tokenize_sweep(tokenizer, transform(clouds[k], T_s0_k)).cpu().numpy()
                     for k in [k for k in clouds if k < i + (1 - n_past) * s + anchor_every]:
                         del clouds[k]
                 log(f"{name} stride {s}: {len(anchors)} windows tokenized in {time.monotonic() - t0:.0f} s")

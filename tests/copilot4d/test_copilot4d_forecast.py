@@ -136,14 +136,15 @@ def test_windows_are_tokenized_in_the_t0_frame(monkeypatch, tmp_path):
 
 def test_windows_in_their_own_frame_keep_each_sweep_sensor_centred(monkeypatch, tmp_path):
     """frame=own: each sweep is tokenized as the sensor saw it (the point 10 m ahead stays 10 m
-    ahead in every frame), the poses are still each frame's pose in the t=0 frame, and the
-    cache keeps the two frames apart."""
+    ahead in every frame), once however many windows hold it, the poses are still each frame's
+    pose in the t=0 frame, and the cache keeps the two frames apart."""
     from pcfbench.methods.copilot4d import evaluate
 
-    seen = []
+    seen, which = [], []
 
     def fake_tokenize(model, pts):
         seen.append(float(pts[0, 0]))
+        which.append(round(float(pts[0, 2]) * 100))
         return torch.full((2, 2), int(round(pts[0, 0])))
 
     monkeypatch.setattr(evaluate, "tokenize_sweep", fake_tokenize)
@@ -152,9 +153,13 @@ def test_windows_in_their_own_frame_keep_each_sweep_sensor_centred(monkeypatch, 
     seen.clear()
     own = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 3, tmp_path / "c", log=lambda *_: None, frame="own")
     assert seen and set(seen) == {10.0} and np.all(own["tokens"] == 10)
+    which.clear()  # every sweep of every window at anchors 2..10 (spacing 1), stride 2: sweeps 0..11, once each
+    every = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 1, tmp_path / "c", log=lambda *_: None, frame="own")
+    assert len(every["tokens"]) == 8 and sorted(which) == list(range(12))
     np.testing.assert_array_equal(own["poses"], t0["poses"])
     assert not np.array_equal(own["tokens"], t0["tokens"])
-    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["P2F1-s2-every3", "P2F1-s2-every3-own"]
+    assert sorted(p.name for p in (tmp_path / "c").iterdir()) == ["P2F1-s2-every1-own", "P2F1-s2-every3",
+                                                                 "P2F1-s2-every3-own"]
 
 
 def test_own_frame_forecasts_tokenize_the_past_and_render_the_future_in_each_sensor_frame(monkeypatch):
