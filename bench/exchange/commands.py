@@ -91,7 +91,8 @@ def score_submission(path: Path, name: str, q: Any, store: Path, metrics=(), par
     """Check the submission at ``path`` against the questions ``q`` whole, then score it as a
     cell of the ``submission`` method (its name, file and sha256 in the options) into ``store``.
     A partial submission's cell is marked partial. Returns (CellResult, Checked)."""
-    from pcfbench.exchange.submission import check_submission, file_sha256, open_submission
+    from pcfbench.exchange.check import check_submission, open_submission
+    from pcfbench.exchange.submission import file_sha256
     from pcfbench.method import resolve_method
     from pcfbench.plugins import get_plugins
     from pcfbench.running.runner import RunOptions, default_metrics, run_cell

@@ -36,7 +36,8 @@ class Submission(Method):
     in_default_runs: ClassVar[bool] = False
 
     def __init__(self, options: SubmissionOptions | None = None) -> None:
-        from pcfbench.exchange.submission import file_sha256, open_submission
+        from pcfbench.exchange.check import open_submission
+        from pcfbench.exchange.submission import file_sha256
 
         super().__init__(options)
         o = self.options
