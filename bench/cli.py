@@ -64,6 +64,8 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
         except PcfbenchError as exc:
             click.echo(f"pcfbench: warning: skipping {exc}", err=True)
             continue
+        if not getattr(method.cls, "in_default_runs", True):  # needs an input of its own (a submission file)
+            continue
         if is_trained(method.cls):
             data = method.cls.default_train_on
             try:
@@ -800,6 +802,9 @@ def check(root, layout):
 
 
 def build_cli() -> click.Group:
+    from pcfbench.exchange.commands import add_commands
+
+    add_commands(cli)  # queries, score, challenge (docs/bring-your-own-method.md)
     get_plugins().add_commands(cli)
     return cli
 

@@ -10,3 +10,4 @@ def register_methods(register):
     register("raycast-zbuffer", "pcfbench.methods.raycast.zbuffer:RaycastZBuffer", "spherical z-buffer of the aggregated past from the future pose")
     register("raycast-voxel", "pcfbench.methods.raycast.voxel:RaycastVoxel", "first hit in a 0.2 m occupancy grid, range-growing cone rays")
     register("raycast-freespace", "pcfbench.methods.raycast.freespace:RaycastFreespace", "raycast-voxel with past free space carved (moving ghosts removed)")
+    register("submission", "pcfbench.exchange.method:Submission", "forecasts made elsewhere, read from a file (pcfbench score)")

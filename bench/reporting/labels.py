@@ -12,9 +12,13 @@ from pcfbench.store.cells import CellSpec
 
 
 def method_label(method: str, options: dict) -> str:
-    """A readable variant label: ``raycast-voxel (voxel=0.2, k=3)``; the bare name without options."""
+    """A readable variant label: ``raycast-voxel (voxel=0.2, k=3)``; the bare name without options.
+    A submission (``pcfbench score``) is named by its name and its file's sha256:
+    ``my-model (submission 1a2b3c4d)``."""
     if not options:
         return method
+    if method == "submission" and set(options) == {"name", "path", "sha256"}:
+        return f"{options['name']} (submission {str(options['sha256'])[:8]})"
     return f"{method} (" + ", ".join(f"{k}={v}" for k, v in sorted(options.items())) + ")"
 
 

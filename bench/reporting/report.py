@@ -299,13 +299,13 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
         incomplete = table[table["incomplete"]].sort_values(GROUP_KEYS + ["variant"], na_position="first")
         table = table[~table["incomplete"]].copy()
         for _, r in incomplete.iterrows():
-            limit = f" (limit={int(r['limit'])})" if r["partial"] else ""
+            limit = _partial_note(r)
             notes.append(f"{r['dataset']} / {r['split']} / {r['setting']}{limit} {r['variant']}: INCOMPLETE, "
                          f"{r['coverage']} samples scored ({r['failed']} failed, {r['missing']} without rows): "
                          "not ranked (leaderboard_incomplete.csv)")
     for _, r in table.iterrows():
         if r["ci_units"] < stats.MIN_UNITS:
-            limit = f" (limit={int(r['limit'])})" if r["partial"] else ""
+            limit = _partial_note(r)
             notes.append(f"{r['dataset']} / {r['split']} / {r['setting']}{limit} {r['variant']}: {r['ci_units']} "
                          f"resampling unit(s) ({resampling.unit}), too few for an interval")
     comparisons = (_compare_groups(table, sums, reference, resampling, notes, reference_options_hash)
@@ -320,6 +320,14 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
     return Leaderboard(complete.reset_index(drop=True), pd.DataFrame(step_rows), metric_cols, units,
                        partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)),
                        incomplete=incomplete.reset_index(drop=True), higher_is_better=directions, scope=scope)
+
+
+def _partial_note(r) -> str:
+    """`` (limit=N)`` for a --limit cell's row, `` (partial)`` for another partial one (a
+    submission missing samples, ``pcfbench score --partial``), else ""."""
+    if not r["partial"]:
+        return ""
+    return f" (limit={int(r['limit'])})" if pd.notna(r["limit"]) else " (partial)"
 
 
 def metric_directions(names: list[str], recorded: dict[str, bool], notes: list[str] | None = None) -> dict[str, bool]:

@@ -31,7 +31,7 @@ from pcfbench.kinds import Better, parse
 
 PRESETS_FILE = "tables.toml"
 CI_STYLES = ("pm", "interval", "none")
-_PRESET_KEYS = {"title", "description", "columns", "rank_by"}
+_PRESET_KEYS = {"title", "description", "columns", "rank_by", "reported"}
 _COLUMN_KEYS = {"metric", "label", "better"}
 
 @dataclass(frozen=True)
@@ -52,6 +52,9 @@ class Preset:
     rank_by: str | None = None
     description: str = ""
     source: str = ""
+    #: show the published results of a group's dataset, split and setting under it
+    #: (``pcfbench.reporting.published``): reference rows, never ranked
+    reported: bool = False
 
 
 def _parse_preset(name: str, data: object, source: str) -> Preset:
@@ -92,7 +95,10 @@ def _parse_preset(name: str, data: object, source: str) -> Preset:
     rank_by = data.get("rank_by")
     if rank_by is not None and (not isinstance(rank_by, str) or (columns is not None and rank_by not in [c.metric for c in columns])):
         raise PcfbenchError(f"{where}: rank_by {rank_by!r} must be one of its columns' metrics")
-    return Preset(name, title, columns, rank_by, description, source)
+    reported = data.get("reported", False)
+    if not isinstance(reported, bool):
+        raise PcfbenchError(f"{where}: reported must be true or false, got {reported!r}")
+    return Preset(name, title, columns, rank_by, description, source, reported)
 
 
 def _read_presets(text: str, source: str) -> dict[str, Preset]:
@@ -143,6 +149,8 @@ class Group:
     #: variant -> the row's label where it is not the variant itself (a trained method's
     #: short name and footnote marker, :func:`footnote_labels`)
     short: dict[str, str] = field(default_factory=dict)
+    #: published results of this group's dataset, split and setting (``Preset.reported``)
+    reported: list = field(default_factory=list)
 
 
 @dataclass
@@ -291,6 +299,12 @@ def build(lb, preset: Preset, ci: str = "pm", order: list[str] | None = None,
     short, footnotes = footnote_labels([v for g in groups + partial for v in g.rows["variant"]])
     for g in groups + partial:
         g.short = {v: short[v] for v in g.rows["variant"] if v in short}
+    if preset.reported:  # complete groups only: a partial one is not the paper's sample set
+        from pcfbench.reporting.published import reported_for
+
+        for g in groups:
+            first = g.rows.iloc[0]
+            g.reported = reported_for(first["dataset"], first["split"], first["setting"], first["policy"])
     return Table(preset, columns, groups, partial, legend, notes + list(lb.notes), ci,
                  1.0 - lb.resampling.confidence, heading, scope=getattr(lb, "scope", ""), footnotes=footnotes)
 
@@ -373,6 +387,11 @@ def footnote_lines(t: Table) -> list[str]:
     return [f"{marker} {note}" for marker, note in t.footnotes]
 
 
+#: the line above a group's published rows (``Group.reported``)
+REPORTED_TITLE = ("Reported in the papers (their code, their samples; not ranked, in no interval or comparison, "
+                  "shown because this group's dataset, split and setting are the papers')")
+
+
 # -- Markdown --------------------------------------------------------------------------
 def _md_cell(p: Parts) -> str:
     s = f"**{p.value}**" if p.best else p.value
@@ -395,6 +414,12 @@ def _md_groups(t: Table, groups: list[Group], level: str) -> list[str]:
             cells += [_md_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
+        if g.reported:
+            out += [f"{REPORTED_TITLE}:", "", "| " + " | ".join(["method", "source"] + head[2 + failed:]) + " |",
+                    "|" + "|".join(["---", "---"] + ["---:"] * len(t.columns)) + "|"]
+            out += ["| " + " | ".join([md_text(r.method), md_text(r.source)] + [r.values.get(c.metric, "-") for c in t.columns])
+                    + " |" for r in g.reported]
+            out.append("")
     return out
 
 
@@ -429,9 +454,11 @@ def text(t: Table) -> str:
                     s = ("*" if p.best else "") + p.value + (f" {p.ci}" if p.ci else "")
                     cells.append(s + (f" {p.change}{'†' if p.tie else ''}" if p.change else ""))
                 rows.append(cells)
-            widths = [max(len(x[i]) for x in [head] + rows) for i in range(len(head))]
+            reported = [[f"{r.method} (reported: {r.source})", "-"] + [r.values.get(c.metric, "-") for c in t.columns]
+                        for r in g.reported]
+            widths = [max(len(x[i]) for x in [head] + rows + reported) for i in range(len(head))]
             fmt = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-            out += [title + g.title, fmt(head)] + [fmt(r) for r in rows] + [""]
+            out += [title + g.title, fmt(head)] + [fmt(r) for r in rows] + [fmt(r) for r in reported] + [""]
     if out:
         out.append("*: best in its column; ±: half the 95 % interval; +x %: against the reference; †: not significant")
         out += footnote_lines(t)
@@ -803,6 +830,12 @@ def html_table(t: Table, groups: list[Group], caption: str) -> str:
             cells += [f"<td>{int(r['failed'])}</td>"] if failed else []
             cells += [_html_cell(cell_parts(r, c, g.best, t.ci, t.alpha)) for c in t.columns]
             rows.append("<tr>" + "".join(cells) + "</tr>")
+        if g.reported:
+            rows.append(f"<tr class='reported'><td colspan='{len(head)}'>{_html.escape(REPORTED_TITLE)}</td></tr>")
+            pad = "<td></td>" * (1 + failed)
+            for r in g.reported:
+                rows.append(f"<tr class='reported'><td class='method'>{_html.escape(f'{r.method} ({r.source})')}</td>{pad}"
+                            + "".join(f"<td>{_html.escape(r.values.get(c.metric, '-'))}</td>" for c in t.columns) + "</tr>")
     return (f"<div class='pcf-wrap'><table class='{html_class(t)}'><caption>{_html.escape(caption)}</caption>"
             f"<thead><tr>{''.join(head)}</tr></thead><tbody>\n" + "\n".join(rows) + "\n</tbody></table></div>")
 

@@ -30,6 +30,8 @@ GOLDEN_DEFAULT_HASHES = {
     "copilot4d-token-copy": "399b687887eb",
     "copilot4d": "caf63f429a20",  # issue 42 added the training option 'frame' (no copilot4d checkpoint ships)
     "copilot4d-maskgit": "caf63f429a20",
+    # issue 47: forecasts read from a file; a cell's options always name the file and its sha256
+    "submission": "230160ea66bc",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {
