@@ -77,6 +77,8 @@ def _any_split(spec: str) -> str:
 
 @hookimpl
 def register_commands(cli):  # noqa: ANN001
+    _world_report_command(cli)
+
     @cli.command("tokenize")
     @_tokenizer_options
     @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the sweeps to tokenize")
@@ -157,3 +159,56 @@ def register_commands(cli):  # noqa: ANN001
             click.echo(f"ceiling ({ceiling_setting}, frame {fr}, {res['samples']} samples) / token-copy: "
                        + ", ".join(f"{n} {o[n] / tc[n]:.2f}" for n in ("chamfer_nf", "l1_mean", "l1_median")))
             click.echo(f"wrote {md} and {csv_path}")
+
+
+def _world_report_command(cli):  # noqa: ANN001
+    @cli.command("world-report")
+    @click.option("--method", "method", default="copilot4d", show_default=True, metavar="NAME[:k=v,...]",
+                  help="The world model: copilot4d or copilot4d-maskgit, with its options.")
+    @click.option("--train-on", default=None, metavar="NAME[=ROOT]",
+                  help="The checkpoint trained on this dataset (default: synthetic-town-realistic).")
+    @click.option("--train-split", default="train", show_default=True)
+    @click.option("--checkpoint", type=click.Path(exists=True), default=None,
+                  help="Checkpoint folder or file (default: the one trained on --train-on).")
+    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the held-out windows")
+    @click.option("--split", default="test", show_default=True)
+    @click.option("--windows", "max_windows", type=int, default=12, show_default=True,
+                  help="Evenly spaced windows per stride (0: all).")
+    @click.option("--reports", default=None)
+    def world_report(method, train_on, train_split, checkpoint, dataset_spec, split, max_windows, reports):
+        """A world model's forecast tokens on held-out windows against the real future's tokens,
+        apart on the tokens that changed since the last past frame and those that did not."""
+        from pcfbench.config import reports_dir
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.method import resolve_method
+        from pcfbench.methods.copilot4d.forecaster import Copilot4D, build_windows, window_cache_dir
+        from pcfbench.methods.copilot4d.token_report import shares, world_token_report, write_token_report
+        from pcfbench.training import checkpoint_for, open_training_data
+
+        spec = resolve_method(method)
+        if not issubclass(spec.cls, Copilot4D):
+            raise PcfbenchError(f"--method {method!r}: expected copilot4d or copilot4d-maskgit[:options]")
+        ck = checkpoint_for(spec, checkpoint=checkpoint, train_on=train_on, split=train_split)
+        m = spec.create()
+        m.load(ck)
+        source = open_training_data(dataset_spec, split, split_option="--split {}")
+        cfg, opts = m.world_cfg, m.options
+        windows = build_windows(m.tokenizer, source.adapter, split, cfg.n_past, cfg.n_future, tuple(opts.strides),
+                                opts.anchor_every,
+                                window_cache_dir(ck.manifest["config"]["tokenizer_sha256"], source.train_on.key),
+                                log=click.echo, frame=opts.frame)
+        result = world_token_report(m, windows, max_windows=max_windows or None, log=lambda *_: None)
+        meta = {"method": method, "checkpoint": str(ck.manifest_path),
+                "weights_sha256": ck.sha256, "steps": ck.steps, "trained_on": ck.train_on_label,
+                "windows of": f"{source.train_on.label} (frame {opts.frame})",
+                "regenerate": f"pcfbench world-report --method {method} --dataset {dataset_spec} --split {split} "
+                              f"--windows {max_windows}"}
+        md, csv_path = write_token_report(result, meta, reports_dir(reports) / "copilot4d",
+                                          f"world-tokens-{m.variant.name}-{ck.sha256[:12]}-on-{source.adapter.name}-"
+                                          f"{split}")
+        for r in result["rows"]:
+            sh = shares(r)
+            click.echo(f"stride {r['stride']}, step {r['step']}: changed {sh['changed_share']:.1%}, accuracy on "
+                       f"changed {sh['changed_accuracy']:.1%}, on unchanged {sh['unchanged_accuracy']:.1%}, "
+                       f"moved {sh['moved_share']:.1%} (precision {sh['moved_precision']:.1%})")
+        click.echo(f"wrote {md} and {csv_path}")
