@@ -203,11 +203,14 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
 @click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
               help="Per-sample time limit of loading and the method's forecast; a sample over it is recorded failed "
                    "and the run goes on (0: no limit).")
+@click.option("--metrics-backend", type=click.Choice(["auto", "numpy", "torch"]), default="auto", show_default=True,
+              help="Where the metrics' nearest-neighbour searches run: torch (the GPU; the CPU when there is none), "
+                   "numpy (k-d trees and grids on the CPU); auto: torch when a CUDA GPU is there. Same values.")
 @limit_options
 @executor_options
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
-        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, scoring_timeout, max_memory,
-        max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
+        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, metrics_backend, scoring_timeout,
+        max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
 
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
@@ -225,7 +228,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     options = RunOptions(jobs=jobs, force=force, progress=not quiet, threads=threads, allow_train_split=allow_train_split,
-                         executor=ray_executor, timeout=timeout or None, isolate=True,
+                         executor=ray_executor, timeout=timeout or None, isolate=True, metrics_backend=metrics_backend,
                          **_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
     failures, failed_cells = _run_cells(cells, store_path, options, plugins)
     if not no_report:
@@ -287,18 +290,58 @@ def _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, l
 def _run_cells(cells, store_path, options, plugins) -> tuple[int, int]:
     """Run every cell in turn (a cell another process holds goes last and is then waited
     for: its rows are the other run's, computed once; docs/trust.md); Ctrl-C says how to
-    resume. Returns the failed samples of the run's cells, now or in an earlier run of a
-    reused cell, and how many cells have any."""
+    resume. Cells that differ only in the method share one pass over their samples
+    (``pcfbench.running.group``; one by one when another process holds one of them). Returns
+    the failed samples of the run's cells, now or in an earlier run of a reused cell, and how
+    many cells have any."""
+    from pcfbench.running.group import group_key, run_group, shares
     from pcfbench.running.runner import run_cell
     from pcfbench.store.cells import Cell, CellLocked
 
     failures = failed_cells = 0
-    queue = [(i, spec, False) for i, spec in enumerate(cells, 1)]
     finished = 0
+
+    def report(i, spec, result) -> None:
+        nonlocal failures, failed_cells, finished
+        where = f"cell {i}/{len(cells)}: {cell_label(spec)}"  # the grid's position, the variant's options
+        finished += 1
+        if result.processed == 0 and result.done_before == result.samples:
+            click.echo(f"{where}: complete, nothing to do ({result.samples} samples)")
+        else:
+            click.echo(
+                f"{where}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
+                f"in {result.seconds:.1f} s -> {result.path}"
+            )
+        # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
+        cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
+        failures += cell_failed
+        failed_cells += cell_failed > 0
+
+    by_samples: dict = {}
+    for i, spec in enumerate(cells, 1):
+        by_samples.setdefault(group_key(spec), []).append((i, spec))
+    queue = []
     with interrupted_note(store_path, lambda: finished, len(cells)):
+        for members in by_samples.values():
+            if len(members) < 2 or not shares(options):
+                queue += [(i, spec, False) for i, spec in members]
+                continue
+            first = members[0][1]
+            where = (f"cells {', '.join(str(i) for i, _ in members)}/{len(cells)}: {len(members)} methods | "
+                     f"{first.dataset}:{first.split} | {first.setting}")
+            try:
+                results = run_group([spec for _, spec in members], store_path,
+                                    dataclasses.replace(options, wait=False, progress_label=where), plugins=plugins)
+            except CellLocked:
+                click.echo(f"{where}: another pcfbench process is computing one of them; running them one by one",
+                           err=True)
+                queue += [(i, spec, False) for i, spec in members]
+                continue
+            for (i, spec), result in zip(members, results):
+                report(i, spec, result)
         while queue:
             i, spec, wait = queue.pop(0)
-            where = f"cell {i}/{len(cells)}: {cell_label(spec)}"  # the grid's position, the variant's options
+            where = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             if wait:
                 click.echo(f"{where}: waiting for the other pcfbench process computing it", err=True)
             try:
@@ -308,18 +351,7 @@ def _run_cells(cells, store_path, options, plugins) -> tuple[int, int]:
                 click.echo(f"{where}: another pcfbench process is computing it; doing the other cells first", err=True)
                 queue.append((i, spec, True))
                 continue
-            finished += 1
-            if result.processed == 0 and result.done_before == result.samples:
-                click.echo(f"{where}: complete, nothing to do ({result.samples} samples)")
-            else:
-                click.echo(
-                    f"{where}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
-                    f"in {result.seconds:.1f} s -> {result.path}"
-                )
-            # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
-            cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
-            failures += cell_failed
-            failed_cells += cell_failed > 0
+            report(i, spec, result)
     return failures, failed_cells
 
 
