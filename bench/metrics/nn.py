@@ -1,7 +1,7 @@
 """Exact nearest neighbours for the metrics: a k-d tree (pykdtree) with float64 distances.
 
 pykdtree was the fastest exact index measured on ray-aligned LiDAR sweeps (against scipy's
-cKDTree and open3d's searches: docs/performance.md, tests/benchmarks/test_bench_metrics.py).
+cKDTree and open3d's searches: docs/journal/performance-tuning-2026-11.md, tests/benchmarks/test_bench_metrics.py).
 Distances are recomputed in float64 from the returned indices (one numba pass), so they are
 exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
 angle-space searches use the exact bucket grid of pcfbench.nn2d (ties to the lowest index).
@@ -25,7 +25,7 @@ from pcfbench.nn2d import NN2D, PER_CELL, _cells
 
 TWO_PI = 2.0 * np.pi
 #: points per grid cell of each angle space's search (any value gives the same answers): the
-#: fastest measured on the 120k x 120k benchmark pair (docs/performance.md)
+#: fastest measured on the 120k x 120k benchmark pair (docs/journal/performance-tuning-2026-11.md)
 PER_CELL_4DOCC = 2.0
 PER_CELL_WRAPPED = 4.0
 
