@@ -119,7 +119,8 @@ def executor_options(command):
 
 
 def limit_options(command):
-    """The per-sample limits besides --timeout: scoring time, memory, forecast size."""
+    """The per-sample limits besides --timeout (scoring time, memory, forecast size) and where the
+    scoring's searches run."""
     from pcfbench.protocol.validate import FORECAST_FLOOR, FORECAST_RATIO
 
     options = [
@@ -134,23 +135,30 @@ def limit_options(command):
                      metavar="RATIO",
                      help=f"A forecast sweep with more than RATIO x its ground truth's points (at least "
                           f"{FORECAST_FLOOR:,}) is refused as the method's failure, before scoring (0: no cap)."),
+        click.option("--metrics-backend", type=click.Choice(["auto", "numpy", "torch"]), default="auto",
+                     show_default=True,
+                     help="Where the metrics' nearest-neighbour searches run: torch (the GPU; the CPU when there is "
+                          "none), numpy (k-d trees and grids on the CPU); auto: torch when a CUDA GPU is there. "
+                          "Same values."),
     ]
     for option in reversed(options):
         command = option(command)
     return command
 
 
-def _limits(executor: str, scoring_timeout: float, max_memory: float, max_forecast_ratio: float) -> dict:
+def _limits(executor: str, scoring_timeout: float, max_memory: float, max_forecast_ratio: float,
+            metrics_backend: str = "auto") -> dict:
     """RunOptions' limit fields from limit_options' values (0: none); the Ray executor times the
-    method and the scoring apart as the local one does, but keeps the default forecast cap and
-    has no memory limit, so it refuses those two."""
+    method and the scoring apart as the local one does, but keeps the default forecast cap, has
+    no memory limit and scores where each task finds a GPU (auto), so it refuses those three."""
     from pcfbench.protocol.validate import FORECAST_RATIO
 
-    if executor == "ray" and (max_memory or max_forecast_ratio != FORECAST_RATIO):
-        raise click.UsageError("--max-memory and --max-forecast-ratio apply to the local executor only; the Ray "
-                               "executor limits a sample by --timeout and --scoring-timeout (docs/cluster.md)")
+    if executor == "ray" and (max_memory or max_forecast_ratio != FORECAST_RATIO or metrics_backend != "auto"):
+        raise click.UsageError("--max-memory, --max-forecast-ratio and --metrics-backend apply to the local executor "
+                               "only; the Ray executor limits a sample by --timeout and --scoring-timeout and scores on "
+                               "a task's GPU when it has one (docs/cluster.md)")
     return {"scoring_timeout": scoring_timeout or None, "max_memory_gb": max_memory or None,
-            "forecast_ratio": max_forecast_ratio or None}
+            "forecast_ratio": max_forecast_ratio or None, "metrics_backend": metrics_backend}
 
 
 def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout=None,
@@ -203,14 +211,11 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
 @click.option("--timeout", type=click.FloatRange(min=0), default=DEFAULT_TIMEOUT_S, show_default=True, metavar="SECONDS",
               help="Per-sample time limit of loading and the method's forecast; a sample over it is recorded failed "
                    "and the run goes on (0: no limit).")
-@click.option("--metrics-backend", type=click.Choice(["auto", "numpy", "torch"]), default="auto", show_default=True,
-              help="Where the metrics' nearest-neighbour searches run: torch (the GPU; the CPU when there is none), "
-                   "numpy (k-d trees and grids on the CPU); auto: torch when a CUDA GPU is there. Same values.")
 @limit_options
 @executor_options
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
-        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, metrics_backend, scoring_timeout,
-        max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
+        train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, scoring_timeout, max_memory,
+        max_forecast_ratio, metrics_backend, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
 
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
@@ -228,8 +233,8 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     options = RunOptions(jobs=jobs, force=force, progress=not quiet, threads=threads, allow_train_split=allow_train_split,
-                         executor=ray_executor, timeout=timeout or None, isolate=True, metrics_backend=metrics_backend,
-                         **_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
+                         executor=ray_executor, timeout=timeout or None, isolate=True,
+                         **_limits(executor, scoring_timeout, max_memory, max_forecast_ratio, metrics_backend))
     failures, failed_cells = _run_cells(cells, store_path, options, plugins)
     if not no_report:
         board = collect(store_path)
@@ -596,7 +601,8 @@ def failures(store, tracebacks, as_json):
 @limit_options
 @executor_options
 def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_cells, quiet, timeout, keep_going,
-          scoring_timeout, max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
+          scoring_timeout, max_memory, max_forecast_ratio, metrics_backend, executor, address, shard_samples,
+          cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
     from pcfbench.reporting.labels import cell_label
@@ -620,7 +626,7 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_
         result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
                            progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor,
                            timeout=timeout or None, isolate=True,
-                           limits=_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
+                           limits=_limits(executor, scoring_timeout, max_memory, max_forecast_ratio, metrics_backend))
     failed = sum(r.failed for r in result.results)
     for text in result.summaries:
         click.echo(text)

@@ -227,9 +227,10 @@ def run_supervised(
     (the run stops), as is a worker dying during ``init`` (it would die again in every replacement).
 
     ``affinity(key)``: keys with the same value go to one worker in turn where it can be (a
-    worker that finished one takes the next of its kind; a free worker takes the first kind no
-    busy worker holds), so that it reuses what it kept of the last (a sample's tasks, one per
-    method); without it, keys go out in order.
+    worker that finished one takes the next of its kind; one whose kind is done takes the first
+    kind no other worker had last), so that it reuses what it kept of the last (a sample's tasks,
+    one per method). Near the end, when every kind left is another worker's, a free worker
+    helps with one rather than wait. Without it, keys go out in order.
 
     ``init``, ``init_args`` and ``task`` are sent to the workers (picklable, importable).
     """
@@ -247,7 +248,7 @@ def run_supervised(
             for w in workers:
                 if w.ready and w.key is None and not w.stopping:
                     if todo:
-                        held = {x.kind for x in workers if x.key is not None}
+                        held = {x.kind for x in workers if x is not w}  # a free one takes its own kind next
                         w.key, w.started, w.phase = todo.take(w.kind, held), time.monotonic(), None
                         w.kind = todo.kind(w.key)
                         w.conn.send(w.key)

@@ -26,3 +26,15 @@ def test_a_run_scored_in_torch_writes_the_numpy_rows(tmp_path):
     pd.testing.assert_frame_equal(rows["torch"], rows["numpy"], check_exact=True)
     with pytest.raises(PcfbenchError, match="metrics backend must be one of auto, numpy, torch"):
         RunOptions(metrics_backend="gpu")
+
+
+def test_the_cli_hands_the_backend_to_the_run_and_ray_refuses_another():
+    import click
+
+    from pcfbench.cli import _limits
+    from pcfbench.protocol.validate import FORECAST_RATIO
+
+    assert _limits("local", 120.0, 0.0, FORECAST_RATIO, "torch")["metrics_backend"] == "torch"
+    assert _limits("ray", 120.0, 0.0, FORECAST_RATIO)["metrics_backend"] == "auto"
+    with pytest.raises(click.UsageError, match="--metrics-backend apply to the local executor only"):
+        _limits("ray", 120.0, 0.0, FORECAST_RATIO, "numpy")
