@@ -121,7 +121,8 @@ def executor_options(command):
 
 
 def limit_options(command):
-    """The per-sample limits besides --timeout: scoring time, memory, forecast size."""
+    """The per-sample limits besides --timeout (scoring time, memory, forecast size) and where the
+    scoring's searches run."""
     from pcfbench.protocol.validate import FORECAST_FLOOR, FORECAST_RATIO
 
     options = [
@@ -136,23 +137,30 @@ def limit_options(command):
                      metavar="RATIO",
                      help=f"A forecast sweep with more than RATIO x its ground truth's points (at least "
                           f"{FORECAST_FLOOR:,}) is refused as the method's failure, before scoring (0: no cap)."),
+        click.option("--metrics-backend", type=click.Choice(["auto", "numpy", "torch"]), default="auto",
+                     show_default=True,
+                     help="Where the metrics' nearest-neighbour searches run: torch (the GPU; the CPU when there is "
+                          "none), numpy (k-d trees and grids on the CPU); auto: torch when a CUDA GPU is there. "
+                          "Same values."),
     ]
     for option in reversed(options):
         command = option(command)
     return command
 
 
-def _limits(executor: str, scoring_timeout: float, max_memory: float, max_forecast_ratio: float) -> dict:
+def _limits(executor: str, scoring_timeout: float, max_memory: float, max_forecast_ratio: float,
+            metrics_backend: str = "auto") -> dict:
     """RunOptions' limit fields from limit_options' values (0: none); the Ray executor times the
-    method and the scoring apart as the local one does, but keeps the default forecast cap and
-    has no memory limit, so it refuses those two."""
+    method and the scoring apart as the local one does, but keeps the default forecast cap, has
+    no memory limit and scores where each task finds a GPU (auto), so it refuses those three."""
     from pcfbench.protocol.validate import FORECAST_RATIO
 
-    if executor == "ray" and (max_memory or max_forecast_ratio != FORECAST_RATIO):
-        raise click.UsageError("--max-memory and --max-forecast-ratio apply to the local executor only; the Ray "
-                               "executor limits a sample by --timeout and --scoring-timeout (docs/cluster.md)")
+    if executor == "ray" and (max_memory or max_forecast_ratio != FORECAST_RATIO or metrics_backend != "auto"):
+        raise click.UsageError("--max-memory, --max-forecast-ratio and --metrics-backend apply to the local executor "
+                               "only; the Ray executor limits a sample by --timeout and --scoring-timeout and scores on "
+                               "a task's GPU when it has one (docs/cluster.md)")
     return {"scoring_timeout": scoring_timeout or None, "max_memory_gb": max_memory or None,
-            "forecast_ratio": max_forecast_ratio or None}
+            "forecast_ratio": max_forecast_ratio or None, "metrics_backend": metrics_backend}
 
 
 def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout=None,
@@ -209,7 +217,7 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
 @executor_options
 def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
         train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, scoring_timeout, max_memory,
-        max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
+        max_forecast_ratio, metrics_backend, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
 
     Exits 1 when any sample of the run's cells failed (now or in an earlier run of a reused
@@ -228,7 +236,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     store_path = config.store_dir(store, reports_path)
     options = RunOptions(jobs=jobs, force=force, progress=not quiet, threads=threads, allow_train_split=allow_train_split,
                          executor=ray_executor, timeout=timeout or None, isolate=True,
-                         **_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
+                         **_limits(executor, scoring_timeout, max_memory, max_forecast_ratio, metrics_backend))
     failures, failed_cells = _run_cells(cells, store_path, options, plugins)
     if not no_report:
         board = collect(store_path)
@@ -289,18 +297,58 @@ def _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, l
 def _run_cells(cells, store_path, options, plugins) -> tuple[int, int]:
     """Run every cell in turn (a cell another process holds goes last and is then waited
     for: its rows are the other run's, computed once; docs/trust.md); Ctrl-C says how to
-    resume. Returns the failed samples of the run's cells, now or in an earlier run of a
-    reused cell, and how many cells have any."""
+    resume. Cells that differ only in the method share one pass over their samples
+    (``pcfbench.running.group``; one by one when another process holds one of them). Returns
+    the failed samples of the run's cells, now or in an earlier run of a reused cell, and how
+    many cells have any."""
+    from pcfbench.running.group import group_key, run_group, shares
     from pcfbench.running.runner import run_cell
     from pcfbench.store.cells import Cell, CellLocked
 
     failures = failed_cells = 0
-    queue = [(i, spec, False) for i, spec in enumerate(cells, 1)]
     finished = 0
+
+    def report(i, spec, result) -> None:
+        nonlocal failures, failed_cells, finished
+        where = f"cell {i}/{len(cells)}: {cell_label(spec)}"  # the grid's position, the variant's options
+        finished += 1
+        if result.processed == 0 and result.done_before == result.samples:
+            click.echo(f"{where}: complete, nothing to do ({result.samples} samples)")
+        else:
+            click.echo(
+                f"{where}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
+                f"in {result.seconds:.1f} s -> {result.path}"
+            )
+        # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
+        cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
+        failures += cell_failed
+        failed_cells += cell_failed > 0
+
+    by_samples: dict = {}
+    for i, spec in enumerate(cells, 1):
+        by_samples.setdefault(group_key(spec), []).append((i, spec))
+    queue = []
     with interrupted_note(store_path, lambda: finished, len(cells)):
+        for members in by_samples.values():
+            if len(members) < 2 or not shares(options):
+                queue += [(i, spec, False) for i, spec in members]
+                continue
+            first = members[0][1]
+            where = (f"cells {', '.join(str(i) for i, _ in members)}/{len(cells)}: {len(members)} methods | "
+                     f"{first.dataset}:{first.split} | {first.setting}")
+            try:
+                results = run_group([spec for _, spec in members], store_path,
+                                    dataclasses.replace(options, wait=False, progress_label=where), plugins=plugins)
+            except CellLocked:
+                click.echo(f"{where}: another pcfbench process is computing one of them; running them one by one",
+                           err=True)
+                queue += [(i, spec, False) for i, spec in members]
+                continue
+            for (i, spec), result in zip(members, results):
+                report(i, spec, result)
         while queue:
             i, spec, wait = queue.pop(0)
-            where = f"cell {i}/{len(cells)}: {cell_label(spec)}"  # the grid's position, the variant's options
+            where = f"cell {i}/{len(cells)}: {cell_label(spec)}"
             if wait:
                 click.echo(f"{where}: waiting for the other pcfbench process computing it", err=True)
             try:
@@ -310,18 +358,7 @@ def _run_cells(cells, store_path, options, plugins) -> tuple[int, int]:
                 click.echo(f"{where}: another pcfbench process is computing it; doing the other cells first", err=True)
                 queue.append((i, spec, True))
                 continue
-            finished += 1
-            if result.processed == 0 and result.done_before == result.samples:
-                click.echo(f"{where}: complete, nothing to do ({result.samples} samples)")
-            else:
-                click.echo(
-                    f"{where}: {result.samples} samples ({result.processed} now, {result.failed} failed) "
-                    f"in {result.seconds:.1f} s -> {result.path}"
-                )
-            # this cell's failed samples, from this run or an earlier one (a reused cell keeps them)
-            cell_failed = int(((Cell(store_path, spec).read_meta() or {}).get("counts") or {}).get("failed", 0))
-            failures += cell_failed
-            failed_cells += cell_failed > 0
+            report(i, spec, result)
     return failures, failed_cells
 
 
@@ -566,7 +603,8 @@ def failures(store, tracebacks, as_json):
 @limit_options
 @executor_options
 def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_cells, quiet, timeout, keep_going,
-          scoring_timeout, max_memory, max_forecast_ratio, executor, address, shard_samples, cpus_per_task, gpus_per_task):
+          scoring_timeout, max_memory, max_forecast_ratio, metrics_backend, executor, address, shard_samples,
+          cpus_per_task, gpus_per_task):
     """Run (or resume) the grid of EXPERIMENT.toml and write its ablation tables
     (<reports>/sweeps/STEM.{md,csv,tex,html}); docs/experiments.md describes the file."""
     from pcfbench.reporting.labels import cell_label
@@ -590,7 +628,7 @@ def sweep(experiment, limit, jobs, threads, force, store, reports, dry_run, max_
         result = run_sweep(exp, store_path, reports_path, limit=limit, jobs=jobs, threads=threads, force=force,
                            progress=not quiet, plugins=plugins, echo=click.echo, executor=ray_executor,
                            timeout=timeout or None, isolate=True,
-                           limits=_limits(executor, scoring_timeout, max_memory, max_forecast_ratio))
+                           limits=_limits(executor, scoring_timeout, max_memory, max_forecast_ratio, metrics_backend))
     failed = sum(r.failed for r in result.results)
     for text in result.summaries:
         click.echo(text)

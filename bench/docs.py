@@ -1,4 +1,5 @@
-"""Documentation generated from the code: ``docs/metrics.md`` from the metric registry.
+"""Documentation generated from the code: ``docs/metrics.md`` from the metric registry (and
+``docs/performance.md`` from the cost benchmark's measurements, :mod:`pcfbench.costtable`).
 
 The page lists every metric the built-in plugins register, with what its ``Metric`` object
 declares (name, version, unit, what the forecast must carry, empty policy, description,
@@ -142,17 +143,25 @@ def _anchor(name: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pcfbench.docs", description=__doc__.splitlines()[0])
-    parser.add_argument("page", choices=["metrics"], help="the page to generate")
+    parser.add_argument("page", choices=["metrics", "performance"],
+                        help="the page to generate: metrics (the registry) or performance (docs/performance-costs.json)")
     parser.add_argument("--out", type=Path, help="write the page here (default: standard output)")
     parser.add_argument("--check", action="store_true", help="exit 1 if --out differs from the generated text")
+    parser.add_argument("--data", type=Path, default=None,
+                        help="performance: the cost benchmark's JSON (default: docs/performance-costs.json)")
     args = parser.parse_args(argv)
-    text = metrics_markdown()
+    if args.page == "performance":
+        from pcfbench import costtable
+
+        text = costtable.markdown(costtable.load(args.data or costtable.COSTS))
+    else:
+        text = metrics_markdown()
     if args.check:
         if args.out is None:
             parser.error("--check needs --out")
         current = args.out.read_text(encoding="utf-8") if args.out.exists() else None
         if current != text:
-            print(f"{args.out} is out of date: run python -m pcfbench.docs metrics --out {args.out}", file=sys.stderr)
+            print(f"{args.out} is out of date: run python -m pcfbench.docs {args.page} --out {args.out}", file=sys.stderr)
             return 1
         return 0
     if args.out is None:

@@ -564,29 +564,38 @@ def run_sweep(exp: Experiment, store: Path, reports: Path, *, limit: int | None 
     RunOptions' other limits (``scoring_timeout``, ``max_memory_gb``, ``forecast_ratio``)."""
     from tqdm import tqdm
 
-    from pcfbench.running.runner import RunOptions, _progress_disabled, run_cell
+    from pcfbench.running.group import group_key, run_group
+    from pcfbench.running.runner import RunOptions, _progress_disabled
 
     plugins = plugins or get_plugins()
     cells = plan(exp, limit=limit, plugins=plugins, progress=progress)
     jobs = exp.jobs if jobs is None else jobs
-    results = []
+    results: dict[int, Any] = {}
     bar = tqdm(total=len(cells), desc=f"sweep {exp.name}", unit="cell", position=0, leave=True,
                disable=_progress_disabled() if progress else True, dynamic_ncols=True)
+    say = (lambda m: tqdm.write(m)) if not bar.disable else echo
+    # cells that differ only in the method and its options share one pass over their samples
+    by_samples: dict[tuple, list[int]] = {}
+    for i, spec in enumerate(cells, 1):
+        by_samples.setdefault(group_key(spec), []).append(i)
     try:
-        for i, spec in enumerate(cells, 1):
-            line = f"cell {i}/{len(cells)}: {cell_label(spec)}"
-            tqdm.write(line) if not bar.disable else echo(line)
+        for members in by_samples.values():
+            for i in members:
+                say(f"cell {i}/{len(cells)}: {cell_label(cells[i - 1])}")
+            line = f"cell {members[0]}/{len(cells)}" if len(members) == 1 else \
+                f"cells {', '.join(map(str, members))}/{len(cells)}"
             options = RunOptions(jobs=jobs, force=force, progress=progress, threads=threads, executor=executor,
                                  progress_label=line, timeout=timeout, isolate=isolate, **(limits or {}))
-            r = run_cell(spec, store, options, plugins=plugins)
-            results.append(r)
-            done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
-                f"{r.processed} sample(s) now, {r.failed} failed, {r.seconds:.1f} s"
-            msg = f"cell {i}/{len(cells)}: {done} ({r.samples} samples) -> {r.path}"
-            tqdm.write(msg) if not bar.disable else echo(msg)
-            bar.update(1)
+            specs = [cells[i - 1] for i in members]
+            for i, r in zip(members, run_group(specs, store, options, plugins=plugins)):
+                results[i] = r
+                done = "complete, nothing to do" if r.processed == 0 and r.done_before == r.samples else \
+                    f"{r.processed} sample(s) now, {r.failed} failed, {r.seconds:.1f} s"
+                say(f"cell {i}/{len(cells)}: {done} ({r.samples} samples) -> {r.path}")
+                bar.update(1)
     finally:
         bar.close()
+    results = [results[i] for i in range(1, len(cells) + 1)]
     paths, summaries = ablation_tables(exp, store, reports, cells, [r.path for r in results])
     return SweepResult(cells, results, paths, summaries)
 

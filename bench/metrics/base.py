@@ -10,11 +10,17 @@ import numpy as np
 
 from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
 from pcfbench.errors import PcfbenchError
-from pcfbench.execution import ExecutionContext
+from pcfbench.execution import ExecutionContext, current, in_pool_worker
 from pcfbench.kinds import Better, Needs, parse
-from pcfbench.metrics.nn import Index, masked_min_sq_dist, nearest_angles
+from pcfbench.metrics.nn import (Index, angles_4docc, angles_az_el, masked_min_sq_dist, nearest_angles,
+                                 submit_nearest_angles, submit_query)
 from pcfbench.protocol import MIN_RANGE_M, ROI, Protocol
 from pcfbench.boxes import Box, ray_box_interval
+
+
+#: the shared searches a metric may declare (``Metric.searches``)
+NN = "nn"
+ANGLES = "angles"
 
 
 @dataclass(frozen=True)
@@ -43,6 +49,10 @@ class Metric:
     needs: Needs = Needs.EITHER
     #: True: a larger value is better (a score); False: a smaller one is (an error). Required.
     higher_is_better: bool = None  # type: ignore[assignment] - None is refused in __post_init__
+    #: the context's shared searches the metric reads (``NN``: the k-d tree passes each way,
+    #: ``ANGLES``: the angle-space searches): score_sample starts those of a suite together on the
+    #: run's threads before the metrics run. Undeclared, a search runs when first asked for.
+    searches: frozenset = frozenset()
 
     def __post_init__(self) -> None:
         if not isinstance(self.higher_is_better, bool):
@@ -51,6 +61,10 @@ class Metric:
                 f"(lower is better, like every built-in metric) or True for a score; got {self.higher_is_better!r}"
             )
         object.__setattr__(self, "needs", parse(Needs, self.needs, f"metric {self.name!r}: needs"))
+        unknown = set(self.searches) - {NN, ANGLES}
+        if unknown:
+            raise PcfbenchError(f"metric {self.name!r}: searches must be among {NN!r} and {ANGLES!r}, not {sorted(unknown)}")
+        object.__setattr__(self, "searches", frozenset(self.searches))
 
     @property
     def better(self) -> Better:
@@ -59,6 +73,84 @@ class Metric:
 
     def __call__(self, ctx: "SweepContext") -> float:
         return float(self.fn(ctx))
+
+
+class SweepTruth:
+    """The ground-truth side of one future sweep: what every forecast of the sweep is scored
+    against, computed once and shared by every method scored on the sample (the runner's
+    shared pass) and by the metrics of one forecast.
+
+    Cached properties, each a pure function of the ground truth, the query origin, the ROI and
+    the minimum range, so a shared one is the value a fresh context would compute, bit for bit.
+    """
+
+    def __init__(self, gt_points: np.ndarray, query: RayQuery, roi: Box = ROI, min_range_m: float = MIN_RANGE_M) -> None:
+        self.gt_points = gt_points  # (M, 3) float32, reference frame
+        self.query = query
+        self.origin = np.asarray(query.origin_ref, dtype=np.float64)
+        self.roi = roi
+        self.min_range_m = min_range_m
+
+    @cached_property
+    def gt64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.gt_points, dtype=np.float64)
+
+    @cached_property
+    def gt_in_roi(self) -> np.ndarray:
+        return self.roi.contains(self.gt64)
+
+    @cached_property
+    def gt_roi(self) -> np.ndarray:
+        return self.gt_points[self.gt_in_roi]
+
+    @cached_property
+    def gt_index(self) -> Index:
+        return Index(self.gt64)
+
+    @cached_property
+    def gt_roi_index(self) -> Index:
+        """A k-d tree on the ground truth's ROI crop (needs a non-empty crop)."""
+        return Index(self.gt64[self.gt_in_roi])
+
+    @cached_property
+    def gt_rel(self) -> np.ndarray:
+        return self.gt64 - self.origin
+
+    @cached_property
+    def gt_ranges(self) -> np.ndarray:
+        """(M,) float64 distance of each ground-truth point from the sweep origin."""
+        return np.sqrt(np.einsum("ij,ij->i", self.gt_rel, self.gt_rel))
+
+    @cached_property
+    def gt_angles(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ground-truth rays in both angle spaces: (4D-Occ, (azimuth, elevation)), (M, 2) float64."""
+        return angles_4docc(self.gt_rel), angles_az_el(self.gt_rel)
+
+    @cached_property
+    def ray_clamp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per ground-truth ray: (t_enter, t_exit, meets_box) of the ROI along the unit ray o -> g."""
+        r = self.gt_ranges
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dirs = np.where(r[:, None] > 0, self.gt_rel / r[:, None], 0.0)
+        t_enter, t_exit = ray_box_interval(self.origin, dirs, self.roi)
+        return t_enter, t_exit, (t_enter <= t_exit) & (r > 0)
+
+    @cached_property
+    def gt_clamped(self) -> np.ndarray:
+        """Clamped ground-truth range along each ray (where the ray leaves the ROI at most)."""
+        t_enter, t_exit, _ = self.ray_clamp
+        return np.clip(self.gt_ranges, t_enter, np.maximum(t_exit, t_enter))
+
+    @cached_property
+    def ray_kept(self) -> np.ndarray:
+        """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
+        t_enter, _, meets = self.ray_clamp
+        with np.errstate(invalid="ignore"):  # rays missing the box may have t_enter = inf
+            return meets & (self.gt_clamped - t_enter > self.min_range_m)
+
+
+def _truth_property(name: str, doc: str | None = None) -> property:
+    return property(lambda self: getattr(self.truth, name), doc=doc or f"``SweepTruth.{name}`` of the context's truth.")
 
 
 class SweepContext:
@@ -80,15 +172,34 @@ class SweepContext:
         roi: Box = ROI,
         execution: ExecutionContext | None = None,
         min_range_m: float = MIN_RANGE_M,
+        truth: SweepTruth | None = None,
     ) -> None:
+        # the ground-truth side (``truth``: one shared with other forecasts of this sweep, made
+        # for the same points, query, ROI and minimum range)
+        if truth is None:
+            truth = SweepTruth(gt_points, query, roi, min_range_m)
+        elif truth.gt_points is not gt_points or truth.query is not query or truth.roi != roi \
+                or truth.min_range_m != min_range_m:
+            raise ValueError("SweepContext: the shared truth was made for another sweep, ROI or minimum range")
+        self.truth = truth
         self.gt_points = gt_points  # (M, 3) float32, reference frame
         self.query = query
-        self.origin = np.asarray(query.origin_ref, dtype=np.float64)
+        self.origin = truth.origin
         self.pred_depths = pred_depths  # (M,) or None
         self._pred_points = pred_points  # (K, 3) or None
         self.roi = roi  # the protocol's region of interest (the caller's protocol; default: the active one)
         self.min_range_m = min_range_m  # the protocol's minimum range (m)
         self.execution = execution  # thread budget of the shared searches; None: the process's
+
+    gt64 = _truth_property("gt64")
+    gt_in_roi = _truth_property("gt_in_roi")
+    gt_roi = _truth_property("gt_roi")
+    gt_index = _truth_property("gt_index")
+    gt_rel = _truth_property("gt_rel")
+    gt_ranges = _truth_property("gt_ranges", "(M,) float64 distance of each ground-truth point from the sweep origin.")
+    ray_clamp = _truth_property("ray_clamp", "Per ground-truth ray: (t_enter, t_exit, meets_box) of the ROI along o -> g.")
+    gt_clamped = _truth_property("gt_clamped", "Clamped ground-truth range along each ray.")
+    ray_kept = _truth_property("ray_kept", "Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm.")
 
     # -- points ----------------------------------------------------------------------------
     @cached_property
@@ -104,30 +215,14 @@ class SweepContext:
         return np.ascontiguousarray(self.pred_points, dtype=np.float64)
 
     @cached_property
-    def gt64(self) -> np.ndarray:
-        return np.ascontiguousarray(self.gt_points, dtype=np.float64)
-
-    @cached_property
-    def gt_in_roi(self) -> np.ndarray:
-        return self.roi.contains(self.gt64)
-
-    @cached_property
     def pred_in_roi(self) -> np.ndarray:
         return self.roi.contains(self.pred64)
-
-    @cached_property
-    def gt_roi(self) -> np.ndarray:
-        return self.gt_points[self.gt_in_roi]
 
     @cached_property
     def pred_roi(self) -> np.ndarray:
         return self.pred_points[self.pred_in_roi]
 
     # -- nearest neighbours in 3D (Chamfer) --------------------------------------------------
-    @cached_property
-    def gt_index(self) -> Index:
-        return Index(self.gt64)
-
     @cached_property
     def pred_index(self) -> Index:
         return Index(self.pred64)
@@ -155,6 +250,8 @@ class SweepContext:
             q = queries[np.flatnonzero(q_in)[redo]]
             if redo.size <= 32:  # a few points: brute force over the in-ROI targets
                 d2[redo] = masked_min_sq_dist(q, index.points, t_in)
+            elif index is self.gt_index:  # the ground truth's crop: a tree shared by every forecast
+                d2[redo] = self.truth.gt_roi_index.query(q)[0]
             else:
                 d2[redo] = Index(index.points[t_in]).query(q)[0]
         return d2
@@ -170,37 +267,6 @@ class SweepContext:
 
     # -- rays (L1, AbsRel) ---------------------------------------------------------------------
     @cached_property
-    def gt_rel(self) -> np.ndarray:
-        return self.gt64 - self.origin
-
-    @cached_property
-    def gt_ranges(self) -> np.ndarray:
-        """(M,) float64 distance of each ground-truth point from the sweep origin."""
-        return np.sqrt(np.einsum("ij,ij->i", self.gt_rel, self.gt_rel))
-
-    @cached_property
-    def ray_clamp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per ground-truth ray: (t_enter, t_exit, meets_box) of the ROI along the unit ray o -> g."""
-        r = self.gt_ranges
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dirs = np.where(r[:, None] > 0, self.gt_rel / r[:, None], 0.0)
-        t_enter, t_exit = ray_box_interval(self.origin, dirs, self.roi)
-        return t_enter, t_exit, (t_enter <= t_exit) & (r > 0)
-
-    @cached_property
-    def gt_clamped(self) -> np.ndarray:
-        """Clamped ground-truth range along each ray (where the ray leaves the ROI at most)."""
-        t_enter, t_exit, _ = self.ray_clamp
-        return np.clip(self.gt_ranges, t_enter, np.maximum(t_exit, t_enter))
-
-    @cached_property
-    def ray_kept(self) -> np.ndarray:
-        """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
-        t_enter, _, meets = self.ray_clamp
-        with np.errstate(invalid="ignore"):  # rays missing the box may have t_enter = inf
-            return meets & (self.gt_clamped - t_enter > self.min_range_m)
-
-    @cached_property
     def pred_rel(self) -> np.ndarray:
         return self.pred64 - self.origin
 
@@ -212,7 +278,45 @@ class SweepContext:
     def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
         """Nearest predicted point per ground-truth ray in both angle spaces (4D-Occ, wrapped),
         the two exact searches shared out over the context's threads (pcfbench.metrics.nn.nearest_angles)."""
-        return nearest_angles(self.pred_rel, self.gt_rel, self.execution)
+        known = self.truth.__dict__.get("gt_angles")  # shared; else made by the searches and kept
+        execution = self.execution or current()
+        if known is not None or execution.threads == 1 or in_pool_worker():
+            return nearest_angles(self.pred_rel, self.gt_rel, execution, self.truth.gt_angles)
+        done, queries = submit_nearest_angles(execution.pool(), self.pred_rel, self.gt_rel)
+        return self._keep_angles(done, queries)
+
+    def _keep_angles(self, done: list, queries: list) -> tuple[np.ndarray, np.ndarray]:
+        out = done[0].result(), done[1].result()
+        self.truth.__dict__.setdefault("gt_angles", (queries[0].result(), queries[1].result()))
+        return out
+
+    def share_out(self, searches: frozenset | set) -> None:
+        """Start ``searches`` (``NN``, ``ANGLES``) together as jobs of the execution context's
+        pool and wait for them: the k-d tree builds and the angle searches' grids first, then
+        the tree passes and the grid passes in pieces, so that the threads share all of it
+        (a search alone leaves threads idle while a tree or a grid is built). The answers are
+        the cached ones a metric would make alone. One thread, in a pool worker, or an empty
+        side: nothing to share, each search runs when a metric asks."""
+        execution = self.execution or current()
+        if execution.threads == 1 or in_pool_worker() or self.gt_points.shape[0] == 0:
+            return
+        if self._pred_points is not None and self._pred_points.shape[0] == 0:
+            return
+        pool = execution.pool()
+        jobs = {}
+        truth = self.truth
+        if NN in searches and "nn_pred_to_gt" not in self.__dict__:
+            gt_index = pool.submit(lambda: truth.gt_index)
+            pred_index = pool.submit(lambda: self.pred_index)
+            jobs["nn_pred_to_gt"] = submit_query(pool, gt_index.result, self.pred64)
+            jobs["nn_gt_to_pred"] = submit_query(pool, pred_index.result, truth.gt64)
+        angles = None
+        if ANGLES in searches and self.pred_depths is None and "_angular_nearest" not in self.__dict__:
+            angles = submit_nearest_angles(pool, self.pred_rel, truth.gt_rel, truth.__dict__.get("gt_angles"))
+        for name, job in jobs.items():
+            self.__dict__[name] = job.result()
+        if angles is not None:
+            self.__dict__["_angular_nearest"] = self._keep_angles(*angles)
 
     def _ray_depth(self, which: int) -> np.ndarray | None:
         if self.pred_depths is not None:
@@ -257,8 +361,15 @@ def score_sample(
     execution: ExecutionContext | None = None,
     on_sweep: Callable[[dict, "SweepContext"], None] | None = None,
     protocol: Protocol | None = None,
+    truths: list[SweepTruth] | None = None,
+    context_cls: type["SweepContext"] | None = None,
 ) -> list[dict[str, float | int]]:
     """Score every future sweep of a validated forecast: one row per sweep with every metric.
+
+    ``truths``: the sample's :func:`sweep_truths`, when several forecasts of the sample are
+    scored (the runner's shared pass builds the ground truth's structures once); the rows are
+    the same with or without. ``context_cls``: the SweepContext class whose searches score it
+    (pcfbench.metrics.backend: the numpy default or torch).
 
     ``protocol``: the one the sample was made under (its ROI and minimum range; the
     runner hands down its :class:`~pcfbench.protocol.SampleBuilder`'s); default: the active one.
@@ -266,18 +377,23 @@ def score_sample(
     ``execution``: the thread budget of the metrics' shared searches (default: the
     process's); the rows do not depend on it. ``on_sweep(row, ctx)``: called with each
     sweep's row and context once it is scored (the runner's range bins reuse its work)."""
+    truths = truths if truths is not None else sweep_truths(sample, truth, protocol)
+    searches = frozenset().union(*(m.searches for m in metrics))
     rows = []
     for k, query in enumerate(sample.queries):
         gt = truth.future_points_ref[k]
-        ctx = SweepContext(
+        ctx = (context_cls or SweepContext)(
             gt_points=gt,
             query=query,
             pred_points=forecast.points_ref[k] if forecast.points_ref is not None else None,
             pred_depths=forecast.depths[k] if forecast.depths is not None else None,
-            roi=protocol.roi if protocol is not None else ROI,
+            roi=truths[k].roi,
             execution=execution,
-            min_range_m=protocol.min_range_m if protocol is not None else MIN_RANGE_M,
+            min_range_m=truths[k].min_range_m,
+            truth=truths[k],
         )
+        if searches:
+            ctx.share_out(searches)
         row: dict[str, float | int] = {"step": k, "n_gt": int(gt.shape[0]), "n_pred": int(ctx.pred_points.shape[0])}
         for metric in metrics:
             if gt.shape[0] == 0:
@@ -290,3 +406,11 @@ def score_sample(
             on_sweep(row, ctx)
         rows.append(row)
     return rows
+
+
+def sweep_truths(sample: Sample, truth: GroundTruth, protocol: Protocol | None = None) -> list[SweepTruth]:
+    """One :class:`SweepTruth` per future sweep of ``sample``, under ``protocol``'s ROI and
+    minimum range (default: the active protocol's), to share between the forecasts scored on it."""
+    roi = protocol.roi if protocol is not None else ROI
+    min_range_m = protocol.min_range_m if protocol is not None else MIN_RANGE_M
+    return [SweepTruth(truth.future_points_ref[k], q, roi, min_range_m) for k, q in enumerate(sample.queries)]

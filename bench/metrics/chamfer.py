@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pcfbench.metrics.base import Metric, SweepContext
+from pcfbench.metrics.base import NN, Metric, SweepContext
 from pcfbench.metrics.nn import nn_sq_dist
 
 __all__ = ["CHAMFER", "CHAMFER_NF", "CHAMFER_NF_4DOCC", "chamfer_value", "nn_sq_dist"]
@@ -50,6 +50,7 @@ CHAMFER = Metric(
     reference="4D-Occ (Khurana et al. 2023), docs/protocol.md section 4",
     unit="m^2",
     higher_is_better=False,
+    searches={NN},
     empty_policy="empty prediction: sweep skipped (NaN, counted)",
 )
 
@@ -61,6 +62,7 @@ CHAMFER_NF = Metric(
     reference="published tables' 'Chamfer' column (4D-Occ, Copilot4D); corrected empty policy",
     unit="m^2",
     higher_is_better=False,
+    searches={NN},
     empty_policy="empty crop of P or G: sweep skipped (NaN, counted)",
 )
 
@@ -72,5 +74,6 @@ CHAMFER_NF_4DOCC = Metric(
     reference="4D-Occ reference evaluation code (Khurana et al. 2023)",
     unit="m^2",
     higher_is_better=False,
+    searches={NN},
     empty_policy="empty crop of P or G: 0, counted in the mean",
 )

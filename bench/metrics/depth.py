@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from pcfbench.kinds import Needs
-from pcfbench.metrics.base import Metric, SweepContext
+from pcfbench.metrics.base import ANGLES, Metric, SweepContext
 
 NAN = float("nan")
 
@@ -61,38 +61,38 @@ _EMPTY = "empty prediction: sweep skipped (NaN, counted)"
 
 L1_4DOCC = Metric(
     name="l1@4docc", version="1", fn=lambda c: _sum_4docc(c, 0), unit="m", reference=_REF_4DOCC,
-    higher_is_better=False,
+    higher_is_better=False, searches={ANGLES},
     description="L1 depth error, NN in angle space (atan2(x,y), atan2(z,y)), ROI-clamped; sum over kept rays "
     "/ number of GT rays with range > 1 cm",
     empty_policy=_EMPTY + "; no kept ray: 0",
 )
 ABSREL_4DOCC = Metric(
     name="absrel@4docc", version="1", fn=lambda c: _sum_4docc(c, 1), unit="fraction", reference=_REF_4DOCC,
-    higher_is_better=False,
+    higher_is_better=False, searches={ANGLES},
     description="AbsRel |g_c - p_c| / |g_c - o_c|, as l1@4docc",
     empty_policy=_EMPTY + "; no kept ray: 0",
 )
 L1_MEAN = Metric(
     name="l1_mean", version="1", fn=lambda c: _mean(c, 0), unit="m", reference=_REF,
-    higher_is_better=False,
+    higher_is_better=False, searches={ANGLES},
     description="L1 depth error, NN in (azimuth, elevation) with wrap-around, ROI-clamped; mean over kept rays",
     empty_policy=_EMPTY + "; no kept ray: skipped",
 )
 ABSREL_MEAN = Metric(
     name="absrel_mean", version="1", fn=lambda c: _mean(c, 1), unit="fraction", reference=_REF,
-    higher_is_better=False,
+    higher_is_better=False, searches={ANGLES},
     description="AbsRel, as l1_mean",
     empty_policy=_EMPTY + "; no kept ray: skipped",
 )
 L1_MEDIAN = Metric(
     name="l1_median", version="1", fn=lambda c: _median(c, 0), unit="m", reference=_REF,
-    higher_is_better=False,
+    higher_is_better=False, searches={ANGLES},
     description="L1 depth error as l1_mean, median over the kept rays of the sweep ('L1 Med')",
     empty_policy=_EMPTY + "; no kept ray: skipped",
 )
 ABSREL_MEDIAN = Metric(
     name="absrel_median", version="1", fn=lambda c: _median(c, 1), unit="fraction", reference=_REF,
-    higher_is_better=False,
+    higher_is_better=False, searches={ANGLES},
     description="AbsRel as absrel_mean, median over the kept rays of the sweep ('AbsRel Med')",
     empty_policy=_EMPTY + "; no kept ray: skipped",
 )

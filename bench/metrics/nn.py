@@ -1,7 +1,7 @@
 """Exact nearest neighbours for the metrics: a k-d tree (pykdtree) with float64 distances.
 
 pykdtree was the fastest exact index measured on ray-aligned LiDAR sweeps (against scipy's
-cKDTree and open3d's searches: docs/performance.md, tests/benchmarks/test_bench_metrics.py).
+cKDTree and open3d's searches: docs/journal/performance-tuning-2026-11.md, tests/benchmarks/test_bench_metrics.py).
 Distances are recomputed in float64 from the returned indices (one numba pass), so they are
 exact for the chosen neighbour rather than a sqrt/square round trip. The 2D
 angle-space searches use the exact bucket grid of pcfbench.nn2d (ties to the lowest index).
@@ -21,11 +21,11 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from pcfbench.execution import ExecutionContext, current, in_pool_worker
-from pcfbench.nn2d import NN2D, PER_CELL
+from pcfbench.nn2d import NN2D, PER_CELL, _cells
 
 TWO_PI = 2.0 * np.pi
 #: points per grid cell of each angle space's search (any value gives the same answers): the
-#: fastest measured on the 120k x 120k benchmark pair (docs/performance.md)
+#: fastest measured on the 120k x 120k benchmark pair (docs/journal/performance-tuning-2026-11.md)
 PER_CELL_4DOCC = 2.0
 PER_CELL_WRAPPED = 4.0
 
@@ -204,8 +204,9 @@ def angles_az_el(rel: np.ndarray) -> np.ndarray:
     )
 
 
-#: a fine-grid cell holding more points than this sends a search to the k-d tree (``_Search2D``)
-DENSE_CELL = 256
+#: more points than this in the 3 x 3 cells around a query's, on average over the queries, send
+#: a search to the k-d tree (``_Search2D``): the points a grid query scans, about
+DENSE_SCAN = 512.0
 #: ... as do more than this share of the queries outside the points' box
 OUTSIDE_SHARE = 0.25
 #: ... when there are at least this many (distinct) points; fewer are searched fast either way
@@ -220,9 +221,9 @@ class _Search2D:
 
     The bucket grid (pcfbench.nn2d) is fast when its cells hold a few points each and the
     queries lie among the points: the points of one sweep against another's. Points packed in
-    a few cells (a forecast whose points sit around one spot) or queries mostly outside the
-    points' box (a compact cluster seen from the whole sweep) make it scan most points per
-    query; those searches take ``CANDIDATES`` nearest from a k-d tree (the periodic axis as three
+    the cells where the queries are (a forecast whose points sit around one spot: ``DENSE_SCAN``)
+    or queries mostly outside the points' box (a compact cluster seen from the whole sweep) make
+    it scan most points per query; those searches take ``CANDIDATES`` nearest from a k-d tree (the periodic axis as three
     copies of the points) and keep the answer where it is provably the grid's: the exact distance
     of nn2d's formula, ties to the lowest index, and the last candidate's tree distance clearly
     beyond the best (so no point left out can tie). The few queries left go to the grid."""
@@ -244,14 +245,29 @@ class _Search2D:
         n = self.data.shape[0]
         if n < TREE_MIN_POINTS or self.qx.shape[0] == 0:
             return False
-        if int(np.diff(self.grid.fine[0]).max()) > DENSE_CELL:
+        qx, qy = self.qx[::16], self.qy[::16]  # a share: every 16th query tells it well enough
+        if self._mean_scan(qx, qy) > DENSE_SCAN:
             return True
         x0, x1, y0, y1, _ = self.grid._box  # the points' box
-        qx, qy = self.qx[::16], self.qy[::16]  # a share: every 16th query tells it well enough
         outside = (qy < y0) | (qy > y1)
         if self.period == 0.0:
             outside |= (qx < x0) | (qx > x1)
         return int(np.count_nonzero(outside)) > OUTSIDE_SHARE * qx.shape[0]
+
+    def _mean_scan(self, qx: np.ndarray, qy: np.ndarray) -> float:
+        """Mean over the queries (qx, qy) of the points in the 3 x 3 fine cells around each one's
+        cell: what a grid query scans, about. A few crowded cells among normal ones (a real
+        sweep's near ground seen from a moved sensor) keep it low; a forecast packed into a few
+        cells where the rays are makes it the point count."""
+        starts, _, _, x0, y0, hx, hy, nx, ny, _, period = self.grid.fine
+        counts = np.diff(starts).astype(np.int64).reshape(nx, ny)
+        padded = np.pad(counts, 1, mode="wrap" if period is not None else "constant")
+        if period is not None:  # rows (the plain axis) have no neighbours beyond the edge
+            padded[:, 0] = padded[:, -1] = 0
+        block = sum(padded[i:i + nx, j:j + ny] for i in range(3) for j in range(3))
+        qx, qy = np.ascontiguousarray(qx), np.ascontiguousarray(qy)
+        keys = _cells(qx, qy, x0, y0, hx, hy, nx, ny, np.empty(qx.shape[0], np.int32))
+        return float(block.reshape(-1)[keys].mean())
 
     def grid_pass(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Nearest grid index of queries[start:stop]; -1 where the grid's first pass leaves it
@@ -305,45 +321,99 @@ def nearest_angle_wrapped(pred_rel: np.ndarray, gt_rel: np.ndarray) -> np.ndarra
     return nearest_2d(angles_az_el(pred_rel), angles_az_el(gt_rel), period=TWO_PI, per_cell=PER_CELL_WRAPPED)
 
 
-#: queries per piece of the shared grid pass in nearest_angles
+#: queries per piece of the shared grid pass in nearest_angles, and of a shared k-d tree pass
 CHUNK = 8192
+#: the two angle spaces: (angles of origin-relative points, period of dimension 0, points per cell)
+SPACES = ((angles_4docc, 0.0, PER_CELL_4DOCC), (angles_az_el, TWO_PI, PER_CELL_WRAPPED))
 
 
 def nearest_angles(pred_rel: np.ndarray, gt_rel: np.ndarray,
-                   execution: ExecutionContext | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   execution: ExecutionContext | None = None,
+                   gt_angles: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """nearest_angle_4docc and nearest_angle_wrapped together, over the threads of
-    ``execution`` (default: the process's, ``pcfbench.execution.current()``).
+    ``execution`` (default: the process's, ``pcfbench.execution.current()``). ``gt_angles``:
+    the ground-truth rays' angles in the two spaces when they are known already (shared by
+    every forecast of a sweep), else computed from ``gt_rel``.
 
-    One thread (or called from a pool worker): one search after the other. More: the angles
-    and grids of the two spaces are made as two jobs of the context's pool; then both grid
-    passes are cut into CHUNK-query pieces that the pool's threads take as they come free (a
-    thread slowed by other load takes fewer), and each space's far queries are answered by a
-    job queued right after its pieces. The calling thread only waits, so at most
-    ``execution.threads`` threads are busy. The answer of a query does not depend on the piece
-    it is in (pcfbench.nn2d), so it is the same as one whole pass's, whatever the thread count.
+    One thread (or called from a pool worker): one search after the other. More: the jobs of
+    ``submit_nearest_angles`` on the context's pool; the calling thread only waits, so at
+    most ``execution.threads`` threads are busy. The answer of a query does not depend on the
+    piece it is in (pcfbench.nn2d), so it is the same as one whole pass's, whatever the thread count.
     """
     execution = execution or current()
-    spaces = ((angles_4docc, 0.0, PER_CELL_4DOCC), (angles_az_el, TWO_PI, PER_CELL_WRAPPED))
     if execution.threads == 1 or in_pool_worker():
         out = []
-        for angles, period, per_cell in spaces:
-            search = _Search2D(angles(pred_rel), angles(gt_rel), period, per_cell)
+        for i, (angles, period, per_cell) in enumerate(SPACES):
+            queries = gt_angles[i] if gt_angles is not None else angles(gt_rel)
+            search = _Search2D(angles(pred_rel), queries, period, per_cell)
             out.append(search.finish(search.grid_pass()))
         return out[0], out[1]
+    done, _ = submit_nearest_angles(execution.pool(), pred_rel, gt_rel, gt_angles)
+    return done[0].result(), done[1].result()
+
+
+def submit_nearest_angles(pool, pred_rel: np.ndarray, gt_rel: np.ndarray,
+                          gt_angles: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[list, list]:
+    """Queue both angle-space searches on ``pool`` (a context's, first in first out) and return
+    (answers, queries): each a list of two futures, one per space of ``SPACES``: the nearest
+    predicted point per ground-truth ray, and the rays' angles searched (``gt_angles``' or
+    computed here).
+
+    The angles and grids of the two spaces are two jobs; then both grid passes are cut into
+    CHUNK-query pieces that the pool's threads take as they come free (a thread slowed by other
+    load takes fewer), and each space's far queries are answered by a job queued right after
+    its pieces."""
     m = gt_rel.shape[0]
     cuts = list(range(0, m, CHUNK)) + [m]
-    pool = execution.pool()
-    made = [pool.submit(lambda a=angles, p=period, c=per_cell: _Search2D(a(pred_rel), a(gt_rel), p, c))
-            for angles, period, per_cell in spaces]
-    searches = [f.result() for f in made]
+
+    def make(i: int) -> _Search2D:
+        angles, period, per_cell = SPACES[i]
+        queries = gt_angles[i] if gt_angles is not None else angles(gt_rel)
+        return _Search2D(angles(pred_rel), queries, period, per_cell)
+
+    made = [pool.submit(make, i) for i in range(len(SPACES))]
     done = []
-    for search in searches:
-        pieces = [pool.submit(search.grid_pass, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
+    for f in made:
+        pieces = [pool.submit(lambda f=f, a=a, b=b: f.result().grid_pass(a, b)) for a, b in zip(cuts[:-1], cuts[1:])]
         # queued after its pieces: when a thread takes it, every piece has been taken (FIFO)
-        done.append(pool.submit(_finish, search, pieces))
-    return done[0].result(), done[1].result()
+        done.append(pool.submit(lambda f=f, pieces=pieces: _finish(f.result(), pieces)))
+    return done, [_Queries(f) for f in made]
+
+
+class _Queries:
+    """The (M, 2) query angles of a search future, as a future-like ``result()``."""
+
+    def __init__(self, search) -> None:
+        self._search = search
+
+    def result(self) -> np.ndarray:
+        s = self._search.result()
+        return np.stack([s.qx, s.qy], axis=1)
 
 
 def _finish(search: _Search2D, pieces: list) -> np.ndarray:
     idx = np.concatenate([f.result() for f in pieces]) if pieces else np.zeros(0, dtype=np.int64)
     return search.finish(idx)
+
+
+def submit_query(pool, index, queries: np.ndarray) -> "_Joined":
+    """``index().query(queries)`` as CHUNK-query jobs of ``pool`` (``index``: a callable that
+    returns the :class:`Index`, called in each job: a future's ``result`` or a cached
+    property). A query's answer does not depend on its chunk, so the joined answer is the
+    whole pass's."""
+    q = np.ascontiguousarray(queries, dtype=np.float64)
+    cuts = list(range(0, q.shape[0], CHUNK)) + [q.shape[0]]
+    return _Joined([pool.submit(lambda a=a, b=b: index().query(q[a:b])) for a, b in zip(cuts[:-1], cuts[1:])])
+
+
+class _Joined:
+    """The chunks of a shared k-d tree pass, joined on ``result()``: (squared distance, index)."""
+
+    def __init__(self, parts: list) -> None:
+        self.parts = parts
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.parts:
+            return np.zeros(0), np.zeros(0, dtype=np.int64)
+        out = [f.result() for f in self.parts]
+        return np.concatenate([d for d, _ in out]), np.concatenate([i for _, i in out])

@@ -22,7 +22,8 @@ from pcfbench.execution import ExecutionContext, applied
 from pcfbench.execution import apply as apply_execution
 from pcfbench.provenance import code_identity, code_unit, environment, git_commit
 from pcfbench.method import Method, resolve_method
-from pcfbench.metrics.base import Metric, score_sample
+from pcfbench.metrics import backend as metrics_backend
+from pcfbench.metrics.base import Metric, SweepTruth, score_sample, sweep_truths
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash, sample_id
@@ -54,6 +55,8 @@ class Resolved:
     execution: ExecutionContext | None = None
     #: the forecast size cap, a multiple of the ground truth's points (``check_forecast_size``; None: none)
     forecast_ratio: float | None = FORECAST_RATIO
+    #: where the metrics' searches run (``pcfbench.metrics.backend``: auto, numpy or torch)
+    metrics_backend: str = "auto"
 
     def bind(self, execution: ExecutionContext) -> None:
         """Give the method and the metrics ``execution``'s thread budget."""
@@ -93,16 +96,47 @@ def _create_method(spec: CellSpec, method: Any) -> Method:
     return instance
 
 
-def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
+class SharedSample:
+    """The last sample built in this process, with its sweeps' ground-truth structures
+    (:class:`~pcfbench.metrics.base.SweepTruth`: k-d tree, angles, ROI masks, clamps), kept for
+    the next method scored on it: the shared pass of :func:`run_group` loads a sample and
+    builds its ground truth's structures once for every method. Methods get read-only copies
+    (``Sample.for_method``) and never see the ground truth, so what one method does cannot reach
+    another's rows."""
+
+    def __init__(self) -> None:
+        self.key: tuple[str, int] | None = None
+        self.value: tuple[Any, Any, list[SweepTruth], float] | None = None
+
+    def get(self, builder: SampleBuilder, key: tuple[str, int]) -> tuple[Any, Any, list[SweepTruth], float]:
+        """(sample, truth, sweep truths, seconds its loading took) of ``key``, built on first use."""
+        if self.key != key or self.value is None:
+            self.key = self.value = None  # a failing build leaves nothing stale behind
+            t0 = time.perf_counter()
+            sample, truth = builder.build(*key)
+            self.value = (sample, truth, sweep_truths(sample, truth, builder.protocol), time.perf_counter() - t0)
+            self.key = key
+        return self.value
+
+
+def process_sample(res: Resolved, key: tuple[str, int], shared: SharedSample | None = None) -> list[dict[str, Any]]:
     """Rows for one sample: one per future sweep, or one failure row with the traceback.
 
     Data errors (a bad file) propagate: they stop the run rather than being blamed on the method.
     When the cell scores ``l1_mean`` or ``absrel_mean``, each ok row also carries its sweep's
     range bins under ``pcfbench.store.cells.RANGE_KEY`` (``pcfbench.store.ranges``), which the store
     writes beside the rows, never into them.
+
+    ``shared``: the sample as the previous method scored on it left it (:class:`SharedSample`);
+    the rows are the same, ``t_load`` is the one loading's time.
     """
     t0 = time.perf_counter()
-    sample, truth = res.builder.build(*key)
+    if shared is not None:
+        sample, truth, truths, t_load = shared.get(res.builder, key)
+        t0 = time.perf_counter() - t_load
+    else:
+        sample, truth = res.builder.build(*key)
+        truths = None
     t1 = time.perf_counter()
     base = {"sample_id": sample.sample_id, "sequence": sample.sequence, "ref_index": sample.ref_index}
     bins: dict[int, dict[str, list]] = {}
@@ -118,7 +152,8 @@ def process_sample(res: Resolved, key: tuple[str, int]) -> list[dict[str, Any]]:
         t2 = time.perf_counter()
         workers.phase(workers.SCORING)  # in a worker: the scoring limit applies from here, not the method's
         rows = score_sample(sample, truth, forecast, res.metrics, res.execution, keep_bins if record else None,
-                            protocol=res.builder.protocol)
+                            protocol=res.builder.protocol, truths=truths,
+                            context_cls=metrics_backend.context_class(res.metrics_backend))
     except DataError:
         raise
     except Exception as exc:  # a method (or metric) failing on one sample is recorded, the run goes on
@@ -188,7 +223,7 @@ class CellPlugins:
 
 
 def _worker_init(spec: CellSpec, execution: ExecutionContext, plugins: CellPlugins | None = None,
-                 forecast_ratio: float | None = FORECAST_RATIO) -> None:
+                 forecast_ratio: float | None = FORECAST_RATIO, backend: str = "auto") -> None:
     """Pin this worker process to its share of the threads (before resolving, so that what
     the method imports starts within it), then resolve the cell and hand the share on."""
     global _WORKER
@@ -196,6 +231,7 @@ def _worker_init(spec: CellSpec, execution: ExecutionContext, plugins: CellPlugi
     _WORKER = resolve(spec, plugins)  # type: ignore[arg-type]
     _WORKER.bind(execution)
     _WORKER.forecast_ratio = forecast_ratio
+    _WORKER.metrics_backend = backend
 
 
 def _worker_task(key: tuple[str, int]) -> list[dict[str, Any]]:
@@ -260,6 +296,9 @@ class RunOptions:
     ``forecast_ratio``: the forecast size cap, in either case
     (:func:`pcfbench.protocol.validate.check_forecast_size`; None: none).
 
+    ``metrics_backend``: where the metrics' searches run (:mod:`pcfbench.metrics.backend`:
+    ``auto``, the GPU through torch when there is one; ``numpy``; ``torch``); the rows are the same.
+
     ``wait``: a cell another process is computing (it holds the cell's lock) is waited for,
     else refused at once with :class:`pcfbench.store.cells.CellLocked`. ``progress_label``:
     the progress bar's text (default: the cell's label), e.g. ``cell 3/10 ...``.
@@ -278,8 +317,12 @@ class RunOptions:
     scoring_timeout: float | None = None
     max_memory_gb: float | None = None
     forecast_ratio: float | None = FORECAST_RATIO
+    metrics_backend: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.metrics_backend not in metrics_backend.BACKENDS:
+            raise PcfbenchError(f"the metrics backend must be one of {', '.join(metrics_backend.BACKENDS)}, "
+                                f"not {self.metrics_backend!r}")
         for what, t, unit in (("per-sample time limit", self.timeout, "a number of seconds"),
                               ("scoring time limit", self.scoring_timeout, "a number of seconds"),
                               ("per-sample memory limit", self.max_memory_gb, "a number of GiB"),
@@ -326,28 +369,46 @@ def run_cell(spec: CellSpec, store_root: Path, options: RunOptions | None = None
     fingerprint = res.builder.adapter.fingerprint(spec.split)
     cell = Cell(store_root, spec, wait=options.wait)
     with cell:
-        if options.force:  # whatever is there, a cut-short cell.json or a damaged chunk included
-            cell.clear()
-        meta = cell.read_meta()
-        identity = cell_identity(res, spec, ids_hash(ids), fingerprint.digest, options.allow_train_split, fingerprint)
-        if meta is not None:
-            check_identity(cell.dir, meta, identity, fingerprint, _code_meta(res.method)["method_code_files"])
-        done = cell.done_ids()
-        todo = [k for k, sid in zip(keys, ids) if sid not in done]
-        if not todo and meta is not None and meta.get("status") == "complete":
+        meta, done, todo = open_cell(cell, res, spec, keys, ids, fingerprint, options)
+        if meta is None:
             return CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
-        meta = _running_meta(meta, spec, res, identity, fingerprint, len(ids))
-        cell.write_meta(meta)
         failed = _compute(res, spec, cell, keys, todo, done, options, plugins)
-        after = res.builder.adapter.fingerprint(spec.split)
-        if after.digest != fingerprint.digest:  # rows from both versions of the data: never complete
-            raise PcfbenchError(
-                f"the files of {spec.dataset}:{spec.split} changed while cell {cell.dir} was computed "
-                f"({after.changes_since(fingerprint.summary())}); it stays incomplete: rerun with --force to recompute it"
-            )
-        elapsed = time.perf_counter() - start
-        cell.write_meta(_complete_meta(meta, cell.read_rows(), len(ids), elapsed))
+        elapsed = close_cell(cell, res, spec, meta, fingerprint, len(ids), start)
     return CellResult(spec, cell.dir, "complete", len(ids), len(done), len(todo), failed, elapsed)
+
+
+def open_cell(cell: Cell, res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], ids: list[str], fingerprint: Any,
+              options: RunOptions) -> tuple[dict[str, Any] | None, set[str], list[tuple[str, int]]]:
+    """(running meta, done sample ids, samples to do) of a locked ``cell``, its identity checked
+    and its running ``cell.json`` written; the meta is None when the cell is complete already."""
+    if options.force:  # whatever is there, a cut-short cell.json or a damaged chunk included
+        cell.clear()
+    meta = cell.read_meta()
+    identity = cell_identity(res, spec, ids_hash(ids), fingerprint.digest, options.allow_train_split, fingerprint)
+    if meta is not None:
+        check_identity(cell.dir, meta, identity, fingerprint, _code_meta(res.method)["method_code_files"])
+    done = cell.done_ids()
+    todo = [k for k, sid in zip(keys, ids) if sid not in done]
+    if not todo and meta is not None and meta.get("status") == "complete":
+        return None, done, []
+    meta = _running_meta(meta, spec, res, identity, fingerprint, len(ids))
+    cell.write_meta(meta)
+    return meta, done, todo
+
+
+def close_cell(cell: Cell, res: Resolved, spec: CellSpec, meta: dict[str, Any], fingerprint: Any, samples: int,
+               start: float) -> float:
+    """Mark a computed ``cell`` complete (its data unchanged since ``fingerprint``, else it stays
+    incomplete and this raises); returns the seconds since ``start``."""
+    after = res.builder.adapter.fingerprint(spec.split)
+    if after.digest != fingerprint.digest:  # rows from both versions of the data: never complete
+        raise PcfbenchError(
+            f"the files of {spec.dataset}:{spec.split} changed while cell {cell.dir} was computed "
+            f"({after.changes_since(fingerprint.summary())}); it stays incomplete: rerun with --force to recompute it"
+        )
+    elapsed = time.perf_counter() - start
+    cell.write_meta(_complete_meta(meta, cell.read_rows(), samples, elapsed))
+    return elapsed
 
 
 def sample_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -> list[tuple[str, int]]:
@@ -583,13 +644,15 @@ def _execute(res: Resolved, spec: CellSpec, keys: list[tuple[str, int]], jobs: i
         with applied(execution):
             res.bind(execution)
             res.forecast_ratio = options.forecast_ratio
+            res.metrics_backend = options.metrics_backend
             for key in keys:
                 yield process_sample(res, key)
         return
     from pcfbench.running.workers import run_supervised
 
     jobs = max(1, min(jobs, len(keys)))
-    init_args = (spec, execution.share(jobs), CellPlugins(spec, plugins or get_plugins()), options.forecast_ratio)
+    init_args = (spec, execution.share(jobs), CellPlugins(spec, plugins or get_plugins()), options.forecast_ratio,
+                 options.metrics_backend)
     memory = None if options.max_memory_gb is None else int(options.max_memory_gb * 2**30)
     yield from run_supervised(keys, jobs, _worker_init, init_args, _worker_task, _failure_row, timeout,
                               options.scoring_timeout, memory)

@@ -195,6 +195,7 @@ class _Worker:
         self.key: Any = None
         self.started = 0.0  # when the key's current phase began (time.monotonic)
         self.phase: str | None = None  # None: the task's own work; SCORING once it says so
+        self.kind: Any = None  # the affinity of its last key (run_supervised)
 
     def kill(self) -> None:
         if self.process.is_alive():
@@ -213,6 +214,7 @@ def run_supervised(
     timeout: float | None = None,
     scoring_timeout: float | None = None,
     max_memory: int | None = None,
+    affinity: Callable[[Any], Any] | None = None,
 ) -> Iterator[Any]:
     """Yield ``task(key)`` for every key (in completion order) from ``jobs`` worker processes.
 
@@ -224,10 +226,16 @@ def run_supervised(
     the remaining keys. An exception raised by ``init`` or ``task`` in a worker is raised here
     (the run stops), as is a worker dying during ``init`` (it would die again in every replacement).
 
+    ``affinity(key)``: keys with the same value go to one worker in turn where it can be (a
+    worker that finished one takes the next of its kind; one whose kind is done takes the first
+    kind no other worker had last), so that it reuses what it kept of the last (a sample's tasks,
+    one per method). Near the end, when every kind left is another worker's, a free worker
+    helps with one rather than wait. Without it, keys go out in order.
+
     ``init``, ``init_args`` and ``task`` are sent to the workers (picklable, importable).
     """
     ctx = _context()
-    todo = deque(keys)
+    todo = _Todo(keys, affinity)
     workers: list[_Worker] = []
 
     def spawn() -> None:
@@ -240,7 +248,9 @@ def run_supervised(
             for w in workers:
                 if w.ready and w.key is None and not w.stopping:
                     if todo:
-                        w.key, w.started, w.phase = todo.popleft(), time.monotonic(), None
+                        held = {x.kind for x in workers if x is not w}  # a free one takes its own kind next
+                        w.key, w.started, w.phase = todo.take(w.kind, held), time.monotonic(), None
+                        w.kind = todo.kind(w.key)
                         w.conn.send(w.key)
                     else:  # nothing left for it (also one that got ready after the others took every key)
                         w.stopping = True
@@ -309,6 +319,36 @@ def run_supervised(
                         spawn()
     finally:
         _stop(workers)
+
+
+class _Todo:
+    """The keys still to hand out, by affinity (``run_supervised``), in order within each kind
+    and kinds in order of their first key."""
+
+    def __init__(self, keys: list[Any], affinity: Callable[[Any], Any] | None) -> None:
+        self.affinity = affinity
+        self.kinds: dict[Any, deque] = {}
+        for key in keys:
+            self.kinds.setdefault(self.kind(key), deque()).append(key)
+
+    def kind(self, key: Any) -> Any:
+        return None if self.affinity is None else self.affinity(key)
+
+    def __bool__(self) -> bool:
+        return bool(self.kinds)
+
+    def __len__(self) -> int:
+        return sum(len(q) for q in self.kinds.values())
+
+    def take(self, prefer: Any, held: set) -> Any:
+        """The next key: of kind ``prefer`` if any is left, else of the first kind not ``held``,
+        else of the first kind."""
+        kind = prefer if prefer in self.kinds else next((k for k in self.kinds if k not in held), next(iter(self.kinds)))
+        queue = self.kinds[kind]
+        key = queue.popleft()
+        if not queue:
+            del self.kinds[kind]
+        return key
 
 
 def _limit(w: _Worker, timeout: float | None, scoring_timeout: float | None) -> float | None:

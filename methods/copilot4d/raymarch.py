@@ -22,7 +22,7 @@ compares every ray against the same kernel marched to the end.
 
 Float32 throughout, in the torch path's order of operations; it agrees with the torch path to
 float rounding (sums are sequential here, pairwise in torch), which the tests bound. Measured
-in docs/performance.md.
+in docs/journal/performance-tuning-2026-11.md.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A branch-light float64 ``atan2`` that numba inlines into the projection kernels.
 
 The per-view projections call ``atan2`` twice per aggregated past point, and a call to the C
-library's costs many times this inlined one (measured: docs/performance.md). This is the
+library's costs many times this inlined one (measured: docs/journal/performance-tuning-2026-11.md). This is the
 Cephes ``atan`` (range reduction to
 ``|t| <= tan(pi/8)`` and its degree 4/5 rational approximation) with the quadrant logic of
 ``atan2``; it agrees with the C library to 2 ulp (|difference| <= 4.5e-16 rad on random

@@ -49,7 +49,7 @@ it doubles (the distance to the centre only within 1e-7 of one), the cell from a
 traversal visits the same cells, and gives the same depths, as the plain arithmetic. The
 march (``_march``) is inlined into ``_cast``'s per-ray loop (a compiled call per ray that
 takes arrays updates their shared reference counts, which threads contend on). Measurements, and what was
-tried and left out: docs/performance.md.
+tried and left out: docs/journal/performance-tuning-2026-11.md.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ Grid phase (``align_ground``): the grid is shifted down (by less than 3.2 m) so 
 level has a face half a voxel above the ground under the sensor (``ground_height``: the median
 height of the most common 2 cm height band within 20 m). The ground then sits in the middle
 of its voxels, and the cells above it are free of its noise: fewer, longer steps for the rays
-coming down to it (speed, see docs/performance.md; the surfaces keep the depth independent of
+coming down to it (speed, see docs/journal/performance-tuning-2026-11.md; the surfaces keep the depth independent of
 the phase).
 
 Rays that hit nothing: a ray that leaves the grid (the ROI) without meeting occupied space,

@@ -17,7 +17,7 @@ the angular nearest past point (exact, with azimuth wrap-around).
 
 Per view, one vectorised pass projects every point (``fastmath.atan2``; the splat width uses
 ``cos(el) = h / r`` instead of a call to ``cos``), a serial pass splats them, and the views
-go to threads (``common.map_views``). Measurements: docs/performance.md.
+go to threads (``common.map_views``). Measurements: docs/journal/performance-tuning-2026-11.md.
 """
 
 from __future__ import annotations

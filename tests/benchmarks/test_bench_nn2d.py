@@ -11,7 +11,7 @@ index build and every query, on one thread:
     PCFBENCH_BENCH_FULL=1 .venv/bin/python -m pytest tests/benchmarks/test_bench_nn2d.py --benchmark-enable
 
 Without PCFBENCH_BENCH_FULL the inputs are 16-beam toys, so the default (disabled) pass stays
-quick. The side-by-side ratios against the two kernels it replaced are in docs/performance.md.
+quick. The side-by-side ratios against the two kernels it replaced are in docs/journal/performance-tuning-2026-11.md.
 """
 
 from __future__ import annotations

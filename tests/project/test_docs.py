@@ -190,6 +190,39 @@ def test_metrics_doc_is_in_sync_with_the_registry():
     assert docs.main(["metrics", "--out", str(DOCS / "metrics.md"), "--check"]) == 0
 
 
+def test_performance_doc_is_the_cost_benchmarks_measurements():
+    from pcfbench import costtable
+
+    data = costtable.load(DOCS / "performance-costs.json")
+    assert (DOCS / "performance.md").read_text(encoding="utf-8") == costtable.markdown(data), (
+        "docs/performance.md is out of date: run .venv/bin/python -m pcfbench.docs performance --out docs/performance.md"
+    )
+    assert docs.main(["performance", "--data", str(DOCS / "performance-costs.json"),
+                      "--out", str(DOCS / "performance.md"), "--check"]) == 0
+
+
+def test_the_cost_table_projects_a_split_onto_cores(tmp_path):
+    from pcfbench import costtable
+
+    data = {"measured": {"date": "2026-11-29", "commit": "abc", "machine": "2 cores", "load": "1.0"},
+            "split": {"name": "a split", "samples": {"kitti-1s": 6000, "kitti-3s": 1000}},
+            "sizes": [{"name": "small", "description": "a small street"}],
+            "costs": [{"method": "a", "size": "small", "samples": 4, "gt_points": 10, "load_s": 0.5, "forecast_s": 1.0,
+                       "metrics_s": 1.5},
+                      {"method": "b", "size": "small", "samples": 4, "gt_points": 10, "load_s": 0.5, "forecast_s": 0.25,
+                       "metrics_s": 0.25}],
+            "ratios": [{"what": "suite", "baseline": "floor", "ratio": 1.234, "bar": "<= 1.5", "rounds": 21, "where": "x"}]}
+    text = costtable.markdown(data)
+    # a: 3 s a sample x 7,000 samples = 5.8 h on one core, 21.9 min on 16, 164 s on 128
+    assert "| `a` | 0.500 | 1.00 | 1.50 | 3.00 | 5.8 h | 22 min | 2.7 min |" in text
+    # both in one pass: the sample loaded once, 0.5 + (1 + 0.25) + (1.5 + 0.25) = 3.5 s
+    assert "| all 2 in one pass | 0.500 | 1.25 | 1.75 | 3.50 | 6.8 h | 26 min | 3.2 min |" in text
+    assert "| suite | floor | 1.23 | <= 1.5 | 21 | x |" in text
+    (tmp_path / "bad.json").write_text('{"measured": {}}')
+    with pytest.raises(PcfbenchError, match="bad.json: no split, sizes, costs: not the cost benchmark's output"):
+        costtable.load(tmp_path / "bad.json")
+
+
 def test_metrics_doc_lists_every_metric_with_its_changelog():
     text = docs.metrics_markdown()
     registry = load_plugins().metrics
