@@ -12,6 +12,7 @@ attributes ``mask_token`` can be trained and sampled here.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -243,7 +244,8 @@ def guided_logits(model: nn.Module, tokens: torch.Tensor, T_ref_sensor: torch.Te
     out = model(torch.cat([tokens, tokens[:, -1:]], 1), torch.cat([T_ref_sensor, T_ref_sensor[:, -1:]], 1),
                 guidance_mask(P + T, dev)[P:], torch.cat([frame_index, frame_index[-1:]]), **kw)
     cond, uncond = out[:, T - 1].float(), out[:, T].float()
-    return cond + guidance * (cond - uncond)
+    # cond + w (cond - uncond), in one buffer (the same floats: addition commutes exactly)
+    return (cond - uncond).mul_(guidance).add_(cond)
 
 
 def _gumbel(shape, generator, device) -> torch.Tensor:
@@ -255,7 +257,8 @@ def _gumbel(shape, generator, device) -> torch.Tensor:
 def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Tensor, *,
                  steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                  revise: bool = True, generator: torch.Generator | None = None,
-                 cache: bool = True, trace: list | None = None, first_position: int = 0) -> torch.Tensor:
+                 cache: bool = True, trace: list | None = None, first_position: int = 0,
+                 context_kv=None) -> torch.Tensor:
     """Algorithm 2: decode the frame after ``context`` (B, Tc, H, W) clean codes, given the
     poses ``T_ref_sensor`` (B, Tc + 1, 4, 4) of the context frames and of the new frame.
 
@@ -271,7 +274,10 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
     the position it had in training). With ``cache`` they run through the
     network once and each step passes only the new frame (and its unconditional copy),
     attending to their cached temporal keys and values: the same logits, ~(Tc + 2) / 2 times
-    less work per step.
+    less work per step. ``context_kv``: that pass already made (a :class:`~.world.PastKV` of
+    the Tc context frames at these positions, as :func:`forecast_sequence` keeps it from frame
+    to frame); the steps write their frames' keys and values into one buffer per temporal
+    block (:meth:`~.world.PastKV.with_room`) instead of concatenating the context's again.
     """
     if steps < 1:
         raise ValueError(f"steps={steps}: Algorithm 2 needs at least one step")
@@ -284,7 +290,12 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
     positions = torch.arange(first_position, first_position + Tc + 1, device=dev)
     past_kv = None
     if cache:
-        _, past_kv = model(context, T_ref_sensor[:, :Tc], causal_mask(Tc, dev), positions[:Tc], return_kv=True)
+        if context_kv is None:
+            _, context_kv = model(context, T_ref_sensor[:, :Tc], causal_mask(Tc, dev), positions[:Tc], return_kv=True)
+        elif context_kv.frames != Tc or context_kv.batch != B:
+            raise ValueError(f"context_kv holds {context_kv.frames} frames of {context_kv.batch} sequences; "
+                             f"the context is {Tc} frames of {B}")
+        past_kv = context_kv.with_room(1 if guidance == 0 else 2) if hasattr(context_kv, "with_room") else context_kv
     for k in range(steps - 1, -1, -1):
         if cache:
             logits = guided_logits(model, x.view(B, 1, H, W), T_ref_sensor[:, Tc:], guidance, positions[Tc:],
@@ -310,6 +321,57 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
 
 
 @torch.no_grad()
+def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
+                      n_frames: int, n_past: int, steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE,
+                      top_k: int = DEFAULT_TOP_K, revise: bool = True, generator: torch.Generator | None = None,
+                      cache: bool = True, reuse_context: bool = True,
+                      context=contextlib.nullcontext) -> list[torch.Tensor]:
+    """Algorithm 2 autoregressively, as the Copilot4D methods forecast: ``n_future`` frames
+    (B, H, W) after ``past`` (B, P, H, W), oldest first, with poses ``T_ref_sensor``
+    (B, P + n_future, 4, 4).
+
+    The context of each new frame is every frame so far at the temporal positions of training
+    (t=0 at ``n_past`` - 1 of a ``n_frames`` sequence), sliding once past and future outgrow the
+    trained sequence (the newest ``n_frames`` - 1 frames from position 0).
+
+    With ``reuse_context`` the context's temporal keys and values are kept from one frame to
+    the next while its frames keep their positions: a causal frame's keys and values do not
+    depend on later frames, so only the frame just decoded passes through the network (once)
+    to join them, instead of the whole context again. ``False`` recomputes the context for
+    every frame (the reference); ``cache=False`` computes every step over the whole sequence
+    (:func:`sample_frame`). ``context``: a context manager each network pass runs in (autocast)."""
+    P = past.shape[1]
+    if T_ref_sensor.shape[1] != P + n_future:
+        raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
+    dev = past.device
+    reuse_context = reuse_context and cache
+    seq, out = past, []
+    kv, kv_at = None, None  # the cached context's keys and values; (its first frame in seq, its first position)
+    for f in range(n_future):
+        n_ctx = min(P + f, n_frames - 1)
+        first = max(0, n_past - P) if P + f < n_frames else 0
+        first = min(first, n_frames - 1 - n_ctx)
+        start = P + f - n_ctx  # the context: seq[:, start:], at positions first .. first + n_ctx - 1
+        pose = T_ref_sensor[:, start: P + f + 1]
+        positions = torch.arange(first, first + n_ctx + 1, device=dev)
+        with context():
+            if reuse_context and kv is not None and kv_at == (start, first) and kv.frames == n_ctx - 1:
+                # the same frames at the same positions, and the frame just decoded after them
+                _, kv = model(seq[:, -1:], pose[:, n_ctx - 1: n_ctx], causal_mask(n_ctx, dev)[n_ctx - 1:],
+                              positions[n_ctx - 1: n_ctx], past_kv=kv, return_kv=True)
+            elif reuse_context:
+                _, kv = model(seq[:, start:], pose[:, :n_ctx], causal_mask(n_ctx, dev), positions[:n_ctx],
+                              return_kv=True)
+            kv_at = (start, first)
+            nxt = sample_frame(model, seq[:, start:], pose, steps=steps, guidance=guidance, top_k=top_k,
+                               revise=revise, generator=generator, first_position=first, cache=cache,
+                               context_kv=kv if reuse_context else None)
+        seq = torch.cat([seq, nxt[:, None]], 1)
+        out.append(nxt)
+    return out
+
+
+@torch.no_grad()
 def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
                     steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                     revise: bool = True, generator: torch.Generator | None = None, cache: bool = True) -> torch.Tensor:
@@ -320,11 +382,6 @@ def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Te
     future poses in the reference frame. Returns (B, n_future, H, W) codes.
     """
     P = past.shape[1]
-    if T_ref_sensor.shape[1] != P + n_future:
-        raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
-    seq = past
-    for f in range(n_future):
-        nxt = sample_frame(model, seq, T_ref_sensor[:, : P + f + 1], steps=steps, guidance=guidance, top_k=top_k,
-                           revise=revise, generator=generator, cache=cache)
-        seq = torch.cat([seq, nxt[:, None]], 1)
-    return seq[:, P:]
+    out = forecast_sequence(model, past, T_ref_sensor, n_future, n_frames=P + n_future, n_past=P, steps=steps,
+                            guidance=guidance, top_k=top_k, revise=revise, generator=generator, cache=cache)
+    return torch.stack(out, 1)

@@ -31,10 +31,11 @@ def tokenize_sweep(model: Tokenizer, points: np.ndarray) -> torch.Tensor:
 
 @torch.no_grad()
 def decode(model: Tokenizer, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The decoder's NFG and coarse logits (float32) of one (T, T) token map."""
+    """The decoder's NFG (1, F, Z, X, Y) and coarse logits (float32) of one (T, T) token map;
+    on the CPU the NFG's memory is channels last (what :func:`render_codes` marches)."""
     dev = next(model.parameters()).device
     with autocast(dev):
-        nfg, coarse = model.decode_codes(codes[None].to(dev))
+        nfg, coarse = model.decode_codes(codes[None].to(dev), channels_last=dev.type == "cpu")
     return nfg.float(), coarse
 
 

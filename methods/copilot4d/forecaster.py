@@ -395,7 +395,7 @@ class Copilot4D(TrainedMethod):
         in that frame (F, 4, 4), and the transform from the reference frame into it."""
         import torch
 
-        from pcfbench.methods.copilot4d.diffusion import sample_frame
+        from pcfbench.methods.copilot4d.diffusion import forecast_sequence
         from pcfbench.training import autocast
 
         cfg = self.world_cfg
@@ -404,21 +404,12 @@ class Copilot4D(TrainedMethod):
         seq, rel = seq[None].to(dev), rel[None].to(dev)
         gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, self.options.seed))
         P = seq.shape[1]
-        out = []
-        for f in range(sample.num_future):
-            # the context: every frame so far, at the positions of training (t=0 at n_past-1),
-            # sliding once past and future outgrow the trained sequence
-            n_ctx = min(P + f, cfg.n_frames - 1)
-            first = max(0, cfg.n_past - P) if P + f < cfg.n_frames else 0
-            first = min(first, cfg.n_frames - 1 - n_ctx)
-            ctx = seq[:, -n_ctx:]
-            pose = rel[:, P + f - n_ctx: P + f + 1]
-            with autocast(dev):  # bf16 on CUDA; the logits come back in float32
-                nxt = sample_frame(self.world, ctx, pose, steps=self.options.sampling_steps,
-                                   guidance=self.options.cfg_weight, revise=self.variant.revise, generator=gen,
-                                   first_position=first)
-            seq = torch.cat([seq, nxt[:, None]], 1)
-            out.append(nxt[0])
+        # the context: every frame so far, at the positions of training (t=0 at n_past-1), sliding
+        # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
+        out = [x[0] for x in forecast_sequence(self.world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
+                                               n_past=cfg.n_past, steps=self.options.sampling_steps,
+                                               guidance=self.options.cfg_weight, revise=self.variant.revise,
+                                               generator=gen, context=lambda: autocast(dev))]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
 
 

@@ -207,9 +207,11 @@ class Decoder(nn.Module):
         self.mlp1 = nn.Linear(cfg.nfg_dim, cfg.mlp_hidden)
         self.mlp2 = nn.Linear(cfg.mlp_hidden, 1)
 
-    def forward(self, zq: torch.Tensor):
+    def forward(self, zq: torch.Tensor, channels_last: bool = False):
         """BEV codes (B, T, T, code_dim) -> NFG volume (B, F, Z_nfg, X_nfg, Y_nfg) and coarse
-        logits (B, X, Y, Z)."""
+        logits (B, X, Y, Z). With ``channels_last`` the volume's memory is laid out as
+        (B, X_nfg, Y_nfg, Z_nfg, F) (the same shape and values, a permuted view: what the CPU
+        ray march reads, without a second copy)."""
         cfg = self.cfg
         B, T = zq.shape[0], zq.shape[1]
         x = self.from_code(zq)
@@ -218,7 +220,10 @@ class Decoder(nn.Module):
         H = x.shape[1]
         u, Zn, Fd = cfg.nfg_up, cfg.nfg_z, cfg.nfg_dim
         nfg = self.nfg_linear(self.nfg_norm(x)).view(B, H, H, u, u, Zn, Fd)
-        nfg = nfg.permute(0, 6, 5, 1, 3, 2, 4).reshape(B, Fd, Zn, H * u, H * u)
+        if channels_last:  # (B, X, Y, Z, F) in memory, X = (row, its u), Y = (column, its u)
+            nfg = nfg.permute(0, 1, 3, 2, 4, 5, 6).reshape(B, H * u, H * u, Zn, Fd).permute(0, 4, 3, 1, 2)
+        else:
+            nfg = nfg.permute(0, 6, 5, 1, 3, 2, 4).reshape(B, Fd, Zn, H * u, H * u)
         p, Z = cfg.patch_size, cfg.grid_z
         coarse = self.coarse_linear(self.coarse_norm(x)).view(B, H, H, p, p, Z)
         coarse = coarse.permute(0, 1, 3, 2, 4, 5).reshape(B, H * p, H * p, Z)
@@ -261,5 +266,5 @@ class Tokenizer(nn.Module):
         z = self.encoder(points, batch, batch_size)
         return self.vq(z)
 
-    def decode_codes(self, codes: torch.Tensor):
-        return self.decoder(self.vq.lookup(codes))
+    def decode_codes(self, codes: torch.Tensor, channels_last: bool = False):
+        return self.decoder(self.vq.lookup(codes), channels_last=channels_last)

@@ -64,12 +64,29 @@ class WindowAttention(nn.Module):
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         n, L, C = x.shape
         q, k, v = self.qkv(x).view(n, L, 3, self.heads, C // self.heads).permute(2, 0, 3, 1, 4)
+        out = attention(q, k, v, self._bias(n, mask, q.dtype))
+        return self.proj(out.transpose(1, 2).reshape(n, L, C))
+
+    def _bias(self, n: int, mask: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor:
+        """The relative position bias (1, h, L, L), plus ``mask`` (nW, L, L) additive repeated
+        over the n // nW images: (n, h, L, L). Without autograd it is kept for the next call
+        of the same shape while the bias parameter is unchanged (its version counter and
+        storage say so): inference passes rebuild the same tensor otherwise."""
+        key = None
+        if not torch.is_grad_enabled():
+            key = (n, None if mask is None else (mask.data_ptr(), tuple(mask.shape)), dtype, self.rel_bias.device,
+                   self.rel_bias.data_ptr(), self.rel_bias._version)
+            hit = getattr(self, "_bias_cache", None)
+            if hit is not None and hit[0] == key:
+                return hit[1]
         bias = self.rel_bias[self.rel_index].permute(2, 0, 1).unsqueeze(0)  # (1, h, L, L)
         if mask is not None:  # (nW, L, L) additive, repeated over the batch
             nW = mask.shape[0]
             bias = (bias + mask.unsqueeze(1)).repeat(n // nW, 1, 1, 1)
-        out = attention(q, k, v, bias.to(q.dtype))
-        return self.proj(out.transpose(1, 2).reshape(n, L, C))
+        bias = bias.to(dtype)
+        if key is not None:
+            self._bias_cache = (key, bias)
+        return bias
 
 
 class SwinBlock(nn.Module):

@@ -101,14 +101,31 @@ class TemporalBlock(nn.Module):
         if kv is not None:
             k, v = kv.extend(k, v)
         S = k.shape[-2]
+        if kv is not None and kv.collect and S > T:
+            q, k, mask = _as_whole_pass(q, k, mask)
         if mask.shape[0] == 1:
             attn_mask = mask  # (1, T, S) broadcasts over sequences and heads
         else:
-            attn_mask = mask[:, None].expand(B, H * W, T, S).reshape(B * H * W, 1, T, S)
-        y = attention(q, k, v, attn_mask)
+            attn_mask = mask[:, None].expand(B, H * W, q.shape[-2], S).reshape(B * H * W, 1, q.shape[-2], S)
+        y = attention(q, k, v, attn_mask)[:, :, S - T:] if q.shape[-2] > T else attention(q, k, v, attn_mask)
         y = self.attn.proj(y.transpose(1, 2).reshape(B * H * W, T, C))
         x = x + y.view(B, H, W, T, C).permute(0, 3, 1, 2, 4)
         return x + self.fc2(F.gelu(self.fc1(self.norm2(x))))
+
+
+def _as_whole_pass(q: torch.Tensor, k: torch.Tensor, mask: torch.Tensor):
+    """Query rows, keys and mask of a pass over all S frames for the T = q.shape[-2] new frames
+    of a pass extending a cache (their rows last; the S - T earlier rows copies of the first
+    new one, under causal rows, to be dropped), the keys laid out as such a pass's projection
+    leaves them. Attention kernels round differently with the number of query rows and the
+    keys' layout; in this shape the new frames' outputs, and so the extended cache, are bit
+    for bit those of one pass over the whole sequence."""
+    n, h, T, d = q.shape
+    S = k.shape[-2]
+    q = torch.cat([q[:, :, :1].expand(n, h, S - T, d), q], dim=2)
+    k = k.new_empty(n, S, h, d).permute(0, 2, 1, 3).copy_(k)
+    rows = causal_mask(S, mask.device)[: S - T].expand(mask.shape[0], S - T, S)
+    return q, k, torch.cat([rows, mask], dim=1)
 
 
 def _spatial_block(dim: int, heads: int, window: int, shift: bool, mlp_ratio: float) -> SwinBlock:
@@ -148,15 +165,23 @@ class Stage(nn.Module):
 class _KV:
     """Keys and values of the temporal blocks, in the order the blocks run: ``past`` (a list
     from an earlier pass, or None) is prepended to each block's own; with ``collect`` the
-    concatenation is kept, for a later pass to extend."""
+    concatenation is kept, for a later pass to extend. With ``room`` (the past's buffers hold
+    ``room`` more frames after its ``frames``: :meth:`PastKV.with_room`), this pass's keys and
+    values are written there instead: the same tensor as the concatenation, without copying the
+    past again."""
 
-    def __init__(self, past: list | None, collect: bool) -> None:
+    def __init__(self, past: list | None, collect: bool, frames: int = 0, room: int = 0) -> None:
         self.past, self.collect, self.out, self.i = past, collect, [], 0
+        self.frames, self.room = frames, room
 
     def extend(self, k: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if self.past is not None:
             pk, pv = self.past[self.i]
-            k, v = torch.cat([pk, k], dim=-2), torch.cat([pv, v], dim=-2)
+            if self.room:
+                pk[:, :, self.frames:], pv[:, :, self.frames:] = k, v
+                k, v = pk, pv
+            else:
+                k, v = torch.cat([pk, k], dim=-2), torch.cat([pv, v], dim=-2)
         self.i += 1
         if self.collect:
             self.out.append((k, v))
@@ -236,8 +261,8 @@ class WorldModel(nn.Module):
         nn.init.normal_(self.embed.weight, 0.0, math.sqrt(1.0 / (3.0 * cfg.dims[0])))
         nn.init.normal_(self.time_embed, 0.0, 0.02)
 
-    def _action(self, level: int, poses: torch.Tensor) -> torch.Tensor:
-        return self.action[level](poses)[:, :, None, None, :]  # (B, T, 1, 1, C)
+    def _action(self, level: int, poses: torch.Tensor, T: int) -> torch.Tensor:
+        return self.action[level](poses)[:, -T:, None, None, :]  # (B, T, 1, 1, C): the last T frames'
 
     def forward(self, tokens: torch.Tensor, T_ref_sensor: torch.Tensor, temporal_mask: torch.Tensor,
                 frame_index: torch.Tensor | None = None, past_kv: "PastKV | None" = None,
@@ -260,6 +285,10 @@ class WorldModel(nn.Module):
         P = 0 if past_kv is None else past_kv.frames
         if past_kv is not None and past_kv.batch != B:
             raise ValueError(f"past_kv holds {past_kv.batch} sequences; tokens hold {B}")
+        if past_kv is not None and past_kv.room and (past_kv.room != T or return_kv):
+            raise ValueError(f"past_kv has room for {past_kv.room} new frames, not {T}"
+                             + (" whose keys and values are returned (return_kv: they would be overwritten)"
+                                if return_kv else ""))
         mask = check_temporal_mask(temporal_mask.to(tokens.device), B, T, P)
         if frame_index is None:
             frame_index = torch.arange(P, P + T, device=tokens.device)
@@ -270,13 +299,18 @@ class WorldModel(nn.Module):
             raise ValueError(f"token codes span {lo}..{hi}; expected 0..{cfg.codebook_size} ({cfg.codebook_size} = mask)")
 
         poses = T_ref_sensor.reshape(B, T, 16).to(self.embed.weight.dtype)
+        if past_kv is not None and return_kv and past_kv.poses is not None:
+            # extending a cache: the actions of every frame, as one pass over them all computes
+            # them (a small matrix product rounds differently with its number of rows)
+            poses = torch.cat([past_kv.poses, poses], 1)
         x = self.embed_proj(self.embed(tokens))  # (B, T, H, W, C1)
-        x = x + self.pos_embed + self.time_embed[frame_index][None, :, None, None, :] + self._action(0, poses)
-        kv = None if past_kv is None and not return_kv else _KV(None if past_kv is None else past_kv.kv, return_kv)
+        x = x + self.pos_embed + self.time_embed[frame_index][None, :, None, None, :] + self._action(0, poses, T)
+        kv = (None if past_kv is None and not return_kv
+              else _KV(None, True) if past_kv is None else _KV(past_kv.kv, return_kv, P, past_kv.room))
         x1 = self.down1(x, mask, kv)
-        x = self._merge(self.merge12, x1) + self._action(1, poses)
+        x = self._merge(self.merge12, x1) + self._action(1, poses, T)
         x2 = self.down2(x, mask, kv)
-        x = self._merge(self.merge23, x2) + self._action(2, poses)
+        x = self._merge(self.merge23, x2) + self._action(2, poses, T)
         x = self.down3(x, mask, kv)
         x = x2 + self.up32(x, x2)
         x = self.up2(x, mask, kv)
@@ -284,7 +318,7 @@ class WorldModel(nn.Module):
         x = self.up1(x, mask, kv)
         logits = F.linear(self.out_norm(x), self.embed.weight[: cfg.codebook_size])
         if return_kv:
-            return logits, PastKV(kv.out, P + T, B)
+            return logits, PastKV(kv.out, P + T, B, poses=poses if past_kv is None or past_kv.poses is not None else None)
         return logits
 
     @staticmethod
@@ -296,10 +330,29 @@ class WorldModel(nn.Module):
 
 class PastKV:
     """Cached keys and values of ``frames`` frames for ``batch`` sequences: one (k, v) pair of
-    (batch * H_l * W_l, heads, frames, head_dim) per temporal block, in the order they run."""
+    (batch * H_l * W_l, heads, frames + room, head_dim) per temporal block, in the order they
+    run; ``room`` (0 unless made by :meth:`with_room`) frames are left for a pass to fill;
+    ``poses`` (batch, frames, 16), the frames' flattened poses (a pass extending the cache
+    computes every frame's action, as one pass over them all would)."""
 
-    def __init__(self, kv: list, frames: int, batch: int) -> None:
-        self.kv, self.frames, self.batch = kv, frames, batch
+    def __init__(self, kv: list, frames: int, batch: int, room: int = 0, poses: torch.Tensor | None = None) -> None:
+        self.kv, self.frames, self.batch, self.room, self.poses = kv, frames, batch, room, poses
+
+    def with_room(self, T: int) -> "PastKV":
+        """The same keys and values in new buffers with room for ``T`` more frames, for repeated
+        passes over ``T`` new frames (Algorithm 2's steps): each pass writes its frames' keys
+        and values into the room, and attends to exactly the tensors that concatenating them
+        would build, without copying the past frames at every pass. The room is overwritten by
+        the next pass, so such a cache cannot collect (``return_kv``)."""
+        if self.room:
+            raise ValueError("past_kv already has room for new frames")
+        out = []
+        for k, v in self.kv:
+            n, h, P, d = k.shape
+            bk, bv = k.new_empty(n, h, P + T, d), v.new_empty(n, h, P + T, d)
+            bk[:, :, :P], bv[:, :, :P] = k, v
+            out.append((bk, bv))
+        return PastKV(out, self.frames, self.batch, T, self.poses)
 
 
 def count_parameters(model: nn.Module) -> int:

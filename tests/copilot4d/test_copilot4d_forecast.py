@@ -203,10 +203,15 @@ class _Recorder(torch.nn.Module):
         self.calls = []
 
     def forward(self, tokens, poses, mask, frame_index=None, past_kv=None, return_kv=False):
-        self.calls.append((frame_index.tolist(), poses[0, :, 0, 3].tolist(), past_kv is not None))
+        # what the frames attend to: the cached frames' positions and x, then their own
+        seen = ([], []) if past_kv is None else (past_kv.positions, past_kv.xs)
+        self.calls.append((frame_index.tolist(), poses[0, :, 0, 3].tolist(), return_kv, seen))
         out = torch.zeros(*tokens.shape, self.cfg.codebook_size)
         if return_kv:
-            return out, type("KV", (), {"frames": tokens.shape[1], "batch": tokens.shape[0], "kv": []})()
+            kv = type("KV", (), {"frames": (past_kv.frames if past_kv else 0) + tokens.shape[1],
+                                 "batch": tokens.shape[0], "kv": [], "positions": seen[0] + frame_index.tolist(),
+                                 "xs": seen[1] + poses[0, :, 0, 3].tolist()})()
+            return out, kv
         return out
 
 
@@ -232,17 +237,17 @@ def test_context_positions_follow_training(P, F, monkeypatch):
     codes, rel, _ = m.forecast_tokens(s)
     assert len(codes) == F
     np.testing.assert_allclose(rel[:, 0, 3], x[P:])  # future poses in the t=0 sensor frame
-    steps = [c for c in m.world.calls if c[2]]  # the sampling passes (the context ran once, cached)
-    ctx = [c for c in m.world.calls if not c[2]]
+    steps = [c for c in m.world.calls if not c[2]]  # the sampling passes (one step each), on the cached context
+    assert len(steps) == F
     for f in range(F):
         used_past = min(P, 5)
         n_ctx = min(used_past + f, 9)
         first = (5 - used_past) if used_past + f < 10 else 0
         first = min(first, 9 - n_ctx)
-        assert ctx[f][0] == list(range(first, first + n_ctx))
+        assert steps[f][3][0] == list(range(first, first + n_ctx))  # the context's positions ...
+        assert steps[f][3][1] == pytest.approx(list(x[P + f - n_ctx: P + f]))  # ... and poses
         assert steps[f][0] == [first + n_ctx]
         assert steps[f][1] == [pytest.approx(x[P + f])]
-        assert ctx[f][1] == pytest.approx(list(x[P + f - n_ctx: P + f]))
 
 
 # --------------------------------------------------------------------------- training and checkpoints

@@ -145,3 +145,15 @@ def test_threads_change_no_depth(micro_model, monkeypatch):
         np.testing.assert_array_equal(got, whole)
         assert stats == whole_stats
     assert march(MICRO, nfg_cl, mask, origin, dirs[:0], mlp, samples=32, readout="median").shape == (0,)
+
+
+def test_decode_lays_the_grid_out_for_the_march_without_changing_it(micro_model):
+    """On the CPU ``decode`` gives the NFG with its memory channels last, the layout the march
+    reads (so rendering copies no grid): the same shape and values as the decoder's default."""
+    model, codes = micro_model
+    with torch.no_grad():
+        ref, ref_coarse = model.decode_codes(codes[None])
+        nfg, coarse = decode(model, codes)
+    assert nfg.shape == ref.shape and torch.equal(nfg, ref) and torch.equal(coarse, ref_coarse)
+    assert ref[0].permute(2, 3, 1, 0).is_contiguous() is False
+    assert nfg[0].permute(2, 3, 1, 0).is_contiguous()

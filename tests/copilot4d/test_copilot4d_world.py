@@ -3,6 +3,7 @@ Algorithm 2 (sampling, revision, guidance) and a short overfit run."""
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -456,6 +457,104 @@ def test_cached_context_gives_the_same_logits_and_samples(micro_model):
     a = D.sample_frame(micro_model, ctx, P, steps=5, generator=torch.Generator().manual_seed(2), cache=True)
     b = D.sample_frame(micro_model, ctx, P, steps=5, generator=torch.Generator().manual_seed(2), cache=False)
     assert torch.equal(a, b)
+
+
+def test_room_in_the_cache_gives_the_very_logits_of_concatenating(micro_model):
+    """Algorithm 2's steps write their frames' keys and values into buffers made once per
+    frame instead of concatenating the context's at every pass: bit for bit the same logits,
+    pass after pass (each overwrites the last one's frames)."""
+    gen = torch.Generator().manual_seed(35)
+    ctx = torch.randint(0, 16, (2, 2, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    with torch.no_grad():
+        _, kv = micro_model(ctx, P[:, :2], causal_mask(2), return_kv=True)
+        roomy = kv.with_room(2)
+        assert (roomy.frames, roomy.room) == (2, 2) and all(torch.equal(a[:, :, :2], b) for (a, _), (b, _)
+                                                              in zip(roomy.kv, kv.kv))
+        for _ in range(3):
+            x = torch.randint(0, 17, (2, 1, 8, 8), generator=gen)
+            for w in (2.0, 0.5):
+                want = D.guided_logits(micro_model, x, P[:, 2:], w, past_kv=kv)
+                assert torch.equal(D.guided_logits(micro_model, x, P[:, 2:], w, past_kv=roomy), want)
+        with pytest.raises(ValueError, match="room for 2 new frames, not 1"):
+            micro_model(x, P[:, 2:], causal_mask(3)[2:], past_kv=roomy)
+        with pytest.raises(ValueError, match="return_kv: they would be overwritten"):
+            micro_model(torch.cat([x, x], 1), P[:, 1:], guidance_mask(3)[2:], torch.tensor([2, 2]), past_kv=roomy,
+                        return_kv=True)
+        with pytest.raises(ValueError, match="already has room"):
+            roomy.with_room(1)
+
+
+def test_window_bias_is_kept_between_inference_passes_while_its_weights_stay():
+    """Without autograd a Swin block keeps its relative position bias (plus the shifted
+    windows' mask, repeated over the batch) for the next pass of the same shape, rebuilt when
+    the bias parameter changes (an optimiser step, loading weights) or autograd is on; the
+    block's output is the same either way."""
+    from pcfbench.methods.copilot4d.swin import SwinBlock
+
+    torch.manual_seed(4)
+    blk = SwinBlock(16, 2, 4, True, 2.0)
+    with torch.no_grad():
+        blk.attn.rel_bias.normal_()
+    x = torch.randn(3, 8, 8, 16)
+    blk(x).sum().backward()  # autograd on: built, not kept
+    assert getattr(blk.attn, "_bias_cache", None) is None
+
+    def fresh():  # the same block with nothing kept
+        with torch.no_grad():
+            return copy.deepcopy(blk)(x)
+
+    with torch.no_grad():
+        want = fresh()
+        assert torch.equal(blk(x), want)
+        kept = blk.attn._bias_cache[1]
+        assert kept.shape == (3 * 4, 2, 16, 16)
+        assert torch.equal(blk(x), want) and blk.attn._bias_cache[1] is kept  # reused
+        blk.attn.rel_bias.mul_(2.0)
+        changed = blk(x)
+        assert blk.attn._bias_cache[1] is not kept and not torch.allclose(changed, want)
+        blk.attn._bias_cache = None
+        assert torch.equal(changed, fresh())
+
+
+class _FrameCounter(nn.Module):
+    """Wraps a world model and counts the frames each pass sends through it."""
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        self.model, self.mask_token, self.frames = model, model.mask_token, []
+
+    def forward(self, tokens, *args, **kw):
+        self.frames.append(tokens.shape[1])
+        return self.model(tokens, *args, **kw)
+
+
+@pytest.mark.parametrize("revise", [True, False])
+def test_reusing_the_context_forecasts_the_same_tokens_with_less_work(revise):
+    """Forecasting keeps the context's temporal keys and values from frame to frame and sends
+    only the frame just decoded through the network to join them: the very tokens of
+    recomputing the context for every frame (and of no cache at all), with the context passes'
+    frames cut from 2 + 3 + 4 to 2 + 1 + 1 here; when the context slides (frame 4: 5 frames is
+    the trained sequence), its positions change and it is recomputed."""
+    torch.manual_seed(1)
+    cfg = MICRO.with_overrides(n_future=3)  # 5 frames: 2 past, and the context slides at the 4th future frame
+    model = WorldModel(cfg).eval()
+    with torch.no_grad():
+        model.time_embed.normal_(0.0, 1.0)
+    gen = torch.Generator().manual_seed(36)
+    past = torch.randint(0, 16, (2, 2, 8, 8), generator=gen)
+    poses = _random_poses(2, 6, gen)
+    runs = {}
+    for name, kw in (("reuse", {}), ("recompute", {"reuse_context": False}), ("no cache", {"cache": False})):
+        counter = _FrameCounter(model)
+        out = D.forecast_sequence(counter, past, poses, 4, n_frames=cfg.n_frames, n_past=cfg.n_past, steps=4,
+                                  revise=revise, generator=torch.Generator().manual_seed(3), **kw)
+        runs[name] = (torch.stack(out, 1), counter.frames)
+    assert torch.equal(runs["reuse"][0], runs["recompute"][0]) and torch.equal(runs["reuse"][0], runs["no cache"][0])
+    steps = [2] * 4  # each step: the frame and its unconditional copy
+    assert runs["recompute"][1] == [2, *steps, 3, *steps, 4, *steps, 4, *steps]
+    assert runs["reuse"][1] == [2, *steps, 1, *steps, 1, *steps, 4, *steps]
+    assert len(set(runs["reuse"][0].flatten().tolist())) > 4  # a real forecast, not a constant
 
 
 def test_forecast_tokens_decodes_every_future_frame(micro_model):
