@@ -2,7 +2,8 @@
 ``copilot4d-token-copy`` (a trained method: ``pcfbench train copilot4d-token-copy --dataset
 NAME``), the world model ``copilot4d`` and its MaskGIT variant ``copilot4d-maskgit``
 (trained methods on top of that tokenizer's checkpoint), and the tokenizer's commands ``pcfbench tokenize`` (cache BEV token maps for the
-world model) and ``pcfbench tokenizer-report`` (Table 7's reconstruction numbers), which take
+world model), ``pcfbench tokenizer-report`` (Table 7's reconstruction numbers) and ``pcfbench world-report``
+(a world model's forecast tokens, changed and unchanged apart); the first two take
 the trained checkpoint the way ``pcfbench run`` does (``--train-on`` or ``--checkpoint``)."""
 
 from __future__ import annotations
