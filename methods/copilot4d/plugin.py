@@ -27,19 +27,29 @@ def register_methods(register):  # noqa: ANN001
              "Copilot4D world model trained and sampled as MaskGIT (Table 4's ablation; trained)")
 
 
-def _tokenizer(method: str, train_on: str | None, train_split: str, checkpoint: str | None):
-    """The trained tokenizer of ``method`` (a ``copilot4d-token-copy[:opts]`` spec) and its checkpoint."""
+def _loaded(method: str, cls: type, expected: str, train_on: str | None, train_split: str, checkpoint: str | None):
+    """The method of spec ``method`` (a subclass of ``cls``, else one error saying ``expected``)
+    with its checkpoint loaded, and that checkpoint (``--checkpoint``, else the one trained on
+    ``train_on``'s ``train_split``)."""
     from pcfbench.errors import PcfbenchError
     from pcfbench.method import resolve_method
-    from pcfbench.methods.copilot4d.token_copy import TokenCopy
     from pcfbench.training import checkpoint_for
 
     spec = resolve_method(method)
-    if not issubclass(spec.cls, TokenCopy):
-        raise PcfbenchError(f"--method {method!r}: expected {TOKENIZER}[:options] (a Copilot4D tokenizer)")
+    if not issubclass(spec.cls, cls):
+        raise PcfbenchError(f"--method {method!r}: expected {expected}")
     ck = checkpoint_for(spec, checkpoint=checkpoint, train_on=train_on, split=train_split)
     m = spec.create()
     m.load(ck)
+    return m, ck
+
+
+def _tokenizer(method: str, train_on: str | None, train_split: str, checkpoint: str | None):
+    """The trained tokenizer of ``method`` (a ``copilot4d-token-copy[:opts]`` spec) and its checkpoint."""
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy
+
+    m, ck = _loaded(method, TokenCopy, f"{TOKENIZER}[:options] (a Copilot4D tokenizer)", train_on, train_split,
+                    checkpoint)
     return m.model, ck
 
 
@@ -180,18 +190,12 @@ def _world_report_command(cli):  # noqa: ANN001
         """A world model's forecast tokens on held-out windows against the real future's tokens,
         apart on the tokens that changed since the last past frame and those that did not."""
         from pcfbench.config import reports_dir
-        from pcfbench.errors import PcfbenchError
-        from pcfbench.method import resolve_method
         from pcfbench.methods.copilot4d.forecaster import Copilot4D, build_windows, window_cache_dir
         from pcfbench.methods.copilot4d.token_report import shares, world_token_report, write_token_report
-        from pcfbench.training import checkpoint_for, open_training_data
+        from pcfbench.training import open_training_data
 
-        spec = resolve_method(method)
-        if not issubclass(spec.cls, Copilot4D):
-            raise PcfbenchError(f"--method {method!r}: expected copilot4d or copilot4d-maskgit[:options]")
-        ck = checkpoint_for(spec, checkpoint=checkpoint, train_on=train_on, split=train_split)
-        m = spec.create()
-        m.load(ck)
+        m, ck = _loaded(method, Copilot4D, "copilot4d or copilot4d-maskgit[:options]", train_on, train_split,
+                        checkpoint)
         source = open_training_data(dataset_spec, split, split_option="--split {}")
         cfg, opts = m.world_cfg, m.options
         windows = build_windows(m.tokenizer, source.adapter, split, cfg.n_past, cfg.n_future, tuple(opts.strides),
