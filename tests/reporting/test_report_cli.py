@@ -118,28 +118,29 @@ def test_ctrl_c_keeps_the_finished_work_and_says_how_to_resume(tmp_path):
     # background (`pytest &`) inherits it ignored, and Python then never raises KeyboardInterrupt
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                             start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    first = proc.stdout.readline()  # cell 1 done
-    assert first.startswith("cell 1/2: copy-last"), first
-    # Into cell 2: interrupt as soon as its first sample's chunk lands (a fixed sleep raced
-    # the whole cell on a fast machine: 12 samples of raycast-voxel take about 2.5 s).
+    # The two methods share their samples, so they run as one group, one pass over each sample
+    # (pcfbench.running.group): interrupt as soon as raycast-voxel's first sample lands, in the
+    # middle of both cells (a fixed sleep raced the whole run on a fast machine).
     deadline = time.monotonic() + 120
     while not list(store.glob("kitti/kitti-1s/test/raycast-voxel.*/rows/*.parquet")):
-        assert time.monotonic() < deadline and proc.poll() is None, "cell 2 never wrote a chunk"
+        assert time.monotonic() < deadline and proc.poll() is None, "raycast-voxel never wrote a chunk"
         time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C sends: the whole foreground process group
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, (out, err)
     assert "pcfbench: interrupted: the finished work is kept in the store" in err
-    assert "(1 of 2 cell(s) complete, and every sample finished in the interrupted cell)" in err
+    assert "(0 of 2 cell(s) complete, and every sample finished in the interrupted cell" in err
     assert "run the same command again to resume:\n  pcfbench run -d kitti=" in err
     assert "Traceback" not in err
+    kept = len(pd.concat([pd.read_parquet(p) for p in Cell(store, _spec_of(store, "raycast-voxel")).chunk_paths()]))
+    assert 0 < kept < 12 * 5
     again = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert again.returncode == 0, again.stderr
-    assert "cell 1/2: copy-last | kitti:test | kitti-1s: complete, nothing to do (12 samples)" in again.stdout
-    spec = [s for s in (_spec_of(store, "raycast-voxel"),)][0]
-    rows = pd.concat([pd.read_parquet(p) for p in Cell(store, spec).chunk_paths()])
-    assert len(rows) == 12 * 5 and not rows.duplicated(["sample_id", "step"]).any()
-    assert (rows["status"] == "ok").all()  # an interrupted sample is not recorded as failed
+    assert "cell 2/2: raycast-voxel:voxel=0.2 | kitti:test | kitti-1s: 12 samples (" in again.stdout, again.stdout
+    for method in ("copy-last", "raycast-voxel"):
+        rows = pd.concat([pd.read_parquet(p) for p in Cell(store, _spec_of(store, method)).chunk_paths()])
+        assert len(rows) == 12 * 5 and not rows.duplicated(["sample_id", "step"]).any()
+        assert (rows["status"] == "ok").all()  # an interrupted sample is not recorded as failed
 
 
 def _spec_of(store, method):
