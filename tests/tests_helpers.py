@@ -1,6 +1,7 @@
 """Helpers importable by test modules (conftest fixtures cover the common cases)."""
 
 import dataclasses
+import os
 
 import numpy as np
 
@@ -8,6 +9,7 @@ import pcfbench
 from conftest import write_tiny_kitti
 from pcfbench.data import Forecast
 from pcfbench.method import Method
+from pcfbench.methods.copy_last import CopyLast
 from pcfbench.plugins import load_plugins
 
 
@@ -35,6 +37,33 @@ def shifted_plugins():
     if "shifted" not in plugins.methods:
         plugins.methods.add("shifted", Shifted, "test")
     return plugins
+
+
+#: the sample at which the failing test methods below fail: the tiny KITTI tree's reference
+#: index 8 (its first kitti-1s sample)
+BAD_INDEX = 8
+
+
+class Exits(CopyLast):
+    """Kills its own process (exit 3) on the sample at ``BAD_INDEX``, copies the last sweep elsewhere."""
+
+    name = "exits"
+
+    def forecast(self, sample):
+        if sample.ref_index == BAD_INDEX:
+            os._exit(3)
+        return super().forecast(sample)
+
+
+class Raises(CopyLast):
+    """Raises on the sample at ``BAD_INDEX``, copies the last sweep elsewhere."""
+
+    name = "raises"
+
+    def forecast(self, sample):
+        if sample.ref_index == BAD_INDEX:
+            raise RuntimeError("boom")
+        return super().forecast(sample)
 
 
 def chromium() -> str:

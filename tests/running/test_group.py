@@ -16,31 +16,12 @@ from pcfbench.running import workers
 from pcfbench.running.group import groups, run_group
 from pcfbench.running.runner import RunOptions, run_cell
 from pcfbench.store.cells import Cell, CellSpec
+from tests_helpers import Exits, Raises
 
 METRICS = ("chamfer", "chamfer_nf", "l1_mean", "l1@4docc", "absrel_median")
-#: the tiny KITTI sequence's kitti-1s samples are reference indices 8 to 13
-BAD_INDEX = 8
 #: where Interrupts stops the run: the third sample
 STOP_INDEX = 10
 TIMINGS = ["t_load", "t_method", "t_metrics"]
-
-
-class Exits(CopyLast):
-    name = "exits"
-
-    def forecast(self, sample):
-        if sample.ref_index == BAD_INDEX:
-            os._exit(3)
-        return super().forecast(sample)
-
-
-class Raises(CopyLast):
-    name = "raises"
-
-    def forecast(self, sample):
-        if sample.ref_index == BAD_INDEX:
-            raise RuntimeError("boom")
-        return super().forecast(sample)
 
 
 class Interrupts(CopyLast):
