@@ -55,7 +55,8 @@ class WorldOptions(RenderingOptions):
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
     seed: int = option(0, help="sampler seed, combined with the sample id (training uses seed 0)")
-    steps: int = option(0, help="training steps (0: the configuration's max_steps)", min=0)
+    steps: int = option(0, help="training steps (0: the configuration's max_steps); the learning rate's cosine "
+                                "decay runs over them", min=0)
     tokenizer_steps: int = option(0, help="the copilot4d-token-copy checkpoint used: its steps option "
                                           "(0: its default)", min=0)
     strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames, one "
@@ -243,13 +244,16 @@ class Copilot4D(TrainedMethod):
 
         self.tok_cfg = get_config(tokenizer_config_name(self.options.config))
         self.world_cfg = world_config_for(get_world_config(self.options.config), self.tok_cfg)
+        if self.options.steps:  # a longer (or shorter) run decays its learning rate over its own steps
+            self.world_cfg = self.world_cfg.with_overrides(max_steps=self.options.steps,
+                                                           decay_steps=self.options.steps)
         self.variant = get_variant(self.variant_name)
         self.render = rendering_kwargs(self.options)
         self.world = None
         self.tokenizer = None
 
     def training_steps(self) -> int:
-        return self.options.steps or self.world_cfg.max_steps
+        return self.world_cfg.max_steps
 
     # -- the tokenizer this world model is trained on -------------------------------------------
     def tokenizer_spec(self):

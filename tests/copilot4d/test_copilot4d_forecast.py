@@ -386,3 +386,20 @@ def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
     for method, df in rows().items():
         pd.testing.assert_frame_equal(df[["l1_mean", "chamfer_nf"]].reset_index(drop=True),
                                       first[method][["l1_mean", "chamfer_nf"]].reset_index(drop=True))
+
+
+def test_steps_option_sets_the_learning_rate_decay():
+    """`steps=N` trains N steps and decays the learning rate over those N (to 10 % at N), not
+    over the configuration's own max_steps: a longer run is a whole schedule, not a tail at
+    the floor."""
+    from pcfbench.methods.copilot4d.diffusion import lr_at
+
+    default = Copilot4D(resolve_method("copilot4d").options)
+    longer = Copilot4D(resolve_method("copilot4d:steps=1500").options)
+    assert default.training_steps() == world_config.TINY.max_steps == world_config.TINY.decay_steps == 600
+    assert longer.training_steps() == 1500
+    cfg = longer.world_cfg
+    assert lr_at(cfg, 600) > 0.5 * cfg.lr  # the default schedule is at its floor by then
+    assert lr_at(default.world_cfg, 600) == pytest.approx(0.1 * cfg.lr)
+    assert lr_at(cfg, 1500) == pytest.approx(0.1 * cfg.lr)
+    assert lr_at(cfg, 1499) > lr_at(cfg, 1500)
