@@ -23,7 +23,8 @@ tokenizer's (prefixes ``world.`` and ``tokenizer.``) and its manifest records th
 checkpoint sha256 and a digest of its tensors, which ``load`` checks.
 
 **Forecast**: Algorithm 2 one future frame at a time (``sampling_steps`` K, guidance weight
-``cfg_weight``), seeded by the sample id and ``seed``, so a forecast is reproducible.
+``cfg_weight``, each token drawn among its ``top_k`` guided logits), seeded by the sample id and
+``seed``, so a forecast is reproducible.
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ class WorldOptions(RenderingOptions):
     cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
+    top_k: int = option(3, help="Algorithm 2 samples each token among its top_k guided logits (1: arg max)",
+                        min=1)
     seed: int = option(0, help="sampler seed, combined with the sample id (training uses seed 0)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps); the learning rate's cosine "
                                 "decay runs over them", min=0)
@@ -233,7 +236,7 @@ class Copilot4D(TrainedMethod):
     # the measurements behind it: docs/journal/copilot4d-2026-11.md, "Training times"
     training_time = ("about 25 min for the tiny configuration on a 2-core CPU (4 min of tokenizing, 600 steps "
                      "at about 2 s), plus its tokenizer's training")
-    inference_options = ("cfg_weight", "sampling_steps", "seed", *(f.name for f in fields(RenderingOptions)))
+    inference_options = ("cfg_weight", "sampling_steps", "top_k", "seed", *(f.name for f in fields(RenderingOptions)))
 
     def __init__(self, options: WorldOptions | None = None) -> None:
         super().__init__(options)
@@ -412,7 +415,8 @@ class Copilot4D(TrainedMethod):
         # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
         out = [x[0] for x in forecast_sequence(self.world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
                                                n_past=cfg.n_past, steps=self.options.sampling_steps,
-                                               guidance=self.options.cfg_weight, revise=self.variant.revise,
+                                               guidance=self.options.cfg_weight, top_k=self.options.top_k,
+                                               revise=self.variant.revise,
                                                generator=gen, context=lambda: autocast(dev))]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
 

@@ -65,7 +65,8 @@ def test_options_are_typed_and_checked():
     assert (s.options.cfg_weight, s.options.sampling_steps, s.options.strides, s.options.seed) == (1.0, 3, (2, 6), 4)
     d = resolve_method("copilot4d-maskgit").options
     assert (d.cfg_weight, d.sampling_steps, d.config) == (2.0, 10, "tiny")
-    for bad in ("cfg_weight=-1", "sampling_steps=0", "cfg_weight=x", "threshold=1", "strides=0", "bogus=1",
+    assert (d.top_k, resolve_method("copilot4d:top_k=1").options.top_k) == (3, 1)
+    for bad in ("cfg_weight=-1", "sampling_steps=0", "top_k=0", "cfg_weight=x", "threshold=1", "strides=0", "bogus=1",
                 "readout=mean"):
         with pytest.raises(PcfbenchError):
             resolve_method(f"copilot4d:{bad}")
@@ -338,7 +339,7 @@ def test_inference_options_reuse_the_trained_weights(micro, kitti):
     tok = _tokenizer(kitti)
     base = _train(f"copilot4d:{MICRO_TRAIN},steps=2", kitti)
     shutil.rmtree(tok.dir)
-    other = _train(f"copilot4d:{MICRO},steps=2,cfg_weight=0,seed=3,readout=expected,threshold=0.5", kitti)
+    other = _train(f"copilot4d:{MICRO},steps=2,cfg_weight=0,top_k=1,seed=3,readout=expected,threshold=0.5", kitti)
     assert other.dir == base.dir and other.sha256 == base.sha256
     assert other.manifest["options"]["cfg_weight"] == 2.0  # the training options, inference ones at defaults
     spec = resolve_method(f"copilot4d:{MICRO},steps=3,cfg_weight=0")
@@ -403,3 +404,30 @@ def test_steps_option_sets_the_learning_rate_decay():
     assert lr_at(default.world_cfg, 600) == pytest.approx(0.1 * cfg.lr)
     assert lr_at(cfg, 1500) == pytest.approx(0.1 * cfg.lr)
     assert lr_at(cfg, 1499) > lr_at(cfg, 1500)
+
+
+def test_top_k_reaches_the_sampler(monkeypatch):
+    """`top_k` is handed to Algorithm 2 as given (1: arg max), with the other sampling options."""
+    from pcfbench.data import RayQuery, Sample
+    from pcfbench.methods.copilot4d import diffusion, evaluate
+
+    seen = {}
+
+    def fake(model, past, T_ref_sensor, n_future, **kw):
+        seen.update(kw)
+        return [torch.zeros(1, 4, 4, dtype=torch.long)] * n_future
+
+    monkeypatch.setattr(diffusion, "forecast_sequence", fake)
+    monkeypatch.setattr(evaluate, "tokenize_sweep", lambda m, p: torch.zeros(4, 4, dtype=torch.long))
+    cfg = world_config.WorldModelConfig(name="r", codebook_size=8, token_grid=4, n_past=2, n_future=1,
+                                        dims=(8, 8, 8), heads=(1, 1, 1), windows=(4, 2, 1))
+    m = Copilot4D()
+    m.world_cfg, m.world = cfg, torch.nn.Linear(1, 1)
+    q = RayQuery(np.zeros(3), np.array([[1.0, 0, 0]], np.float32))
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    s = Sample("s/1", "toy", "s", 1, tuple(np.zeros((1, 3), np.float32) for _ in range(2)), poses[:2],
+               np.arange(2), poses[2:], np.arange(1), (q,))
+    for k in (1, 5):
+        m.options = resolve_method(f"copilot4d:top_k={k},sampling_steps=4,cfg_weight=1").options
+        m.forecast_tokens(s)
+        assert (seen["top_k"], seen["steps"], seen["guidance"]) == (k, 4, 1.0)
