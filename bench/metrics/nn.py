@@ -96,15 +96,15 @@ def distinct(points: np.ndarray, rng: np.random.Generator | None = None) -> np.n
     (or drawn on a normal input) changes the time, never an answer: the searches are exact either
     way. ``rng``: the draw's generator (default: a fresh one, so no input can be shaped to avoid it).
     """
-    points = np.ascontiguousarray(points, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)  # C-ordered (copied) only for the full pass
     n = points.shape[0]
     if n > 4 * SAMPLE:
         rng = rng if rng is not None else np.random.default_rng()
         block = n // SAMPLE
-        rows = points[np.arange(SAMPLE) * block + rng.integers(0, block, SAMPLE)]
+        rows = np.ascontiguousarray(points[np.arange(SAMPLE) * block + rng.integers(0, block, SAMPLE)])
         if _first_of_sets(rows)[0].shape[0] == rows.shape[0]:
             return None
-    first = _first_of_sets(points)[0]
+    first = _first_of_sets(np.ascontiguousarray(points))[0]
     return None if first.shape[0] == n else first
 
 
@@ -193,15 +193,21 @@ def nn_sq_dist(query: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def angles_4docc(rel: np.ndarray) -> np.ndarray:
-    """The reference code's angle space ``(atan2(x, y), atan2(z, y))`` of origin-relative points."""
-    return np.stack([np.arctan2(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 2], rel[:, 1])], axis=1)
+    """The reference code's angle space ``(atan2(x, y), atan2(z, y))`` of origin-relative points,
+    (N, 2) float64 in column order (each column contiguous: the searches take them as they are)."""
+    out = np.empty((2, rel.shape[0]))
+    np.arctan2(rel[:, 0], rel[:, 1], out=out[0])
+    np.arctan2(rel[:, 2], rel[:, 1], out=out[1])
+    return out.T
 
 
 def angles_az_el(rel: np.ndarray) -> np.ndarray:
-    """Azimuth ``atan2(y, x)`` in [-pi, pi] and elevation ``atan2(z, hypot(x, y))``."""
-    return np.stack(
-        [np.arctan2(rel[:, 1], rel[:, 0]), np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))], axis=1
-    )
+    """Azimuth ``atan2(y, x)`` in [-pi, pi] and elevation ``atan2(z, hypot(x, y))``, (N, 2) float64
+    in column order."""
+    out = np.empty((2, rel.shape[0]))
+    np.arctan2(rel[:, 1], rel[:, 0], out=out[0])
+    np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]), out=out[1])
+    return out.T
 
 
 #: more points than this in the 3 x 3 cells around a query's, on average over the queries, send
@@ -234,8 +240,10 @@ class _Search2D:
             raise ValueError("nearest_2d: no data points to search (an empty prediction has no nearest point)")
         self.qx = np.ascontiguousarray(queries[:, 0], dtype=np.float64)
         self.qy = np.ascontiguousarray(queries[:, 1], dtype=np.float64)
+        # the (M, 2) float64 queries as given, for _Queries (None: made from qx and qy on demand)
+        self.queries = queries if isinstance(queries, np.ndarray) and queries.dtype == np.float64 else None
         self.first = distinct(data)  # None, or the grid holds data[first]
-        self.data = np.ascontiguousarray(data if self.first is None else data[self.first])
+        self.data = data if self.first is None else data[self.first]  # (columns contiguous or not: NN2D takes either)
         self.period = float(period)
         self.grid = NN2D(self.data, period, per_cell)
         self.crowded = self._crowded()
@@ -287,7 +295,7 @@ class _Search2D:
     def _tree_pass(self) -> np.ndarray:
         """Nearest grid index per query from the k-d tree's candidates; -1 where not sure."""
         d, p = self.data, self.period
-        ext = d if p == 0.0 else np.concatenate([d, d + (p, 0.0), d - (p, 0.0)])
+        ext = np.ascontiguousarray(d) if p == 0.0 else np.concatenate([d, d + (p, 0.0), d - (p, 0.0)])
         k = min(CANDIDATES, ext.shape[0])
         tree_d2, cand = KDTree(ext, leafsize=16).query(np.stack([self.qx, self.qy], 1), k=k, sqr_dists=True)
         tree_d2, cand = tree_d2.reshape(-1, k), cand.reshape(-1, k).astype(np.int64) % d.shape[0]
@@ -388,7 +396,7 @@ class _Queries:
 
     def result(self) -> np.ndarray:
         s = self._search.result()
-        return np.stack([s.qx, s.qy], axis=1)
+        return np.stack([s.qx, s.qy], axis=1) if s.queries is None else s.queries
 
 
 def _finish(search: _Search2D, pieces: list) -> np.ndarray:
