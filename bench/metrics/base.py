@@ -93,9 +93,9 @@ class SweepTruth:
         self.min_range_m = min_range_m
 
     @cached_property
-    def _lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(gt64, gt_rel, gt_ranges) in one pass (pcfbench.metrics.rays.lift)."""
-        return rays.lift(self.gt_points, self.origin)
+    def _lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(gt64, gt_rel, gt_ranges, gt_in_roi) in one pass (pcfbench.metrics.rays.lift)."""
+        return rays.lift(self.gt_points, self.origin, *_bounds(self.roi))
 
     @cached_property
     def gt64(self) -> np.ndarray:
@@ -104,7 +104,7 @@ class SweepTruth:
 
     @cached_property
     def gt_in_roi(self) -> np.ndarray:
-        return self.roi.contains(self.gt64)
+        return self._lifted[3]
 
     @cached_property
     def gt_roi(self) -> np.ndarray:
@@ -138,8 +138,7 @@ class SweepTruth:
     def _clamps(self) -> tuple[np.ndarray, ...]:
         """(t_enter, t_exit, meets, gt_clamped, ray_kept) in one pass (pcfbench.metrics.rays.clamp_rays:
         the values of ``pcfbench.boxes.ray_box_interval`` on the unit rays and of the clip after it)."""
-        lo, hi = np.asarray(self.roi.lo, dtype=np.float64), np.asarray(self.roi.hi, dtype=np.float64)
-        return rays.clamp_rays(self.gt_rel, self.gt_ranges, self.origin, lo, hi, float(self.min_range_m))
+        return rays.clamp_rays(self.gt_rel, self.gt_ranges, self.origin, *_bounds(self.roi), float(self.min_range_m))
 
     @cached_property
     def ray_clamp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -155,6 +154,11 @@ class SweepTruth:
     def ray_kept(self) -> np.ndarray:
         """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
         return self._clamps[4]
+
+
+def _bounds(box: Box) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) float64 of a box, for the kernels of pcfbench.metrics.rays."""
+    return np.asarray(box.lo, dtype=np.float64), np.asarray(box.hi, dtype=np.float64)
 
 
 def _truth_property(name: str, doc: str | None = None) -> property:
@@ -219,9 +223,9 @@ class SweepContext:
         return (self.origin + self.query.directions_ref.astype(np.float64) * d).astype(np.float32)
 
     @cached_property
-    def _pred_lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(pred64, pred_rel, pred_ranges) in one pass (pcfbench.metrics.rays.lift)."""
-        return rays.lift(self.pred_points, self.origin)
+    def _pred_lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(pred64, pred_rel, pred_ranges, pred_in_roi) in one pass (pcfbench.metrics.rays.lift)."""
+        return rays.lift(self.pred_points, self.origin, *_bounds(self.roi))
 
     @cached_property
     def pred64(self) -> np.ndarray:
@@ -229,7 +233,7 @@ class SweepContext:
 
     @cached_property
     def pred_in_roi(self) -> np.ndarray:
-        return self.roi.contains(self.pred64)
+        return self._pred_lifted[3]
 
     @cached_property
     def pred_roi(self) -> np.ndarray:

@@ -37,14 +37,16 @@ def _min(a, b):
 
 
 @numba.njit(cache=True, nogil=True)
-def lift(points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(p64, rel, ranges) of (N, 3) ``points``: ``np.ascontiguousarray(points, np.float64)``,
-    ``p64 - origin`` and ``np.sqrt(np.einsum("ij,ij->i", rel, rel))``, the sum taken as einsum
-    takes it for (N, 3) rows, ``(x^2 + z^2) + y^2`` (as ``nn._sq_dist_to``)."""
+def lift(points: np.ndarray, origin: np.ndarray, lo: np.ndarray,
+         hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(p64, rel, ranges, inside) of (N, 3) ``points``: ``np.ascontiguousarray(points, np.float64)``,
+    ``p64 - origin``, ``np.sqrt(np.einsum("ij,ij->i", rel, rel))`` (the sum taken as einsum takes
+    it for (N, 3) rows, ``(x^2 + z^2) + y^2``, as ``nn._sq_dist_to``) and ``Box(lo, hi).contains(p64)``."""
     n = points.shape[0]
     p64 = np.empty((n, 3), np.float64)
     rel = np.empty((n, 3), np.float64)
     ranges = np.empty(n, np.float64)
+    inside = np.empty(n, np.bool_)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     for i in range(n):
         x = np.float64(points[i, 0])
@@ -60,7 +62,8 @@ def lift(points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray
         rel[i, 1] = ry
         rel[i, 2] = rz
         ranges[i] = np.sqrt((rx * rx + rz * rz) + ry * ry)
-    return p64, rel, ranges
+        inside[i] = (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (z <= hi[2])
+    return p64, rel, ranges, inside
 
 
 @numba.njit(cache=True, nogil=True)

@@ -17,6 +17,7 @@ from pcfbench.testing import toy_world_sweeps
 def numpy_chain(points, origin, box, min_range, depth):
     """The expressions SweepTruth and SweepContext evaluated before the kernels."""
     p64 = np.ascontiguousarray(points, dtype=np.float64)
+    inside = box.contains(p64)
     rel = p64 - origin
     r = np.sqrt(np.einsum("ij,ij->i", rel, rel))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -29,14 +30,15 @@ def numpy_chain(points, origin, box, min_range, depth):
     p_c = np.clip(depth[kept], t_enter[kept], t_exit[kept])
     g_c = clamped[kept]
     err = np.abs(g_c - p_c)
-    return p64, rel, r, t_enter, t_exit, meets, clamped, kept, err, err / (g_c - t_enter[kept])
+    return p64, rel, r, inside, t_enter, t_exit, meets, clamped, kept, err, err / (g_c - t_enter[kept])
 
 
 def kernels(points, origin, box, min_range, depth):
-    p64, rel, r = rays.lift(points, origin)
     lo, hi = np.asarray(box.lo, dtype=np.float64), np.asarray(box.hi, dtype=np.float64)
+    p64, rel, r, inside = rays.lift(points, origin, lo, hi)
     t_enter, t_exit, meets, clamped, kept = rays.clamp_rays(rel, r, origin, lo, hi, min_range)
-    return (p64, rel, r, t_enter, t_exit, meets, clamped, kept) + rays.ray_errors(depth, t_enter, t_exit, clamped, kept)
+    return (p64, rel, r, inside, t_enter, t_exit, meets, clamped, kept) + rays.ray_errors(depth, t_enter, t_exit,
+                                                                                          clamped, kept)
 
 
 def _cases():
@@ -51,8 +53,11 @@ def _cases():
     yield "origin at zero", odd, np.zeros(3), ROI
     yield "origin on a face", odd, np.array([float(ROI.lo[0]), 0.0, 0.0]), ROI
     yield "origin outside", odd, np.array([150.0, -3.0, 0.5]), ROI
-    yield "float64, other box", rng.uniform(-80, 80, (20000, 3)), np.array([1.25, 2.5, -1.0]), \
-        Box((-10.0, -5.0, -2.0), (30.0, 5.0, 4.0))
+    box = Box((-10.0, -5.0, -2.0), (30.0, 5.0, 4.0))
+    wide = rng.uniform(-80, 80, (20000, 3))
+    wide[:300] = rng.uniform(-10, 30, (300, 3))
+    wide[:100, 0], wide[100:200, 1], wide[200:300, 2] = -10.0, 5.0, 4.0  # on the box's faces: inside
+    yield "float64, other box", wide, np.array([1.25, 2.5, -1.0]), box
     yield "empty", np.zeros((0, 3), np.float32), np.zeros(3), ROI
 
 
@@ -63,11 +68,11 @@ def test_kernels_equal_the_numpy_chain_bit_for_bit(case):
     depth[::7] = 0.0
     want = numpy_chain(points, origin, box, 0.01, depth)
     got = kernels(points, origin, box, 0.01, depth)
-    names = ("p64", "rel", "ranges", "t_enter", "t_exit", "meets", "clamped", "kept", "err", "relerr")
+    names = ("p64", "rel", "ranges", "inside", "t_enter", "t_exit", "meets", "clamped", "kept", "err", "relerr")
     for name, a, b in zip(names, want, got):
         assert a.dtype == b.dtype and a.shape == b.shape, name
         np.testing.assert_array_equal(b, a, err_msg=name)
-    kept = want[7]
-    for name, a, b in [("t_enter", want[3][kept], got[3][kept]), ("t_exit", want[4][kept], got[4][kept]),
-                       ("clamped", want[6][kept], got[6][kept]), ("err", want[8], got[8]), ("relerr", want[9], got[9])]:
+    kept = want[8]
+    for name, a, b in [("t_enter", want[4][kept], got[4][kept]), ("t_exit", want[5][kept], got[5][kept]),
+                       ("clamped", want[7][kept], got[7][kept]), ("err", want[9], got[9]), ("relerr", want[10], got[10])]:
         assert np.array_equal(np.signbit(a), np.signbit(b)), name
