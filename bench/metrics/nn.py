@@ -127,15 +127,16 @@ class Index:
         q = np.ascontiguousarray(queries, dtype=np.float64)
         if q.shape[0] == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64)
+        # (squared distances: the tree's own are dropped, so its square roots are not taken)
         if mask is None:
-            _, idx = self.tree.query(q, k=1)
+            _, idx = self.tree.query(q, k=1, sqr_dists=True)
             if self._sets is not None:
                 idx = self._sets[idx]
         elif self._sets is None:
-            _, idx = self.tree.query(q, k=1, mask=np.ascontiguousarray(mask, dtype=bool))
+            _, idx = self.tree.query(q, k=1, mask=np.ascontiguousarray(mask, dtype=bool), sqr_dists=True)
         else:  # a set is returned through its first member that is not masked
             member = _first_of_sets(self.points, np.ascontiguousarray(mask, dtype=bool))[1]
-            _, idx = self.tree.query(q, k=1, mask=member < 0)
+            _, idx = self.tree.query(q, k=1, mask=member < 0, sqr_dists=True)
             idx = member[idx]
         if q.shape[1] in (2, 3):
             return _sq_dist_to(q, self.points, idx)
@@ -246,6 +247,7 @@ class _Search2D:
         self.data = data if self.first is None else data[self.first]  # (columns contiguous or not: NN2D takes either)
         self.period = float(period)
         self.grid = NN2D(self.data, period, per_cell)
+        self.grid._queries((self.qx, self.qy))  # checked once here (finite, within the period), not per piece
         self.crowded = self._crowded()
 
     def _crowded(self) -> bool:
@@ -282,14 +284,17 @@ class _Search2D:
         (every query of a crowded search: ``finish`` answers them)."""
         if self.crowded:
             return np.full(self.qx[start:stop].shape[0], -1, np.int64)
-        return self.grid.near((self.qx[start:stop], self.qy[start:stop]))
+        return self.grid._near(self.qx[start:stop], self.qy[start:stop])
 
     def finish(self, idx: np.ndarray) -> np.ndarray:
         """Answer the queries the grid pass left at -1 (``idx``: the grid passes' answers, in
         place) and return the nearest data index of every query."""
         if self.crowded:
             idx[:] = self._tree_pass()
-        idx = self.grid.settle((self.qx, self.qy), idx)
+        if idx.shape != self.qx.shape or idx.dtype != np.int64:
+            raise ValueError(f"nearest_2d: finish needs the int64 answers of the grid passes for these "
+                             f"{self.qx.shape[0]} queries, got {idx.dtype} {idx.shape}")
+        idx = self.grid._settle(self.qx, self.qy, idx)
         return idx if self.first is None else self.first[idx]
 
     def _tree_pass(self) -> np.ndarray:
