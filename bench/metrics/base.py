@@ -12,7 +12,7 @@ from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
 from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext, current, in_pool_worker
 from pcfbench.kinds import Better, Needs, parse
-from pcfbench.metrics import rays
+from pcfbench.metrics.rays import clamp_rays, lift, ray_errors as kept_ray_errors
 from pcfbench.metrics.nn import (Index, angles_4docc, angles_az_el, masked_min_sq_dist, nearest_angles,
                                  submit_nearest_angles, submit_query)
 from pcfbench.protocol import MIN_RANGE_M, ROI, Protocol
@@ -95,7 +95,7 @@ class SweepTruth:
     @cached_property
     def _lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(gt64, gt_rel, gt_ranges, gt_in_roi) in one pass (pcfbench.metrics.rays.lift)."""
-        return rays.lift(self.gt_points, self.origin, *_bounds(self.roi))
+        return lift(self.gt_points, self.origin, *_bounds(self.roi))
 
     @cached_property
     def gt64(self) -> np.ndarray:
@@ -138,7 +138,7 @@ class SweepTruth:
     def _clamps(self) -> tuple[np.ndarray, ...]:
         """(t_enter, t_exit, meets, gt_clamped, ray_kept) in one pass (pcfbench.metrics.rays.clamp_rays:
         the values of ``pcfbench.boxes.ray_box_interval`` on the unit rays and of the clip after it)."""
-        return rays.clamp_rays(self.gt_rel, self.gt_ranges, self.origin, *_bounds(self.roi), float(self.min_range_m))
+        return clamp_rays(self.gt_rel, self.gt_ranges, self.origin, *_bounds(self.roi), float(self.min_range_m))
 
     @cached_property
     def ray_clamp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -225,7 +225,7 @@ class SweepContext:
     @cached_property
     def _pred_lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(pred64, pred_rel, pred_ranges, pred_in_roi) in one pass (pcfbench.metrics.rays.lift)."""
-        return rays.lift(self.pred_points, self.origin, *_bounds(self.roi))
+        return lift(self.pred_points, self.origin, *_bounds(self.roi))
 
     @cached_property
     def pred64(self) -> np.ndarray:
@@ -366,7 +366,7 @@ class SweepContext:
     def ray_errors(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(|g_c - p_c|, |g_c - p_c| / |g_c - o_c|) on the kept rays, for per-ray predicted depths."""
         t_enter, t_exit, _ = self.ray_clamp
-        return rays.ray_errors(np.ascontiguousarray(depth, dtype=np.float64), t_enter, t_exit, self.gt_clamped,
+        return kept_ray_errors(np.ascontiguousarray(depth, dtype=np.float64), t_enter, t_exit, self.gt_clamped,
                                self.ray_kept)
 
     @cached_property
