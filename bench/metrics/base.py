@@ -12,10 +12,11 @@ from pcfbench.data import Forecast, GroundTruth, RayQuery, Sample
 from pcfbench.errors import PcfbenchError
 from pcfbench.execution import ExecutionContext, current, in_pool_worker
 from pcfbench.kinds import Better, Needs, parse
+from pcfbench.metrics.rays import clamp_rays, lift, ray_errors as kept_ray_errors
 from pcfbench.metrics.nn import (Index, angles_4docc, angles_az_el, masked_min_sq_dist, nearest_angles,
                                  submit_nearest_angles, submit_query)
 from pcfbench.protocol import MIN_RANGE_M, ROI, Protocol
-from pcfbench.boxes import Box, ray_box_interval
+from pcfbench.boxes import Box
 
 
 #: the shared searches a metric may declare (``Metric.searches``)
@@ -92,12 +93,18 @@ class SweepTruth:
         self.min_range_m = min_range_m
 
     @cached_property
+    def _lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(gt64, gt_rel, gt_ranges, gt_in_roi) in one pass (pcfbench.metrics.rays.lift)."""
+        return lift(self.gt_points, self.origin, *_bounds(self.roi))
+
+    @cached_property
     def gt64(self) -> np.ndarray:
-        return np.ascontiguousarray(self.gt_points, dtype=np.float64)
+        """The ground truth as C-ordered float64."""
+        return self._lifted[0]
 
     @cached_property
     def gt_in_roi(self) -> np.ndarray:
-        return self.roi.contains(self.gt64)
+        return self._lifted[3]
 
     @cached_property
     def gt_roi(self) -> np.ndarray:
@@ -114,12 +121,13 @@ class SweepTruth:
 
     @cached_property
     def gt_rel(self) -> np.ndarray:
-        return self.gt64 - self.origin
+        """The ground truth relative to the sweep origin, (M, 3) float64."""
+        return self._lifted[1]
 
     @cached_property
     def gt_ranges(self) -> np.ndarray:
         """(M,) float64 distance of each ground-truth point from the sweep origin."""
-        return np.sqrt(np.einsum("ij,ij->i", self.gt_rel, self.gt_rel))
+        return self._lifted[2]
 
     @cached_property
     def gt_angles(self) -> tuple[np.ndarray, np.ndarray]:
@@ -127,26 +135,30 @@ class SweepTruth:
         return angles_4docc(self.gt_rel), angles_az_el(self.gt_rel)
 
     @cached_property
+    def _clamps(self) -> tuple[np.ndarray, ...]:
+        """(t_enter, t_exit, meets, gt_clamped, ray_kept) in one pass (pcfbench.metrics.rays.clamp_rays:
+        the values of ``pcfbench.boxes.ray_box_interval`` on the unit rays and of the clip after it)."""
+        return clamp_rays(self.gt_rel, self.gt_ranges, self.origin, *_bounds(self.roi), float(self.min_range_m))
+
+    @cached_property
     def ray_clamp(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per ground-truth ray: (t_enter, t_exit, meets_box) of the ROI along the unit ray o -> g."""
-        r = self.gt_ranges
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dirs = np.where(r[:, None] > 0, self.gt_rel / r[:, None], 0.0)
-        t_enter, t_exit = ray_box_interval(self.origin, dirs, self.roi)
-        return t_enter, t_exit, (t_enter <= t_exit) & (r > 0)
+        return self._clamps[:3]
 
     @cached_property
     def gt_clamped(self) -> np.ndarray:
         """Clamped ground-truth range along each ray (where the ray leaves the ROI at most)."""
-        t_enter, t_exit, _ = self.ray_clamp
-        return np.clip(self.gt_ranges, t_enter, np.maximum(t_exit, t_enter))
+        return self._clamps[3]
 
     @cached_property
     def ray_kept(self) -> np.ndarray:
         """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
-        t_enter, _, meets = self.ray_clamp
-        with np.errstate(invalid="ignore"):  # rays missing the box may have t_enter = inf
-            return meets & (self.gt_clamped - t_enter > self.min_range_m)
+        return self._clamps[4]
+
+
+def _bounds(box: Box) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) float64 of a box, for the kernels of pcfbench.metrics.rays."""
+    return np.asarray(box.lo, dtype=np.float64), np.asarray(box.hi, dtype=np.float64)
 
 
 def _truth_property(name: str, doc: str | None = None) -> property:
@@ -211,12 +223,17 @@ class SweepContext:
         return (self.origin + self.query.directions_ref.astype(np.float64) * d).astype(np.float32)
 
     @cached_property
+    def _pred_lifted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(pred64, pred_rel, pred_ranges, pred_in_roi) in one pass (pcfbench.metrics.rays.lift)."""
+        return lift(self.pred_points, self.origin, *_bounds(self.roi))
+
+    @cached_property
     def pred64(self) -> np.ndarray:
-        return np.ascontiguousarray(self.pred_points, dtype=np.float64)
+        return self._pred_lifted[0]
 
     @cached_property
     def pred_in_roi(self) -> np.ndarray:
-        return self.roi.contains(self.pred64)
+        return self._pred_lifted[3]
 
     @cached_property
     def pred_roi(self) -> np.ndarray:
@@ -268,11 +285,11 @@ class SweepContext:
     # -- rays (L1, AbsRel) ---------------------------------------------------------------------
     @cached_property
     def pred_rel(self) -> np.ndarray:
-        return self.pred64 - self.origin
+        return self._pred_lifted[1]
 
     @cached_property
     def pred_ranges(self) -> np.ndarray:
-        return np.sqrt(np.einsum("ij,ij->i", self.pred_rel, self.pred_rel))
+        return self._pred_lifted[2]
 
     @cached_property
     def _angular_nearest(self) -> tuple[np.ndarray, np.ndarray]:
@@ -313,10 +330,20 @@ class SweepContext:
         angles = None
         if ANGLES in searches and self.pred_depths is None and "_angular_nearest" not in self.__dict__:
             angles = submit_nearest_angles(pool, self.pred_rel, truth.gt_rel, truth.__dict__.get("gt_angles"))
+        # what the built-in metrics read beside the searches, queued after them: the threads take
+        # it as they come free at the searches' end, instead of the calling thread after them
+        prep = []
+        if NN in searches:
+            prep += [lambda: truth.gt_in_roi, lambda: self.pred_in_roi]
+        if ANGLES in searches and self.pred_depths is None:
+            prep += [lambda: truth.ray_kept, lambda: truth.gt_clamped, lambda: self.pred_ranges]
+        prep = [pool.submit(job) for job in prep]
         for name, job in jobs.items():
             self.__dict__[name] = job.result()
         if angles is not None:
             self.__dict__["_angular_nearest"] = self._keep_angles(*angles)
+        for job in prep:
+            job.result()
 
     def _ray_depth(self, which: int) -> np.ndarray | None:
         if self.pred_depths is not None:
@@ -339,11 +366,8 @@ class SweepContext:
     def ray_errors(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(|g_c - p_c|, |g_c - p_c| / |g_c - o_c|) on the kept rays, for per-ray predicted depths."""
         t_enter, t_exit, _ = self.ray_clamp
-        k = self.ray_kept
-        p_c = np.clip(depth[k], t_enter[k], t_exit[k])
-        g_c = self.gt_clamped[k]
-        err = np.abs(g_c - p_c)
-        return err, err / (g_c - t_enter[k])
+        return kept_ray_errors(np.ascontiguousarray(depth, dtype=np.float64), t_enter, t_exit, self.gt_clamped,
+                               self.ray_kept)
 
     @cached_property
     def ray_errors_4docc(self) -> tuple[np.ndarray, np.ndarray] | None:

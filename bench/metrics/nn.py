@@ -96,15 +96,15 @@ def distinct(points: np.ndarray, rng: np.random.Generator | None = None) -> np.n
     (or drawn on a normal input) changes the time, never an answer: the searches are exact either
     way. ``rng``: the draw's generator (default: a fresh one, so no input can be shaped to avoid it).
     """
-    points = np.ascontiguousarray(points, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)  # C-ordered (copied) only for the full pass
     n = points.shape[0]
     if n > 4 * SAMPLE:
         rng = rng if rng is not None else np.random.default_rng()
         block = n // SAMPLE
-        rows = points[np.arange(SAMPLE) * block + rng.integers(0, block, SAMPLE)]
+        rows = np.ascontiguousarray(points[np.arange(SAMPLE) * block + rng.integers(0, block, SAMPLE)])
         if _first_of_sets(rows)[0].shape[0] == rows.shape[0]:
             return None
-    first = _first_of_sets(points)[0]
+    first = _first_of_sets(np.ascontiguousarray(points))[0]
     return None if first.shape[0] == n else first
 
 
@@ -127,15 +127,16 @@ class Index:
         q = np.ascontiguousarray(queries, dtype=np.float64)
         if q.shape[0] == 0:
             return np.zeros(0), np.zeros(0, dtype=np.int64)
+        # (squared distances: the tree's own are dropped, so its square roots are not taken)
         if mask is None:
-            _, idx = self.tree.query(q, k=1)
+            _, idx = self.tree.query(q, k=1, sqr_dists=True)
             if self._sets is not None:
                 idx = self._sets[idx]
         elif self._sets is None:
-            _, idx = self.tree.query(q, k=1, mask=np.ascontiguousarray(mask, dtype=bool))
+            _, idx = self.tree.query(q, k=1, mask=np.ascontiguousarray(mask, dtype=bool), sqr_dists=True)
         else:  # a set is returned through its first member that is not masked
             member = _first_of_sets(self.points, np.ascontiguousarray(mask, dtype=bool))[1]
-            _, idx = self.tree.query(q, k=1, mask=member < 0)
+            _, idx = self.tree.query(q, k=1, mask=member < 0, sqr_dists=True)
             idx = member[idx]
         if q.shape[1] in (2, 3):
             return _sq_dist_to(q, self.points, idx)
@@ -193,15 +194,21 @@ def nn_sq_dist(query: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def angles_4docc(rel: np.ndarray) -> np.ndarray:
-    """The reference code's angle space ``(atan2(x, y), atan2(z, y))`` of origin-relative points."""
-    return np.stack([np.arctan2(rel[:, 0], rel[:, 1]), np.arctan2(rel[:, 2], rel[:, 1])], axis=1)
+    """The reference code's angle space ``(atan2(x, y), atan2(z, y))`` of origin-relative points,
+    (N, 2) float64 in column order (each column contiguous: the searches take them as they are)."""
+    out = np.empty((2, rel.shape[0]))
+    np.arctan2(rel[:, 0], rel[:, 1], out=out[0])
+    np.arctan2(rel[:, 2], rel[:, 1], out=out[1])
+    return out.T
 
 
 def angles_az_el(rel: np.ndarray) -> np.ndarray:
-    """Azimuth ``atan2(y, x)`` in [-pi, pi] and elevation ``atan2(z, hypot(x, y))``."""
-    return np.stack(
-        [np.arctan2(rel[:, 1], rel[:, 0]), np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))], axis=1
-    )
+    """Azimuth ``atan2(y, x)`` in [-pi, pi] and elevation ``atan2(z, hypot(x, y))``, (N, 2) float64
+    in column order."""
+    out = np.empty((2, rel.shape[0]))
+    np.arctan2(rel[:, 1], rel[:, 0], out=out[0])
+    np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]), out=out[1])
+    return out.T
 
 
 #: more points than this in the 3 x 3 cells around a query's, on average over the queries, send
@@ -234,10 +241,13 @@ class _Search2D:
             raise ValueError("nearest_2d: no data points to search (an empty prediction has no nearest point)")
         self.qx = np.ascontiguousarray(queries[:, 0], dtype=np.float64)
         self.qy = np.ascontiguousarray(queries[:, 1], dtype=np.float64)
+        # the (M, 2) float64 queries as given, for _Queries (None: made from qx and qy on demand)
+        self.queries = queries if isinstance(queries, np.ndarray) and queries.dtype == np.float64 else None
         self.first = distinct(data)  # None, or the grid holds data[first]
-        self.data = np.ascontiguousarray(data if self.first is None else data[self.first])
+        self.data = data if self.first is None else data[self.first]  # (columns contiguous or not: NN2D takes either)
         self.period = float(period)
         self.grid = NN2D(self.data, period, per_cell)
+        self.grid._queries((self.qx, self.qy))  # checked once here (finite, within the period), not per piece
         self.crowded = self._crowded()
 
     def _crowded(self) -> bool:
@@ -274,20 +284,23 @@ class _Search2D:
         (every query of a crowded search: ``finish`` answers them)."""
         if self.crowded:
             return np.full(self.qx[start:stop].shape[0], -1, np.int64)
-        return self.grid.near((self.qx[start:stop], self.qy[start:stop]))
+        return self.grid._near(self.qx[start:stop], self.qy[start:stop])
 
     def finish(self, idx: np.ndarray) -> np.ndarray:
         """Answer the queries the grid pass left at -1 (``idx``: the grid passes' answers, in
         place) and return the nearest data index of every query."""
         if self.crowded:
             idx[:] = self._tree_pass()
-        idx = self.grid.settle((self.qx, self.qy), idx)
+        if idx.shape != self.qx.shape or idx.dtype != np.int64:
+            raise ValueError(f"nearest_2d: finish needs the int64 answers of the grid passes for these "
+                             f"{self.qx.shape[0]} queries, got {idx.dtype} {idx.shape}")
+        idx = self.grid._settle(self.qx, self.qy, idx)
         return idx if self.first is None else self.first[idx]
 
     def _tree_pass(self) -> np.ndarray:
         """Nearest grid index per query from the k-d tree's candidates; -1 where not sure."""
         d, p = self.data, self.period
-        ext = d if p == 0.0 else np.concatenate([d, d + (p, 0.0), d - (p, 0.0)])
+        ext = np.ascontiguousarray(d) if p == 0.0 else np.concatenate([d, d + (p, 0.0), d - (p, 0.0)])
         k = min(CANDIDATES, ext.shape[0])
         tree_d2, cand = KDTree(ext, leafsize=16).query(np.stack([self.qx, self.qy], 1), k=k, sqr_dists=True)
         tree_d2, cand = tree_d2.reshape(-1, k), cand.reshape(-1, k).astype(np.int64) % d.shape[0]
@@ -388,7 +401,7 @@ class _Queries:
 
     def result(self) -> np.ndarray:
         s = self._search.result()
-        return np.stack([s.qx, s.qy], axis=1)
+        return np.stack([s.qx, s.qy], axis=1) if s.queries is None else s.queries
 
 
 def _finish(search: _Search2D, pieces: list) -> np.ndarray:

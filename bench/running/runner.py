@@ -392,6 +392,7 @@ def open_cell(cell: Cell, res: Resolved, spec: CellSpec, keys: list[tuple[str, i
     if not todo and meta is not None and meta.get("status") == "complete":
         return None, done, []
     meta = _running_meta(meta, spec, res, identity, fingerprint, len(ids))
+    meta["metrics_backend"] = _with_backend(meta.get("metrics_backend"), scoring_backend(options))
     cell.write_meta(meta)
     return meta, done, todo
 
@@ -507,6 +508,30 @@ def _running_meta(meta: dict | None, spec: CellSpec, res: Resolved, identity: di
     if ranges.records(m.name for m in res.metrics):  # its rows' range bins are stored beside them (pcfbench.store.ranges)
         meta["range_bins"] = ranges.meta()
     return meta
+
+
+def scoring_backend(options: RunOptions) -> dict[str, Any]:
+    """How this run scores its samples (``cell.json``'s ``metrics_backend``): the backend asked
+    for, the one it resolves to and its device (:mod:`pcfbench.metrics.backend`). Under an
+    executor whose tasks run elsewhere (Ray) ``auto`` resolves on each worker, so only the request
+    is known here."""
+    requested = options.metrics_backend
+    if options.executor is not None:
+        return {"requested": requested, "backend": None, "device": None, "resolved": "on each worker"}
+    backend = metrics_backend.resolve(requested)
+    device = "cpu"
+    if backend == "torch":
+        from pcfbench.metrics.torch_nn import default_device
+
+        device = default_device()
+    return {"requested": requested, "backend": backend, "device": device}
+
+
+def _with_backend(recorded: Any, entry: dict[str, Any]) -> list[dict[str, Any]]:
+    """The backends a cell's rows were scored with, each once, in the order first used (a
+    resumed cell may be scored with another than its first rows were)."""
+    out = [e for e in recorded if isinstance(e, dict)] if isinstance(recorded, list) else []
+    return out if entry in out else out + [entry]
 
 
 def _code_meta(method: Method) -> dict[str, Any]:

@@ -164,3 +164,61 @@ def test_supervised_tasks_of_one_kind_go_to_one_worker_in_turn():
     # every sample but the last two (where a free worker helps rather than waits) in one worker
     assert all(len(by_sample[s]) == 1 for s in range(4)), by_sample
     assert len({pid for _, pid in out}) == 2
+
+
+def test_the_cli_runs_a_group_cell_by_cell_when_another_process_holds_one_of_its_cells(tiny_kitti, tmp_path):
+    """`pcfbench run` with two methods on the same samples: another process holds the second
+    method's cell, so the group cannot lock all its cells; the run falls back to one cell at a
+    time and computes the free cell while the other is still held, then the held one once it is
+    free (the other process lets it go once the free cell is complete)."""
+    import threading
+
+    from click.testing import CliRunner
+
+    from pcfbench.cli import cli
+
+    store = tmp_path / "store"
+
+    def spec(method):  # the cell the command makes (the method's default options resolved as the command does)
+        from pcfbench.method import resolve_method
+        from pcfbench.plugins import get_plugins
+
+        m = resolve_method(method, get_plugins())
+        return CellSpec(m.name, dict(m.raw), m.options_hash, "kitti", str(tiny_kitti), "test", "kitti-1s",
+                        "full-context", None, ("chamfer", "l1_mean"))
+
+    free, held = spec("copy-last"), spec("raycast-zbuffer")
+    other = Cell(store, held).__enter__()  # its own open file: flock refuses the run's lock as another process's
+    seen = []
+    finished = threading.Event()  # the command returned (with or without the free cell done)
+
+    def other_process():
+        # it finishes once the run has completed the free cell (a group would have waited for it, or failed)
+        deadline = time.monotonic() + 120
+        try:
+            while time.monotonic() < deadline and not finished.is_set():
+                if (Cell(store, free).read_meta() or {}).get("status") == "complete":
+                    seen.append("free cell complete while the other was held")
+                    return
+                time.sleep(0.05)
+        finally:
+            other.__exit__(None, None, None)
+
+    thread = threading.Thread(target=other_process)
+    thread.start()
+    try:
+        res = CliRunner().invoke(cli, ["run", "-d", f"kitti={tiny_kitti}", "-m", "copy-last", "-m", "raycast-zbuffer",
+                                       "-s", "kitti-1s", "--split", "test", "--policy", "full-context", "--metric",
+                                       "chamfer", "--metric", "l1_mean", "-j", "1", "--store", str(store), "--no-report",
+                                       "-q"])
+    finally:
+        finished.set()
+        thread.join()
+    assert res.exit_code == 0, res.output
+    assert "another pcfbench process is computing one of them; running them one by one" in res.stderr
+    assert seen == ["free cell complete while the other was held"]
+    for s in (free, held):  # both complete, with the rows of a run of their own
+        assert Cell(store, s).read_meta()["status"] == "complete"
+        run_cell(s, tmp_path / "alone", RunOptions(progress=False))
+        _assert_rows_equal(Cell(store, s).read_rows().drop(columns=TIMINGS),
+                           Cell(tmp_path / "alone", s).read_rows().drop(columns=TIMINGS))

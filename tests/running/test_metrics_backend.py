@@ -24,6 +24,13 @@ def test_a_run_scored_in_torch_writes_the_numpy_rows(tmp_path):
         rows[name] = df.drop(columns=["t_load", "t_method", "t_metrics"])
     assert len(rows["numpy"]) == 10
     pd.testing.assert_frame_equal(rows["torch"], rows["numpy"], check_exact=True)
+    # each cell says how its rows were scored
+    from pcfbench.metrics.torch_nn import default_device
+
+    assert Cell(tmp_path / "numpy", spec).read_meta()["metrics_backend"] == [
+        {"requested": "numpy", "backend": "numpy", "device": "cpu"}]
+    assert Cell(tmp_path / "torch", spec).read_meta()["metrics_backend"] == [
+        {"requested": "torch", "backend": "torch", "device": default_device()}]
     with pytest.raises(PcfbenchError, match="metrics backend must be one of auto, numpy, torch"):
         RunOptions(metrics_backend="gpu")
 
@@ -38,3 +45,16 @@ def test_the_cli_hands_the_backend_to_the_run_and_ray_refuses_another():
     assert _limits("ray", 120.0, 0.0, FORECAST_RATIO)["metrics_backend"] == "auto"
     with pytest.raises(click.UsageError, match="--metrics-backend apply to the local executor only"):
         _limits("ray", 120.0, 0.0, FORECAST_RATIO, "numpy")
+
+
+def test_the_backends_of_a_resumed_cell_accumulate_once_each():
+    from pcfbench.running.runner import RunOptions, _with_backend, scoring_backend
+
+    numpy = scoring_backend(RunOptions(progress=False, metrics_backend="numpy"))
+    torch = {"requested": "torch", "backend": "torch", "device": "cuda"}
+    assert numpy == {"requested": "numpy", "backend": "numpy", "device": "cpu"}
+    assert _with_backend(None, numpy) == [numpy]  # a new cell, or one written before the field
+    assert _with_backend([numpy], numpy) == [numpy]
+    assert _with_backend([numpy], torch) == [numpy, torch]  # resumed on a GPU: both, in order
+    assert _with_backend([numpy, torch], numpy) == [numpy, torch]
+    assert scoring_backend(RunOptions(progress=False, executor=object()))["resolved"] == "on each worker"
