@@ -115,3 +115,67 @@ def tokenizer_config_from_dict(d: dict) -> TokenizerConfig:
         return TokenizerConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
     except TypeError as exc:
         raise PcfbenchError(f"not an occworld tokenizer configuration: {exc}") from None
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """The spatio-temporal generative transformer (the public ``PlanUAutoRegTransformer``) and
+    its training windows. ``code_dim``, ``codebook_size`` and ``token_grid`` are the
+    tokenizer's (``for_tokenizer``)."""
+
+    name: str
+    channels: tuple[int, ...] = (128, 256, 512)  # one scale each; the last is the middle block's
+    temporal_layers: int = 6  # temporal attention layers per scale (encoder and decoder side)
+    pose_layers: int = 2  # ego-pose attention layers per scale
+    heads: int = 8
+    n_past: int = 5  # the protocol's settings: 5 past frames ...
+    n_future: int = 5  # ... and 5 future ones
+    pose_dim: int = 9  # a motion: translation (3) and the first two columns of the rotation (6)
+    pose_weight: float = 0.1  # the public configuration's weight of the pose regression
+    code_dim: int = 128
+    codebook_size: int = 512
+    token_grid: tuple[int, int] = (50, 50)
+    # --- optimisation (section 4.2 and the public configuration) ---
+    lr: float = 1e-3
+    weight_decay: float = 0.01
+    warmup: int = 50
+    min_lr_ratio: float = 1e-3
+    grad_clip: float = 35.0
+    batch_size: int = 8
+    max_steps: int = 20000
+    log_every: int = 10
+    checkpoint_every: int = 100
+
+    @property
+    def positions(self) -> int:
+        """Input frames the model holds: a window of n_past + n_future frames predicts frames 1..T-1 from 0..T-2."""
+        return self.n_past + self.n_future - 1
+
+    def for_tokenizer(self, tok: TokenizerConfig) -> "WorldConfig":
+        return replace(self, code_dim=tok.z_channels, codebook_size=tok.codebook_size, token_grid=tok.token_grid)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+WORLDS = {
+    "paper": WorldConfig("paper"),
+    # CPU scale: the paper's three scales at a quarter of the widths, one layer of each kind
+    "tiny": WorldConfig("tiny", channels=(32, 64, 128), temporal_layers=1, pose_layers=1, heads=4, batch_size=1,
+                        max_steps=600, warmup=20),
+    "micro": WorldConfig("micro", channels=(16, 32), temporal_layers=1, pose_layers=1, heads=2, n_past=2, n_future=2,
+                         batch_size=2, max_steps=40, warmup=2, log_every=1, checkpoint_every=20),
+}
+
+
+def world_config(name: str, tok: TokenizerConfig) -> WorldConfig:
+    if name not in WORLDS:
+        raise PcfbenchError(f"occworld config={name!r}: expected one of {', '.join(WORLDS)}")
+    return WORLDS[name].for_tokenizer(tok)
+
+
+def world_config_from_dict(d: dict) -> WorldConfig:
+    try:
+        return WorldConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+    except TypeError as exc:
+        raise PcfbenchError(f"not an occworld world model configuration: {exc}") from None
