@@ -143,3 +143,15 @@ def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
     for cell in cells:
         df = pd.concat([pd.read_parquet(p) for p in sorted((cell.parent / "rows").glob("*.parquet"))])
         assert len(df) == 5 and np.isfinite(df["l1_mean"].to_numpy(dtype=float)).all(), json.loads(cell.read_text())
+
+
+def test_not_in_the_default_run(monkeypatch):
+    """Even with a checkpoint ready (here: every trained method's shipped one, pretended), the
+    default run leaves both out until a checkpoint ships and the ceiling is measured."""
+    import pcfbench.training.checkpoints as cks
+    from pcfbench.cli import _selected_methods
+    from pcfbench.plugins import get_plugins
+
+    monkeypatch.setattr(cks, "ready_shipped", lambda *a, **k: object())
+    names = {m.name for m in _selected_methods(get_plugins(), ())}
+    assert "copilot4d" in names and not names & {"occworld", "occworld-occ-copy"}
