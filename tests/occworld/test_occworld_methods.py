@@ -155,3 +155,35 @@ def test_not_in_the_default_run(monkeypatch):
     monkeypatch.setattr(cks, "ready_shipped", lambda *a, **k: object())
     names = {m.name for m in _selected_methods(get_plugins(), ())}
     assert "copilot4d" in names and not names & {"occworld", "occworld-occ-copy"}
+
+
+@pytest.mark.parametrize("frame", ["own", "t0"])
+def test_world_inputs_label_each_past_sweep_in_the_frame(tmp_path, monkeypatch, frame):
+    """The forecast's past maps are the labels of each past sweep in its own sensor frame
+    (``own``) or moved into the t=0 sensor frame from its sensor's position there (``t0``),
+    exactly as the training windows label them; the poses are every sensor's in the t=0 frame."""
+    from conftest import write_tiny_kitti
+
+    from pcfbench.methods.copilot4d.data import open_dataset
+    from pcfbench.methods.occworld import occ_copy as oc
+    from pcfbench.methods.occworld.forecaster import OccWorld, OccWorldOptions
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder
+
+    monkeypatch.setattr(oc, "tokenize_labels", lambda model, labels: torch.from_numpy(labels))
+    monkeypatch.setattr("pcfbench.methods.occworld.forecaster.tokenize_labels",
+                        lambda model, labels: torch.from_numpy(labels))
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=24)
+    builder = SampleBuilder(open_dataset("kitti", root), get_setting("kitti-1s"))
+    seq_name, ref = builder.sample_keys("test")[0]
+    sample, _ = builder.build(seq_name, ref)
+    m = OccWorld(OccWorldOptions(config="micro", frame=frame))
+    maps, poses, T_s0_ref = m.world_inputs(sample.for_method())
+    seq = builder.sequence(seq_name)
+    P = m.world_cfg.n_past
+    for j, i in enumerate(range(ref - (P - 1) * 2, ref + 1, 2)):
+        T_s0_i = np.linalg.inv(seq.T_world_sensor[ref]) @ seq.T_world_sensor[i]
+        want = oc.sweep_labels(m.tok_cfg, builder.points_sensor(seq, i), None if frame == "own" else T_s0_i)
+        assert (maps[j].numpy() != want).mean() < 1e-3  # float32 round trips may move a point across a face
+        assert np.allclose(poses[j].numpy(), T_s0_i, atol=1e-6)
+    assert np.allclose(poses[P].numpy(), np.linalg.inv(seq.T_world_sensor[ref]) @ seq.T_world_sensor[ref + 2], atol=1e-6)
