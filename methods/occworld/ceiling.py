@@ -22,11 +22,34 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.methods.occworld import occ_copy as oc
 
 
+class LabelTokens:
+    """The bound of the representation itself (``perfect``): a tokenizer whose tokens are the
+    occupancy labels and whose decoding is certain (occupied: 1, free and unknown: 0), on the
+    grid of ``cfg``. What no trained tokenizer can beat: the voxels and the rendering alone."""
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+
+    def eval(self):
+        return self
+
+    @staticmethod
+    def tokenize(model, labels: np.ndarray) -> np.ndarray:
+        return labels
+
+    @staticmethod
+    def decode(model, codes) -> np.ndarray:
+        from pcfbench.methods.occworld.occupancy import OCCUPIED
+
+        return (np.asarray(codes) == OCCUPIED) * 1.0
+
+
 def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "own", readout: str = "expected",
                      max_samples: int | None = None, log=print) -> dict:
-    """The ceiling of ``occworld`` on the tokenizer ``model`` (a ``SceneTokenizer``), beside
-    ``occworld-occ-copy`` and copy-last. Returns per-entry means (``means``), ``rows``,
-    ``changed`` (mean share and per step), ``samples`` and ``sweeps``."""
+    """The ceiling of ``occworld`` on the tokenizer ``model`` (a ``SceneTokenizer``, or a
+    ``LabelTokens`` for the representation's own bound), beside ``occworld-occ-copy`` and
+    copy-last. Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
+    step), ``samples`` and ``sweeps``."""
     from pcfbench.data import Forecast
     from pcfbench.methods.copilot4d.ceiling import score_beside
     from pcfbench.methods.copy_last import CopyLast
@@ -35,8 +58,8 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
         raise PcfbenchError(f"ceiling frame {frame!r}: expected one of {', '.join(oc.FRAMES)}")
     model.eval()
     cfg = model.cfg
-    copy = oc.OccCopy(oc.OccCopyOptions(readout=readout))
-    copy.cfg, copy.model = cfg, model
+    tokenize, decode = ((LabelTokens.tokenize, LabelTokens.decode) if isinstance(model, LabelTokens)
+                        else (oc.tokenize_labels, oc.decode_probability))
     copy_last = CopyLast()
     changed: list[list[float]] = []
 
@@ -44,24 +67,24 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
         seq = builder.sequence(seq_name)
         stride = builder.setting.stride
         T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
-        last = oc.tokenize_labels(model, oc.sweep_labels(cfg, builder.points_sensor(seq, ref)))
+        last = tokenize(model, oc.sweep_labels(cfg, builder.points_sensor(seq, ref)))
         probs, frames, shares = [], [], []
         for k in range(sample.num_future):
             pts = builder.points_sensor(seq, ref + (k + 1) * stride)
             if frame == "t0":
-                codes = oc.tokenize_labels(model, oc.sweep_labels(cfg, pts, T_s0_ref @ sample.future_T_ref_sensor[k]))
+                codes = tokenize(model, oc.sweep_labels(cfg, pts, T_s0_ref @ sample.future_T_ref_sensor[k]))
                 frames.append(T_s0_ref)
             else:
-                codes = oc.tokenize_labels(model, oc.sweep_labels(cfg, pts))
+                codes = tokenize(model, oc.sweep_labels(cfg, pts))
                 frames.append(np.linalg.inv(sample.future_T_ref_sensor[k]))
             shares.append(float((np.asarray(codes) != np.asarray(last)).mean()))
-            probs.append(oc.decode_probability(model, codes))
+            probs.append(decode(model, codes))
         changed.append(shares)
         return Forecast.from_depths(sample, oc.render_sample(model, probs, sample, frames, readout))
 
     res = score_beside(adapter, split, setting, {
         "ceiling": ceiling,
-        "occworld-occ-copy": lambda sample, *_: copy.forecast(sample.for_method()),
+        "occworld-occ-copy": lambda sample, *_: oc.copy_forecast(model, sample.for_method(), readout, tokenize, decode),
         "copy-last": lambda sample, *_: copy_last.forecast(sample.for_method())},
         max_samples=max_samples, log=log, label=f"occworld ceiling ({frame})")
     ch = np.asarray(changed, np.float64)

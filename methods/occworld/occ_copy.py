@@ -248,7 +248,14 @@ class OccCopy(TrainedMethod):
     def forecast(self, sample: Sample) -> Forecast:
         if self.model is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
-        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
-        last = (sample.past_points_ref[-1].astype(np.float64) @ T_s0_ref[:3, :3].T + T_s0_ref[:3, 3])
-        prob = decode_probability(self.model, tokenize_labels(self.model, sweep_labels(self.cfg, last)))
-        return Forecast.from_depths(sample, render_sample(self.model, prob, sample, T_s0_ref, self.options.readout))
+        return copy_forecast(self.model, sample, self.options.readout)
+
+
+def copy_forecast(model, sample: Sample, readout: str, tokenize=None, decode=None) -> Forecast:
+    """The occupancy copy: the t=0 sweep labelled in its sensor frame, ``tokenize``d and
+    ``decode``d (default: ``model``'s), rendered along every future query ray."""
+    tokenize, decode = tokenize or tokenize_labels, decode or decode_probability
+    T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+    last = (sample.past_points_ref[-1].astype(np.float64) @ T_s0_ref[:3, :3].T + T_s0_ref[:3, 3])
+    prob = decode(model, tokenize(model, sweep_labels(model.cfg, last)))
+    return Forecast.from_depths(sample, render_sample(model, prob, sample, T_s0_ref, readout))

@@ -34,30 +34,58 @@ def register_commands(cli):  # noqa: ANN001
     @click.option("--setting", default="kitti-1s", show_default=True, help="The protocol setting, e.g. kitti-3s.")
     @click.option("--samples", "max_samples", type=int, default=0, show_default=True,
                   help="This many evenly spaced samples (0: all).")
+    @click.option("--perfect", is_flag=True,
+                  help="No tokenizer: the labels are the tokens and decode to certain occupancy (the bound of the "
+                       "grid and the rendering alone; needs no checkpoint).")
+    @click.option("--grid", default=None, metavar="NXxNYxNZ", help="With --perfect: another grid over the ROI.")
     @click.option("--reports", default=None)
-    def occworld_ceiling(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, reports):
+    def occworld_ceiling(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, perfect,
+                         grid, reports):
         """OccWorld's ceiling: its training target for the ground-truth future (in the tokenizer's
         frame option), decoded and rendered as occworld renders, beside occworld-occ-copy and
         copy-last (it sees the future; never a method)."""
+        from dataclasses import replace
+
         from pcfbench.config import reports_dir
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.method import resolve_method
         from pcfbench.methods.copilot4d.plugin import _loaded, _open
-        from pcfbench.methods.occworld.ceiling import evaluate_ceiling, write_ceiling
+        from pcfbench.methods.occworld.ceiling import LabelTokens, evaluate_ceiling, write_ceiling
         from pcfbench.methods.occworld.occ_copy import OccCopy
         from pcfbench.methods.occworld.tokenizer import count_parameters
 
-        m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
-                        train_split, checkpoint)
+        regenerate = (f"pcfbench occworld-ceiling --method {method} --dataset {dataset_spec} --split {split} "
+                      f"--setting {setting} --samples {max_samples}")
+        if grid and not perfect:
+            raise PcfbenchError("--grid: only with --perfect (a trained tokenizer has its own grid)")
+        if perfect:
+            spec = resolve_method(method)
+            if not issubclass(spec.cls, OccCopy):
+                raise PcfbenchError(f"--method {method!r}: expected occworld-occ-copy[:options]")
+            o, cfg = spec.options, spec.create().cfg
+            if grid:
+                try:
+                    dims = tuple(int(v) for v in grid.lower().split("x"))
+                except ValueError:
+                    dims = ()
+                if len(dims) != 3 or min(dims) < 1:
+                    raise PcfbenchError(f"--grid {grid!r}: expected NXxNYxNZ, e.g. 400x400x24")
+                cfg = replace(cfg, name=f"{cfg.name}-{grid}", dims=dims, ch_mult=(1,))
+            model, label = LabelTokens(cfg), "perfect"
+            meta = {"config": f"perfect (the labels as tokens, {cfg.name} grid)", "grid": "x".join(map(str, cfg.dims)),
+                    "regenerate": regenerate + " --perfect" + (f" --grid {grid}" if grid else "")}
+        else:
+            m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
+                            train_split, checkpoint)
+            o, cfg, model, label = m.options, m.cfg, m.model, f"{m.cfg.name}-{ck.train_on['dataset']}"
+            meta = {"config": cfg.name, "tokens": "x".join(map(str, cfg.token_grid)),
+                    "parameters": count_parameters(model), "trained_on": ck.train_on_label, "steps": ck.steps,
+                    "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256, "regenerate": regenerate}
         adapter = _open(dataset_spec)
-        o = m.options
-        res = evaluate_ceiling(m.model, adapter, split, setting, frame=o.frame, readout=o.readout,
+        res = evaluate_ceiling(model, adapter, split, setting, frame=o.frame, readout=o.readout,
                                max_samples=max_samples or None, log=click.echo)
-        meta = {"config": m.cfg.name, "tokens": "x".join(map(str, m.cfg.token_grid)),
-                "parameters": count_parameters(m.model), "trained_on": ck.train_on_label, "steps": ck.steps,
-                "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256,
-                "regenerate": f"pcfbench occworld-ceiling --method {method} --dataset {dataset_spec} --split {split} "
-                              f"--setting {setting} --samples {max_samples}"}
         md, csv_path = write_ceiling(res, meta, reports_dir(reports) / "occworld",
-                                     f"ceiling-{m.cfg.name}-{ck.train_on['dataset']}-on-{adapter.name}-{split}-"
+                                     f"ceiling-{label}-{'x'.join(map(str, cfg.dims))}-on-{adapter.name}-{split}-"
                                      f"{setting}-{o.frame}")
         c, cp = res["means"]["ceiling"], res["means"]["occworld-occ-copy"]
         click.echo(f"ceiling ({setting}, frame {o.frame}, {res['samples']} samples) / occworld-occ-copy: "

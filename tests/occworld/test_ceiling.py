@@ -2,24 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
-import torch
 
 from pcfbench.methods.occworld.config import TokenizerConfig
 
 
-class _Perfect(torch.nn.Module):
-    """A tokenizer whose tokens are the labels themselves (see the test)."""
-
-    def __init__(self, cfg) -> None:
-        super().__init__()
-        self.cfg = cfg
-        self.w = torch.nn.Parameter(torch.zeros(1))
-
-
 @pytest.mark.parametrize("frame", ["own", "t0"])
-def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch, frame):
+def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, frame):
     """With a perfect tokenizer (tokens = the occupancy labels; decoded: occupied voxels certain,
     the rest free) the ceiling's rays end in the voxel of their own return, in either frame:
     the target's points, the frame they are labelled in and the rays' origin and directions in
@@ -28,16 +17,12 @@ def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch
     from conftest import write_tiny_kitti
 
     from pcfbench.methods.copilot4d.data import open_dataset
-    from pcfbench.methods.occworld import occ_copy as oc
-    from pcfbench.methods.occworld.ceiling import evaluate_ceiling, write_ceiling
-    from pcfbench.methods.occworld.occupancy import OCCUPIED
+    from pcfbench.methods.occworld.ceiling import LabelTokens, evaluate_ceiling, write_ceiling
 
-    monkeypatch.setattr(oc, "tokenize_labels", lambda model, labels: torch.from_numpy(labels))
-    monkeypatch.setattr(oc, "decode_probability", lambda model, codes: (np.asarray(codes) == OCCUPIED) * 1.0)
     root = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=24)
     adapter = open_dataset("kitti", root)
     cfg = TokenizerConfig("test", dims=(280, 280, 18))  # 0.5 m voxels over the ROI
-    res = evaluate_ceiling(_Perfect(cfg), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
+    res = evaluate_ceiling(LabelTokens(cfg), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
     o, cp, c = (res["means"][k] for k in ("ceiling", "occworld-occ-copy", "copy-last"))
     assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
     assert o["l1_median"] < 0.5, o
@@ -49,10 +34,10 @@ def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch
 
 def test_ceiling_frame_is_checked():
     from pcfbench.errors import PcfbenchError
-    from pcfbench.methods.occworld.ceiling import evaluate_ceiling
+    from pcfbench.methods.occworld.ceiling import LabelTokens, evaluate_ceiling
 
     with pytest.raises(PcfbenchError, match="frame"):
-        evaluate_ceiling(_Perfect(TokenizerConfig("x")), None, "test", "kitti-1s", frame="world")
+        evaluate_ceiling(LabelTokens(TokenizerConfig("x")), None, "test", "kitti-1s", frame="world")
 
 
 def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
@@ -72,5 +57,13 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
                             f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
     assert "ceiling (kitti-1s, frame t0, 1 samples) / occworld-occ-copy: chamfer_nf" in r.output
-    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-kitti-on-kitti-test-kitti-1s-t0.md"))
+    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-kitti-32x32x4-on-kitti-test-kitti-1s-t0.md"))
     assert "pcfbench occworld-ceiling --method" in md.read_text()
+    # the representation's own bound needs no checkpoint; another grid only with it
+    r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--grid",
+                            "40x40x6", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-40x40x6-on-kitti-test-kitti-1s-own.md").read_text()
+    assert "perfect (the labels as tokens" in md and "--perfect --grid 40x40x6" in md
+    r = runner.invoke(cli, ["occworld-ceiling", "--grid", "40x40x6", "--dataset", f"kitti={root}"])
+    assert r.exit_code != 0 and "--grid: only with --perfect" in r.output
