@@ -40,40 +40,20 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
     Returns per-entry flat means over (sample, future sweep), ``changed`` (mean share and per
     step) and the per-sample rows (``rows``) for paired comparisons."""
     from pcfbench.data import Forecast
-    from pcfbench.metrics.base import score_sample
     from pcfbench.methods.copy_last import CopyLast
-    from pcfbench.plugins import get_plugins, get_setting
-    from pcfbench.protocol import SampleBuilder
-    from pcfbench.protocol.validate import validate_forecast
-    from pcfbench.running.runner import default_metrics
 
     if frame not in ev.CEILING_FRAMES:
         from pcfbench.errors import PcfbenchError
 
         raise PcfbenchError(f"ceiling frame {frame!r}: expected one of {', '.join(ev.CEILING_FRAMES)}")
     model.eval()
-    plugins = get_plugins()
-    metrics = [plugins.metrics.get(n) for n in default_metrics(plugins)]
-    builder = SampleBuilder(adapter, get_setting(setting, plugins))
-    keys = builder.sample_keys(split)
-    if not keys:
-        from pcfbench.errors import PcfbenchError
-        from pcfbench.protocol.nosamples import Options, explain
-
-        settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
-        why = explain(builder, split, settings=settings, options=Options(setting="--ceiling {}", policy=None))
-        raise PcfbenchError(f"the ceiling: {why.message}")
-    if max_samples:
-        keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(max_samples, len(keys))).round().astype(int))]
     render = {"threshold": threshold, "noise": noise, "readout": readout}
     token_copy = TokenCopy(TokenCopyOptions(**render))
     token_copy.model = model
     copy_last = CopyLast()
-    rows: dict[str, list[dict]] = {"ceiling": [], "copilot4d-token-copy": [], "copy-last": []}
     changed: list[list[float]] = []
-    t0 = time.monotonic()
-    for n, (seq_name, ref) in enumerate(keys):
-        sample, truth = builder.build(seq_name, ref)
+
+    def ceiling(sample, builder, seq_name: str, ref: int):
         seq = builder.sequence(seq_name)
         stride = builder.setting.stride
         T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
@@ -90,24 +70,64 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
             codes.append(ev.tokenize_sweep(model, pts))
         changed.append([ev.changed_share(c, last) for c in codes])
         gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
-        ceiling = Forecast.from_depths(sample, ev.render_queries(model, codes, sample, frames, generator=gen, **render))
-        for name, fc in (("ceiling", ceiling), ("copilot4d-token-copy", token_copy.forecast(sample.for_method())),
-                         ("copy-last", copy_last.forecast(sample.for_method()))):
+        return Forecast.from_depths(sample, ev.render_queries(model, codes, sample, frames, generator=gen, **render))
+
+    res = score_beside(adapter, split, setting, {
+        "ceiling": ceiling,
+        "copilot4d-token-copy": lambda sample, *_: token_copy.forecast(sample.for_method()),
+        "copy-last": lambda sample, *_: copy_last.forecast(sample.for_method())},
+        max_samples=max_samples, log=log, label=f"ceiling ({frame})")
+    ch = np.asarray(changed, np.float64)
+    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": res["samples"],
+            "sweeps": len(res["rows"]["ceiling"]), **render, "eval_s": res["eval_s"], "means": res["means"],
+            "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
+            "rows": res["rows"]}
+
+
+def score_beside(adapter, split: str, setting: str, forecasters: dict, *, max_samples: int | None = None,
+                 log=print, label: str = "ceiling") -> dict:
+    """Score every entry of ``forecasters`` (name -> ``fn(sample, builder, seq_name, ref)``
+    returning a ``Forecast``; ``sample`` is the full one, a bound may read the future through
+    ``builder``) on the protocol's samples of ``setting`` on ``split`` (``max_samples`` evenly
+    spaced ones; None: all), by every registered metric as the runner scores them
+    (``score_sample``), in one loop. Returns ``samples``, per-entry flat means over (sample,
+    future sweep) (``means``), the per-sample rows (``rows``) and ``eval_s``."""
+    from pcfbench.metrics.base import score_sample
+    from pcfbench.plugins import get_plugins, get_setting
+    from pcfbench.protocol import SampleBuilder
+    from pcfbench.protocol.validate import validate_forecast
+    from pcfbench.running.runner import default_metrics
+
+    plugins = get_plugins()
+    metrics = [plugins.metrics.get(n) for n in default_metrics(plugins)]
+    builder = SampleBuilder(adapter, get_setting(setting, plugins))
+    keys = builder.sample_keys(split)
+    if not keys:
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.protocol.nosamples import Options, explain
+
+        settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
+        why = explain(builder, split, settings=settings, options=Options(setting="--ceiling {}", policy=None))
+        raise PcfbenchError(f"the ceiling: {why.message}")
+    if max_samples:
+        keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(max_samples, len(keys))).round().astype(int))]
+    rows: dict[str, list[dict]] = {name: [] for name in forecasters}
+    t0 = time.monotonic()
+    for n, (seq_name, ref) in enumerate(keys):
+        sample, truth = builder.build(seq_name, ref)
+        for name, fn in forecasters.items():
+            fc = fn(sample, builder, seq_name, ref)
             for r in score_sample(sample, truth, validate_forecast(sample, fc), metrics):
                 rows[name].append({"sample_id": sample.sample_id, **r})
         if (n + 1) % 5 == 0:
-            log(f"ceiling ({frame}): {n + 1}/{len(keys)} samples, {time.monotonic() - t0:.0f} s")
+            log(f"{label}: {n + 1}/{len(keys)} samples, {time.monotonic() - t0:.0f} s")
 
     def mean(values: list[float]) -> float:  # flat over the sweeps that could be scored
         v = np.asarray(values, dtype=np.float64)
         return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
 
-    ch = np.asarray(changed, np.float64)
     means = {name: {m.name: mean([r[m.name] for r in rs]) for m in metrics} for name, rs in rows.items()}
-    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": len(keys),
-            "sweeps": len(rows["ceiling"]), **render, "eval_s": time.monotonic() - t0, "means": means,
-            "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
-            "rows": rows}
+    return {"samples": len(keys), "means": means, "rows": rows, "eval_s": time.monotonic() - t0}
 
 
 def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:

@@ -111,16 +111,27 @@ def window_cache_dir(tokenizer_sha: str, train_on_key: str) -> Path:
 
 
 def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, strides: tuple[int, ...],
-                  anchor_every: int, cache: Path | None, log=print, frame: str = "t0") -> dict[str, np.ndarray]:
+                  anchor_every: int, cache: Path | None, log=print, frame: str = "t0", tokenize=None,
+                  token_shape: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
     """Token maps of every training window: ``tokens`` (A, T, H, W) int16, ``poses`` (A, T, 4, 4)
     float32 (each frame's sensor pose in the window's t=0 sensor frame), ``stride`` (A,).
 
     A window of stride s anchored at sweep i holds sweeps i + (j - n_past + 1) s, j = 0..T-1,
     each tokenized (ego returns removed) in the ``frame`` of ``WorldOptions``: ``t0``, after
     moving its points into sweep i's sensor frame; ``own``, in its own sensor frame. Cached per
-    (sequence, stride, anchor spacing, frame) under ``cache``."""
-    from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
+    (sequence, stride, anchor spacing, frame) under ``cache``.
 
+    ``tokenize(points_sensor, T_frame_sensor)`` (another world model's tokenizer, with its
+    ``token_shape``) gives the (H, W) token map of a sweep seen in the frame ``T_frame_sensor``
+    maps its sensor frame into (None: its own frame); default: the Copilot4D ``tokenizer``'s."""
+    if tokenize is None:
+        from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
+
+        def tokenize(points, T_frame_sensor):
+            moved = points if T_frame_sensor is None else transform(points, T_frame_sensor)
+            return tokenize_sweep(tokenizer, moved).cpu().numpy()
+
+        token_shape = (tokenizer.cfg.bev_tokens, tokenizer.cfg.bev_tokens)
     T = n_past + n_future
     toks, poses, strides_out = [], [], []
     for name in adapter.sequence_names(split):
@@ -136,7 +147,7 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                 seq = seq or adapter.sequence(name)
                 n = len(seq)
                 anchors = list(range((n_past - 1) * s, n - n_future * s, anchor_every))
-                t = np.zeros((len(anchors), T, tokenizer.cfg.bev_tokens, tokenizer.cfg.bev_tokens), np.int16)
+                t = np.zeros((len(anchors), T, *token_shape), np.int16)
                 p = np.zeros((len(anchors), T, 4, 4), np.float32)
                 clouds: dict[int, np.ndarray] = {}
                 t0 = time.monotonic()
@@ -149,12 +160,12 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                         if frame == "own":  # a sweep's tokens in its own frame do not depend on the window
                             if k not in own_tokens:
                                 points = adapter.ego_box.remove(seq.load_points(k))
-                                own_tokens[k] = tokenize_sweep(tokenizer, points).cpu().numpy()
+                                own_tokens[k] = tokenize(points, None)
                             t[a, j] = own_tokens[k]
                             continue
                         if k not in clouds:
                             clouds[k] = adapter.ego_box.remove(seq.load_points(k))
-                        t[a, j] = tokenize_sweep(tokenizer, transform(clouds[k], T_s0_k)).cpu().numpy()
+                        t[a, j] = tokenize(clouds[k], T_s0_k)
                     for k in [k for k in clouds if k < i + (1 - n_past) * s + anchor_every]:
                         del clouds[k]
                 log(f"{name} stride {s}: {len(anchors)} windows tokenized in {time.monotonic() - t0:.0f} s")

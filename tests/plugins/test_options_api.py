@@ -32,6 +32,9 @@ GOLDEN_DEFAULT_HASHES = {
     "copilot4d-maskgit": "caf63f429a20",
     # issue 47: forecasts read from a file; a cell's options always name the file and its sha256
     "submission": "230160ea66bc",
+    # issue 43: OccWorld, its tokenizer and world model (no checkpoint ships)
+    "occworld-occ-copy": "353f3801114c",
+    "occworld": "5711a484e17b",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {

@@ -1,0 +1,151 @@
+"""OccWorld's ceiling (issue 43's first bar): a perfect prediction of the world model's target
+for the ground-truth future, rendered exactly as ``occworld`` renders, scored by the harness
+beside ``occworld-occ-copy`` (the same tokenizer: the last past occupancy's tokens decoded and
+rendered at the future poses) and copy-last on the same samples (Copilot4D's
+``ceiling.score_beside``). If the ceiling does not beat the occupancy copy, no training will.
+``pcfbench occworld-ceiling``.
+
+The target of future sweep k (its points, ego returns removed), as ``occworld`` trains on it:
+``frame="own"``: labelled (free / occupied / unknown) from its rays in its own sensor frame,
+tokenized, decoded and rendered from its own origin; ``frame="t0"``: moved into the t=0 sensor
+frame, labelled there from its sensor's position in that frame, tokenized, decoded and
+rendered from that position. Also per future sweep, the share of target tokens that differ
+from the t=0 sweep's (the occupancy copy's tokens in the t=0 frame; in its own frame for ``own``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.methods.occworld import occ_copy as oc
+
+
+class LabelTokens:
+    """The bound of the representation itself (``perfect``): a tokenizer whose tokens are the
+    occupancy labels and whose decoding is certain (occupied: 1, free and unknown: 0), on the
+    grid of ``cfg``. What no trained tokenizer can beat: the voxels and the rendering alone."""
+
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+
+    def eval(self):
+        return self
+
+    @staticmethod
+    def tokenize(model, labels: np.ndarray) -> np.ndarray:
+        return labels
+
+    @staticmethod
+    def decode(model, codes) -> np.ndarray:
+        from pcfbench.methods.occworld.occupancy import OCCUPIED
+
+        return (np.asarray(codes) == OCCUPIED) * 1.0
+
+
+def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "own", readout: str = "expected",
+                     max_samples: int | None = None, log=print) -> dict:
+    """The ceiling of ``occworld`` on the tokenizer ``model`` (a ``SceneTokenizer``, or a
+    ``LabelTokens`` for the representation's own bound), beside ``occworld-occ-copy`` and
+    copy-last. Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
+    step), ``samples`` and ``sweeps``."""
+    from pcfbench.data import Forecast
+    from pcfbench.methods.copilot4d.ceiling import score_beside
+    from pcfbench.methods.copy_last import CopyLast
+
+    if frame not in oc.FRAMES:
+        raise PcfbenchError(f"ceiling frame {frame!r}: expected one of {', '.join(oc.FRAMES)}")
+    model.eval()
+    cfg = model.cfg
+    tokenize, decode = ((LabelTokens.tokenize, LabelTokens.decode) if isinstance(model, LabelTokens)
+                        else (oc.tokenize_labels, oc.decode_probability))
+    copy_last = CopyLast()
+    changed: list[list[float]] = []
+
+    def ceiling(sample, builder, seq_name: str, ref: int):
+        seq = builder.sequence(seq_name)
+        stride = builder.setting.stride
+        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+        last = tokenize(model, oc.sweep_labels(cfg, builder.points_sensor(seq, ref)))
+        probs, frames, shares = [], [], []
+        for k in range(sample.num_future):
+            pts = builder.points_sensor(seq, ref + (k + 1) * stride)
+            if frame == "t0":
+                codes = tokenize(model, oc.sweep_labels(cfg, pts, T_s0_ref @ sample.future_T_ref_sensor[k]))
+                frames.append(T_s0_ref)
+            else:
+                codes = tokenize(model, oc.sweep_labels(cfg, pts))
+                frames.append(np.linalg.inv(sample.future_T_ref_sensor[k]))
+            shares.append(float((np.asarray(codes) != np.asarray(last)).mean()))
+            probs.append(decode(model, codes))
+        changed.append(shares)
+        return Forecast.from_depths(sample, oc.render_sample(model, probs, sample, frames, readout))
+
+    res = score_beside(adapter, split, setting, {
+        "ceiling": ceiling,
+        "occworld-occ-copy": lambda sample, *_: oc.copy_forecast(model, sample.for_method(), readout, tokenize, decode),
+        "copy-last": lambda sample, *_: copy_last.forecast(sample.for_method())},
+        max_samples=max_samples, log=log, label=f"occworld ceiling ({frame})")
+    ch = np.asarray(changed, np.float64)
+    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "readout": readout,
+            "samples": res["samples"], "sweeps": len(res["rows"]["ceiling"]), "eval_s": res["eval_s"],
+            "means": res["means"], "rows": res["rows"],
+            "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]}}
+
+
+def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
+    """The ceiling as Markdown and CSV: its means, the occupancy copy's and copy-last's from the
+    same loop, and the ratios, labelled as a bound that sees the future."""
+    import csv
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    m = result["means"]
+    o, oc_, c = m["ceiling"], m["occworld-occ-copy"], m["copy-last"]
+    names = [n for n in o if all(np.isfinite(v[n]) for v in (o, oc_, c))]
+
+    def ratio(a, b):
+        return a / b if b else float("nan")
+
+    table = [("ceiling: occworld's target for the ground-truth future (sees the future)", o),
+             ("occworld-occ-copy", oc_), ("copy-last", c),
+             ("ratio ceiling / occworld-occ-copy", {n: ratio(o[n], oc_[n]) for n in names}),
+             ("ratio ceiling / copy-last", {n: ratio(o[n], c[n]) for n in names})]
+    csv_path = out_dir / f"{stem}.csv"
+    with open(csv_path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["entry", "dataset", "split", "setting", "frame", "readout", "samples", "sweeps", *names])
+        for entry, vals in table:
+            w.writerow([entry, result["dataset"], result["split"], result["setting"], result["frame"],
+                        result["readout"], result["samples"], result["sweeps"], *(f"{vals[n]:.6g}" for n in names)])
+    how = {"own": "labelled from its rays in its own sensor frame, tokenized, decoded and rendered from its own origin",
+           "t0": "moved into the t=0 sensor frame, labelled there, tokenized, decoded and rendered from its sensor's "
+                 "position in that frame"}[result["frame"]]
+    beats = {n: o[n] < oc_[n] for n in ("chamfer_nf", "l1_mean", "l1_median") if n in names}
+    ch = result["changed"]
+    lines = [
+        f"# OccWorld: the world model's ceiling ({meta.get('config')} tokenizer, {result['dataset']} "
+        f"{result['split']}, {result['setting']}, frame {result['frame']})",
+        "",
+        "**A bound, not a method: it sees the future.** Each ground-truth future sweep is " + how + f" ({result['readout']} "
+        "depth), as `occworld` renders its forecast. `occworld-occ-copy` (the same tokenizer) and copy-last are "
+        "scored in the same loop on the same samples by the same registered metrics; means are flat over (sample, "
+        "future sweep).",
+        "",
+        f"{result['samples']} samples, {result['sweeps']} future sweeps; evaluation took {result['eval_s']:.0f} s. "
+        f"Target tokens that differ from the t=0 sweep's: {ch['mean']:.1%} on average "
+        f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step).",
+        "",
+        "| entry | " + " | ".join(names) + " |",
+        "|---|" + "---:|" * len(names),
+        *("| " + entry.split(":")[0] + " | " + " | ".join(f"{vals[n]:.3f}" if "ratio" not in entry else f"{vals[n]:.2f}"
+                                                          for n in names) + " |" for entry, vals in table),
+        "",
+        "Bar (issue 43: the ceiling beats occworld-occ-copy on chamfer_nf, l1_mean and l1_median): "
+        + ", ".join(f"{n} {'met' if ok else 'NOT met'}" for n, ok in beats.items()) + ".",
+        "",
+    ]
+    lines += [f"- {k}: {v}" for k, v in meta.items()]
+    md = out_dir / f"{stem}.md"
+    md.write_text("\n".join(lines) + "\n")
+    return md, csv_path

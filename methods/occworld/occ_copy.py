@@ -1,0 +1,261 @@
+"""The occupancy-copy baseline: OccWorld's scene tokenizer as a trained method
+(``occworld-occ-copy``).
+
+``fit`` trains the tokenizer (cross entropy x 10 + Lovasz + VQ) through the one training loop
+on the occupancy of the training split's sweeps, labelled from their rays
+(:mod:`.occupancy`). ``forecast`` labels the last past sweep (t=0) in its sensor frame,
+tokenizes it, decodes the tokens to occupancy probabilities (1 - p(free)) and renders them
+along every future sweep's query rays from that sweep's origin (:mod:`.render`): the world
+seen through the tokenizer, not changing. What ``occworld`` adds is measured against it.
+
+**The frame** (option ``frame``, the world model's): ``own`` trains on each sweep in its own
+sensor frame; ``t0`` on sweeps moved into the frame of another sweep of the same sequence,
+as far before or after it as the world model's windows reach (Copilot4D's lesson: a tokenizer
+that only ever saw sensor-centred sweeps fails on moved ones). Either way the copy tokenizes
+the t=0 sweep in its own frame, which is the t=0 frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pcfbench.data import Forecast, Sample
+from pcfbench.errors import PcfbenchError
+from pcfbench.methods.occworld.occupancy import OccGrid, label_occupancy
+from pcfbench.options import option
+from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
+
+FRAMES = ("own", "t0")
+#: the world model's windows (the protocol's settings): 5 past and 5 future frames, strides 2 and 6
+WINDOW_PAST, WINDOW_FUTURE, MAX_STRIDE = 5, 5, 6
+
+
+@dataclass(frozen=True)
+class OccOptions:
+    """What the tokenizer and the world model share."""
+
+    config: str = option("tiny", help="configuration: tiny (CPU scale), paper (the published sizes) or micro (tests)")
+    tokens: int = option(0, help="tokens per side (0: the configuration's, 50); a power-of-2 fraction of the "
+                                 "grid's 200 voxels (the paper's Table 3 sweep)", min=0)
+    frame: str = option("own", help="the frame of a window's occupancy: own (each sweep in its own sensor frame) "
+                                    "or t0 (moved into the t=0 sensor frame)")
+    readout: str = option("expected", help="a ray's depth: expected (over the voxels' occupancy) or threshold "
+                                           "(the first voxel at occupancy 0.5)")
+
+    def __post_init__(self) -> None:
+        from pcfbench.methods.occworld.config import tokenizer_config
+        from pcfbench.methods.occworld.render import READOUTS
+
+        if self.frame not in FRAMES:
+            raise PcfbenchError(f"frame={self.frame!r}: expected one of {', '.join(FRAMES)}")
+        if self.readout not in READOUTS:
+            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS)}")
+        tokenizer_config(self.config, self.tokens)  # one error for an unknown configuration or token count
+
+
+@dataclass(frozen=True)
+class OccCopyOptions(OccOptions):
+    steps: int = option(0, help="training steps (0: the configuration's max_steps)", min=0)
+    seed: int = option(0, help="training seed (initialisation, batches)")
+
+
+def grid_of(cfg) -> OccGrid:
+    return OccGrid(tuple(cfg.box_lo), tuple(cfg.dims),
+                   tuple((h - lo) / n for lo, h, n in zip(cfg.box_lo, cfg.box_hi, cfg.dims)))
+
+
+def sweep_labels(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None) -> np.ndarray:
+    """(X, Y, Z) uint8 labels of a sweep (its points in its sensor frame) seen in the frame
+    ``T_frame_sensor`` maps its sensor frame into (None: its own; the sensor at the origin)."""
+    if T_frame_sensor is None:
+        return label_occupancy(grid_of(cfg), points_sensor, np.zeros(3))
+    T = np.asarray(T_frame_sensor, np.float64)
+    moved = points_sensor.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    return label_occupancy(grid_of(cfg), moved, T[:3, 3])
+
+
+def tokenize_labels(model, labels: np.ndarray):
+    """(h, w) codes of one (X, Y, Z) label grid."""
+    import torch
+
+    dev = next(model.parameters()).device
+    with torch.no_grad():
+        return model.tokenize(torch.from_numpy(labels)[None].to(dev))[0]
+
+
+def decode_probability(model, codes) -> np.ndarray:
+    """(X, Y, Z) occupancy probability (1 - p(free)) of one (h, w) token map."""
+    import torch
+
+    from pcfbench.methods.occworld.tokenizer import occupancy_probability
+
+    with torch.no_grad():
+        return occupancy_probability(model.decode_codes(codes[None]))[0].cpu().numpy()
+
+
+def render_sample(model, probs, sample: Sample, T_frame_ref, readout: str) -> list[np.ndarray]:
+    """Depths along every future sweep's query rays: ``probs`` one (X, Y, Z) occupancy grid per
+    future sweep (or one for all), grid k in the frame ``T_frame_ref[k]`` maps the reference
+    frame into (one 4x4 for all, or one per sweep); the query's origin and directions are moved
+    there and rendered (:func:`.render.render_depths`)."""
+    from pcfbench.methods.occworld.render import render_depths
+
+    F = sample.num_future
+    Ts = [np.asarray(T_frame_ref, np.float64)] * F if np.ndim(T_frame_ref) == 2 else list(T_frame_ref)
+    ps = [probs] * F if isinstance(probs, np.ndarray) else list(probs)
+    grid = grid_of(model.cfg)
+    out = []
+    for k, q in enumerate(sample.queries):
+        R, t = Ts[k][:3, :3], Ts[k][:3, 3]
+        dirs = q.directions_ref.astype(np.float64) @ R.T
+        out.append(render_depths(grid, ps[k], R @ q.origin_ref + t, dirs, readout))
+    return out
+
+
+class TokenizerSource:
+    """The tokenizer's training sweeps: every sweep of a split (ego returns removed), each
+    labelled in its own frame (``own``) or in the frame of a sweep drawn uniformly from the
+    window offsets around it (``t0``)."""
+
+    def __init__(self, adapter, split: str, frame: str) -> None:
+        self.adapter, self.frame = adapter, frame
+        self.sequences = {n: adapter.sequence(n) for n in adapter.sequence_names(split)}
+        self.keys = [(n, i) for n, s in self.sequences.items() for i in range(len(s))]
+        if not self.keys:
+            raise PcfbenchError(f"dataset {adapter.name!r} has no sweeps in split {split!r} under {adapter.root}")
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def labels(self, cfg, k: int, rng: np.random.Generator) -> np.ndarray:
+        name, i = self.keys[k]
+        seq = self.sequences[name]
+        points = self.adapter.ego_box.remove(seq.load_points(i))
+        if self.frame == "own":
+            return sweep_labels(cfg, points)
+        # sweep i is frame j of a window anchored at a: i - a in [-(P - 1) s, F s]
+        off = int(rng.integers(-WINDOW_FUTURE * MAX_STRIDE, (WINDOW_PAST - 1) * MAX_STRIDE + 1))
+        a = min(max(i + off, 0), len(seq) - 1)
+        T_a_i = np.linalg.inv(seq.T_world_sensor[a]) @ seq.T_world_sensor[i]
+        return sweep_labels(cfg, points, T_a_i)
+
+
+def train_tokenizer(cfg, source: TokenizerSource, run, *, steps: int, seed: int = 0, log=print) -> dict:
+    """The tokenizer through :func:`pcfbench.training.fit_loop` (AdamW, warm-up and cosine decay,
+    gradient clipping at ``cfg.grad_clip``)."""
+    import torch
+
+    from pcfbench.methods.occworld.tokenizer import SceneTokenizer, count_parameters, tokenizer_losses
+    from pcfbench.training import default_device, fit_loop, warmup_cosine
+
+    device = default_device()
+
+    def sample_batch(rand, step: int):
+        picks = rand.numpy.integers(0, len(source), cfg.batch_size)
+        return torch.from_numpy(np.stack([source.labels(cfg, int(k), rand.numpy) for k in picks])).to(device)
+
+    def step_fn(model, labels):
+        out = tokenizer_losses(model, labels)
+        return out["loss"], {"loss": out["loss"].item(), "ce": out["ce"].item(), "lovasz": out["lovasz"].item(),
+                             "vq": out["vq"].item(), "accuracy": out["accuracy"].item(),
+                             "batch_codes": int(out["codes"].unique().numel())}
+
+    out = fit_loop(lambda: SceneTokenizer(cfg).to(device),
+                   lambda m: torch.optim.AdamW(m.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
+                   sample_batch, step_fn, run, steps=steps, seed=seed,
+                   schedule=lambda step: warmup_cosine(step, cfg.lr, cfg.warmup, steps, cfg.min_lr_ratio),
+                   grad_clip=cfg.grad_clip, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
+                   progress_values={"total loss": "loss", "voxel accuracy": "accuracy"},
+                   manifest_config=lambda m: {"tokenizer": cfg.to_dict(), "parameters": count_parameters(m),
+                                              "steps_target": steps, "seed": seed, "frame": source.frame},
+                   log=log)
+    return {"model": out.model, "step": out.step, "history": out.history}
+
+
+def tokenizer_curve_panels() -> list:
+    from pcfbench.training import Panel
+
+    return [Panel((("loss", "total loss"), ("ce", "cross entropy"), ("lovasz", "Lovasz-softmax"), ("vq", "VQ")),
+                  log=True),
+            Panel((("accuracy", "accuracy of the labelled voxels"),), ylim=(0, 1)),
+            Panel((("batch_codes", "codes used per step"),))]
+
+
+def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = ""):
+    """The tokenizer of ``checkpoint`` (weights under ``prefix``), which must record ``cfg``."""
+    from pcfbench.methods.occworld.config import tokenizer_config_from_dict
+    from pcfbench.methods.occworld.tokenizer import SceneTokenizer
+    from pcfbench.training import CheckpointError, default_device
+
+    recorded = checkpoint.manifest.get("config", {}).get("tokenizer")
+    if not isinstance(recorded, dict):
+        raise CheckpointError(f"checkpoint {checkpoint.manifest_path} records no config.tokenizer: not an occworld one")
+    if tokenizer_config_from_dict(recorded) != cfg:
+        raise CheckpointError(f"checkpoint {checkpoint.manifest_path} was trained with another '{cfg.name}' tokenizer "
+                              "configuration than this pcfbench defines; retrain it with --fresh")
+    w = {k[len(prefix):]: (v.float() if v.is_floating_point() else v)
+         for k, v in checkpoint.load_weights().items() if k.startswith(prefix)}
+    model = SceneTokenizer(cfg)
+    try:
+        model.load_state_dict(w)
+    except RuntimeError as exc:
+        raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights do not fit the network "
+                              f"it records: {str(exc).splitlines()[0]}") from None
+    return model.to(default_device()).eval()
+
+
+class OccCopy(TrainedMethod):
+    """OccWorld's tokenizer decoding the t=0 sweep's occupancy tokens at every future pose."""
+
+    name = "occworld-occ-copy"
+    version = "1"
+    Options = OccCopyOptions
+    inference_options = ("readout",)
+    # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 43)
+    in_default_runs = False
+    # estimated, not measured: the median step (3.8 s) on a 2-core CPU busy with another training
+    training_time = "about 19 min for the tiny configuration on a 2-core CPU (300 steps at about 3.8 s)"
+
+    def __init__(self, options: OccCopyOptions | None = None) -> None:
+        super().__init__(options)
+        from pcfbench.methods.occworld.config import tokenizer_config
+
+        self.cfg = tokenizer_config(self.options.config, self.options.tokens)
+        self.model = None
+
+    def training_steps(self) -> int:
+        return self.options.steps or self.cfg.max_steps
+
+    def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
+        from pcfbench.training import write_curve
+
+        source = TokenizerSource(train_source.adapter, train_source.split, self.options.frame)
+        progress.log(f"occworld tokenizer {self.cfg.name} ({self.cfg.token_grid[0]}x{self.cfg.token_grid[1]} tokens, "
+                     f"frame {self.options.frame}): {len(source)} {train_source.split} sweeps of "
+                     f"{train_source.adapter.name}")
+        out = train_tokenizer(self.cfg, source, progress, steps=self.training_steps(), seed=self.options.seed,
+                              log=progress.log)
+        if out["history"]:
+            csv_path, png = write_curve(out["history"], Path(out_dir), "curve", tokenizer_curve_panels())
+            progress.log(f"training curve: {csv_path} and {png}")
+
+    def load(self, checkpoint: Checkpoint) -> None:
+        self.model = load_tokenizer(checkpoint, self.cfg)
+
+    def forecast(self, sample: Sample) -> Forecast:
+        if self.model is None:
+            raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
+        return copy_forecast(self.model, sample, self.options.readout)
+
+
+def copy_forecast(model, sample: Sample, readout: str, tokenize=None, decode=None) -> Forecast:
+    """The occupancy copy: the t=0 sweep labelled in its sensor frame, ``tokenize``d and
+    ``decode``d (default: ``model``'s), rendered along every future query ray."""
+    tokenize, decode = tokenize or tokenize_labels, decode or decode_probability
+    T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+    last = (sample.past_points_ref[-1].astype(np.float64) @ T_s0_ref[:3, :3].T + T_s0_ref[:3, 3])
+    prob = decode(model, tokenize(model, sweep_labels(model.cfg, last)))
+    return Forecast.from_depths(sample, render_sample(model, prob, sample, T_s0_ref, readout))

@@ -1,0 +1,93 @@
+"""OccWorld as a plugin (the ``builtin-occworld`` entry point): the tokenizer as the trained
+method ``occworld-occ-copy`` (the last past occupancy's tokens, decoded and rendered at every
+future pose) and the world model ``occworld`` on top of its checkpoint, and the command
+``pcfbench occworld-ceiling``. Neither ships a checkpoint yet; the default run leaves them out
+(docs/occworld.md)."""
+
+from __future__ import annotations
+
+from pcfbench.hookspecs import hookimpl
+
+
+@hookimpl
+def register_methods(register):  # noqa: ANN001
+    register("occworld-occ-copy", "pcfbench.methods.occworld.occ_copy:OccCopy",
+             "OccWorld's occupancy tokenizer decoding the t=0 occupancy's tokens from every future pose (trained)")
+    register("occworld", "pcfbench.methods.occworld.forecaster:OccWorld",
+             "OccWorld: occupancy tokenizer + spatio-temporal generative transformer, autoregressive (trained)")
+
+
+@hookimpl
+def register_commands(cli):  # noqa: ANN001
+    import click
+
+    @cli.command("occworld-ceiling")
+    @click.option("--method", "method", default="occworld-occ-copy", show_default=True, metavar="NAME[:k=v,...]",
+                  help="The tokenizer: its method spec, e.g. occworld-occ-copy:config=paper,frame=t0.")
+    @click.option("--train-on", default=None, metavar="NAME[=ROOT]",
+                  help="The tokenizer trained on this dataset (default: synthetic-town-realistic).")
+    @click.option("--train-split", default="train", show_default=True)
+    @click.option("--checkpoint", type=click.Path(exists=True), default=None,
+                  help="Checkpoint folder or file (default: the one trained on --train-on).")
+    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the samples")
+    @click.option("--split", default="test", show_default=True)
+    @click.option("--setting", default="kitti-1s", show_default=True, help="The protocol setting, e.g. kitti-3s.")
+    @click.option("--samples", "max_samples", type=int, default=0, show_default=True,
+                  help="This many evenly spaced samples (0: all).")
+    @click.option("--perfect", is_flag=True,
+                  help="No tokenizer: the labels are the tokens and decode to certain occupancy (the bound of the "
+                       "grid and the rendering alone; needs no checkpoint).")
+    @click.option("--grid", default=None, metavar="NXxNYxNZ", help="With --perfect: another grid over the ROI.")
+    @click.option("--reports", default=None)
+    def occworld_ceiling(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, perfect,
+                         grid, reports):
+        """OccWorld's ceiling: its training target for the ground-truth future (in the tokenizer's
+        frame option), decoded and rendered as occworld renders, beside occworld-occ-copy and
+        copy-last (it sees the future; never a method)."""
+        from dataclasses import replace
+
+        from pcfbench.config import reports_dir
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.method import resolve_method
+        from pcfbench.methods.copilot4d.plugin import _loaded, _open
+        from pcfbench.methods.occworld.ceiling import LabelTokens, evaluate_ceiling, write_ceiling
+        from pcfbench.methods.occworld.occ_copy import OccCopy
+        from pcfbench.methods.occworld.tokenizer import count_parameters
+
+        regenerate = (f"pcfbench occworld-ceiling --method {method} --dataset {dataset_spec} --split {split} "
+                      f"--setting {setting} --samples {max_samples}")
+        if grid and not perfect:
+            raise PcfbenchError("--grid: only with --perfect (a trained tokenizer has its own grid)")
+        if perfect:
+            spec = resolve_method(method)
+            if not issubclass(spec.cls, OccCopy):
+                raise PcfbenchError(f"--method {method!r}: expected occworld-occ-copy[:options]")
+            o, cfg = spec.options, spec.create().cfg
+            if grid:
+                try:
+                    dims = tuple(int(v) for v in grid.lower().split("x"))
+                except ValueError:
+                    dims = ()
+                if len(dims) != 3 or min(dims) < 1:
+                    raise PcfbenchError(f"--grid {grid!r}: expected NXxNYxNZ, e.g. 400x400x24")
+                cfg = replace(cfg, name=f"{cfg.name}-{grid}", dims=dims, ch_mult=(1,))
+            model, label = LabelTokens(cfg), "perfect"
+            meta = {"config": f"perfect (the labels as tokens, {cfg.name} grid)", "grid": "x".join(map(str, cfg.dims)),
+                    "regenerate": regenerate + " --perfect" + (f" --grid {grid}" if grid else "")}
+        else:
+            m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
+                            train_split, checkpoint)
+            o, cfg, model, label = m.options, m.cfg, m.model, f"{m.cfg.name}-{ck.train_on['dataset']}"
+            meta = {"config": cfg.name, "tokens": "x".join(map(str, cfg.token_grid)),
+                    "parameters": count_parameters(model), "trained_on": ck.train_on_label, "steps": ck.steps,
+                    "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256, "regenerate": regenerate}
+        adapter = _open(dataset_spec)
+        res = evaluate_ceiling(model, adapter, split, setting, frame=o.frame, readout=o.readout,
+                               max_samples=max_samples or None, log=click.echo)
+        md, csv_path = write_ceiling(res, meta, reports_dir(reports) / "occworld",
+                                     f"ceiling-{label}-{'x'.join(map(str, cfg.dims))}-on-{adapter.name}-{split}-"
+                                     f"{setting}-{o.frame}")
+        c, cp = res["means"]["ceiling"], res["means"]["occworld-occ-copy"]
+        click.echo(f"ceiling ({setting}, frame {o.frame}, {res['samples']} samples) / occworld-occ-copy: "
+                   + ", ".join(f"{n} {c[n] / cp[n]:.2f}" for n in ("chamfer_nf", "l1_mean", "l1_median")))
+        click.echo(f"wrote {md} and {csv_path}")

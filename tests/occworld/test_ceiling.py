@@ -1,0 +1,69 @@
+"""OccWorld's ceiling (methods/occworld/ceiling.py) and its command."""
+
+from __future__ import annotations
+
+import pytest
+
+from pcfbench.methods.occworld.config import TokenizerConfig
+
+
+@pytest.mark.parametrize("frame", ["own", "t0"])
+def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, frame):
+    """With a perfect tokenizer (tokens = the occupancy labels; decoded: occupied voxels certain,
+    the rest free) the ceiling's rays end in the voxel of their own return, in either frame:
+    the target's points, the frame they are labelled in and the rays' origin and directions in
+    that frame all agree, so its median depth error is within a voxel (0.5 m). The occupancy
+    copy and copy-last, in the same loop, do worse."""
+    from conftest import write_tiny_kitti
+
+    from pcfbench.methods.copilot4d.data import open_dataset
+    from pcfbench.methods.occworld.ceiling import LabelTokens, evaluate_ceiling, write_ceiling
+
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("08",), num_sweeps=24)
+    adapter = open_dataset("kitti", root)
+    cfg = TokenizerConfig("test", dims=(280, 280, 18))  # 0.5 m voxels over the ROI
+    res = evaluate_ceiling(LabelTokens(cfg), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
+    o, cp, c = (res["means"][k] for k in ("ceiling", "occworld-occ-copy", "copy-last"))
+    assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
+    assert o["l1_median"] < 0.5, o
+    assert o["l1_median"] < cp["l1_median"] and o["chamfer_nf"] < cp["chamfer_nf"], (o, cp)
+    assert 0 < res["changed"]["mean"] <= 1
+    md, csv_path = write_ceiling(res, {"config": "test"}, tmp_path / "rep", "ceiling")
+    assert "sees the future" in md.read_text() and csv_path.read_text().startswith("entry,")
+
+
+def test_ceiling_frame_is_checked():
+    from pcfbench.errors import PcfbenchError
+    from pcfbench.methods.occworld.ceiling import LabelTokens, evaluate_ceiling
+
+    with pytest.raises(PcfbenchError, match="frame"):
+        evaluate_ceiling(LabelTokens(TokenizerConfig("x")), None, "test", "kitti-1s", frame="world")
+
+
+def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+    from conftest import write_tiny_kitti
+
+    from pcfbench.cli import build_cli
+
+    monkeypatch.setenv("PCFBENCH_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("PCFBENCH_NO_PROGRESS", "1")
+    root = write_tiny_kitti(tmp_path / "kitti", sequences=("00", "08"), num_sweeps=24, beams=8, azimuths=180)
+    runner, cli = CliRunner(), build_cli()
+    spec = "occworld-occ-copy:config=micro,steps=2,frame=t0"
+    r = runner.invoke(cli, ["train", spec, "--dataset", f"kitti={root}"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(cli, ["occworld-ceiling", "--method", spec, "--train-on", f"kitti={root}", "--dataset",
+                            f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    assert "ceiling (kitti-1s, frame t0, 1 samples) / occworld-occ-copy: chamfer_nf" in r.output
+    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-kitti-32x32x4-on-kitti-test-kitti-1s-t0.md"))
+    assert "pcfbench occworld-ceiling --method" in md.read_text()
+    # the representation's own bound needs no checkpoint; another grid only with it
+    r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--grid",
+                            "40x40x6", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-40x40x6-on-kitti-test-kitti-1s-own.md").read_text()
+    assert "perfect (the labels as tokens" in md and "--perfect --grid 40x40x6" in md
+    r = runner.invoke(cli, ["occworld-ceiling", "--grid", "40x40x6", "--dataset", f"kitti={root}"])
+    assert r.exit_code != 0 and "--grid: only with --perfect" in r.output
