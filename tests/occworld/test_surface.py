@@ -1,0 +1,132 @@
+"""Sub-voxel planes for OccWorld's rendering (methods/occworld/surface.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pcfbench.errors import PcfbenchError
+from pcfbench.methods.occworld.occupancy import FREE, OCCUPIED, UNKNOWN, OccGrid
+from pcfbench.methods.occworld.render import render_depths
+from pcfbench.methods.occworld.surface import free_normals, render_surface, surface_offsets
+
+# a 4 m long strip of two layers of 1 m voxels: z in [0, 1] the ground's layer, [1, 2] above it
+STRIP = OccGrid.over((0.0, 0.0, 0.0), (4.0, 1.0, 2.0), (4, 1, 2))
+UP = np.zeros((4, 1, 2, 3))
+UP[..., 2] = 1.0
+
+
+def _ground(offset: float):
+    prob = np.zeros((4, 1, 2))
+    prob[:, 0, 0] = 1.0  # the whole lower layer occupied (other rays' returns)
+    return prob, UP, np.full((4, 1, 2), offset)
+
+
+def test_a_grazing_ray_by_hand():
+    # from (0.5, 0.5, 1.5) along (1, 0, -0.5)/|.|: x = 0.5 + u, z = 1.5 - u / 2 (depth = u * sqrt(1.25)).
+    # It enters the lower layer at u = 1 (x = 1.5, voxel 1 of x [1, 2]), stays there until u = 1.5 (x = 2).
+    o, d = np.array([0.5, 0.5, 1.5]), np.array([[1.0, 0.0, -0.5]])
+    k = np.sqrt(1.25)
+    # plane z = 0.5 + 0.3 = 0.8 in every voxel: crossed at u = 1.4 (x = 1.9, still in voxel 1)
+    assert render_surface(STRIP, *_ground(0.3), o, d)[0] == pytest.approx(1.4 * k)
+    # the old readout stops in the middle of voxel 1's segment, u = 1.25
+    assert render_depths(STRIP, _ground(0.3)[0], o, d)[0] == pytest.approx(1.25 * k)
+    # plane z = 0.2: the ray passes over voxels 1 and 2 and meets it at u = 2.6 (x = 3.1, voxel 3)
+    assert render_surface(STRIP, *_ground(-0.3), o, d)[0] == pytest.approx(2.6 * k)
+    # plane z = 0.1: u = 2.8 (x = 3.3, voxel 3)
+    assert render_surface(STRIP, *_ground(-0.4), o, d)[0] == pytest.approx(2.8 * k)
+    # level with the origin: it never comes down to the planes and leaves the grid at x = 4 (u = 3.5)
+    assert render_surface(STRIP, *_ground(0.3), np.array([0.5, 0.5, 0.9]), np.array([[1.0, 0.0, 0.0]]))[0] == \
+        pytest.approx(3.5)
+
+
+def test_a_wall_and_the_voxel_rules_by_hand():
+    grid = OccGrid.over((0.0, 0.0, 0.0), (10.0, 1.0, 1.0), (10, 1, 1))
+    prob = np.zeros((10, 1, 1))
+    prob[3] = 1.0
+    normals = np.zeros((10, 1, 1, 3))
+    offsets = np.zeros((10, 1, 1))
+    o, x = np.array([0.5, 0.5, 0.5]), np.array([[1.0, 0.0, 0.0]])
+    # no normal: the middle of the voxel's segment, x = 3.5: depth 3.0 (the threshold readout's)
+    assert render_surface(grid, prob, normals, offsets, o, x)[0] == pytest.approx(3.0)
+    # a wall facing the sensor, 0.25 m in front of the centre: x = 3.25
+    normals[3, 0, 0] = (-1.0, 0.0, 0.0)
+    offsets[3] = 0.25
+    assert render_surface(grid, prob, normals, offsets, o, x)[0] == pytest.approx(2.75)
+    # the ray enters behind a plane facing away (normal +x, plane x = 3.5): stops at the entry, 2.5
+    normals[3, 0, 0] = (1.0, 0.0, 0.0)
+    offsets[3] = 0.0
+    assert render_surface(grid, prob, normals, offsets, o, x)[0] == pytest.approx(2.5)
+    # seen from behind (origin x = 9.5, looking -x), that plane is in front: 9.5 - 3.5 = 6
+    assert render_surface(grid, prob, normals, offsets, np.array([9.5, 0.5, 0.5]), -x)[0] == pytest.approx(6.0)
+    # a probability below 0.5 is not occupied: the exit
+    assert render_surface(grid, prob * 0.4, normals, offsets, o, x)[0] == pytest.approx(9.5)
+
+
+def test_oblique_rays_agree_with_dense_sampling():
+    """Random planes in a random grid: the first sample (every 1e-4 m) that lies in an occupied
+    voxel on or behind its plane is the depth (1e-3 m; a voxel entered behind its plane stops the
+    ray at its entry, which the dense samples also find)."""
+    rng = np.random.default_rng(1)
+    grid = OccGrid.over((-2.0, -2.0, -1.0), (2.0, 2.0, 1.0), (8, 8, 4))
+    prob = (rng.uniform(size=grid.dims) < 0.25) * 1.0
+    normals = rng.normal(size=(*grid.dims, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    offsets = rng.uniform(-0.2, 0.2, grid.dims)
+    o = np.array([0.1, 0.2, 0.05])
+    prob[tuple(np.floor((o - np.array(grid.lo)) / np.array(grid.voxel)).astype(int))] = 0.0
+    dirs = rng.normal(size=(40, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    got = render_surface(grid, prob, normals, offsets, o, dirs)
+    lo, vs = np.array(grid.lo), np.array(grid.voxel)
+    centres = grid.centres()
+    for d, g in zip(dirs, got):
+        t = np.arange(0, 10, 1e-4)
+        p = o + t[:, None] * d
+        q = np.floor((p - lo) / vs).astype(int)
+        inside = ((q >= 0) & (q < np.array(grid.dims))).all(axis=1)
+        t, p, q = t[inside], p[inside], q[inside]
+        n = normals[q[:, 0], q[:, 1], q[:, 2]]
+        m = centres[q[:, 0], q[:, 1], q[:, 2]] + offsets[q[:, 0], q[:, 1], q[:, 2], None] * n
+        hit = (prob[q[:, 0], q[:, 1], q[:, 2]] >= 0.5) & (((p - m) * n).sum(axis=1) <= 0)
+        want = t[hit][0] if hit.any() else t[-1]
+        assert g == pytest.approx(want, abs=1e-3)
+
+
+def test_normals_point_to_free_space():
+    grid = OccGrid.over((0.0, 0.0, 0.0), (3.0, 3.0, 3.0), (3, 3, 3))
+    labels = np.full((3, 3, 3), UNKNOWN)
+    labels[:, :, 2] = FREE  # free above, ground in the middle layer, unknown under it
+    labels[:, :, 1] = OCCUPIED
+    n = free_normals(labels == FREE, grid.voxel)
+    assert np.allclose(n[1, 1, 1], (0, 0, 1))  # free above only (the unknown below does not count)
+    assert np.allclose(n[1, 1, 0], 0)  # no free neighbour: no normal
+    # a corner: free above and on the -x side (x = 0 column free): tilted to (-1, 0, 1) / sqrt 2
+    labels[0, :, :] = FREE
+    n = free_normals(labels == FREE, grid.voxel)
+    assert np.allclose(n[1, 1, 1], np.array([-1.0, 0.0, 1.0]) / np.sqrt(2))
+    # under the ground, (1, 1, 0)'s one free face neighbour is (0, 1, 0): -x; with all 26 the free
+    # (0, 1, 1), (0, 0, 0), ... tilt it upwards
+    assert np.allclose(n[1, 1, 0], (-1.0, 0.0, 0.0))
+    n26 = free_normals(labels == FREE, grid.voxel, 26)
+    assert n26[1, 1, 0, 0] < 0 and n26[1, 1, 0, 2] > 0.1 and n26[1, 1, 0, 1] == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(PcfbenchError, match="neighbours=8"):
+        free_normals(labels == FREE, grid.voxel, 8)
+    with pytest.raises(PcfbenchError, match=r"\(X, Y, Z\) free grid"):
+        free_normals(np.zeros((3, 3)), grid.voxel)
+
+
+def test_offsets_are_the_returns_mean_along_the_normal():
+    grid = OccGrid.over((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (2, 1, 1))
+    normals = np.zeros((2, 1, 1, 3))
+    normals[..., 2] = 1.0
+    normals[1, 0, 0] = (0.6, 0.0, 0.8)
+    pts = np.array([[0.2, 0.5, 0.7], [0.4, 0.5, 0.9],  # voxel 0: mean z 0.8, centre 0.5: +0.3
+                    [1.5, 0.5, 0.5], [1.5, 0.5, 0.5]])  # voxel 1: the mean is the centre
+    s = surface_offsets(grid, pts, normals)
+    assert s[0, 0, 0] == pytest.approx(0.3) and s[1, 0, 0] == pytest.approx(0.0, abs=1e-7)
+    moved = normals.copy()
+    moved[0, 0, 0] = (0.0, 0.0, -1.0)
+    assert surface_offsets(grid, pts, moved)[0, 0, 0] == pytest.approx(-0.3)
+    with pytest.raises(PcfbenchError, match="normals of shape"):
+        surface_offsets(grid, pts, normals[:1])
