@@ -44,12 +44,54 @@ class LabelTokens:
         return (np.asarray(codes) == OCCUPIED) * 1.0
 
 
+def surface_grid(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None):
+    """A sweep's perfect grid with sub-voxel planes (``surface=offset``): (labels, occupancy
+    (occupied 1, else 0), normals from its free voxels, offsets of its returns), in the frame
+    ``T_frame_sensor`` maps its sensor frame into (None: its own)."""
+    from pcfbench.methods.occworld.occupancy import FREE, OCCUPIED
+    from pcfbench.methods.occworld.surface import free_normals, surface_offsets
+
+    labels = oc.sweep_labels(cfg, points_sensor, T_frame_sensor)
+    pts = points_sensor.astype(np.float64)
+    if T_frame_sensor is not None:
+        T = np.asarray(T_frame_sensor, np.float64)
+        pts = pts @ T[:3, :3].T + T[:3, 3]
+    grid = oc.grid_of(cfg)
+    normals = free_normals(labels == FREE, grid.voxel)
+    return labels, (labels == OCCUPIED) * 1.0, normals, surface_offsets(grid, pts, normals)
+
+
+def render_surface_sample(cfg, grids, sample, T_frame_ref) -> list[np.ndarray]:
+    """As ``occ_copy.render_sample``, through ``surface_grid``s (one per future sweep, or one for all)."""
+    from pcfbench.methods.occworld.surface import render_surface
+
+    F = sample.num_future
+    Ts = [np.asarray(T_frame_ref, np.float64)] * F if np.ndim(T_frame_ref) == 2 else list(T_frame_ref)
+    gs = [grids] * F if isinstance(grids, tuple) else list(grids)
+    grid = oc.grid_of(cfg)
+    out = []
+    for k, q in enumerate(sample.queries):
+        R, t = Ts[k][:3, :3], Ts[k][:3, 3]
+        _, prob, normals, offsets = gs[k]
+        out.append(render_surface(grid, prob, normals, offsets, R @ q.origin_ref + t, q.directions_ref.astype(np.float64) @ R.T))
+    return out
+
+
 def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "own", readout: str = "expected",
-                     max_samples: int | None = None, log=print) -> dict:
+                     surface: str = "none", max_samples: int | None = None, log=print) -> dict:
     """The ceiling of ``occworld`` on the tokenizer ``model`` (a ``SceneTokenizer``, or a
     ``LabelTokens`` for the representation's own bound), beside ``occworld-occ-copy`` and
-    copy-last. Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
+    copy-last. ``surface="offset"`` (``LabelTokens`` only: no tokenizer predicts the offsets
+    yet) renders both through the labels' sub-voxel planes (``surface.py``) instead of
+    ``readout``. Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
     step), ``samples`` and ``sweeps``."""
+    from pcfbench.methods.occworld.surface import SURFACES
+
+    if surface not in SURFACES:
+        raise PcfbenchError(f"ceiling surface {surface!r}: expected one of {', '.join(SURFACES)}")
+    if surface != "none" and not isinstance(model, LabelTokens):
+        raise PcfbenchError(f"ceiling surface={surface}: only with perfect tokens (--perfect); no tokenizer "
+                            "predicts the per-voxel offsets yet")
     from pcfbench.data import Forecast
     from pcfbench.methods.copilot4d.ceiling import score_beside
     from pcfbench.methods.copy_last import CopyLast
@@ -71,6 +113,12 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
         probs, frames, shares = [], [], []
         for k in range(sample.num_future):
             pts = builder.points_sensor(seq, ref + (k + 1) * stride)
+            if surface != "none":
+                T = T_s0_ref @ sample.future_T_ref_sensor[k] if frame == "t0" else None
+                probs.append(surface_grid(cfg, pts, T))
+                frames.append(T_s0_ref if frame == "t0" else np.linalg.inv(sample.future_T_ref_sensor[k]))
+                shares.append(float((probs[-1][0] != np.asarray(last)).mean()))
+                continue
             if frame == "t0":
                 codes = tokenize(model, oc.sweep_labels(cfg, pts, T_s0_ref @ sample.future_T_ref_sensor[k]))
                 frames.append(T_s0_ref)
@@ -80,15 +128,26 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
             shares.append(float((np.asarray(codes) != np.asarray(last)).mean()))
             probs.append(decode(model, codes))
         changed.append(shares)
+        if surface != "none":
+            return Forecast.from_depths(sample, render_surface_sample(cfg, probs, sample, frames))
         return Forecast.from_depths(sample, oc.render_sample(model, probs, sample, frames, readout))
+
+    def occ_copy(sample, *_):
+        sample = sample.for_method()
+        if surface == "none":
+            return oc.copy_forecast(model, sample, readout, tokenize, decode)
+        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+        last = sample.past_points_ref[-1].astype(np.float64) @ T_s0_ref[:3, :3].T + T_s0_ref[:3, 3]
+        return Forecast.from_depths(sample, render_surface_sample(cfg, surface_grid(cfg, last), sample, T_s0_ref))
 
     res = score_beside(adapter, split, setting, {
         "ceiling": ceiling,
-        "occworld-occ-copy": lambda sample, *_: oc.copy_forecast(model, sample.for_method(), readout, tokenize, decode),
+        "occworld-occ-copy": occ_copy,
         "copy-last": lambda sample, *_: copy_last.forecast(sample.for_method())},
         max_samples=max_samples, log=log, label=f"occworld ceiling ({frame})")
     ch = np.asarray(changed, np.float64)
-    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "readout": readout,
+    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame,
+            "readout": readout if surface == "none" else f"surface={surface}",
             "samples": res["samples"], "sweeps": len(res["rows"]["ceiling"]), "eval_s": res["eval_s"],
             "means": res["means"], "rows": res["rows"],
             "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]}}

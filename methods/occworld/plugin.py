@@ -38,9 +38,12 @@ def register_commands(cli):  # noqa: ANN001
                   help="No tokenizer: the labels are the tokens and decode to certain occupancy (the bound of the "
                        "grid and the rendering alone; needs no checkpoint).")
     @click.option("--grid", default=None, metavar="NXxNYxNZ", help="With --perfect: another grid over the ROI.")
+    @click.option("--surface", type=click.Choice(["none", "offset"]), default="none", show_default=True,
+                  help="With --perfect: offset renders through one sub-voxel plane per voxel (the labels gain an "
+                       "offset channel; docs/occworld.md) instead of the method's readout.")
     @click.option("--reports", default=None)
     def occworld_ceiling(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, perfect,
-                         grid, reports):
+                         grid, surface, reports):
         """OccWorld's ceiling: its training target for the ground-truth future (in the tokenizer's
         frame option), decoded and rendered as occworld renders, beside occworld-occ-copy and
         copy-last (it sees the future; never a method)."""
@@ -58,6 +61,8 @@ def register_commands(cli):  # noqa: ANN001
                       f"--setting {setting} --samples {max_samples}")
         if grid and not perfect:
             raise PcfbenchError("--grid: only with --perfect (a trained tokenizer has its own grid)")
+        if surface != "none" and not perfect:
+            raise PcfbenchError("--surface: only with --perfect (no tokenizer predicts the per-voxel offsets yet)")
         if perfect:
             spec = resolve_method(method)
             if not issubclass(spec.cls, OccCopy):
@@ -73,7 +78,8 @@ def register_commands(cli):  # noqa: ANN001
                 cfg = replace(cfg, name=f"{cfg.name}-{grid}", dims=dims, ch_mult=(1,))
             model, label = LabelTokens(cfg), "perfect"
             meta = {"config": f"perfect (the labels as tokens, {cfg.name} grid)", "grid": "x".join(map(str, cfg.dims)),
-                    "regenerate": regenerate + " --perfect" + (f" --grid {grid}" if grid else "")}
+                    "regenerate": regenerate + " --perfect" + (f" --grid {grid}" if grid else "")
+                    + (f" --surface {surface}" if surface != "none" else "")}
         else:
             m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
                             train_split, checkpoint)
@@ -82,11 +88,11 @@ def register_commands(cli):  # noqa: ANN001
                     "parameters": count_parameters(model), "trained_on": ck.train_on_label, "steps": ck.steps,
                     "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256, "regenerate": regenerate}
         adapter = _open(dataset_spec)
-        res = evaluate_ceiling(model, adapter, split, setting, frame=o.frame, readout=o.readout,
+        res = evaluate_ceiling(model, adapter, split, setting, frame=o.frame, readout=o.readout, surface=surface,
                                max_samples=max_samples or None, log=click.echo)
         md, csv_path = write_ceiling(res, meta, reports_dir(reports) / "occworld",
                                      f"ceiling-{label}-{'x'.join(map(str, cfg.dims))}-on-{adapter.name}-{split}-"
-                                     f"{setting}-{o.frame}")
+                                     f"{setting}-{o.frame}" + (f"-surface-{surface}" if surface != "none" else ""))
         c, cp = res["means"]["ceiling"], res["means"]["occworld-occ-copy"]
         click.echo(f"ceiling ({setting}, frame {o.frame}, {res['samples']} samples) / occworld-occ-copy: "
                    + ", ".join(f"{n} {c[n] / cp[n]:.2f}" for n in ("chamfer_nf", "l1_mean", "l1_median")))
