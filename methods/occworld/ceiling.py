@@ -44,8 +44,8 @@ class LabelTokens:
         return (np.asarray(codes) == OCCUPIED) * 1.0
 
 
-def surface_grid(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None):
-    """A sweep's perfect grid with sub-voxel planes (``surface=offset``): (labels, occupancy
+def surface_grid(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None, at: str = "front"):
+    """A sweep's perfect grid with sub-voxel planes (``surface.py``, offsets ``at``): (labels, occupancy
     (occupied 1, else 0), normals from its free voxels, offsets of its returns), in the frame
     ``T_frame_sensor`` maps its sensor frame into (None: its own)."""
     from pcfbench.methods.occworld.occupancy import FREE, OCCUPIED
@@ -58,7 +58,7 @@ def surface_grid(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | No
         pts = pts @ T[:3, :3].T + T[:3, 3]
     grid = oc.grid_of(cfg)
     normals = free_normals(labels == FREE, grid.voxel)
-    return labels, (labels == OCCUPIED) * 1.0, normals, surface_offsets(grid, pts, normals)
+    return labels, (labels == OCCUPIED) * 1.0, normals, surface_offsets(grid, pts, normals, at)
 
 
 def render_surface_sample(cfg, grids, sample, T_frame_ref) -> list[np.ndarray]:
@@ -81,7 +81,7 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
                      surface: str = "none", max_samples: int | None = None, log=print) -> dict:
     """The ceiling of ``occworld`` on the tokenizer ``model`` (a ``SceneTokenizer``, or a
     ``LabelTokens`` for the representation's own bound), beside ``occworld-occ-copy`` and
-    copy-last. ``surface="offset"`` (``LabelTokens`` only: no tokenizer predicts the offsets
+    copy-last. ``surface="front"`` or ``"mean"`` (``LabelTokens`` only: no tokenizer predicts the offsets
     yet) renders both through the labels' sub-voxel planes (``surface.py``) instead of
     ``readout``. Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
     step), ``samples`` and ``sweeps``."""
@@ -115,7 +115,7 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
             pts = builder.points_sensor(seq, ref + (k + 1) * stride)
             if surface != "none":
                 T = T_s0_ref @ sample.future_T_ref_sensor[k] if frame == "t0" else None
-                probs.append(surface_grid(cfg, pts, T))
+                probs.append(surface_grid(cfg, pts, T, surface))
                 frames.append(T_s0_ref if frame == "t0" else np.linalg.inv(sample.future_T_ref_sensor[k]))
                 shares.append(float((probs[-1][0] != np.asarray(last)).mean()))
                 continue
@@ -138,7 +138,7 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
             return oc.copy_forecast(model, sample, readout, tokenize, decode)
         T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
         last = sample.past_points_ref[-1].astype(np.float64) @ T_s0_ref[:3, :3].T + T_s0_ref[:3, 3]
-        return Forecast.from_depths(sample, render_surface_sample(cfg, surface_grid(cfg, last), sample, T_s0_ref))
+        return Forecast.from_depths(sample, render_surface_sample(cfg, surface_grid(cfg, last, None, surface), sample, T_s0_ref))
 
     res = score_beside(adapter, split, setting, {
         "ceiling": ceiling,

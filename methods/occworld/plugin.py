@@ -38,9 +38,9 @@ def register_commands(cli):  # noqa: ANN001
                   help="No tokenizer: the labels are the tokens and decode to certain occupancy (the bound of the "
                        "grid and the rendering alone; needs no checkpoint).")
     @click.option("--grid", default=None, metavar="NXxNYxNZ", help="With --perfect: another grid over the ROI.")
-    @click.option("--surface", type=click.Choice(["none", "offset"]), default="none", show_default=True,
-                  help="With --perfect: offset renders through one sub-voxel plane per voxel (the labels gain an "
-                       "offset channel; docs/occworld.md) instead of the method's readout.")
+    @click.option("--surface", type=click.Choice(["none", "front", "mean"]), default="none", show_default=True,
+                  help="With --perfect: render through one sub-voxel plane per voxel at the front (or mean) of its "
+                       "returns (the labels gain an offset channel; docs/occworld.md) instead of the method's readout.")
     @click.option("--reports", default=None)
     def occworld_ceiling(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, perfect,
                          grid, surface, reports):

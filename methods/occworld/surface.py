@@ -7,22 +7,27 @@ voxels (0.5625 m high) a metre or more before its return, in voxels that the oth
 made occupied, and stops there. A plane per voxel fixes it: the ray stops where it crosses
 the plane, or passes over the voxel when it stays in front of it.
 
-The plane of an occupied voxel (``surface=offset``):
+The plane of an occupied voxel (``surface=front``, or ``mean``):
 
 - its **normal** comes from the occupancy grid itself (:func:`free_normals`): the unit sum of
   the unit directions (in metres) from the voxel to those of its 26 neighbours that are free,
   so it points to the space the rays came through; zero where no neighbour is free;
 - its **offset** is the one extra number per voxel the labels carry (:func:`surface_offsets`):
-  the signed distance, along that normal, from the voxel's centre to the mean of the returns
-  that fell in it (inside the voxel, so ``|s| <= sum_i |n_i| v_i / 2``).
+  the largest signed distance, along that normal, from the voxel's centre to the returns that
+  fell in it (the front of the returns, as seen from the free side; inside the voxel, so
+  ``|s| <= sum_i |n_i| v_i / 2``). Every return of the sweep then lies on or behind its voxel's
+  plane, so none of the sweep's own rays passes its voxel: it stops there or before. ``mean``
+  puts the plane through the mean of the returns instead: half the median error on the
+  benchmark's data, but the rays whose return lies in front of the mean pass and run on, which
+  costs chamfer_nf several times over (docs/occworld.md).
 
 So the target gains one regression channel per voxel; the occupancy itself is OccWorld's.
 :func:`render_surface` walks the ray (the walk of ``occupancy._label``) to the first
 occupied voxel (``occupancy >= 0.5``) whose plane it reaches inside the voxel: a ray that
 enters the voxel on or behind the plane stops at its entry; one in front stops where it
 crosses the plane, if that is inside the voxel, else it goes on; a voxel without a normal
-stops the ray at the middle of its segment (the ``threshold`` readout's depth). A ray that
-meets nothing takes the grid's exit.
+(no free neighbour) stops the ray at its entry, so that no ray passes its own return. A ray
+that meets nothing takes the grid's exit.
 """
 
 from __future__ import annotations
@@ -34,8 +39,9 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.methods.occworld.occupancy import OccGrid, _cell, _face
 from pcfbench.methods.raycast.grid import _inverse, _slab
 
-#: ``surface`` option values: ``none`` (OccWorld's occupancy alone), ``offset`` (one plane offset per voxel)
-SURFACES = ("none", "offset")
+#: ``surface`` option values: ``none`` (OccWorld's occupancy alone), ``front`` and ``mean`` (one
+#: plane offset per voxel: the front of its returns, or their mean; :func:`surface_offsets`)
+SURFACES = ("none", "front", "mean")
 
 
 #: the neighbourhoods :func:`free_normals` sums over: the 6 face neighbours, or all 26
@@ -66,24 +72,30 @@ def free_normals(free: np.ndarray, voxel, neighbours: int = 6) -> np.ndarray:
     return np.where(length > 1e-12, acc / np.maximum(length, 1e-12), 0.0)
 
 
-def surface_offsets(grid: OccGrid, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(X, Y, Z) float32 offsets: for each voxel holding returns of ``points`` (N, 3, grid
-    frame), ``normal . (mean of its points - its centre)``; 0 elsewhere."""
+def surface_offsets(grid: OccGrid, points: np.ndarray, normals: np.ndarray, at: str = "front") -> np.ndarray:
+    """(X, Y, Z) offsets (m): for each voxel holding returns of ``points`` (N, 3, grid
+    frame), ``normal . (p - its centre)`` at the front of its points p (``at="front"``: the
+    largest) or their mean (``"mean"``); 0 elsewhere."""
+    if at not in ("front", "mean"):
+        raise PcfbenchError(f"surface offsets: at={at!r}, expected front or mean")
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     dims = np.asarray(grid.dims)
     if normals.shape != (*grid.dims, 3):
         raise PcfbenchError(f"surface offsets: normals of shape {normals.shape}, the grid has {grid.dims} voxels")
     idx = np.floor((pts - np.asarray(grid.lo)) / np.asarray(grid.voxel)).astype(np.int64)
     ok = ((idx >= 0) & (idx < dims)).all(axis=1)
-    flat = np.ravel_multi_index(idx[ok].T, tuple(dims))
-    size = int(dims.prod())
-    count = np.bincount(flat, minlength=size).astype(np.float64)
-    mean = np.stack([np.bincount(flat, pts[ok, k], minlength=size) for k in range(3)], axis=-1)
-    has = count > 0
-    mean[has] /= count[has, None]
-    n = normals.reshape(-1, 3)
-    s = ((mean - grid.centres().reshape(-1, 3)) * n).sum(axis=1)
-    return np.where(has, s, 0.0).reshape(grid.dims).astype(np.float32)
+    idx, pts = idx[ok], pts[ok]
+    n = normals[idx[:, 0], idx[:, 1], idx[:, 2]]
+    s = ((pts - grid.centres()[idx[:, 0], idx[:, 1], idx[:, 2]]) * n).sum(axis=1)
+    key = (idx[:, 0], idx[:, 1], idx[:, 2])
+    if at == "mean":
+        total, count = np.zeros(grid.dims), np.zeros(grid.dims)
+        np.add.at(total, key, s)
+        np.add.at(count, key, 1.0)
+        return total / np.maximum(count, 1.0)
+    out = np.full(grid.dims, -np.inf)
+    np.maximum.at(out, key, s)
+    return np.where(np.isfinite(out), out, 0.0)
 
 
 @nb.njit(nogil=True, cache=True)
@@ -117,7 +129,7 @@ def _render_surface(origin, dirs, prob, normals, offsets, lo, vs):
             if prob[a, b, c] >= 0.5:
                 n0, n1, n2 = normals[a, b, c, 0], normals[a, b, c, 1], normals[a, b, c, 2]
                 if n0 == 0.0 and n1 == 0.0 and n2 == 0.0:
-                    depth = 0.5 * (t + f)
+                    depth = t
                     break
                 s = offsets[a, b, c]
                 m0 = lo[0] + (a + 0.5) * vs[0] + s * n0

@@ -36,7 +36,7 @@ def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, frame):
 def test_sub_voxel_planes_cut_the_perfect_median_error(tmp_path, frame):
     """On the paper grid (0.7 x 0.7 x 0.5625 m), perfect labels rendered at the middle of the
     first occupied voxel miss by about half a metre (rays come down into ground voxels that other
-    returns made occupied); with the labels' sub-voxel planes (``surface="offset"``) the median
+    returns made occupied); with the labels' sub-voxel planes (``surface="front"``) the median
     error falls to a fraction of that, and the ceiling beats the occupancy copy rendered the same
     way on the issue's three columns."""
     from conftest import write_tiny_kitti
@@ -48,12 +48,12 @@ def test_sub_voxel_planes_cut_the_perfect_median_error(tmp_path, frame):
     adapter = open_dataset("kitti", root)
     cfg = TokenizerConfig("test", dims=(200, 200, 16))
     run = {s: evaluate_ceiling(LabelTokens(cfg), adapter, "test", "kitti-1s", frame=frame, surface=s, max_samples=2,
-                               log=lambda *a: None) for s in ("none", "offset")}
-    old, new = run["none"]["means"]["ceiling"], run["offset"]["means"]["ceiling"]
-    copy = run["offset"]["means"]["occworld-occ-copy"]
+                               log=lambda *a: None) for s in ("none", "front")}
+    old, new = run["none"]["means"]["ceiling"], run["front"]["means"]["ceiling"]
+    copy = run["front"]["means"]["occworld-occ-copy"]
     assert new["l1_median"] < 0.5 * old["l1_median"], (old, new)
     assert all(new[n] < copy[n] for n in ("chamfer_nf", "l1_mean", "l1_median")), (new, copy)
-    assert run["offset"]["readout"] == "surface=offset"
+    assert run["front"]["readout"] == "surface=front"
 
 
 def test_surface_needs_perfect_tokens():
@@ -63,7 +63,7 @@ def test_surface_needs_perfect_tokens():
     with pytest.raises(PcfbenchError, match="surface 'plane'"):
         evaluate_ceiling(LabelTokens(TokenizerConfig("x")), None, "test", "kitti-1s", surface="plane")
     with pytest.raises(PcfbenchError, match="only with perfect tokens"):
-        evaluate_ceiling(object(), None, "test", "kitti-1s", surface="offset")
+        evaluate_ceiling(object(), None, "test", "kitti-1s", surface="front")
 
 
 def test_ceiling_frame_is_checked():
@@ -102,10 +102,10 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
     r = runner.invoke(cli, ["occworld-ceiling", "--grid", "40x40x6", "--dataset", f"kitti={root}"])
     assert r.exit_code != 0 and "--grid: only with --perfect" in r.output
     # the sub-voxel planes: only with --perfect; their own report
-    r = runner.invoke(cli, ["occworld-ceiling", "--surface", "offset", "--dataset", f"kitti={root}"])
+    r = runner.invoke(cli, ["occworld-ceiling", "--surface", "front", "--dataset", f"kitti={root}"])
     assert r.exit_code != 0 and "--surface: only with --perfect" in r.output
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--surface",
-                            "offset", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
+                            "front", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-own-surface-offset.md").read_text()
-    assert "--perfect --surface offset" in md and "(surface=offset depth)" in md
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-own-surface-front.md").read_text()
+    assert "--perfect --surface front" in md and "(surface=front depth)" in md

@@ -47,8 +47,8 @@ def test_a_wall_and_the_voxel_rules_by_hand():
     normals = np.zeros((10, 1, 1, 3))
     offsets = np.zeros((10, 1, 1))
     o, x = np.array([0.5, 0.5, 0.5]), np.array([[1.0, 0.0, 0.0]])
-    # no normal: the middle of the voxel's segment, x = 3.5: depth 3.0 (the threshold readout's)
-    assert render_surface(grid, prob, normals, offsets, o, x)[0] == pytest.approx(3.0)
+    # no normal: the voxel's entry, x = 3 (depth 2.5)
+    assert render_surface(grid, prob, normals, offsets, o, x)[0] == pytest.approx(2.5)
     # a wall facing the sensor, 0.25 m in front of the centre: x = 3.25
     normals[3, 0, 0] = (-1.0, 0.0, 0.0)
     offsets[3] = 0.25
@@ -116,17 +116,54 @@ def test_normals_point_to_free_space():
         free_normals(np.zeros((3, 3)), grid.voxel)
 
 
-def test_offsets_are_the_returns_mean_along_the_normal():
+def test_offsets_are_the_front_of_the_returns_along_the_normal():
     grid = OccGrid.over((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (2, 1, 1))
     normals = np.zeros((2, 1, 1, 3))
     normals[..., 2] = 1.0
     normals[1, 0, 0] = (0.6, 0.0, 0.8)
-    pts = np.array([[0.2, 0.5, 0.7], [0.4, 0.5, 0.9],  # voxel 0: mean z 0.8, centre 0.5: +0.3
-                    [1.5, 0.5, 0.5], [1.5, 0.5, 0.5]])  # voxel 1: the mean is the centre
+    pts = np.array([[0.2, 0.5, 0.7], [0.4, 0.5, 0.9],  # voxel 0: the highest z 0.9, centre 0.5: +0.4
+                    [1.5, 0.5, 0.5], [1.9, 0.5, 0.2]])  # voxel 1: 0; 0.6 * 0.4 + 0.8 * -0.3 = 0
     s = surface_offsets(grid, pts, normals)
-    assert s[0, 0, 0] == pytest.approx(0.3) and s[1, 0, 0] == pytest.approx(0.0, abs=1e-7)
+    assert s[0, 0, 0] == pytest.approx(0.4) and s[1, 0, 0] == pytest.approx(0.0, abs=1e-12)
     moved = normals.copy()
-    moved[0, 0, 0] = (0.0, 0.0, -1.0)
-    assert surface_offsets(grid, pts, moved)[0, 0, 0] == pytest.approx(-0.3)
+    moved[0, 0, 0] = (0.0, 0.0, -1.0)  # seen from below, the front is the lowest: -(0.7 - 0.5)
+    assert surface_offsets(grid, pts, moved)[0, 0, 0] == pytest.approx(-0.2)
+    assert surface_offsets(grid, pts[:1], normals)[1, 0, 0] == 0.0  # no return: 0
+    # their mean instead: voxel 0 (0.7 + 0.9) / 2 - 0.5 = 0.3; voxel 1: (0 + 0) / 2
+    s = surface_offsets(grid, pts, normals, "mean")
+    assert s[0, 0, 0] == pytest.approx(0.3) and s[1, 0, 0] == pytest.approx(0.0, abs=1e-12)
     with pytest.raises(PcfbenchError, match="normals of shape"):
         surface_offsets(grid, pts, normals[:1])
+    with pytest.raises(PcfbenchError, match="at='median'"):
+        surface_offsets(grid, pts, normals, "median")
+
+
+def test_no_ray_of_the_sweep_passes_its_own_return():
+    """A perfect grid of a sweep (its labels, normals and offsets) stops every one of its rays
+    at or before its return: a noisy ground seen at grazing angles, a box and a pole (the mean of
+    the returns instead of their front lets the rays whose return lies in front of it run on)."""
+    from pcfbench.methods.occworld.occupancy import label_occupancy
+
+    rng = np.random.default_rng(3)
+    grid = OccGrid.over((-30.0, -30.0, -3.0), (30.0, 30.0, 3.0), (60, 60, 8))
+    az = rng.uniform(-np.pi, np.pi, 20000)
+    el = rng.uniform(np.radians(-20), np.radians(-1.5), 20000)
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    r = (-1.73 + rng.normal(0, 0.04, len(d))) / d[:, 2]  # the ground at z = -1.73, 4 cm of noise
+    pts = d * r[:, None]
+    box = (pts[:, 0] > 8) & (pts[:, 0] < 10) & (np.abs(pts[:, 1]) < 1.5)
+    r[box] = (8 + rng.normal(0, 0.03, box.sum())) / d[box, 0]  # a wall facing the sensor at x = 8
+    pts = d * r[:, None]
+    keep = (np.abs(pts) < [29.9, 29.9, 2.9]).all(axis=1) & (r < 40)
+    pts, d, r = pts[keep], d[keep], r[keep]
+    labels = label_occupancy(grid, pts, np.zeros(3))
+    normals = free_normals(labels == FREE, grid.voxel)
+    offsets = surface_offsets(grid, pts, normals)
+    depth = render_surface(grid, (labels == OCCUPIED) * 1.0, normals, offsets, np.zeros(3), d)
+    assert (depth <= r + 1e-9).all(), (depth - r).max()
+    mean = render_surface(grid, (labels == OCCUPIED) * 1.0, normals, surface_offsets(grid, pts, normals, "mean"),
+                          np.zeros(3), d)
+    assert (mean > r + 0.1).mean() > 0.1  # the mean's planes let many run on
+    # and closer than the middle of the first occupied voxel
+    old = render_depths(grid, (labels == OCCUPIED) * 1.0, np.zeros(3), d, "threshold")
+    assert np.median(np.abs(depth - r)) < 0.8 * np.median(np.abs(old - r))
