@@ -16,7 +16,8 @@ The plane of an occupied voxel (``surface=front``, or ``mean``):
   the largest signed distance, along that normal, from the voxel's centre to the returns that
   fell in it (the front of the returns, as seen from the free side; inside the voxel, so
   ``|s| <= sum_i |n_i| v_i / 2``). Every return of the sweep then lies on or behind its voxel's
-  plane, so none of the sweep's own rays passes its voxel: it stops there or before. ``mean``
+  plane, so none of the sweep's own rays passes its voxel: it stops there or before (except a
+  ray lying exactly in a face plane, which the walk may put in the voxel beside its return's). ``mean``
   puts the plane through the mean of the returns instead: half the median error on the
   benchmark's data, but the rays whose return lies in front of the mean pass and run on, which
   costs chamfer_nf several times over (docs/occworld.md).
