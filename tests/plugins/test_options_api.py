@@ -28,8 +28,8 @@ GOLDEN_DEFAULT_HASHES = {
     # new with the trained-method contract (issue 13); moved on purpose when the rendering
     # options noise and readout came in and the threshold default went 0.5 -> 0.02 (issue 14)
     "copilot4d-token-copy": "399b687887eb",
-    "copilot4d": "caf63f429a20",  # issue 42 added the training option 'frame' (no copilot4d checkpoint ships)
-    "copilot4d-maskgit": "caf63f429a20",
+    "copilot4d": "a950d364665d",  # issue 42 added the options frame and top_k (no copilot4d checkpoint ships)
+    "copilot4d-maskgit": "a950d364665d",
     # issue 47: forecasts read from a file; a cell's options always name the file and its sha256
     "submission": "230160ea66bc",
     # issue 43: OccWorld, its tokenizer and world model (no checkpoint ships)
