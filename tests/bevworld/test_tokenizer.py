@@ -140,22 +140,18 @@ def test_a_wall_in_the_volume_is_rendered_at_its_distance():
     assert 37.5 / 0.8 <= float(depth[2]) <= 38.5 / 0.8
 
 
-def test_a_short_run_overfits_one_batch():
+def test_a_short_run_overfits_one_batch(one_thread):
     cfg = tokenizer_config("micro")
     torch.manual_seed(0)
     m = LatentTokenizer(cfg)
     rng = np.random.default_rng(0)
     b = make_batch(cfg, [_scene(rng), _scene(rng)], cfg.rays_per_step, rng)
     opt = torch.optim.AdamW(m.parameters(), lr=cfg.lr, betas=cfg.betas)
-    losses, threads = [], torch.get_num_threads()
-    torch.set_num_threads(1)  # small tensors: threads only contend
-    try:
-        for _ in range(60):
-            out = tokenizer_losses(m, b)
-            opt.zero_grad()
-            out["loss"].backward()
-            opt.step()
-            losses.append(float(out["l1"].detach()))
-    finally:
-        torch.set_num_threads(threads)
+    losses = []
+    for _ in range(60):
+        out = tokenizer_losses(m, b)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        losses.append(float(out["l1"].detach()))
     assert losses[-1] < 0.25 * losses[0], losses[::10]
