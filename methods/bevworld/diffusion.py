@@ -56,15 +56,16 @@ def diffusion_loss(model, schedule: Schedule, latents: torch.Tensor, poses: torc
     loses its action with that probability (classifier-free guidance's training)."""
     B, T = latents.shape[:2]
     dev = latents.device
-    tt = torch.randint(1, schedule.steps + 1, (B,), generator=generator, device="cpu").to(dev)
-    eps = torch.randn(latents[:, n_past:].shape, generator=generator, device="cpu").to(dev, latents.dtype)
+    gdev = generator.device if generator is not None else dev
+    tt = torch.randint(1, schedule.steps + 1, (B,), generator=generator, device=gdev).to(dev)
+    eps = torch.randn(latents[:, n_past:].shape, generator=generator, device=gdev).to(dev, latents.dtype)
     noisy = schedule.q_sample(latents[:, n_past:], tt, eps)
     x = torch.cat([latents[:, :n_past], noisy], dim=1)
     t_frames = torch.cat([torch.zeros(B, n_past, dtype=torch.long, device=dev), tt[:, None].expand(B, T - n_past)],
                          dim=1)
     drop = None
     if cond_dropout > 0:
-        drop = (torch.rand(B, generator=generator, device="cpu") < cond_dropout).to(dev)
+        drop = (torch.rand(B, generator=generator, device=gdev) < cond_dropout).to(dev)
     pred = model(x, t_frames, poses, frames=frames, drop_action=drop)
     mse = F.mse_loss(pred[:, n_past:].float(), eps.float())
     return {"loss": mse, "mse": mse}
@@ -80,8 +81,10 @@ def sample_future(model, schedule: Schedule, past: torch.Tensor, poses: torch.Te
     ``guidance`` != 1: eps = eps(no action) + guidance (eps(action) - eps(no action))."""
     B, P = past.shape[:2]
     shape = (B, n_future, *past.shape[2:])
-    x = noise if noise is not None else torch.randn(shape, generator=generator, device="cpu").to(past.device,
-                                                                                                   past.dtype)
+    if noise is None:
+        gdev = generator.device if generator is not None else past.device
+        noise = torch.randn(shape, generator=generator, device=gdev).to(past.device, past.dtype)
+    x = noise
     ts = schedule.ddim_timesteps(steps)
     for t, s in zip(ts[:-1], ts[1:]):
         t_frames = torch.cat([torch.zeros(B, P, dtype=torch.long), torch.full((B, n_future), t)], 1).to(past.device)

@@ -13,6 +13,16 @@ from pcfbench.methods.bevworld.tokenizer import LatentTokenizer, tokenizer_losse
 from pcfbench.methods.copilot4d.data import make_batch
 
 
+@pytest.fixture
+def one_thread():
+    """One torch thread for the short training runs: their tensors are small, and on a shared
+    CPU more threads only contend (a run took 20x longer)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _scene(rng: np.random.Generator, n: int = 3000) -> np.ndarray:
     """A ground plane at -1.7 m and a ring of walls at 20 m, as a sensor sees them."""
     az = rng.uniform(-np.pi, np.pi, n)

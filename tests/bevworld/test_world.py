@@ -14,6 +14,16 @@ from pcfbench.methods.bevworld.diffusion import Schedule, diffusion_loss, sample
 from pcfbench.methods.bevworld.world import PAPER_PARAMETERS, WorldModel, count_parameters
 
 
+@pytest.fixture
+def one_thread():
+    """One torch thread for the short training runs: their tensors are small, and on a shared
+    CPU more threads only contend (a run took 20x longer)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def test_schedule_is_ddpms_linear_one():
     s = Schedule(1000, 1e-4, 0.02)
     ab, ref = [1.0], 1.0
