@@ -150,8 +150,9 @@ class BevWorld(TrainedMethod):
     inference_options = ("ddim_steps", "guidance", "sample_seed")
     # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 44)
     in_default_runs = False
-    training_time = ("not measured: the tiny world model's step is to be timed; plus encoding the windows and its "
-                     "tokenizer's training (about 70 min on a 2-core CPU)")
+    # estimated, not measured: the median step (5.3 s, batch 2) on a 2-core CPU busy with another training
+    training_time = ("about 55 min for the tiny configuration on a 2-core CPU (600 steps at about 5.3 s), plus "
+                     "encoding the windows and its tokenizer's training (about 70 min)")
 
     def __init__(self, options: BevWorldOptions | None = None) -> None:
         super().__init__(options)
