@@ -112,7 +112,7 @@ def window_cache_dir(tokenizer_sha: str, train_on_key: str) -> Path:
 
 def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, strides: tuple[int, ...],
                   anchor_every: int, cache: Path | None, log=print, frame: str = "t0", tokenize=None,
-                  token_shape: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+                  token_shape: tuple[int, ...] | None = None, token_dtype=np.int16) -> dict[str, np.ndarray]:
     """Token maps of every training window: ``tokens`` (A, T, H, W) int16, ``poses`` (A, T, 4, 4)
     float32 (each frame's sensor pose in the window's t=0 sensor frame), ``stride`` (A,).
 
@@ -123,7 +123,8 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
 
     ``tokenize(points_sensor, T_frame_sensor)`` (another world model's tokenizer, with its
     ``token_shape``) gives the (H, W) token map of a sweep seen in the frame ``T_frame_sensor``
-    maps its sensor frame into (None: its own frame); default: the Copilot4D ``tokenizer``'s."""
+    maps its sensor frame into (None: its own frame); default: the Copilot4D ``tokenizer``'s.
+    ``token_dtype``: what the token maps are stored as (a continuous latent's: float32)."""
     if tokenize is None:
         from pcfbench.methods.copilot4d.evaluate import tokenize_sweep
 
@@ -147,7 +148,7 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                 seq = seq or adapter.sequence(name)
                 n = len(seq)
                 anchors = list(range((n_past - 1) * s, n - n_future * s, anchor_every))
-                t = np.zeros((len(anchors), T, *token_shape), np.int16)
+                t = np.zeros((len(anchors), T, *token_shape), token_dtype)
                 p = np.zeros((len(anchors), T, 4, 4), np.float32)
                 clouds: dict[int, np.ndarray] = {}
                 t0 = time.monotonic()

@@ -35,6 +35,9 @@ GOLDEN_DEFAULT_HASHES = {
     # issue 43: OccWorld, its tokenizer and world model (no checkpoint ships)
     "occworld-occ-copy": "353f3801114c",
     "occworld": "5711a484e17b",
+    # issue 44: BEVWorld, its tokenizer and world model (no checkpoint ships)
+    "bevworld-latent-copy": "dfed14b9b2e1",
+    "bevworld": "837ab777853b",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {

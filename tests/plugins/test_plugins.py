@@ -193,8 +193,9 @@ def test_hooks_run_in_pluggys_order_tryfirst_and_trylast_honoured(fake_entry_poi
     fake_entry_points("aa-last", _hookimpl_module("pcfb_t_last", "register_methods", _registering("m-last"), trylast=True))
     fake_entry_points("mm-plain", _hookimpl_module("pcfb_t_plain", "register_methods", _registering("m-plain")))
     plugins = load_plugins()
-    builtins = ["copilot4d-token-copy", "copilot4d", "copilot4d-maskgit", "copy-last", "raycast-4docc", "raycast-zbuffer",
-                "raycast-voxel", "raycast-freespace", "submission", "occworld-occ-copy", "occworld"]
+    builtins = ["bevworld-latent-copy", "bevworld", "copilot4d-token-copy", "copilot4d", "copilot4d-maskgit",
+                "copy-last", "raycast-4docc", "raycast-zbuffer", "raycast-voxel", "raycast-freespace", "submission",
+                "occworld-occ-copy", "occworld"]
     # tryfirst first, then the built-ins, the others by entry-point name, trylast last
     assert list(plugins.methods.entries) == ["m-first", *builtins, "m-plain", "m-last"]
     # ... which is exactly the order of one pm.hook call (pluggy itself as the reference)
