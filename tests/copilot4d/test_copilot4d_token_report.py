@@ -43,13 +43,14 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
     def fake_forecast(model, past, poses, n_future, **kw):
         a = next(i for i in range(A) if np.array_equal(tokens[i, :P], past[0].numpy()))
         seen.append((a, poses.shape[1], n_future))
+        assert (kw["steps"], kw["guidance"], kw["top_k"]) == (2, 0.0, 1)  # the method's sampling options
         out = tokens[a, P:] if answer == "truth" else np.repeat(tokens[a, P - 1][None], F, 0)
         return torch.from_numpy(out.astype(np.int64))[None]
 
     monkeypatch.setattr(diffusion, "forecast_tokens", fake_forecast)
     method = types.SimpleNamespace(
         world_cfg=types.SimpleNamespace(n_past=P, n_future=F), world=torch.nn.Linear(1, 1),
-        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0), variant=types.SimpleNamespace(revise=True))
+        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1), variant=types.SimpleNamespace(revise=True))
     res = world_token_report(method, windows, log=lambda *_: None)
     assert sorted(seen) == [(a, P + F, F) for a in range(A)]
     assert [(r["stride"], r["step"], r["windows"]) for r in res["rows"]] == [(s, f, 2) for s in (2, 6) for f in (1, 2, 3)]
