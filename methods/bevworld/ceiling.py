@@ -75,33 +75,11 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
 def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
     """The ceiling as Markdown and CSV: its means, the latent copy's and copy-last's from the same
     loop, and the ratios, labelled as a bound that sees the future."""
-    import csv
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    m = result["means"]
-    o, lcp, c = m["ceiling"], m["bevworld-latent-copy"], m["copy-last"]
-    names = [n for n in o if all(np.isfinite(v[n]) for v in (o, lcp, c))]
-
-    def ratio(a, b):
-        return a / b if b else float("nan")
-
-    table = [("ceiling: bevworld's target for the ground-truth future (sees the future)", o),
-             ("bevworld-latent-copy", lcp), ("copy-last", c),
-             ("ratio ceiling / bevworld-latent-copy", {n: ratio(o[n], lcp[n]) for n in names}),
-             ("ratio ceiling / copy-last", {n: ratio(o[n], c[n]) for n in names})]
-    csv_path = out_dir / f"{stem}.csv"
-    with open(csv_path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["entry", "dataset", "split", "setting", "frame", "samples", "sweeps", *names])
-        for entry, vals in table:
-            w.writerow([entry, result["dataset"], result["split"], result["setting"], result["frame"],
-                        result["samples"], result["sweeps"], *(f"{vals[n]:.6g}" for n in names)])
     how = {"own": "encoded in its own sensor frame, decoded and rendered from its own origin",
            "t0": "moved into the t=0 sensor frame, encoded there, decoded and rendered from its sensor's position in "
                  "that frame"}[result["frame"]]
-    beats = {n: o[n] < lcp[n] for n in ("chamfer_nf", "l1_mean", "l1_median") if n in names}
     ch = result["change"]
-    lines = [
+    head = [
         f"# BEVWorld: the world model's ceiling ({meta.get('config')} tokenizer, {result['dataset']} "
         f"{result['split']}, {result['setting']}, frame {result['frame']})",
         "",
@@ -114,16 +92,8 @@ def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         f"RMS of the standardised target's difference from the t=0 latent: {ch['mean']:.3f} on average "
         f"({', '.join(f'{v:.3f}' for v in ch['per_step'])} by future step).",
         "",
-        "| entry | " + " | ".join(names) + " |",
-        "|---|" + "---:|" * len(names),
-        *("| " + entry.split(":")[0] + " | " + " | ".join(f"{vals[n]:.3f}" if "ratio" not in entry else f"{vals[n]:.2f}"
-                                                          for n in names) + " |" for entry, vals in table),
-        "",
-        "Bar (issue 44: the ceiling beats bevworld-latent-copy on chamfer_nf, l1_mean and l1_median): "
-        + ", ".join(f"{n} {'met' if ok else 'NOT met'}" for n, ok in beats.items()) + ".",
-        "",
     ]
-    lines += [f"- {k}: {v}" for k, v in meta.items()]
-    md = out_dir / f"{stem}.md"
-    md.write_text("\n".join(lines) + "\n")
-    return md, csv_path
+    from pcfbench.methods.copilot4d.ceiling import write_beside
+
+    return write_beside(result, meta, out_dir, stem, copy="bevworld-latent-copy",
+                        target="bevworld's target", head=head, issue=44)

@@ -130,33 +130,56 @@ def score_beside(adapter, split: str, setting: str, forecasters: dict, *, max_sa
     return {"samples": len(keys), "means": means, "rows": rows, "eval_s": time.monotonic() - t0}
 
 
-def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
-    """The ceiling as Markdown and CSV: its metric means, token-copy's and copy-last's from the
-    same loop, and the ceiling's ratios to both, labelled as a bound that sees the future."""
+def write_beside(result: dict, meta: dict, out_dir: Path, stem: str, *, copy: str, target: str, head: list[str],
+                 issue: int, columns: tuple[str, ...] = ()) -> tuple[Path, Path]:
+    """A ceiling scored by :func:`score_beside` as Markdown and CSV, for every world model: the
+    ceiling's means (``target`` labels it), the copy baseline ``copy``'s and copy-last's from the
+    same loop, the ceiling's ratios to both and whether it beats ``copy`` on the bar's three
+    columns (issue ``issue``). ``head``: the Markdown lines before the table (title, what the
+    target is, the samples); ``columns``: extra ``result`` keys written on every CSV row."""
     import csv
 
     out_dir.mkdir(parents=True, exist_ok=True)
     m = result["means"]
-    o, tc, c = m["ceiling"], m["copilot4d-token-copy"], m["copy-last"]
-    names = [n for n in o if all(np.isfinite(v[n]) for v in (o, tc, c))]
+    o, cp, c = m["ceiling"], m[copy], m["copy-last"]
+    names = [n for n in o if all(np.isfinite(v[n]) for v in (o, cp, c))]
     ratio = lambda a, b: (a / b) if b else float("nan")  # noqa: E731
-    table = [("ceiling: the world model's target for the ground-truth future (sees the future)", o),
-             ("copilot4d-token-copy", tc), ("copy-last", c),
-             ("ratio ceiling / copilot4d-token-copy", {n: ratio(o[n], tc[n]) for n in names}),
+    table = [(f"ceiling: {target} for the ground-truth future (sees the future)", o), (copy, cp), ("copy-last", c),
+             (f"ratio ceiling / {copy}", {n: ratio(o[n], cp[n]) for n in names}),
              ("ratio ceiling / copy-last", {n: ratio(o[n], c[n]) for n in names})]
+    keys = ("dataset", "split", "setting", "frame", *columns, "samples", "sweeps")
     csv_path = out_dir / f"{stem}.csv"
     with open(csv_path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["entry", "dataset", "split", "setting", "frame", "samples", "sweeps", *names])
+        w.writerow(["entry", *keys, *names])
         for entry, vals in table:
-            w.writerow([entry, result["dataset"], result["split"], result["setting"], result["frame"],
-                        result["samples"], result["sweeps"], *(f"{vals[n]:.6g}" for n in names)])
+            w.writerow([entry, *(result[k] for k in keys), *(f"{vals[n]:.6g}" for n in names)])
+    beats = {n: o[n] < cp[n] for n in ("chamfer_nf", "l1_mean", "l1_median") if n in names}
+    lines = [
+        *head,
+        "| entry | " + " | ".join(names) + " |",
+        "|---|" + "---:|" * len(names),
+        *("| " + entry.split(":")[0] + " | " + " | ".join(f"{vals[n]:.3f}" if "ratio" not in entry else f"{vals[n]:.2f}"
+                                                          for n in names) + " |" for entry, vals in table),
+        "",
+        f"Bar (issue {issue}: the ceiling beats {copy} on chamfer_nf, l1_mean and l1_median): "
+        + ", ".join(f"{n} {'met' if ok else 'NOT met'}" for n, ok in beats.items()) + ".",
+        "",
+        *(f"- {k}: {v}" for k, v in meta.items()),
+    ]
+    md = out_dir / f"{stem}.md"
+    md.write_text("\n".join(lines) + "\n")
+    return md, csv_path
+
+
+def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
+    """The ceiling as Markdown and CSV: its metric means, token-copy's and copy-last's from the
+    same loop, and the ceiling's ratios to both, labelled as a bound that sees the future."""
     frame = {"t0": "moved into the t=0 sensor frame and tokenized there, rendered from the future sensor's "
                    "origin in that frame",
              "own": "tokenized in its own sensor frame, rendered from its own origin"}[result["frame"]]
-    beats = {n: o[n] < tc[n] for n in ("chamfer_nf", "l1_mean", "l1_median") if n in names}
     ch = result["changed"]
-    lines = [
+    head = [
         f"# Copilot4D: the world model's ceiling ({meta.get('config')} tokenizer, {result['dataset']} "
         f"{result['split']}, {result['setting']}, frame {result['frame']})",
         "",
@@ -170,17 +193,6 @@ def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         f"Target tokens that differ from the last past sweep's: {ch['mean']:.1%} on average "
         f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step).",
         "",
-        "| entry | " + " | ".join(names) + " |",
-        "|---|" + "---:|" * len(names),
-        *("| " + entry.split(":")[0] + " | " + " | ".join(f"{vals[n]:.3f}" if "ratio" not in entry else f"{vals[n]:.2f}"
-                                                          for n in names) + " |" for entry, vals in table),
-        "",
-        "Bar (issue 42: the ceiling beats copilot4d-token-copy on chamfer_nf, l1_mean and l1_median): "
-        + ", ".join(f"{n} {'met' if ok else 'NOT met'}" for n, ok in beats.items()) + ".",
-        "",
     ]
-    for k, v in meta.items():
-        lines.append(f"- {k}: {v}")
-    md = out_dir / f"{stem}.md"
-    md.write_text("\n".join(lines) + "\n")
-    return md, csv_path
+    return write_beside(result, meta, out_dir, stem, copy="copilot4d-token-copy",
+                        target="the world model's target", head=head, issue=42)

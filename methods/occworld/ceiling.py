@@ -156,33 +156,11 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
 def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
     """The ceiling as Markdown and CSV: its means, the occupancy copy's and copy-last's from the
     same loop, and the ratios, labelled as a bound that sees the future."""
-    import csv
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    m = result["means"]
-    o, oc_, c = m["ceiling"], m["occworld-occ-copy"], m["copy-last"]
-    names = [n for n in o if all(np.isfinite(v[n]) for v in (o, oc_, c))]
-
-    def ratio(a, b):
-        return a / b if b else float("nan")
-
-    table = [("ceiling: occworld's target for the ground-truth future (sees the future)", o),
-             ("occworld-occ-copy", oc_), ("copy-last", c),
-             ("ratio ceiling / occworld-occ-copy", {n: ratio(o[n], oc_[n]) for n in names}),
-             ("ratio ceiling / copy-last", {n: ratio(o[n], c[n]) for n in names})]
-    csv_path = out_dir / f"{stem}.csv"
-    with open(csv_path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["entry", "dataset", "split", "setting", "frame", "readout", "samples", "sweeps", *names])
-        for entry, vals in table:
-            w.writerow([entry, result["dataset"], result["split"], result["setting"], result["frame"],
-                        result["readout"], result["samples"], result["sweeps"], *(f"{vals[n]:.6g}" for n in names)])
     how = {"own": "labelled from its rays in its own sensor frame, tokenized, decoded and rendered from its own origin",
            "t0": "moved into the t=0 sensor frame, labelled there, tokenized, decoded and rendered from its sensor's "
                  "position in that frame"}[result["frame"]]
-    beats = {n: o[n] < oc_[n] for n in ("chamfer_nf", "l1_mean", "l1_median") if n in names}
     ch = result["changed"]
-    lines = [
+    head = [
         f"# OccWorld: the world model's ceiling ({meta.get('config')} tokenizer, {result['dataset']} "
         f"{result['split']}, {result['setting']}, frame {result['frame']})",
         "",
@@ -195,16 +173,8 @@ def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         f"Target tokens that differ from the t=0 sweep's: {ch['mean']:.1%} on average "
         f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step).",
         "",
-        "| entry | " + " | ".join(names) + " |",
-        "|---|" + "---:|" * len(names),
-        *("| " + entry.split(":")[0] + " | " + " | ".join(f"{vals[n]:.3f}" if "ratio" not in entry else f"{vals[n]:.2f}"
-                                                          for n in names) + " |" for entry, vals in table),
-        "",
-        "Bar (issue 43: the ceiling beats occworld-occ-copy on chamfer_nf, l1_mean and l1_median): "
-        + ", ".join(f"{n} {'met' if ok else 'NOT met'}" for n, ok in beats.items()) + ".",
-        "",
     ]
-    lines += [f"- {k}: {v}" for k, v in meta.items()]
-    md = out_dir / f"{stem}.md"
-    md.write_text("\n".join(lines) + "\n")
-    return md, csv_path
+    from pcfbench.methods.copilot4d.ceiling import write_beside
+
+    return write_beside(result, meta, out_dir, stem, copy="occworld-occ-copy",
+                        target="occworld's target", head=head, issue=43, columns=("readout",))
