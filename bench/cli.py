@@ -734,7 +734,7 @@ def _checkpoint_lines(row: dict) -> list[str]:
         lines.append(f"checkpoint {data} ({origin}{opts}): {c['steps']} steps, {state}; {c['manifest']}")
     if not row["checkpoints"]:
         lines.append(f"no checkpoint: `pcfbench train {row['name']} --dataset {row['default_train_on']}` trains the "
-                     "one the default run uses")
+                     "checkpoint it uses by default")
     return lines
 
 
