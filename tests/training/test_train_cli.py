@@ -153,8 +153,8 @@ def test_off_a_terminal_progress_is_labelled_log_lines_at_a_sane_rate(env, monke
 
 def test_ls_methods_lists_each_trained_method_s_checkpoints_and_their_data(env, monkeypatch):
     res = env.invoke("ls", "methods")
-    assert ("stop-toy" in res.output and "    no checkpoint: `pcfbench train stop-toy --dataset kitti` trains the one the "
-            "default run uses" in res.output)
+    assert ("stop-toy" in res.output and "    no checkpoint: `pcfbench train stop-toy --dataset kitti` trains the "
+            "checkpoint it uses by default" in res.output)
     assert env.invoke("train", "stop-toy", "--dataset", env.data, "--threads", "1", "-q").exit_code == 0
     monkeypatch.setenv("STOP_TOY_AT", "6")
     assert env.invoke("train", "stop-toy:steps=20", "--dataset", env.data, "--threads", "1", "-q").exit_code == 130
