@@ -41,7 +41,7 @@ class LabelTokens:
     def decode(model, codes) -> np.ndarray:
         from pcfbench.methods.occworld.occupancy import OCCUPIED
 
-        return (np.asarray(codes) == OCCUPIED) * 1.0
+        return (np.asarray(codes) == OCCUPIED) * 1.0, None
 
 
 def surface_grid(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None, at: str = "front"):
@@ -81,17 +81,17 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
                      surface: str = "none", max_samples: int | None = None, log=print) -> dict:
     """The ceiling of ``occworld`` on the tokenizer ``model`` (a ``SceneTokenizer``, or a
     ``LabelTokens`` for the representation's own bound), beside ``occworld-occ-copy`` and
-    copy-last. ``surface="front"`` or ``"mean"`` (``LabelTokens`` only: no tokenizer predicts the offsets
-    yet) renders both through the labels' sub-voxel planes (``surface.py``) instead of
-    ``readout``. Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
+    copy-last. ``surface="front"`` or ``"mean"`` (``LabelTokens`` only) renders both through the labels' sub-voxel planes (``surface.py``) instead of
+    ``readout`` (a trained tokenizer with the offset head renders its own planes with
+    ``readout="surface"``). Returns per-entry means (``means``), ``rows``, ``changed`` (mean share and per
     step), ``samples`` and ``sweeps``."""
     from pcfbench.methods.occworld.surface import SURFACES
 
     if surface not in SURFACES:
         raise PcfbenchError(f"ceiling surface {surface!r}: expected one of {', '.join(SURFACES)}")
     if surface != "none" and not isinstance(model, LabelTokens):
-        raise PcfbenchError(f"ceiling surface={surface}: only with perfect tokens (--perfect); no tokenizer "
-                            "predicts the per-voxel offsets yet")
+        raise PcfbenchError(f"ceiling surface={surface}: only with perfect tokens (--perfect); a trained tokenizer "
+                            "renders the planes it decodes (readout=surface)")
     from pcfbench.data import Forecast
     from pcfbench.methods.copilot4d.ceiling import score_beside
     from pcfbench.methods.copy_last import CopyLast
@@ -101,7 +101,7 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
     model.eval()
     cfg = model.cfg
     tokenize, decode = ((LabelTokens.tokenize, LabelTokens.decode) if isinstance(model, LabelTokens)
-                        else (oc.tokenize_labels, oc.decode_probability))
+                        else (oc.tokenize_labels, oc.decode_grid))
     copy_last = CopyLast()
     changed: list[list[float]] = []
 

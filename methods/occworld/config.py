@@ -47,6 +47,11 @@ class TokenizerConfig:
     ce_weight: float = 10.0
     lovasz_weight: float = 1.0
     vq_weight: float = 1.0
+    # --- sub-voxel planes (ours, not the paper's; surface.py): ``none`` or the offsets' target,
+    # ``front`` / ``mean``; not ``none`` adds one offset per voxel to the decoder (a 3x3
+    # convolution beside its classifier), trained with L1 on the occupied voxels ---
+    surface: str = "none"
+    offset_weight: float = 10.0
     # --- optimisation ---
     lr: float = 1e-3
     weight_decay: float = 0.01
@@ -59,6 +64,10 @@ class TokenizerConfig:
     checkpoint_every: int = 100
 
     def __post_init__(self) -> None:
+        from pcfbench.methods.occworld.surface import SURFACES
+
+        if self.surface not in SURFACES:
+            raise PcfbenchError(f"surface={self.surface!r}: expected one of {', '.join(SURFACES)}")
         down = 2 ** (len(self.ch_mult) - 1)
         if len(self.dims) != 3 or self.dims[0] % down or self.dims[1] % down:
             raise PcfbenchError(f"occworld tokenizer {self.name!r}: the grid {self.dims} must divide by the "
@@ -67,6 +76,15 @@ class TokenizerConfig:
     @property
     def down(self) -> int:
         return 2 ** (len(self.ch_mult) - 1)
+
+    @property
+    def voxel(self) -> tuple[float, float, float]:
+        return tuple((h - lo) / n for lo, h, n in zip(self.box_lo, self.box_hi, self.dims))
+
+    @property
+    def offset_scale(self) -> float:
+        """Metres per unit of the offset head's output: half the largest voxel side."""
+        return max(self.voxel) / 2
 
     @property
     def token_grid(self) -> tuple[int, int]:
@@ -103,11 +121,12 @@ TOKENIZERS = {
 }
 
 
-def tokenizer_config(name: str, tokens: int = 0) -> TokenizerConfig:
+def tokenizer_config(name: str, tokens: int = 0, surface: str = "none") -> TokenizerConfig:
     if name not in TOKENIZERS:
         raise PcfbenchError(f"occworld config={name!r}: expected one of {', '.join(TOKENIZERS)}")
     cfg = TOKENIZERS[name]
-    return cfg.with_tokens(tokens) if tokens else cfg
+    cfg = cfg.with_tokens(tokens) if tokens else cfg
+    return replace(cfg, surface=surface) if surface != cfg.surface else cfg
 
 
 def tokenizer_config_from_dict(d: dict) -> TokenizerConfig:

@@ -31,8 +31,7 @@ import numpy as np
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
-from pcfbench.methods.occworld.occ_copy import (OccOptions, decode_probability, render_sample, sweep_labels,
-                                                tokenize_labels)
+from pcfbench.methods.occworld.occ_copy import OccOptions, decode_grid, render_sample, sweep_labels, tokenize_labels
 from pcfbench.options import option
 from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
 
@@ -126,7 +125,7 @@ class OccWorld(TrainedMethod):
         super().__init__(options)
         from pcfbench.methods.occworld.config import tokenizer_config, world_config
 
-        self.tok_cfg = tokenizer_config(self.options.config, self.options.tokens)
+        self.tok_cfg = tokenizer_config(self.options.config, self.options.tokens, self.options.surface)
         self.world_cfg = world_config(self.options.config, self.tok_cfg)
         self.tokenizer = None
         self.world = None
@@ -138,7 +137,7 @@ class OccWorld(TrainedMethod):
         from pcfbench.method import resolve_method
 
         o = self.options
-        opts = {"config": o.config, "frame": o.frame}
+        opts = {"config": o.config, "frame": o.frame, "surface": o.surface}
         if o.tokens:
             opts["tokens"] = str(o.tokens)
         if o.tokenizer_steps:
@@ -270,7 +269,7 @@ class OccWorld(TrainedMethod):
         if self.world is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
         codes, T_s0_ref = self.forecast_codes(sample)
-        probs = [decode_probability(self.tokenizer, c) for c in codes]
+        probs = [decode_grid(self.tokenizer, c) for c in codes]
         frames = (T_s0_ref if self.options.frame == "t0"
                   else [np.linalg.inv(T) for T in sample.future_T_ref_sensor])  # each from its own origin
         return Forecast.from_depths(sample, render_sample(self.tokenizer, probs, sample, frames, self.options.readout))

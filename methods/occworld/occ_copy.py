@@ -42,8 +42,11 @@ class OccOptions:
                                  "grid's 200 voxels (the paper's Table 3 sweep)", min=0)
     frame: str = option("own", help="the frame of a window's occupancy: own (each sweep in its own sensor frame) "
                                     "or t0 (moved into the t=0 sensor frame)")
-    readout: str = option("expected", help="a ray's depth: expected (over the voxels' occupancy) or threshold "
-                                           "(the first voxel at occupancy 0.5)")
+    surface: str = option("front", help="sub-voxel planes (ours): the tokenizer also decodes one plane offset per "
+                                        "voxel, at the front (or mean) of its returns; none: OccWorld's occupancy alone")
+    readout: str = option("surface", help="a ray's depth: surface (where it crosses the first occupied voxel's "
+                                          "plane; needs surface front or mean), expected (over the voxels' "
+                                          "occupancy) or threshold (the middle of the first voxel at occupancy 0.5)")
 
     def __post_init__(self) -> None:
         from pcfbench.methods.occworld.config import tokenizer_config
@@ -51,9 +54,13 @@ class OccOptions:
 
         if self.frame not in FRAMES:
             raise PcfbenchError(f"frame={self.frame!r}: expected one of {', '.join(FRAMES)}")
-        if self.readout not in READOUTS:
-            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS)}")
-        tokenizer_config(self.config, self.tokens)  # one error for an unknown configuration or token count
+        if self.readout not in READOUTS + ("surface",):
+            raise PcfbenchError(f"readout={self.readout!r}: expected one of {', '.join(READOUTS + ('surface',))}")
+        # one error for an unknown configuration, token count or surface
+        tokenizer_config(self.config, self.tokens, self.surface)
+        if self.readout == "surface" and self.surface == "none":
+            raise PcfbenchError("readout=surface renders the planes of surface=front or mean; with surface=none "
+                                "choose readout=expected or threshold")
 
 
 @dataclass(frozen=True)
@@ -77,6 +84,24 @@ def sweep_labels(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | No
     return label_occupancy(grid_of(cfg), moved, T[:3, 3])
 
 
+def sweep_targets(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None):
+    """The tokenizer's target for a sweep: its (X, Y, Z) labels (``sweep_labels``) and, with
+    ``cfg.surface`` not ``none``, the (X, Y, Z) float32 offsets of its returns' planes
+    (``surface.surface_offsets``, normals from the free voxels; else None)."""
+    labels = sweep_labels(cfg, points_sensor, T_frame_sensor)
+    if cfg.surface == "none":
+        return labels, None
+    from pcfbench.methods.occworld.occupancy import FREE
+    from pcfbench.methods.occworld.surface import free_normals, surface_offsets
+
+    pts = points_sensor.astype(np.float64)
+    if T_frame_sensor is not None:
+        T = np.asarray(T_frame_sensor, np.float64)
+        pts = pts @ T[:3, :3].T + T[:3, 3]
+    grid = grid_of(cfg)
+    return labels, surface_offsets(grid, pts, free_normals(labels == FREE, grid.voxel), cfg.surface).astype(np.float32)
+
+
 def tokenize_labels(model, labels: np.ndarray):
     """(h, w) codes of one (X, Y, Z) label grid."""
     import torch
@@ -86,32 +111,50 @@ def tokenize_labels(model, labels: np.ndarray):
         return model.tokenize(torch.from_numpy(labels)[None].to(dev))[0]
 
 
-def decode_probability(model, codes) -> np.ndarray:
-    """(X, Y, Z) occupancy probability (1 - p(free)) of one (h, w) token map."""
+def decode_grid(model, codes) -> tuple[np.ndarray, np.ndarray | None]:
+    """One (h, w) token map decoded: the (X, Y, Z) occupancy probability (1 - p(free)) and,
+    with the offset head, the (X, Y, Z) plane offsets in metres (else None)."""
     import torch
 
     from pcfbench.methods.occworld.tokenizer import occupancy_probability
 
     with torch.no_grad():
-        return occupancy_probability(model.decode_codes(codes[None]))[0].cpu().numpy()
+        logits, offsets = model.decode_all(model.vq.embed(codes[None]))
+    prob = occupancy_probability(logits)[0].cpu().numpy()
+    return prob, None if offsets is None else offsets[0].float().cpu().numpy()
 
 
-def render_sample(model, probs, sample: Sample, T_frame_ref, readout: str) -> list[np.ndarray]:
-    """Depths along every future sweep's query rays: ``probs`` one (X, Y, Z) occupancy grid per
-    future sweep (or one for all), grid k in the frame ``T_frame_ref[k]`` maps the reference
-    frame into (one 4x4 for all, or one per sweep); the query's origin and directions are moved
-    there and rendered (:func:`.render.render_depths`)."""
+def render_grid(cfg, decoded, origin: np.ndarray, dirs: np.ndarray, readout: str) -> np.ndarray:
+    """Depths along ``dirs`` from ``origin`` (the grid's frame) through one ``decode_grid``
+    result: ``readout="surface"`` through the sub-voxel planes (occupied where the
+    probability is >= 0.5, normals from the voxels below 0.5, i.e. free; ``surface.render_surface``),
+    else :func:`.render.render_depths`."""
     from pcfbench.methods.occworld.render import render_depths
+    from pcfbench.methods.occworld.surface import free_normals, render_surface
 
+    prob, offsets = decoded
+    grid = grid_of(cfg)
+    if readout != "surface":
+        return render_depths(grid, prob, origin, dirs, readout)
+    if offsets is None:
+        raise PcfbenchError(f"readout=surface: the occworld tokenizer {cfg.name!r} has no offset head "
+                            "(trained with surface=none)")
+    return render_surface(grid, prob, free_normals(prob < 0.5, grid.voxel), offsets, origin, dirs)
+
+
+def render_sample(model, grids, sample: Sample, T_frame_ref, readout: str) -> list[np.ndarray]:
+    """Depths along every future sweep's query rays: ``grids`` one ``decode_grid`` result per
+    future sweep (or one tuple for all), grid k in the frame ``T_frame_ref[k]`` maps the
+    reference frame into (one 4x4 for all, or one per sweep); the query's origin and directions
+    are moved there and rendered (:func:`render_grid`)."""
     F = sample.num_future
     Ts = [np.asarray(T_frame_ref, np.float64)] * F if np.ndim(T_frame_ref) == 2 else list(T_frame_ref)
-    ps = [probs] * F if isinstance(probs, np.ndarray) else list(probs)
-    grid = grid_of(model.cfg)
+    gs = [grids] * F if isinstance(grids, tuple) else list(grids)
     out = []
     for k, q in enumerate(sample.queries):
         R, t = Ts[k][:3, :3], Ts[k][:3, 3]
         dirs = q.directions_ref.astype(np.float64) @ R.T
-        out.append(render_depths(grid, ps[k], R @ q.origin_ref + t, dirs, readout))
+        out.append(render_grid(model.cfg, gs[k], R @ q.origin_ref + t, dirs, readout))
     return out
 
 
@@ -130,17 +173,18 @@ class TokenizerSource:
     def __len__(self) -> int:
         return len(self.keys)
 
-    def labels(self, cfg, k: int, rng: np.random.Generator) -> np.ndarray:
+    def targets(self, cfg, k: int, rng: np.random.Generator):
+        """Sweep ``k``'s ``sweep_targets`` (labels, offsets or None) in its training frame."""
         name, i = self.keys[k]
         seq = self.sequences[name]
         points = self.adapter.ego_box.remove(seq.load_points(i))
         if self.frame == "own":
-            return sweep_labels(cfg, points)
+            return sweep_targets(cfg, points)
         # sweep i is frame j of a window anchored at a: i - a in [-(P - 1) s, F s]
         off = int(rng.integers(-WINDOW_FUTURE * MAX_STRIDE, (WINDOW_PAST - 1) * MAX_STRIDE + 1))
         a = min(max(i + off, 0), len(seq) - 1)
         T_a_i = np.linalg.inv(seq.T_world_sensor[a]) @ seq.T_world_sensor[i]
-        return sweep_labels(cfg, points, T_a_i)
+        return sweep_targets(cfg, points, T_a_i)
 
 
 def train_tokenizer(cfg, source: TokenizerSource, run, *, steps: int, seed: int = 0, log=print) -> dict:
@@ -155,13 +199,16 @@ def train_tokenizer(cfg, source: TokenizerSource, run, *, steps: int, seed: int 
 
     def sample_batch(rand, step: int):
         picks = rand.numpy.integers(0, len(source), cfg.batch_size)
-        return torch.from_numpy(np.stack([source.labels(cfg, int(k), rand.numpy) for k in picks])).to(device)
+        targets = [source.targets(cfg, int(k), rand.numpy) for k in picks]
+        labels = torch.from_numpy(np.stack([t[0] for t in targets])).to(device)
+        offsets = None if targets[0][1] is None else torch.from_numpy(np.stack([t[1] for t in targets])).to(device)
+        return labels, offsets
 
-    def step_fn(model, labels):
-        out = tokenizer_losses(model, labels)
+    def step_fn(model, batch):
+        out = tokenizer_losses(model, *batch)
         return out["loss"], {"loss": out["loss"].item(), "ce": out["ce"].item(), "lovasz": out["lovasz"].item(),
-                             "vq": out["vq"].item(), "accuracy": out["accuracy"].item(),
-                             "batch_codes": int(out["codes"].unique().numel())}
+                             "vq": out["vq"].item(), "offset": out["offset"].item(),
+                             "accuracy": out["accuracy"].item(), "batch_codes": int(out["codes"].unique().numel())}
 
     out = fit_loop(lambda: SceneTokenizer(cfg).to(device),
                    lambda m: torch.optim.AdamW(m.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
@@ -178,8 +225,8 @@ def train_tokenizer(cfg, source: TokenizerSource, run, *, steps: int, seed: int 
 def tokenizer_curve_panels() -> list:
     from pcfbench.training import Panel
 
-    return [Panel((("loss", "total loss"), ("ce", "cross entropy"), ("lovasz", "Lovasz-softmax"), ("vq", "VQ")),
-                  log=True),
+    return [Panel((("loss", "total loss"), ("ce", "cross entropy"), ("lovasz", "Lovasz-softmax"), ("vq", "VQ"),
+                   ("offset", "plane offset L1 (half voxels)")), log=True),
             Panel((("accuracy", "accuracy of the labelled voxels"),), ylim=(0, 1)),
             Panel((("batch_codes", "codes used per step"),))]
 
@@ -223,7 +270,7 @@ class OccCopy(TrainedMethod):
         super().__init__(options)
         from pcfbench.methods.occworld.config import tokenizer_config
 
-        self.cfg = tokenizer_config(self.options.config, self.options.tokens)
+        self.cfg = tokenizer_config(self.options.config, self.options.tokens, self.options.surface)
         self.model = None
 
     def training_steps(self) -> int:
@@ -254,7 +301,7 @@ class OccCopy(TrainedMethod):
 def copy_forecast(model, sample: Sample, readout: str, tokenize=None, decode=None) -> Forecast:
     """The occupancy copy: the t=0 sweep labelled in its sensor frame, ``tokenize``d and
     ``decode``d (default: ``model``'s), rendered along every future query ray."""
-    tokenize, decode = tokenize or tokenize_labels, decode or decode_probability
+    tokenize, decode = tokenize or tokenize_labels, decode or decode_grid
     T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
     last = (sample.past_points_ref[-1].astype(np.float64) @ T_s0_ref[:3, :3].T + T_s0_ref[:3, 3])
     prob = decode(model, tokenize(model, sweep_labels(model.cfg, last)))

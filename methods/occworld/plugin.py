@@ -38,9 +38,10 @@ def register_commands(cli):  # noqa: ANN001
                   help="No tokenizer: the labels are the tokens and decode to certain occupancy (the bound of the "
                        "grid and the rendering alone; needs no checkpoint).")
     @click.option("--grid", default=None, metavar="NXxNYxNZ", help="With --perfect: another grid over the ROI.")
-    @click.option("--surface", type=click.Choice(["none", "front", "mean"]), default="none", show_default=True,
+    @click.option("--surface", type=click.Choice(["none", "front", "mean"]), default=None,
                   help="With --perfect: render through one sub-voxel plane per voxel at the front (or mean) of its "
-                       "returns (the labels gain an offset channel; docs/occworld.md) instead of the method's readout.")
+                       "returns (the labels' offsets; docs/occworld.md), or none: the method's readout of the "
+                       "occupancy alone. Default: the method's surface option with readout=surface, else none.")
     @click.option("--reports", default=None)
     def occworld_ceiling(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, perfect,
                          grid, surface, reports):
@@ -61,13 +62,16 @@ def register_commands(cli):  # noqa: ANN001
                       f"--setting {setting} --samples {max_samples}")
         if grid and not perfect:
             raise PcfbenchError("--grid: only with --perfect (a trained tokenizer has its own grid)")
-        if surface != "none" and not perfect:
-            raise PcfbenchError("--surface: only with --perfect (no tokenizer predicts the per-voxel offsets yet)")
+        if surface is not None and not perfect:
+            raise PcfbenchError("--surface: only with --perfect (a trained tokenizer renders the planes it decodes, "
+                                "readout=surface)")
         if perfect:
             spec = resolve_method(method)
             if not issubclass(spec.cls, OccCopy):
                 raise PcfbenchError(f"--method {method!r}: expected occworld-occ-copy[:options]")
             o, cfg = spec.options, spec.create().cfg
+            if surface is None:
+                surface = o.surface if o.readout == "surface" else "none"
             if grid:
                 try:
                     dims = tuple(int(v) for v in grid.lower().split("x"))
@@ -81,6 +85,7 @@ def register_commands(cli):  # noqa: ANN001
                     "regenerate": regenerate + " --perfect" + (f" --grid {grid}" if grid else "")
                     + (f" --surface {surface}" if surface != "none" else "")}
         else:
+            surface = "none"
             m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
                             train_split, checkpoint)
             o, cfg, model, label = m.options, m.cfg, m.model, f"{m.cfg.name}-{ck.train_on['dataset']}"
@@ -88,7 +93,10 @@ def register_commands(cli):  # noqa: ANN001
                     "parameters": count_parameters(model), "trained_on": ck.train_on_label, "steps": ck.steps,
                     "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256, "regenerate": regenerate}
         adapter = _open(dataset_spec)
-        res = evaluate_ceiling(model, adapter, split, setting, frame=o.frame, readout=o.readout, surface=surface,
+        # perfect occupancy without planes: the middle of the first occupied voxel (what expected and
+        # threshold both give for certain occupancy)
+        readout = "threshold" if perfect and o.readout == "surface" else o.readout
+        res = evaluate_ceiling(model, adapter, split, setting, frame=o.frame, readout=readout, surface=surface,
                                max_samples=max_samples or None, log=click.echo)
         md, csv_path = write_ceiling(res, meta, reports_dir(reports) / "occworld",
                                      f"ceiling-{label}-{'x'.join(map(str, cfg.dims))}-on-{adapter.name}-{split}-"

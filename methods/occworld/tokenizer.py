@@ -40,6 +40,8 @@ AT(c) = GN(c) + 4 conv(1, c, c):
                                                                                14,168,152
 
 (the public model has 18 semantic classes, 18 x 8 = 144 embedding parameters instead of 24).
+Ours adds, with ``surface`` not ``none`` (the methods' default), the sub-voxel planes' offset head:
+conv(3, 64, 16) = 9,232 parameters (``OFFSET_HEAD_PARAMETERS`` for ``paper``).
 """
 
 from __future__ import annotations
@@ -48,11 +50,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pcfbench.errors import PcfbenchError
 from pcfbench.methods.occworld.config import TokenizerConfig
 from pcfbench.methods.occworld.occupancy import FREE, UNKNOWN
 
 #: ``paper``'s parameter count, derived by hand in the module docstring
 PAPER_PARAMETERS = 14_168_152
+#: the offset head ``paper`` adds with ``surface`` (ours): conv(3, 64, 16)
+OFFSET_HEAD_PARAMETERS = 9 * 64 * 16 + 16
 
 
 def _norm(c: int) -> nn.GroupNorm:
@@ -138,14 +143,18 @@ class Decoder(nn.Module):
         self.norm_out = _norm(c)
         self.conv_out = nn.Conv2d(c, cfg.dims[2] * cfg.expansion, 3, padding=1)
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
+    def features(self, z: torch.Tensor) -> torch.Tensor:
+        """The activations the output convolutions read (B, ch, X, Y)."""
         h = self.mid(self.conv_in(z))
         for blocks, attns, up in zip(self.blocks, self.attns, self.ups):
             for b, a in zip(blocks, attns):
                 h = a(b(h))
             if isinstance(up, nn.Conv2d):
                 h = up(F.interpolate(h, scale_factor=2.0, mode="nearest"))
-        return self.conv_out(F.silu(self.norm_out(h)))
+        return F.silu(self.norm_out(h))
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.conv_out(self.features(z))
 
 
 class VectorQuantizer(nn.Module):
@@ -185,6 +194,9 @@ class SceneTokenizer(nn.Module):
         self.encoder = Encoder(cfg)
         self.vq = VectorQuantizer(cfg)
         self.decoder = Decoder(cfg)
+        # the sub-voxel planes' offsets (ours; surface.py): one per voxel, in units of cfg.offset_scale
+        self.offset_out = (nn.Conv2d(cfg.ch * cfg.ch_mult[0], cfg.dims[2], 3, padding=1)
+                           if cfg.surface != "none" else None)
 
     def bev(self, labels: torch.Tensor) -> torch.Tensor:
         """(B, X, Y, Z) class labels -> (B, Z * expansion, X, Y): heights folded into channels."""
@@ -198,12 +210,21 @@ class SceneTokenizer(nn.Module):
     def tokenize(self, labels: torch.Tensor) -> torch.Tensor:
         return self.vq.codes(self.vq.quant_conv(self.encoder(self.bev(labels))))
 
-    def decode(self, quantized: torch.Tensor) -> torch.Tensor:
-        """(B, C, h, w) code vectors -> (B, X, Y, Z, classes) logits."""
-        out = self.decoder(self.vq.post_quant_conv(quantized))
+    def decode_all(self, quantized: torch.Tensor):
+        """(B, C, h, w) code vectors -> ((B, X, Y, Z, classes) logits, (B, X, Y, Z) plane
+        offsets in metres, or None without the offset head)."""
+        h = self.decoder.features(self.vq.post_quant_conv(quantized))
+        out = self.decoder.conv_out(h)
         B, _, X, Y = out.shape
         feat = out.view(B, self.cfg.dims[2], self.cfg.expansion, X, Y).permute(0, 3, 4, 1, 2)
-        return feat @ self.class_embed.weight.T
+        offsets = None
+        if self.offset_out is not None:
+            offsets = self.offset_out(h).permute(0, 2, 3, 1) * self.cfg.offset_scale
+        return feat @ self.class_embed.weight.T, offsets
+
+    def decode(self, quantized: torch.Tensor) -> torch.Tensor:
+        """(B, C, h, w) code vectors -> (B, X, Y, Z, classes) logits."""
+        return self.decode_all(quantized)[0]
 
     def decode_codes(self, codes: torch.Tensor) -> torch.Tensor:
         return self.decode(self.vq.embed(codes))
@@ -238,20 +259,37 @@ def lovasz_softmax(probs: torch.Tensor, labels: torch.Tensor, ignore: int = UNKN
     return torch.stack(losses).mean() if losses else probs.sum() * 0.0
 
 
-def tokenizer_losses(model: SceneTokenizer, labels: torch.Tensor) -> dict[str, torch.Tensor]:
-    """One step's losses on (B, X, Y, Z) labels: ``loss`` (the weighted sum), ``ce``,
-    ``lovasz``, ``vq``, ``accuracy`` (of the labelled voxels) and ``codes``."""
+def tokenizer_losses(model: SceneTokenizer, labels: torch.Tensor,
+                     offsets: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """One step's losses on (B, X, Y, Z) labels (and, with the offset head, their planes'
+    (B, X, Y, Z) ``offsets`` in metres): ``loss`` (the weighted sum), ``ce``, ``lovasz``,
+    ``vq``, ``offset`` (the mean absolute offset error over the occupied voxels, in units of
+    ``cfg.offset_scale``; 0 without the head), ``accuracy`` (of the labelled voxels) and ``codes``."""
+    from pcfbench.methods.occworld.occupancy import OCCUPIED
+
     cfg = model.cfg
-    logits, codes, l_vq = model(labels)
+    if (offsets is None) != (model.offset_out is None):
+        raise PcfbenchError(f"occworld tokenizer {cfg.name!r} (surface={cfg.surface}): "
+                            + ("its offset head needs the planes' offsets" if offsets is None
+                               else "offsets given to a tokenizer without an offset head"))
+    codes, quantized, l_vq = model.encode(labels)
+    logits, pred_off = model.decode_all(quantized)
     flat = logits.reshape(-1, cfg.num_classes).float()
     target = labels.reshape(-1).long()
     valid = target != UNKNOWN
     ce = F.cross_entropy(flat, target, ignore_index=UNKNOWN) if valid.any() else flat.sum() * 0.0
     lov = lovasz_softmax(torch.softmax(flat, dim=1), target)
     loss = cfg.ce_weight * ce + cfg.lovasz_weight * lov + cfg.vq_weight * l_vq.float()
+    l_off = flat.sum() * 0.0
+    if pred_off is not None:
+        occ = labels == OCCUPIED
+        if occ.any():
+            l_off = ((pred_off.float() - offsets.float()).abs()[occ]).mean() / cfg.offset_scale
+        loss = loss + cfg.offset_weight * l_off
     with torch.no_grad():
         acc = (flat.argmax(1)[valid] == target[valid]).float().mean() if valid.any() else flat.new_tensor(float("nan"))
-    return {"loss": loss, "ce": ce, "lovasz": lov, "vq": l_vq.float(), "accuracy": acc, "codes": codes}
+    return {"loss": loss, "ce": ce, "lovasz": lov, "vq": l_vq.float(), "offset": l_off, "accuracy": acc,
+            "codes": codes}
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -140,3 +140,58 @@ def test_losses_and_occupancy_probability():
     logits = torch.tensor([[2.0, 0.0, 0.0], [0.0, 3.0, 1.0]])
     p = torch.softmax(logits, 1)
     assert torch.allclose(occupancy_probability(logits), 1 - p[:, FREE])
+
+
+def test_offset_head_adds_one_plane_offset_per_voxel():
+    """surface=front (ours): a 3x3 convolution beside the classifier decodes one offset per voxel
+    (metres: the head's output times half the largest voxel side); its loss is the mean absolute
+    error over the occupied voxels only, in those units, weighted into the total."""
+    from pcfbench.methods.occworld.tokenizer import OFFSET_HEAD_PARAMETERS
+
+    assert OFFSET_HEAD_PARAMETERS == _conv(3, 64, 16)
+    assert count_parameters(SceneTokenizer(tokenizer_config("paper", surface="front"))) == \
+        PAPER_PARAMETERS + OFFSET_HEAD_PARAMETERS
+    with pytest.raises(PcfbenchError, match="surface"):
+        tokenizer_config("micro", surface="plane")
+    torch.manual_seed(0)
+    cfg = tokenizer_config("micro", surface="front")
+    assert cfg.offset_scale == pytest.approx(max(140 / 32, 9 / 4) / 2)
+    model = SceneTokenizer(cfg)
+    labels = torch.randint(0, 3, (2, *cfg.dims))
+    codes, quantized, _ = model.encode(labels)
+    logits, offsets = model.decode_all(quantized)
+    assert offsets.shape == labels.shape and torch.allclose(logits, model.decode_codes(codes), atol=1e-5)
+    target = torch.randn(labels.shape)
+    with pytest.raises(PcfbenchError, match="offset head needs"):
+        tokenizer_losses(model, labels)
+    with pytest.raises(PcfbenchError, match="without an offset head"):
+        tokenizer_losses(SceneTokenizer(tokenizer_config("micro")), labels, target)
+    out = tokenizer_losses(model, labels, target)
+    occ = labels == OCCUPIED
+    by_hand = (offsets - target).abs()[occ].mean() / cfg.offset_scale
+    assert out["offset"].item() == pytest.approx(by_hand.item(), rel=1e-5)
+    expected = (cfg.ce_weight * out["ce"] + cfg.lovasz_weight * out["lovasz"] + cfg.vq_weight * out["vq"]
+                + cfg.offset_weight * out["offset"])
+    assert out["loss"].item() == pytest.approx(expected.item(), rel=1e-5)
+    # the free and unknown voxels' targets do not count
+    other = target.clone()
+    other[~occ] = 1e3
+    assert tokenizer_losses(model, labels, other)["offset"].item() == pytest.approx(out["offset"].item(), rel=1e-6)
+
+
+def test_offset_head_learns_the_offsets():
+    torch.manual_seed(0)
+    cfg = tokenizer_config("micro", surface="front")
+    model = SceneTokenizer(cfg)
+    g = torch.Generator().manual_seed(0)
+    labels = torch.randint(0, 3, (1, *cfg.dims), generator=g)
+    target = (torch.rand(labels.shape, generator=g) - 0.5) * 0.6
+    opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    errs = []
+    for _ in range(60):
+        out = tokenizer_losses(model, labels, target)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        errs.append(out["offset"].item())
+    assert errs[-1] < 0.5 * errs[0], errs[::10]
