@@ -171,6 +171,16 @@ class VectorQuantizer(nn.Module):
         return True
 
 
+def codebook_after_step(vq: VectorQuantizer, opt: torch.optim.Optimizer, step: int, log) -> dict:
+    """The training loop's ``after_step`` for a :class:`VectorQuantizer`: its K-means
+    re-initialisation when due (the optimiser's stale moments of the codebook dropped, so
+    they do not drag the new codes) and the share of codes alive, for the curve."""
+    if vq.maybe_reinit():
+        opt.state.pop(vq.codebook, None)
+        log(f"step {step}: K-means re-initialised the codebook ({int(vq.reinits)} so far)")
+    return {"alive_codes": 1.0 - vq.dead_codes().float().mean().item()}
+
+
 @torch.no_grad()
 def kmeans(data: torch.Tensor, k: int, iters: int, generator: torch.Generator | None = None) -> torch.Tensor:
     """Lloyd's K-means on (N, D) data; empty clusters are re-seeded with random data points."""

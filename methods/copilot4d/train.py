@@ -12,7 +12,7 @@ from torch import nn
 
 from pcfbench.methods.copilot4d.config import TokenizerConfig
 from pcfbench.methods.copilot4d.data import Batch, SweepSource, make_batch
-from pcfbench.methods.copilot4d.model import Tokenizer, occupancy_grid
+from pcfbench.methods.copilot4d.model import Tokenizer, codebook_after_step, occupancy_grid
 from pcfbench.methods.copilot4d.render import pool_mask, render_depth, render_loss, sample_along_rays
 # the generic pieces live in the core; their old names here stay for the callers that use them
 from pcfbench.training import Panel, adamw, autocast, default_device, fit_loop, param_groups, synchronize, warmup_cosine
@@ -102,10 +102,7 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
                              "batch_codes": int(out["codes"].unique().numel())}
 
     def after_step(model: Tokenizer, opt: torch.optim.Optimizer, step: int) -> dict:
-        if model.vq.maybe_reinit():
-            opt.state.pop(model.vq.codebook, None)  # stale Adam moments would drag the new codes
-            log(f"step {step}: K-means re-initialised the codebook ({int(model.vq.reinits)} so far)")
-        return {"alive_codes": 1.0 - model.vq.dead_codes().float().mean().item()}
+        return codebook_after_step(model.vq, opt, step, log)
 
     out = fit_loop(
         lambda: Tokenizer(cfg).to(device), lambda model: make_optimizer(model, cfg), sample_batch, step_fn, run,

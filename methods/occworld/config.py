@@ -42,7 +42,17 @@ class TokenizerConfig:
     level_attention: bool = True  # attention after each block of the token level (else only in the middle blocks)
     z_channels: int = 128  # the code dimension
     codebook_size: int = 512
-    beta: float = 1.0  # the commitment term's weight (the public config's "legacy" VQ loss)
+    beta: float = 1.0  # the codebook term's weight (the public config's "legacy" VQ loss)
+    # --- dead codes (ours, Copilot4D's quantizer, shared): without them the tiny tokenizer used 8 of
+    # its 512 codes per step and its VQ loss grew to 10 (300 steps, docs/occworld.md): a K-means
+    # start once the memory bank of encoder outputs fills, and a K-means re-initialisation when
+    # more than dead_fraction of the codes went unused for dead_after steps ---
+    memory_factor: int = 10
+    dead_after: int = 100
+    dead_fraction: float = 0.03
+    reinit_every: int = 100
+    kmeans_iters: int = 10
+    kmeans_init: bool = True
     # --- the loss ---
     ce_weight: float = 10.0
     lovasz_weight: float = 1.0
@@ -77,6 +87,19 @@ class TokenizerConfig:
     def down(self) -> int:
         return 2 ** (len(self.ch_mult) - 1)
 
+    # the names Copilot4D's quantizer reads (methods/copilot4d/model.py)
+    @property
+    def code_dim(self) -> int:
+        return self.z_channels
+
+    @property
+    def beta_codebook(self) -> float:
+        return self.beta
+
+    @property
+    def beta_commit(self) -> float:
+        return 1.0
+
     @property
     def voxel(self) -> tuple[float, float, float]:
         return tuple((h - lo) / n for lo, h, n in zip(self.box_lo, self.box_hi, self.dims))
@@ -110,9 +133,10 @@ TOKENIZERS = {
     "paper": TokenizerConfig("paper"),
     # CPU scale: the same grid, tokens and codebook; a narrower and shallower network
     # (attention only in the middle blocks: attention over 2,500 tokens dominated the step)
-    # 300 steps: a step took 3.8 s (median) on this 2-core machine while another training ran
-    "tiny": TokenizerConfig("tiny", expansion=4, ch=16, num_res_blocks=1, level_attention=False, z_channels=64,
-                            batch_size=1, max_steps=300, warmup=20),
+    # base width 32 (16 decoded 74% of the occupied voxels after 1200 steps: docs/occworld.md); 1000 steps:
+    # a step took about 1.0 s (median) on this 2-core machine idle
+    "tiny": TokenizerConfig("tiny", expansion=4, ch=32, num_res_blocks=1, level_attention=False, z_channels=64,
+                            batch_size=1, max_steps=1000, warmup=50),
     # tests: a small grid over the ROI
     "micro": TokenizerConfig("micro", dims=(32, 32, 4), expansion=2, ch=8, ch_mult=(1, 2), num_res_blocks=1,
                              level_attention=False,
@@ -181,9 +205,9 @@ class WorldConfig:
 WORLDS = {
     "paper": WorldConfig("paper"),
     # CPU scale: the paper's three scales at a quarter of the widths, one layer of each kind
-    # (300 steps: a step took 6.2 s, median, on this 2-core machine while another training ran)
+    # (1200 steps: a step took 0.94 s, median, on this 2-core machine idle; 6.2 s while another training ran)
     "tiny": WorldConfig("tiny", channels=(32, 64, 128), temporal_layers=1, pose_layers=1, heads=4, batch_size=1,
-                        max_steps=300, warmup=20),
+                        max_steps=1200, warmup=50),
     "micro": WorldConfig("micro", channels=(16, 32), temporal_layers=1, pose_layers=1, heads=2, n_past=2, n_future=2,
                          batch_size=2, max_steps=40, warmup=2, log_every=1, checkpoint_every=20),
 }

@@ -181,7 +181,7 @@ class OccWorld(TrainedMethod):
                                 tuple(o.strides), o.anchor_every, cache, log=progress.log, frame=o.frame,
                                 tokenize=window_tokenizer(tokenizer, self.tok_cfg), token_shape=cfg.token_grid)
         progress.log(f"{len(windows['tokens'])} training windows of {cfg.n_past + cfg.n_future} frames")
-        book = tokenizer.vq.codebook.weight.detach().clone()
+        book = tokenizer.vq.codebook.detach().clone()
 
         def embed(codes):
             return book.to(codes.device)[codes].movedim(-1, -3)
@@ -255,7 +255,7 @@ class OccWorld(TrainedMethod):
 
         past, poses, T_s0_ref = self.world_inputs(sample)
         dev = next(self.world.parameters()).device
-        book = self.tokenizer.vq.codebook.weight.detach()
+        book = self.tokenizer.vq.codebook.detach()
 
         def embed(codes):
             return book[codes].movedim(-1, -3)

@@ -158,32 +158,35 @@ class Decoder(nn.Module):
 
 
 class VectorQuantizer(nn.Module):
+    """The public configuration's 1x1 convolutions around Copilot4D's quantizer (nearest code,
+    straight-through, ``|sg[c] - z|^2 + beta |c - sg[z]|^2``, and its dead-code K-means
+    re-initialisation: ``maybe_reinit`` after each training step)."""
+
     def __init__(self, cfg: TokenizerConfig) -> None:
         super().__init__()
-        self.beta = cfg.beta
+        from pcfbench.methods.copilot4d.model import VectorQuantizer as CodebookQuantizer
+
         self.quant_conv = nn.Conv2d(cfg.z_channels, cfg.z_channels, 1)
         self.post_quant_conv = nn.Conv2d(cfg.z_channels, cfg.z_channels, 1)
-        self.codebook = nn.Embedding(cfg.codebook_size, cfg.z_channels)
-        nn.init.uniform_(self.codebook.weight, -1.0 / cfg.codebook_size, 1.0 / cfg.codebook_size)
+        self.core = CodebookQuantizer(cfg)
+
+    @property
+    def codebook(self) -> torch.Tensor:
+        """(codebook_size, z_channels) code vectors."""
+        return self.core.codebook
 
     def codes(self, z: torch.Tensor) -> torch.Tensor:
         """(B, C, h, w) pre-quantization features -> (B, h, w) nearest code indices."""
-        flat = z.permute(0, 2, 3, 1).reshape(-1, z.shape[1]).float()
-        e = self.codebook.weight.float()
-        d = flat.pow(2).sum(1, keepdim=True) - 2 * flat @ e.T + e.pow(2).sum(1)[None]
-        return d.argmin(1).view(z.shape[0], z.shape[2], z.shape[3])
+        return self.core.codes_for(z.permute(0, 2, 3, 1))
 
     def embed(self, codes: torch.Tensor) -> torch.Tensor:
         """(B, h, w) codes -> (B, C, h, w) code vectors."""
-        return self.codebook(codes).permute(0, 3, 1, 2)
+        return self.core.lookup(codes).permute(0, 3, 1, 2)
 
     def forward(self, z: torch.Tensor):
         """Quantize the encoder's output: (codes, straight-through code vectors, VQ loss)."""
-        z = self.quant_conv(z)
-        codes = self.codes(z)
-        c = self.embed(codes)
-        loss = F.mse_loss(c.detach(), z) + self.beta * F.mse_loss(c, z.detach())
-        return codes, z + (c - z).detach(), loss
+        z_st, codes, loss = self.core(self.quant_conv(z).permute(0, 2, 3, 1))
+        return codes, z_st.permute(0, 3, 1, 2), loss
 
 
 class SceneTokenizer(nn.Module):

@@ -167,3 +167,22 @@ def test_no_ray_of_the_sweep_passes_its_own_return():
     # and closer than the middle of the first occupied voxel
     old = render_depths(grid, (labels == OCCUPIED) * 1.0, np.zeros(3), d, "threshold")
     assert np.median(np.abs(depth - r)) < 0.8 * np.median(np.abs(old - r))
+
+
+def test_a_decoded_grid_renders_through_its_planes():
+    """``occ_copy.render_grid`` with ``readout="surface"``: a decoded occupancy probability and
+    its decoded offsets render as ``render_surface`` with the normals of the voxels below 0.5
+    (free); the same grid without offsets (a tokenizer trained with surface=none) is one error."""
+    from pcfbench.methods.occworld.config import TokenizerConfig
+    from pcfbench.methods.occworld.occ_copy import render_grid
+
+    cfg = TokenizerConfig("strip", dims=(4, 1, 2), box_lo=(0.0, 0.0, 0.0), box_hi=(4.0, 1.0, 2.0), ch_mult=(1,))
+    prob = np.full((4, 1, 2), 0.2)
+    prob[:, 0, 0] = 0.9
+    o, d = np.array([0.5, 0.5, 1.5]), np.array([[1.0, 0.0, -0.5]])
+    got = render_grid(cfg, (prob, np.full((4, 1, 2), 0.3)), o, d, "surface")
+    assert got[0] == pytest.approx(1.4 * np.sqrt(1.25))  # the plane z = 0.8, as test_a_grazing_ray_by_hand
+    assert got == pytest.approx(render_surface(STRIP, *_ground(0.3), o, d))
+    assert render_grid(cfg, (prob, None), o, d, "threshold") == pytest.approx(render_depths(STRIP, prob, o, d, "threshold"))
+    with pytest.raises(PcfbenchError, match="no offset head"):
+        render_grid(cfg, (prob, None), o, d, "surface")
