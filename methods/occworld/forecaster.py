@@ -137,7 +137,10 @@ class OccWorld(TrainedMethod):
         from pcfbench.method import resolve_method
 
         o = self.options
-        opts = {"config": o.config, "frame": o.frame, "surface": o.surface}
+        opts = {"config": o.config}
+        for k in ("frame", "surface"):  # the tokenizer's options as the world model's, written when not default
+            if getattr(o, k) != getattr(OccOptions, k):
+                opts[k] = getattr(o, k)
         if o.tokens:
             opts["tokens"] = str(o.tokens)
         if o.tokenizer_steps:

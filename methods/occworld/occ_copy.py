@@ -40,8 +40,8 @@ class OccOptions:
     config: str = option("tiny", help="configuration: tiny (CPU scale), paper (the published sizes) or micro (tests)")
     tokens: int = option(0, help="tokens per side (0: the configuration's, 50); a power-of-2 fraction of the "
                                  "grid's 200 voxels (the paper's Table 3 sweep)", min=0)
-    frame: str = option("own", help="the frame of a window's occupancy: own (each sweep in its own sensor frame) "
-                                    "or t0 (moved into the t=0 sensor frame)")
+    frame: str = option("t0", help="the frame of a window's occupancy: t0 (moved into the t=0 sensor frame; chosen by "
+                                   "the ceiling, docs/occworld.md) or own (each sweep in its own sensor frame)")
     surface: str = option("front", help="sub-voxel planes (ours): the tokenizer also decodes one plane offset per "
                                         "voxel, at the front (or mean) of its returns; none: OccWorld's occupancy alone")
     readout: str = option("surface", help="a ray's depth: surface (where it crosses the first occupied voxel's "

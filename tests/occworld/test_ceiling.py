@@ -98,12 +98,12 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
                             "40x40x6", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
     # (the method's default readout=surface: the labels' planes, surface=front)
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-40x40x6-on-kitti-test-kitti-1s-own-surface-front.md")
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-40x40x6-on-kitti-test-kitti-1s-t0-surface-front.md")
     assert "perfect (the labels as tokens" in md.read_text() and "--perfect --grid 40x40x6" in md.read_text()
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--surface",
                             "none", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-own.md").read_text()
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0.md").read_text()
     assert "(surface=" not in md
     r = runner.invoke(cli, ["occworld-ceiling", "--grid", "40x40x6", "--dataset", f"kitti={root}"])
     assert r.exit_code != 0 and "--grid: only with --perfect" in r.output
@@ -113,5 +113,5 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--surface",
                             "front", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-own-surface-front.md").read_text()
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0-surface-front.md").read_text()
     assert "--perfect --surface front" in md and "(surface=front depth)" in md

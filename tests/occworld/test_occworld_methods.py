@@ -43,6 +43,13 @@ def test_options_are_checked():
         with pytest.raises(PcfbenchError, match=what):
             resolve_method(f"occworld:{bad}")
     assert resolve_method("occworld-occ-copy:frame=t0").options.frame == "t0"
+    with pytest.raises(PcfbenchError, match="surface"):
+        resolve_method("occworld-occ-copy:surface=plane")
+    # the planes' readout needs the planes; OccWorld's own readouts work without them
+    with pytest.raises(PcfbenchError, match="readout=surface renders the planes of surface=front or mean"):
+        resolve_method("occworld:surface=none")
+    assert resolve_method("occworld:surface=none,readout=expected").create().tok_cfg.surface == "none"
+    assert resolve_method("occworld-occ-copy").create().cfg.surface == "front"
 
 
 def test_tokenizer_overfits_one_grid():
@@ -91,7 +98,7 @@ def test_world_model_overfits_one_window():
 def test_missing_tokenizer_is_one_error_with_the_command(micro, kitti):
     from pcfbench.training import CheckpointError
 
-    with pytest.raises(CheckpointError, match=r"pcfbench train occworld-occ-copy:config=micro,frame=own,steps=2"):
+    with pytest.raises(CheckpointError, match=r"pcfbench train occworld-occ-copy:config=micro,steps=2 "):
         _train(f"occworld:{MICRO},steps=2", kitti)
 
 
