@@ -117,9 +117,9 @@ class OccWorld(TrainedMethod):
     inference_options = ("readout", "pose")
     # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 43)
     in_default_runs = False
-    # estimated, not measured: the median step (6.2 s) on a 2-core CPU busy with another training
-    training_time = ("about 31 min for the tiny configuration on a 2-core CPU (300 steps at about 6.2 s, plus "
-                     "labelling and tokenizing the windows), plus its tokenizer's training")
+    # measured 2026-11-29: 2,407 s with its windows, partly beside an evaluation (a step alone: 0.94 s)
+    training_time = ("about 30-40 min for the tiny configuration on a 2-core CPU (labelling and tokenizing 216 "
+                     "windows, then 1200 steps at about 1 s), plus its tokenizer's training")
 
     def __init__(self, options: OccWorldOptions | None = None) -> None:
         super().__init__(options)
