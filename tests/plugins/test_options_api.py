@@ -32,9 +32,10 @@ GOLDEN_DEFAULT_HASHES = {
     "copilot4d-maskgit": "a950d364665d",
     # issue 47: forecasts read from a file; a cell's options always name the file and its sha256
     "submission": "230160ea66bc",
-    # issue 43: OccWorld, its tokenizer and world model (no checkpoint ships)
-    "occworld-occ-copy": "353f3801114c",
-    "occworld": "5711a484e17b",
+    # issue 43: OccWorld, its tokenizer and world model (no checkpoint ships); moved on purpose
+    # when the option surface came in (the planes' offsets), readout went to surface and frame to t0
+    "occworld-occ-copy": "8b6a8742f8ef",
+    "occworld": "b8a054b791db",
     # issue 44: BEVWorld, its tokenizer and world model (no checkpoint ships)
     "bevworld-latent-copy": "dfed14b9b2e1",
     "bevworld": "837ab777853b",
