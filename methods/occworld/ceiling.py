@@ -45,20 +45,13 @@ class LabelTokens:
 
 
 def surface_grid(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None, at: str = "front"):
-    """A sweep's perfect grid with sub-voxel planes (``surface.py``, offsets ``at``): (labels, occupancy
-    (occupied 1, else 0), normals from its free voxels, offsets of its returns), in the frame
-    ``T_frame_sensor`` maps its sensor frame into (None: its own)."""
-    from pcfbench.methods.occworld.occupancy import FREE, OCCUPIED
-    from pcfbench.methods.occworld.surface import free_normals, surface_offsets
+    """A sweep's perfect grid with sub-voxel planes (``occ_copy.surface_targets``, offsets ``at``):
+    (labels, occupancy (occupied 1, else 0), normals from its free voxels, offsets of its
+    returns), in the frame ``T_frame_sensor`` maps its sensor frame into (None: its own)."""
+    from pcfbench.methods.occworld.occupancy import OCCUPIED
 
-    labels = oc.sweep_labels(cfg, points_sensor, T_frame_sensor)
-    pts = points_sensor.astype(np.float64)
-    if T_frame_sensor is not None:
-        T = np.asarray(T_frame_sensor, np.float64)
-        pts = pts @ T[:3, :3].T + T[:3, 3]
-    grid = oc.grid_of(cfg)
-    normals = free_normals(labels == FREE, grid.voxel)
-    return labels, (labels == OCCUPIED) * 1.0, normals, surface_offsets(grid, pts, normals, at)
+    labels, normals, offsets = oc.surface_targets(cfg, points_sensor, T_frame_sensor, at)
+    return labels, (labels == OCCUPIED) * 1.0, normals, offsets
 
 
 def render_surface_sample(cfg, grids, sample, T_frame_ref) -> list[np.ndarray]:

@@ -70,8 +70,7 @@ class OccCopyOptions(OccOptions):
 
 
 def grid_of(cfg) -> OccGrid:
-    return OccGrid(tuple(cfg.box_lo), tuple(cfg.dims),
-                   tuple((h - lo) / n for lo, h, n in zip(cfg.box_lo, cfg.box_hi, cfg.dims)))
+    return OccGrid(tuple(cfg.box_lo), tuple(cfg.dims), cfg.voxel)
 
 
 def sweep_labels(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None) -> np.ndarray:
@@ -84,22 +83,31 @@ def sweep_labels(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | No
     return label_occupancy(grid_of(cfg), moved, T[:3, 3])
 
 
-def sweep_targets(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None):
-    """The tokenizer's target for a sweep: its (X, Y, Z) labels (``sweep_labels``) and, with
-    ``cfg.surface`` not ``none``, the (X, Y, Z) float32 offsets of its returns' planes
-    (``surface.surface_offsets``, normals from the free voxels; else None)."""
-    labels = sweep_labels(cfg, points_sensor, T_frame_sensor)
-    if cfg.surface == "none":
-        return labels, None
+def surface_targets(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None, at: str = "front"):
+    """A sweep's labels with its sub-voxel planes (``surface.py``): (X, Y, Z) labels
+    (``sweep_labels``), (X, Y, Z, 3) normals from its free voxels and (X, Y, Z) offsets of its
+    returns (``at``: front or mean), in the frame ``T_frame_sensor`` maps its sensor frame into."""
     from pcfbench.methods.occworld.occupancy import FREE
     from pcfbench.methods.occworld.surface import free_normals, surface_offsets
 
+    labels = sweep_labels(cfg, points_sensor, T_frame_sensor)
     pts = points_sensor.astype(np.float64)
     if T_frame_sensor is not None:
         T = np.asarray(T_frame_sensor, np.float64)
         pts = pts @ T[:3, :3].T + T[:3, 3]
     grid = grid_of(cfg)
-    return labels, surface_offsets(grid, pts, free_normals(labels == FREE, grid.voxel), cfg.surface).astype(np.float32)
+    normals = free_normals(labels == FREE, grid.voxel)
+    return labels, normals, surface_offsets(grid, pts, normals, at)
+
+
+def sweep_targets(cfg, points_sensor: np.ndarray, T_frame_sensor: np.ndarray | None = None):
+    """The tokenizer's target for a sweep: its (X, Y, Z) labels (``sweep_labels``) and, with
+    ``cfg.surface`` not ``none``, the (X, Y, Z) float32 offsets of its returns' planes
+    (:func:`surface_targets`; else None)."""
+    if cfg.surface == "none":
+        return sweep_labels(cfg, points_sensor, T_frame_sensor), None
+    labels, _, offsets = surface_targets(cfg, points_sensor, T_frame_sensor, cfg.surface)
+    return labels, offsets.astype(np.float32)
 
 
 def tokenize_labels(model, labels: np.ndarray):
@@ -124,11 +132,12 @@ def decode_grid(model, codes) -> tuple[np.ndarray, np.ndarray | None]:
     return prob, None if offsets is None else offsets[0].float().cpu().numpy()
 
 
-def render_grid(cfg, decoded, origin: np.ndarray, dirs: np.ndarray, readout: str) -> np.ndarray:
+def render_grid(cfg, decoded, origin: np.ndarray, dirs: np.ndarray, readout: str,
+                normals: np.ndarray | None = None) -> np.ndarray:
     """Depths along ``dirs`` from ``origin`` (the grid's frame) through one ``decode_grid``
     result: ``readout="surface"`` through the sub-voxel planes (occupied where the
-    probability is >= 0.5, normals from the voxels below 0.5, i.e. free; ``surface.render_surface``),
-    else :func:`.render.render_depths`."""
+    probability is >= 0.5, ``normals`` those of the voxels below 0.5, i.e. free, computed when
+    not given; ``surface.render_surface``), else :func:`.render.render_depths`."""
     from pcfbench.methods.occworld.render import render_depths
     from pcfbench.methods.occworld.surface import free_normals, render_surface
 
@@ -139,7 +148,9 @@ def render_grid(cfg, decoded, origin: np.ndarray, dirs: np.ndarray, readout: str
     if offsets is None:
         raise PcfbenchError(f"readout=surface: the occworld tokenizer {cfg.name!r} has no offset head "
                             "(trained with surface=none)")
-    return render_surface(grid, prob, free_normals(prob < 0.5, grid.voxel), offsets, origin, dirs)
+    if normals is None:
+        normals = free_normals(prob < 0.5, grid.voxel)
+    return render_surface(grid, prob, normals, offsets, origin, dirs)
 
 
 def render_sample(model, grids, sample: Sample, T_frame_ref, readout: str) -> list[np.ndarray]:
@@ -150,11 +161,16 @@ def render_sample(model, grids, sample: Sample, T_frame_ref, readout: str) -> li
     F = sample.num_future
     Ts = [np.asarray(T_frame_ref, np.float64)] * F if np.ndim(T_frame_ref) == 2 else list(T_frame_ref)
     gs = [grids] * F if isinstance(grids, tuple) else list(grids)
+    normals = None
+    if readout == "surface" and isinstance(grids, tuple) and grids[1] is not None:
+        from pcfbench.methods.occworld.surface import free_normals
+
+        normals = free_normals(grids[0] < 0.5, grid_of(model.cfg).voxel)  # one grid for every sweep: once
     out = []
     for k, q in enumerate(sample.queries):
         R, t = Ts[k][:3, :3], Ts[k][:3, 3]
         dirs = q.directions_ref.astype(np.float64) @ R.T
-        out.append(render_grid(model.cfg, gs[k], R @ q.origin_ref + t, dirs, readout))
+        out.append(render_grid(model.cfg, gs[k], R @ q.origin_ref + t, dirs, readout, normals))
     return out
 
 

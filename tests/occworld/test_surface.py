@@ -183,6 +183,9 @@ def test_a_decoded_grid_renders_through_its_planes():
     got = render_grid(cfg, (prob, np.full((4, 1, 2), 0.3)), o, d, "surface")
     assert got[0] == pytest.approx(1.4 * np.sqrt(1.25))  # the plane z = 0.8, as test_a_grazing_ray_by_hand
     assert got == pytest.approx(render_surface(STRIP, *_ground(0.3), o, d))
+    # normals given (render_sample computes them once for a grid all sweeps share): the same depths
+    given = free_normals(prob < 0.5, STRIP.voxel)
+    assert render_grid(cfg, (prob, np.full((4, 1, 2), 0.3)), o, d, "surface", given) == pytest.approx(got)
     assert render_grid(cfg, (prob, None), o, d, "threshold") == pytest.approx(render_depths(STRIP, prob, o, d, "threshold"))
     with pytest.raises(PcfbenchError, match="no offset head"):
         render_grid(cfg, (prob, None), o, d, "surface")
