@@ -360,7 +360,8 @@ def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: s
     keeps the trained one's record (config, training data and fingerprint, steps, wall and
     CPU time, device, git commit) plus ``weights_dtype`` and ``shipped`` (the cache
     checkpoint's sha256, the data's content sha256, ``retrain``: the command that rebuilds
-    it). Refused for an incomplete checkpoint, or when the package's shipped checkpoints
+    it; ``left_out``: where the method finds tensors it did not ship,
+    ``TrainedMethod.shipped_weights``). Refused for an incomplete checkpoint, or when the package's shipped checkpoints
     would weigh more than ``SHIPPED_LIMIT_BYTES``."""
     import torch
 
@@ -373,7 +374,7 @@ def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: s
     folder = shipped_dir(spec, train_on.dataset, train_on.split)
     if folder is None:
         raise CheckpointError(f"method {spec.name!r} has no package folder to ship a checkpoint into")
-    weights = checkpoint.load_weights()
+    weights, left_out = spec.create().shipped_weights(checkpoint, checkpoint.load_weights())
     half = {k: v.half() if torch.is_tensor(v) and v.dtype == torch.float32 else v for k, v in weights.items()}
     buf = io.BytesIO()
     torch.save(half, buf)
@@ -396,6 +397,8 @@ def ship(spec: MethodSpec, checkpoint: Checkpoint, train_on: TrainOn, retrain: s
                            "retrain": retrain, "shipped": time.time()}
     if train_on.recipe is not None:
         manifest["shipped"]["data_recipe_sha256"] = train_on.recipe
+    if left_out:
+        manifest["shipped"]["left_out"] = left_out
     atomic_write_json(folder / MANIFEST, manifest)
     log(f"shipped {spec.name} ({len(data):,} bytes of float16 weights) to {folder}")
     return Checkpoint.open(folder)

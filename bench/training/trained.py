@@ -280,6 +280,14 @@ class TrainedMethod(Method):
         """Steps of a full training with these options (for the time estimate), if known."""
         return None
 
+    def shipped_weights(self, checkpoint: Checkpoint, weights: dict) -> tuple[dict, dict | None]:
+        """What ``pcfbench train --ship`` puts in the package from ``checkpoint``'s ``weights``:
+        the tensors to ship and, when some are left out, a record of where ``load`` finds them
+        (written to the shipped manifest as ``shipped.left_out``). Default: every tensor. A
+        method whose checkpoint holds a copy of another shipped checkpoint (a world model's
+        tokenizer) may leave the copy out and load it from there."""
+        return weights, None
+
 
 # -- the driver -------------------------------------------------------------------------------------
 def train(spec: MethodSpec, dataset: str, *, split: str = DEFAULT_SPLIT, max_minutes: float | None = None,

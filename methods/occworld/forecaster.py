@@ -115,11 +115,9 @@ class OccWorld(TrainedMethod):
     version = "1"
     Options = OccWorldOptions
     inference_options = ("readout", "pose")
-    # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 43)
-    in_default_runs = False
-    # measured 2026-11-29: 2,407 s with its windows, partly beside an evaluation (a step alone: 0.94 s)
-    training_time = ("about 30-40 min for the tiny configuration on a 2-core CPU (labelling and tokenizing 216 "
-                     "windows, then 1200 steps at about 1 s), plus its tokenizer's training")
+    # measured 2026-11-29 (the shipped checkpoint, idle 2-core machine): 1,398 s in all, the 216 windows about 8 min
+    training_time = ("about 25 min for the tiny configuration on an idle 2-core CPU (labelling and tokenizing 216 "
+                     "windows, about 8 min, then 1200 steps at about 0.8 s), plus its tokenizer's training")
 
     def __init__(self, options: OccWorldOptions | None = None) -> None:
         super().__init__(options)
@@ -204,6 +202,31 @@ class OccWorld(TrainedMethod):
             csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
             progress.log(f"training curve: {csv_path} and {png}")
 
+    def shipped_tokenizer(self, checkpoint: Checkpoint) -> Checkpoint | None:
+        """The ``occworld-occ-copy`` checkpoint shipped for the data ``checkpoint`` was trained
+        on, when it holds the very tokenizer the world model trained with (the digest its
+        manifest records; float16 rounding does not change it), else None."""
+        from pcfbench.methods.copilot4d.forecaster import tensor_digest
+        from pcfbench.methods.occworld.occ_copy import load_tokenizer
+        from pcfbench.training.checkpoints import MANIFEST, shipped_dir
+
+        folder = shipped_dir(self.tokenizer_spec(), checkpoint.train_on["dataset"], checkpoint.train_on["split"])
+        if folder is None or not (folder / MANIFEST).is_file():
+            return None
+        tok_ck = Checkpoint.open(folder)
+        same = tensor_digest(load_tokenizer(tok_ck, self.tok_cfg).state_dict())
+        return tok_ck if same == checkpoint.manifest.get("config", {}).get("tokenizer_digest") else None
+
+    def shipped_weights(self, checkpoint: Checkpoint, weights: dict) -> tuple[dict, dict | None]:
+        """The world model's tensors alone when its tokenizer ships (``occworld-occ-copy``'s
+        checkpoint for the same data, with the same digest): the copy would double the
+        package's checkpoints; ``load`` takes the tokenizer from there."""
+        tok_ck = self.shipped_tokenizer(checkpoint)
+        if tok_ck is None:
+            return weights, None
+        return ({k: v for k, v in weights.items() if not k.startswith("tokenizer.")},
+                {"prefix": "tokenizer.", "method": TOKENIZER_METHOD, "weights_sha256": tok_ck.sha256})
+
     def load(self, checkpoint: Checkpoint) -> None:
         from pcfbench.methods.copilot4d.forecaster import tensor_digest
         from pcfbench.methods.occworld.config import world_config_from_dict
@@ -219,11 +242,25 @@ class OccWorld(TrainedMethod):
         if world_config_from_dict(conf["world"]) != self.world_cfg:
             raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' world model "
                                   "configuration than this pcfbench defines; retrain it with --fresh")
-        tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.")
+        weights = checkpoint.load_weights()
+        left_out = (checkpoint.manifest.get("shipped") or {}).get("left_out")
+        if any(k.startswith("tokenizer.") for k in weights):
+            tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.")
+        elif left_out:  # shipped without its tokenizer: the shipped occworld-occ-copy checkpoint holds it
+            tok_ck = self.shipped_tokenizer(checkpoint)
+            if tok_ck is None or tok_ck.sha256 != left_out.get("weights_sha256"):
+                raise CheckpointError(f"checkpoint {mf} ships without its tokenizer, which the {TOKENIZER_METHOD} "
+                                      f"checkpoint shipped for {checkpoint.train_on_label} (weights sha256 "
+                                      f"{str(left_out.get('weights_sha256'))[:12]}) holds, and that one is "
+                                      f"{'missing' if tok_ck is None else 'another: ' + tok_ck.sha256[:12]}; "
+                                      "reinstall pcfbench or retrain both")
+            tokenizer = load_tokenizer(tok_ck, self.tok_cfg)
+        else:
+            raise CheckpointError(f"checkpoint {checkpoint.weights_path} holds no tokenizer weights: not an "
+                                  f"{self.name} checkpoint")
         if tensor_digest(tokenizer.state_dict()) != conf["tokenizer_digest"]:
             raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights are not the tokenizer "
                                   f"it was trained with (the manifest {mf} records another digest); retrain with --fresh")
-        weights = checkpoint.load_weights()
         world = WorldModel(self.world_cfg)
         try:
             world.load_state_dict({k[len("world."):]: (v.float() if v.is_floating_point() else v)

@@ -116,6 +116,32 @@ def test_normals_point_to_free_space():
         free_normals(np.zeros((3, 3)), grid.voxel)
 
 
+def test_normals_equal_a_voxel_by_voxel_sum_of_neighbour_directions():
+    """The per-axis difference (6 face neighbours) and the shifted sums (26) against a plain loop
+    over every voxel and neighbour, on random free weights and anisotropic voxels."""
+    rng = np.random.default_rng(3)
+    free = rng.random((5, 4, 3)) * (rng.random((5, 4, 3)) < 0.6)
+    voxel = (0.7, 0.5, 0.5625)
+    for neighbours in (6, 26):
+        want = np.zeros(free.shape + (3,))
+        for x, y, z in np.ndindex(free.shape):
+            acc = np.zeros(3)
+            for d in np.ndindex(3, 3, 3):
+                d = np.array(d) - 1
+                if not d.any() or (neighbours == 6 and np.abs(d).sum() > 1):
+                    continue
+                i = np.array([x, y, z]) + d
+                if (i < 0).any() or (i >= free.shape).any():
+                    continue
+                u = d * voxel
+                acc += free[tuple(i)] * u / np.linalg.norm(u)
+            n = np.linalg.norm(acc)
+            want[x, y, z] = acc / n if n > 1e-12 else 0.0
+        got = free_normals(free, voxel, neighbours)
+        assert np.allclose(got, want, rtol=0, atol=1e-12), neighbours
+        assert (np.linalg.norm(got, axis=-1) > 0).sum() > 30
+
+
 def test_offsets_are_the_front_of_the_returns_along_the_normal():
     grid = OccGrid.over((0.0, 0.0, 0.0), (2.0, 1.0, 1.0), (2, 1, 1))
     normals = np.zeros((2, 1, 1, 3))
