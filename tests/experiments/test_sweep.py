@@ -439,11 +439,18 @@ WORLD_MODEL = {"copilot4d-cfg-weight.toml": "copilot4d", "copilot4d-sampling-ste
                "copilot4d-vs-maskgit.toml": "copilot4d-maskgit"}
 
 
+OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
+
+
 def test_every_example_experiment_is_checked():
-    assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, *WORLD_MODEL])
+    assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name, *WORLD_MODEL])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
+    exp = load_experiment(OCCWORLD_TOKENS)  # OccWorld's Table 3 axis: a tokenizer per token resolution
+    assert [v.label for v in exp.variants] == [*(f"occworld-occ-copy (steps=300, tokens={t})" for t in (25, 50, 100)),
+                                               "occworld-occ-copy", "copy-last"]
+    assert exp.train_on == ("synthetic-town-realistic",) and exp.settings == ("kitti-1s", "kitti-3s")
 
 
 @pytest.mark.parametrize("name", sorted(WORLD_MODEL))
