@@ -88,7 +88,10 @@ def register_commands(cli):  # noqa: ANN001
             surface = "none"
             m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
                             train_split, checkpoint)
-            o, cfg, model, label = m.options, m.cfg, m.model, f"{m.cfg.name}-{ck.train_on['dataset']}"
+            # the tokenizer's non-default token count and steps name its files: never those of the default's
+            label = "-".join([m.cfg.name, *([f"tokens{m.options.tokens}"] if m.options.tokens else []),
+                              *([f"steps{m.options.steps}"] if m.options.steps else []), ck.train_on["dataset"]])
+            o, cfg, model = m.options, m.cfg, m.model
             meta = {"config": cfg.name, "tokens": "x".join(map(str, cfg.token_grid)),
                     "parameters": count_parameters(model), "trained_on": ck.train_on_label, "steps": ck.steps,
                     "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256, "regenerate": regenerate}

@@ -91,7 +91,8 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
                             f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
     assert "ceiling (kitti-1s, frame t0, 1 samples) / occworld-occ-copy: chamfer_nf" in r.output
-    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-kitti-32x32x4-on-kitti-test-kitti-1s-t0.md"))
+    # named by the tokenizer's non-default steps: it never writes over the default tokenizer's report
+    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-steps2-kitti-32x32x4-on-kitti-test-kitti-1s-t0.md"))
     assert "pcfbench occworld-ceiling --method" in md.read_text()
     # the representation's own bound needs no checkpoint; another grid only with it
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--grid",
