@@ -204,25 +204,23 @@ class OccWorld(TrainedMethod):
 
     def shipped_tokenizer(self, checkpoint: Checkpoint) -> Checkpoint | None:
         """The ``occworld-occ-copy`` checkpoint shipped for the data ``checkpoint`` was trained
-        on, when it holds the very tokenizer the world model trained with (the digest its
-        manifest records; float16 rounding does not change it), else None."""
-        from pcfbench.methods.copilot4d.forecaster import tensor_digest
-        from pcfbench.methods.occworld.occ_copy import load_tokenizer
+        on (verified by its own sha256), or None when none ships."""
         from pcfbench.training.checkpoints import MANIFEST, shipped_dir
 
         folder = shipped_dir(self.tokenizer_spec(), checkpoint.train_on["dataset"], checkpoint.train_on["split"])
-        if folder is None or not (folder / MANIFEST).is_file():
-            return None
-        tok_ck = Checkpoint.open(folder)
-        same = tensor_digest(load_tokenizer(tok_ck, self.tok_cfg).state_dict())
-        return tok_ck if same == checkpoint.manifest.get("config", {}).get("tokenizer_digest") else None
+        return Checkpoint.open(folder) if folder is not None and (folder / MANIFEST).is_file() else None
 
     def shipped_weights(self, checkpoint: Checkpoint, weights: dict) -> tuple[dict, dict | None]:
         """The world model's tensors alone when its tokenizer ships (``occworld-occ-copy``'s
-        checkpoint for the same data, with the same digest): the copy would double the
+        checkpoint for the same data holding the very tokenizer it trained with: the digest its
+        manifest records, which float16 rounding does not change): the copy would double the
         package's checkpoints; ``load`` takes the tokenizer from there."""
+        from pcfbench.methods.copilot4d.forecaster import tensor_digest
+        from pcfbench.methods.occworld.occ_copy import load_tokenizer
+
         tok_ck = self.shipped_tokenizer(checkpoint)
-        if tok_ck is None:
+        if (tok_ck is None or tensor_digest(load_tokenizer(tok_ck, self.tok_cfg).state_dict())
+                != checkpoint.manifest.get("config", {}).get("tokenizer_digest")):
             return weights, None
         return ({k: v for k, v in weights.items() if not k.startswith("tokenizer.")},
                 {"prefix": "tokenizer.", "method": TOKENIZER_METHOD, "weights_sha256": tok_ck.sha256})
@@ -245,8 +243,9 @@ class OccWorld(TrainedMethod):
         weights = checkpoint.load_weights()
         left_out = (checkpoint.manifest.get("shipped") or {}).get("left_out")
         if any(k.startswith("tokenizer.") for k in weights):
-            tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.")
+            tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.", weights=weights)
         elif left_out:  # shipped without its tokenizer: the shipped occworld-occ-copy checkpoint holds it
+            # (which tokenizer it is, the digest check below says, as for a copy the checkpoint holds)
             tok_ck = self.shipped_tokenizer(checkpoint)
             if tok_ck is None or tok_ck.sha256 != left_out.get("weights_sha256"):
                 raise CheckpointError(f"checkpoint {mf} ships without its tokenizer, which the {TOKENIZER_METHOD} "

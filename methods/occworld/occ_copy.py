@@ -253,8 +253,9 @@ def tokenizer_curve_panels() -> list:
             Panel((("alive_codes", "share of codes used within dead_after steps"),), ylim=(0, 1))]
 
 
-def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = ""):
-    """The tokenizer of ``checkpoint`` (weights under ``prefix``), which must record ``cfg``."""
+def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = "", weights: dict | None = None):
+    """The tokenizer of ``checkpoint`` (weights under ``prefix``), which must record ``cfg``;
+    ``weights``: its weights already read (``checkpoint.load_weights()``), else read here."""
     from pcfbench.methods.occworld.config import tokenizer_config_from_dict
     from pcfbench.methods.occworld.tokenizer import SceneTokenizer
     from pcfbench.training import CheckpointError, default_device
@@ -266,7 +267,7 @@ def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = ""):
         raise CheckpointError(f"checkpoint {checkpoint.manifest_path} was trained with another '{cfg.name}' tokenizer "
                               "configuration than this pcfbench defines; retrain it with --fresh")
     w = {k[len(prefix):]: (v.float() if v.is_floating_point() else v)
-         for k, v in checkpoint.load_weights().items() if k.startswith(prefix)}
+         for k, v in (checkpoint.load_weights() if weights is None else weights).items() if k.startswith(prefix)}
     model = SceneTokenizer(cfg)
     try:
         model.load_state_dict(w)
