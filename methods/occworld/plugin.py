@@ -17,6 +17,19 @@ def register_methods(register):  # noqa: ANN001
              "OccWorld: occupancy tokenizer + spatio-temporal generative transformer, autoregressive (trained)")
 
 
+def _non_default(options, skip=()) -> list[str]:
+    """``name`` + value of each option of ``options`` that differs from its default (``tokens100``,
+    ``surface-mean``), in field order, those in ``skip`` left out."""
+    from dataclasses import fields
+
+    out = []
+    for f in fields(options):
+        value = getattr(options, f.name)
+        if f.name not in skip and value != f.default:
+            out.append(f"{f.name}-{value}" if isinstance(value, str) else f"{f.name}{value}")
+    return out
+
+
 @hookimpl
 def register_commands(cli):  # noqa: ANN001
     import click
@@ -88,9 +101,9 @@ def register_commands(cli):  # noqa: ANN001
             surface = "none"
             m, ck = _loaded(method, OccCopy, "occworld-occ-copy[:options] (an OccWorld tokenizer)", train_on,
                             train_split, checkpoint)
-            # the tokenizer's non-default token count and steps name its files: never those of the default's
-            label = "-".join([m.cfg.name, *([f"tokens{m.options.tokens}"] if m.options.tokens else []),
-                              *([f"steps{m.options.steps}"] if m.options.steps else []), ck.train_on["dataset"]])
+            # the tokenizer's non-default options name its files (the configuration and frame already
+            # do): never those of the default's
+            label = "-".join([m.cfg.name, *_non_default(m.options, skip=("config", "frame")), ck.train_on["dataset"]])
             o, cfg, model = m.options, m.cfg, m.model
             meta = {"config": cfg.name, "tokens": "x".join(map(str, cfg.token_grid)),
                     "parameters": count_parameters(model), "trained_on": ck.train_on_label, "steps": ck.steps,

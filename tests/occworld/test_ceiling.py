@@ -116,3 +116,17 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0-surface-front.md").read_text()
     assert "--perfect --surface front" in md and "(surface=front depth)" in md
+
+
+def test_report_names_carry_every_non_default_tokenizer_option():
+    """A tokenizer trained with other options (tokens, steps, surface, ...) names its ceiling's
+    files by them, so its report never lands on the default tokenizer's."""
+    from pcfbench.methods.occworld.occ_copy import OccCopyOptions
+    from pcfbench.methods.occworld.plugin import _non_default
+
+    skip = ("config", "frame")
+    assert _non_default(OccCopyOptions(), skip) == []
+    assert _non_default(OccCopyOptions(config="micro", frame="own"), skip) == []
+    assert _non_default(OccCopyOptions(tokens=100, surface="mean", steps=300), skip) == \
+        ["tokens100", "surface-mean", "steps300"]
+    assert _non_default(OccCopyOptions(surface="mean")) == ["surface-mean"]
