@@ -321,12 +321,21 @@ class NN2D:
         return out
 
     def _settle(self, qx: np.ndarray, qy: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        if self.n == 0:
-            return idx
-        left = np.flatnonzero(idx < 0)
-        if left.size:  # a few stray queries: more fine rings cost far less than a coarse grid
+        return self._settle_coarse(qx, qy, self._settle_fine(qx, qy, idx))
+
+    def _settle_fine(self, qx: np.ndarray, qy: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``_settle``'s first stage, in place: the queries ``_near`` left at -1 searched out to
+        ``FAR_RINGS`` rings of fine cells (a few stray queries: more fine rings cost far less than
+        a coarse grid). Each query's answer is its own: any slice of the queries may go alone."""
+        left = np.flatnonzero(idx < 0) if self.n else np.zeros(0, np.int64)
+        if left.size:
             _query(qx, qy, left, *self.fine, FAR_RINGS, idx)
-            left = left[idx[left] < 0]
+        return idx
+
+    def _settle_coarse(self, qx: np.ndarray, qy: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``_settle``'s second stage, in place: the queries still at -1 after ``_settle_fine``
+        answered on a coarse grid (made on first use)."""
+        left = np.flatnonzero(idx < 0) if self.n else np.zeros(0, np.int64)
         if left.size:
             if self._coarse is None:
                 self._coarse = self._grid(self.per_cell * COARSE * COARSE, _empty)

@@ -338,11 +338,19 @@ class SweepContext:
         if ANGLES in searches and self.pred_depths is None:
             prep += [lambda: truth.ray_kept, lambda: truth.gt_clamped, lambda: self.pred_ranges]
         prep = [pool.submit(job) for job in prep]
+        # what the built-in metrics then compute from the searches' answers (the ROI crops' NN
+        # distances, the per-ray errors and their medians), queued as each search's answers are
+        # stored: the threads take it beside the searches' last pieces, instead of the calling
+        # thread alone after them
+        after = []
         for name, job in jobs.items():
             self.__dict__[name] = job.result()
+        if jobs:
+            after += [pool.submit(lambda: self.nn_pred_to_gt_roi), pool.submit(lambda: self.nn_gt_to_pred_roi)]
         if angles is not None:
             self.__dict__["_angular_nearest"] = self._keep_angles(*angles)
-        for job in prep:
+            after += [pool.submit(lambda: self.ray_errors_4docc), pool.submit(lambda: self.ray_error_medians)]
+        for job in prep + after:
             job.result()
 
     def _ray_depth(self, which: int) -> np.ndarray | None:
@@ -378,6 +386,15 @@ class SweepContext:
     def ray_errors_wrapped(self) -> tuple[np.ndarray, np.ndarray] | None:
         d = self.ray_depth
         return None if d is None else self.ray_errors(d)
+
+    @cached_property
+    def ray_error_medians(self) -> tuple[float, float] | None:
+        """(median L1 error, median AbsRel) of ``ray_errors_wrapped``; None without a predicted
+        depth, NaN without a kept ray."""
+        errs = self.ray_errors_wrapped
+        if errs is None:
+            return None
+        return tuple(float(np.median(e)) if e.size else float("nan") for e in errs)
 
 
 def score_sample(

@@ -38,10 +38,8 @@ def _mean(ctx: SweepContext, which: int) -> float:
 
 
 def _median(ctx: SweepContext, which: int) -> float:
-    errs = ctx.ray_errors_wrapped
-    if errs is None or errs[which].size == 0:
-        return NAN
-    return float(np.median(errs[which]))
+    medians = ctx.ray_error_medians
+    return NAN if medians is None else medians[which]
 
 
 def _ray(ctx: SweepContext, relative: bool) -> float:

@@ -280,11 +280,13 @@ class _Search2D:
         return float(block.reshape(-1)[keys].mean())
 
     def grid_pass(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        """Nearest grid index of queries[start:stop]; -1 where the grid's first pass leaves it
-        (every query of a crowded search: ``finish`` answers them)."""
+        """Nearest grid index of queries[start:stop]; -1 where the fine grid's rings (out to
+        nn2d's ``FAR_RINGS``) leave it (and every query of a crowded search): ``finish``
+        answers them. The far rings go in the pieces, so a shared pass has no long last job."""
         if self.crowded:
             return np.full(self.qx[start:stop].shape[0], -1, np.int64)
-        return self.grid._near(self.qx[start:stop], self.qy[start:stop])
+        qx, qy = self.qx[start:stop], self.qy[start:stop]
+        return self.grid._settle_fine(qx, qy, self.grid._near(qx, qy))
 
     def finish(self, idx: np.ndarray) -> np.ndarray:
         """Answer the queries the grid pass left at -1 (``idx``: the grid passes' answers, in
@@ -294,7 +296,8 @@ class _Search2D:
         if idx.shape != self.qx.shape or idx.dtype != np.int64:
             raise ValueError(f"nearest_2d: finish needs the int64 answers of the grid passes for these "
                              f"{self.qx.shape[0]} queries, got {idx.dtype} {idx.shape}")
-        idx = self.grid._settle(self.qx, self.qy, idx)
+        # the grid passes went out to the far rings; the tree's unsure answers have not
+        idx = (self.grid._settle if self.crowded else self.grid._settle_coarse)(self.qx, self.qy, idx)
         return idx if self.first is None else self.first[idx]
 
     def _tree_pass(self) -> np.ndarray:

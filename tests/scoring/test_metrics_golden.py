@@ -67,3 +67,27 @@ def test_every_metric_version_has_a_changelog_line():
             f"bench/metrics/CHANGELOG.md has no line for {m.name} version {m.version}"
         )
     assert set(GOLDEN) == {m.name for m in suite()}
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_shared_out_searches_give_the_golden_numbers(threads):
+    """With more than one thread, share_out runs the searches and what the metrics compute from
+    them (the crops' NN distances, the per-ray errors, their medians) on the pool before any
+    metric asks; every metric still reads the golden value, bit for bit the serial context's."""
+    from test_metrics import make_ctx
+
+    from pcfbench.execution import ExecutionContext
+    from pcfbench.metrics.base import ANGLES, NN
+
+    gt, origin, pred, _ = golden_pair()
+    serial = fast(gt, origin, pred=pred)
+    ctx = make_ctx(gt, origin, pred)
+    ctx.execution = ExecutionContext(threads)
+    ctx.share_out({NN, ANGLES})
+    for name in ("nn_pred_to_gt_roi", "nn_gt_to_pred_roi", "ray_errors_4docc", "ray_errors_wrapped",
+                 "ray_error_medians"):
+        assert name in ctx.__dict__, f"{name} was not computed by share_out"
+    for m in suite():
+        got = m(ctx)
+        assert close(got, GOLDEN[m.name][1], rel=1e-9), f"{m.name}: {got!r}"
+        assert got == serial[m.name] or (np.isnan(got) and np.isnan(serial[m.name])), m.name

@@ -111,6 +111,11 @@ def test_pieces_and_query_order_change_no_answer():
     idx = np.concatenate([nn.near(q[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
     assert (idx < 0).any()  # the far queries are left to settle
     np.testing.assert_array_equal(nn.settle(q, idx), whole)
+    # the settling's first stage (the far fine rings) on the same slices, then its coarse stage
+    idx = np.concatenate([nn._settle_fine(q[a:b, 0].copy(), q[a:b, 1].copy(), nn.near(q[a:b]))
+                          for a, b in zip(cuts[:-1], cuts[1:])])
+    assert (idx < 0).any()  # the farthest queries are left to the coarse grid
+    np.testing.assert_array_equal(nn._settle_coarse(q[:, 0].copy(), q[:, 1].copy(), idx), whole)
     perm = rng.permutation(len(q))
     np.testing.assert_array_equal(nn.query(q[perm]), whole[perm])
     np.testing.assert_array_equal(whole, brute(pts, q))
