@@ -428,7 +428,16 @@ def estimate_training(spec: MethodSpec) -> str:
     if rates and steps:
         minutes = max(rates) * steps / 60
         return f"about {minutes:.0f} min on this machine ({steps} steps at {max(rates):.2f} s/step, measured by earlier trainings)"
-    return spec.cls.training_time or "an unknown time (no earlier training of it on this machine)"
+    stated = spec.cls.training_time
+    if not stated:
+        return "an unknown time (no earlier training of it on this machine)"
+    try:  # the stated figure is for the method's default options: say so when these train another count
+        default = spec.cls(type(spec.options)()).training_steps()
+    except Exception:  # noqa: BLE001 - a method that cannot be made with default options states its own figure
+        default = None
+    if steps and default and steps != default:
+        return f"{stated}; that figure is for {default} steps, these options train {steps}"
+    return stated
 
 
 def missing_checkpoint_message(spec: MethodSpec, train_on: TrainOn) -> str:

@@ -281,6 +281,11 @@ def test_missing_checkpoint_says_how_to_train_it(env):
     assert "no checkpoint of toy-trained:lr=0.5 trained on kitti:train" in msg
     assert f"`pcfbench train toy-trained:lr=0.5 --dataset kitti={env.root}`" in msg
     assert msg.endswith("which takes about 1 s (toy)")
+    # the figure a method states is for its default step count: another count says so
+    with pytest.raises(CheckpointError) as err:
+        checkpoint_for(resolve_method("toy-trained:steps=30", env.plugins), train_on=env.data, plugins=env.plugins,
+                       progress=False)
+    assert str(err.value).endswith("which takes about 1 s (toy); that figure is for 12 steps, these options train 30")
     # once a training of the same method and options ran here, its measured rate is quoted
     _train(env, "toy-trained:lr=0.5", max_minutes=0)
     other = open_training_data(env.data, "test", env.plugins, False).train_on
