@@ -273,6 +273,11 @@ class SweepContext:
                 d2[redo] = Index(index.points[t_in]).query(q)[0]
         return d2
 
+    @property
+    def crops_hold_points(self) -> bool:
+        """Whether both ROI crops (prediction and ground truth) hold a point: NFCD is defined."""
+        return bool(self.pred_in_roi.any() and self.gt_in_roi.any())
+
     @cached_property
     def nn_pred_to_gt_roi(self) -> np.ndarray:
         """Squared NN distances from each cropped predicted point to the cropped ground truth."""
@@ -345,8 +350,9 @@ class SweepContext:
         after = []
         for name, job in jobs.items():
             self.__dict__[name] = job.result()
-        if jobs:
-            after += [pool.submit(lambda: self.nn_pred_to_gt_roi), pool.submit(lambda: self.nn_gt_to_pred_roi)]
+        if jobs:  # (the crops' passes only when both crops hold points, as the metrics ask for them)
+            after += [pool.submit(lambda: self.crops_hold_points and self.nn_pred_to_gt_roi),
+                      pool.submit(lambda: self.crops_hold_points and self.nn_gt_to_pred_roi)]
         if angles is not None:
             self.__dict__["_angular_nearest"] = self._keep_angles(*angles)
             after += [pool.submit(lambda: self.ray_errors_4docc), pool.submit(lambda: self.ray_error_medians)]

@@ -25,7 +25,7 @@ def _chamfer(ctx: SweepContext) -> float:
 
 def _chamfer_nf_or_none(ctx: SweepContext) -> float | None:
     """NFCD, or None when the crop of P or of G is empty."""
-    if not ctx.pred_in_roi.any() or not ctx.gt_in_roi.any():
+    if not ctx.crops_hold_points:
         return None
     return 0.5 * (float(ctx.nn_pred_to_gt_roi.mean()) + float(ctx.nn_gt_to_pred_roi.mean()))
 

@@ -91,3 +91,26 @@ def test_shared_out_searches_give_the_golden_numbers(threads):
         got = m(ctx)
         assert close(got, GOLDEN[m.name][1], rel=1e-9), f"{m.name}: {got!r}"
         assert got == serial[m.name] or (np.isnan(got) and np.isnan(serial[m.name])), m.name
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_ground_truth_outside_the_roi_scores_the_same_shared_out(threads):
+    """Every ground-truth point beyond the ROI, the forecast inside it: NFCD is undefined (NaN,
+    0 for the 4D-Occ variant) and the rest scores, on one thread or shared out over two (the
+    pool once asked for the crops' passes anyway and failed on the empty crop)."""
+    from test_metrics import make_ctx
+
+    from pcfbench.execution import ExecutionContext
+    from pcfbench.metrics.base import ANGLES, NN
+
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(300, 3)) * 2 + [100.0, 0.0, 0.0]
+    pred = rng.normal(size=(300, 3)) * 2 + [10.0, 0.0, 0.0]
+    ctx = make_ctx(gt, np.zeros(3), pred)
+    ctx.execution = ExecutionContext(threads)
+    ctx.share_out({NN, ANGLES})
+    got = {m.name: m(ctx) for m in suite()}
+    assert np.isnan(got["chamfer_nf"]) and got["chamfer_nf@4docc"] == 0.0
+    serial = fast(gt, np.zeros(3), pred=pred)
+    for name, v in got.items():
+        assert v == serial[name] or (np.isnan(v) and np.isnan(serial[name])), name
