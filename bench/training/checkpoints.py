@@ -433,7 +433,7 @@ def estimate_training(spec: MethodSpec) -> str:
         return "an unknown time (no earlier training of it on this machine)"
     try:  # the stated figure is for the method's default options: say so when these train another count
         default = spec.cls(type(spec.options)()).training_steps()
-    except Exception:  # noqa: BLE001 - a method that cannot be made with default options states its own figure
+    except (PcfbenchError, TypeError, ValueError):  # options without a default set: the stated figure alone
         default = None
     if steps and default and steps != default:
         return f"{stated}; that figure is for {default} steps, these options train {steps}"
