@@ -6,9 +6,13 @@ Frames are in the names: ``*_ref`` arrays are in the sample's reference (t=0) se
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+import weakref
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from typing import Any, Callable, Hashable, TypeVar
 
 import numpy as np
+
+_T = TypeVar("_T")
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 
@@ -21,6 +25,23 @@ def read_only_copy(arr: np.ndarray) -> np.ndarray:
     view = owner.view()
     view.flags.writeable = False
     return view
+
+
+def frozen(value: Any) -> Any:
+    """``value`` with every NumPy array in it (itself, the items of its tuples and lists, the
+    fields of its dataclasses, the values of its dicts) made read-only, in place; returns it."""
+    if isinstance(value, np.ndarray):
+        value.flags.writeable = False
+    elif isinstance(value, (tuple, list)):
+        for item in value:
+            frozen(item)
+    elif isinstance(value, dict):
+        for item in value.values():
+            frozen(item)
+    elif is_dataclass(value) and not isinstance(value, type):
+        for f in fields(value):
+            frozen(getattr(value, f.name))
+    return value
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,12 +99,33 @@ class Sample:
     def num_future(self) -> int:
         return len(self.queries)
 
+    def derive(self, fn: Callable[..., _T], *args: Hashable) -> _T:
+        """``fn(self, *args)``, computed once for every method run on this sample in this process.
+
+        When a run scores several methods on a sample (``pcfbench.running.group``), each gets its
+        own :meth:`for_method` copy of it; what those copies derive is kept in one place, so a
+        structure that several methods build from the same inputs (the ray casters' aggregate of
+        the past sweeps) is built by the first of them only. ``fn`` must be a module-level
+        function of the sample's inputs and ``args`` alone (hashable; options, not objects): the
+        key is its module, name and ``args``. The value's arrays are made read-only (what one
+        method derives cannot be changed under the next); the first method's ``t_method``
+        includes computing it."""
+        derived = _DERIVED.setdefault(self, {})
+        key = (fn.__module__, fn.__qualname__, args)
+        try:
+            return derived[key]
+        except KeyError:
+            pass
+        value = frozen(fn(self, *args))
+        derived[key] = value
+        return value
+
     def for_method(self) -> "Sample":
         """What a method receives: a copy whose every array (points, poses, timestamps, query
         origins and directions) is read-only, so a method writing into its input gets a
         ``ValueError`` and, whatever it does to the copy, the sample it is scored against (this
-        one, kept by the runner) is untouched."""
-        return replace(
+        one, kept by the runner) is untouched. The copies share what :meth:`derive` computes."""
+        copy = replace(
             self,
             past_points_ref=tuple(read_only_copy(p) for p in self.past_points_ref),
             past_T_ref_sensor=read_only_copy(self.past_T_ref_sensor),
@@ -93,6 +135,15 @@ class Sample:
             queries=tuple(RayQuery(read_only_copy(q.origin_ref), read_only_copy(q.directions_ref)) for q in self.queries),
             T_world_ref=read_only_copy(self.T_world_ref),
         )
+        _DERIVED[copy] = _DERIVED.setdefault(self, {})
+        return copy
+
+
+#: what ``Sample.derive`` computed, per sample: one dict shared by a sample and its
+#: ``for_method`` copies only (a sample made any other way, ``replace`` or ``Sample(**...)``,
+#: may have other inputs and starts empty); kept outside the samples, so neither their fields
+#: nor their pickles carry it
+_DERIVED: weakref.WeakKeyDictionary[Sample, dict] = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True, eq=False)

@@ -137,7 +137,7 @@ class RaycastFourDOcc(Method):
     Options = FourDOccOptions
 
     def forecast(self, sample: Sample) -> Forecast:
-        agg = aggregate(sample)
-        vws = views(sample, self.options.constant_velocity)
+        agg = sample.derive(aggregate)
+        vws = sample.derive(views, self.options.constant_velocity)
         depths = render_4docc_views(agg.cols, vws, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)

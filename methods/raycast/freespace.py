@@ -26,7 +26,7 @@ from pcfbench.method import Method
 from pcfbench.options import option
 from pcfbench.methods.raycast.common import aggregate, assemble, views
 from pcfbench.methods.raycast.grid import VoxelGrid
-from pcfbench.methods.raycast.voxel import VoxelOptions, build_grid, render_voxel_views
+from pcfbench.methods.raycast.voxel import VoxelOptions, past_grid, render_voxel_views
 from pcfbench.methods.raycast.zbuffer import render_zbuffer_views
 
 
@@ -49,16 +49,16 @@ class FreespaceOptions(VoxelOptions):
                             min=0, max=1800)
 
 
-def carve(grid: VoxelGrid, origins, points, own_range, opts) -> np.ndarray:
-    """Carve ``grid`` in place; returns the mask of points whose voxel survived (or lie outside)."""
+def carve(grid: VoxelGrid, origins, points, own_range, opts) -> tuple[VoxelGrid, np.ndarray]:
+    """(the carved grid, the mask of points whose voxel survived or that lie outside); ``grid``
+    is left as it is."""
     t_end = own_range - np.maximum(opts.carve_margin_m, opts.carve_margin_frac * own_range)
     free = grid.free_counts(origins, points, t_end)
     keep = grid.hits * opts.l_hit - free * opts.l_miss > 0
     slot = grid.point_slot
     point_keep = np.ones(len(points), bool)
     point_keep[slot >= 0] = keep[slot[slot >= 0]]
-    grid.keep_only(keep)
-    return point_keep
+    return grid.kept(keep), point_keep
 
 
 class RaycastFreespace(Method):
@@ -67,11 +67,10 @@ class RaycastFreespace(Method):
     Options = FreespaceOptions
 
     def forecast(self, sample: Sample) -> Forecast:
-        agg = aggregate(sample)
-        grid = build_grid(agg.points, self.options)
-        keep = carve(grid, agg.origins, agg.points, agg.own_range, self.options)
+        agg = sample.derive(aggregate)
+        grid, keep = carve(past_grid(sample, self.options), agg.origins, agg.points, agg.own_range, self.options)
         cols, own = np.ascontiguousarray(agg.cols[:, keep]), agg.own_range[keep]
-        vws = views(sample, self.options.constant_velocity)
+        vws = sample.derive(views, self.options.constant_velocity)
         if self.options.renderer == "zbuffer":
             depths = render_zbuffer_views(cols, own, vws, self.options, self.execution)
         else:

@@ -54,6 +54,8 @@ tried and left out: docs/journal/performance-tuning-2026-11.md.
 
 from __future__ import annotations
 
+import copy
+
 import numba as nb
 import numpy as np
 
@@ -644,17 +646,27 @@ class VoxelGrid:
                 parents[lvl - 1] = np.unique(key, return_inverse=True)[1]
         self.planes = _planes(self.moments, parents)
 
-    def keep_only(self, keep: np.ndarray) -> None:
-        """Drop the occupied voxels where ``keep`` (one flag per occupied voxel) is False."""
-        self.ukeys = self.ukeys[keep]
-        self.means = self.means[keep]
-        self.hits = self.hits[keep]
-        self.moments = self.moments[keep]
-        self._make_planes()
-        self.occ[:] = 0
-        _fill(self.occ, self.offs, self.dims, self.ukeys)
-        self.col_start = _column_starts(self.ukeys, int(self.dims[0, 0] * self.dims[0, 1]), int(self.dims[0, 2]))
-        self._make_field()
+    def kept(self, keep: np.ndarray) -> "VoxelGrid":
+        """A grid of only the occupied voxels where ``keep`` (one flag per occupied voxel) is
+        True, surfaces and empty-box radii rebuilt; this one is left as it is (it may be shared)."""
+        out = copy.copy(self)
+        out.ukeys = self.ukeys[keep]
+        out.means = self.means[keep]
+        out.hits = self.hits[keep]
+        out.moments = self.moments[keep]
+        out._make_planes()
+        out.occ = np.zeros_like(self.occ)
+        _fill(out.occ, out.offs, out.dims, out.ukeys)
+        out.col_start = _column_starts(out.ukeys, int(out.dims[0, 0] * out.dims[0, 1]), int(out.dims[0, 2]))
+        out._make_field()
+        return out
+
+    def freeze(self) -> "VoxelGrid":
+        """Make every array of the grid read-only (a grid that several methods share); returns it."""
+        for value in vars(self).values():
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
+        return self
 
     def free_counts(self, origins: np.ndarray, points: np.ndarray, t_end: np.ndarray) -> np.ndarray:
         free = np.zeros(len(self.ukeys), np.int64)

@@ -81,9 +81,23 @@ def ground_height(points: np.ndarray, box: Box = ROI) -> float | None:
 def build_grid(points: np.ndarray, opts) -> VoxelGrid:
     """The occupancy grid of ``points`` for the options of raycast-voxel (or -freespace); with
     ``align_ground``, every level has a face half a voxel above the ground (``ground_height``)."""
-    ground = ground_height(points) if opts.align_ground else None
-    anchor = None if ground is None else ground + 0.5 * opts.voxel
-    return VoxelGrid(points, voxel=opts.voxel, levels=max(opts.max_level, PYRAMID), anchor_z=anchor)
+    return _grid(points, opts.voxel, max(opts.max_level, PYRAMID), opts.align_ground)
+
+
+def _grid(points: np.ndarray, voxel: float, levels: int, align_ground: bool) -> VoxelGrid:
+    ground = ground_height(points) if align_ground else None
+    anchor = None if ground is None else ground + 0.5 * voxel
+    return VoxelGrid(points, voxel=voxel, levels=levels, anchor_z=anchor)
+
+
+def _past_grid(sample: Sample, voxel: float, levels: int, align_ground: bool) -> VoxelGrid:
+    return _grid(sample.derive(aggregate).points, voxel, levels, align_ground).freeze()
+
+
+def past_grid(sample: Sample, opts) -> VoxelGrid:
+    """``build_grid`` of the sample's aggregated past, read-only: built once for every method on
+    the sample that asks with the same voxel, levels and ground alignment (``Sample.derive``)."""
+    return sample.derive(_past_grid, float(opts.voxel), max(opts.max_level, PYRAMID), bool(opts.align_ground))
 
 
 @dataclass(frozen=True)
@@ -138,8 +152,8 @@ class RaycastVoxel(Method):
     Options = VoxelOptions
 
     def forecast(self, sample: Sample) -> Forecast:
-        agg = aggregate(sample)
-        grid = build_grid(agg.points, self.options)
-        vws = views(sample, self.options.constant_velocity)
+        agg = sample.derive(aggregate)
+        grid = past_grid(sample, self.options)
+        vws = sample.derive(views, self.options.constant_velocity)
         depths = render_voxel_views(grid, agg.cols, agg.own_range, vws, self.options, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)

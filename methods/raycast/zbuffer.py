@@ -278,7 +278,7 @@ class RaycastZBuffer(Method):
     Options = ZBufferOptions
 
     def forecast(self, sample: Sample) -> Forecast:
-        agg = aggregate(sample)
-        vws = views(sample, self.options.constant_velocity)
+        agg = sample.derive(aggregate)
+        vws = sample.derive(views, self.options.constant_velocity)
         depths = render_zbuffer_views(agg.cols, agg.own_range, vws, self.options, self.execution)
         return assemble(sample, vws, depths, self.options.constant_velocity)

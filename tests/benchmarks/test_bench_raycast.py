@@ -56,7 +56,7 @@ def _scene(cls, sample):
     if cls in (RaycastVoxel, RaycastFreespace):
         grid = build_grid(agg.points, opts)
     if cls is RaycastFreespace:
-        keep = carve(grid, agg.origins, agg.points, agg.own_range, opts)
+        grid, keep = carve(grid, agg.origins, agg.points, agg.own_range, opts)
         cols, own = np.ascontiguousarray(cols[:, keep]), own[keep]
     return opts, agg, vws, grid, cols, own
 

@@ -93,6 +93,34 @@ def test_a_group_loads_each_sample_once(tiny_kitti, tmp_path, monkeypatch):
     assert len(built) == 18
 
 
+def test_ray_casters_in_a_group_share_what_they_derive_and_score_as_apart(tiny_kitti, tmp_path, monkeypatch):
+    """The four ray casters share each sample's aggregate of the past (``Sample.derive``) and
+    raycast-voxel / -freespace its voxel grid (freespace carves a copy): built once per sample in
+    a group, once per method and sample apart, with the same rows and stored range bins."""
+    from pcfbench.methods.raycast import grid
+
+    built = []
+    original = grid.VoxelGrid.__init__
+
+    def counting(self, *args, **kwargs):
+        built.append(1)
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(grid.VoxelGrid, "__init__", counting)
+    methods = ("raycast-freespace", "raycast-4docc", "raycast-voxel", "raycast-zbuffer")
+    run_group([_spec(tiny_kitti, m) for m in methods], tmp_path / "group", RunOptions(progress=False))
+    assert len(built) == 6
+    for m in methods:
+        run_cell(_spec(tiny_kitti, m), tmp_path / "apart", RunOptions(progress=False))
+    assert len(built) == 6 + 12
+    for m in methods:
+        _assert_rows_equal(_rows(tmp_path / "group", tiny_kitti, m), _rows(tmp_path / "apart", tiny_kitti, m))
+        ranges = [Cell(store, _spec(tiny_kitti, m)).read_ranges().sort_values(["sample_id", "step"])
+                  .reset_index(drop=True) for store in (tmp_path / "group", tmp_path / "apart")]
+        assert len(ranges[0]) == 30
+        pd.testing.assert_frame_equal(*ranges, check_exact=True)
+
+
 def test_a_crash_in_a_group_fails_only_its_method_on_its_sample(tiny_kitti, tmp_path):
     p = plugins()
     methods = ("copy-last", "exits", "raycast-zbuffer")

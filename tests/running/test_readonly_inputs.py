@@ -91,3 +91,32 @@ def test_a_method_forcing_its_copy_writeable_cannot_change_its_score(tiny_kitti,
     assert set(got.status) == {"ok"} and len(got) == len(ref) == 15
     for col in ("chamfer", "l1_mean", "n_gt", "n_pred"):
         np.testing.assert_array_equal(got[col].to_numpy(), ref[col].to_numpy())
+
+
+def _mean_past(sample, scale):
+    _mean_past.calls += 1
+    return {"mean": np.mean(np.concatenate(sample.past_points_ref), axis=0) * scale, "scale": scale}
+
+
+def test_what_methods_derive_from_a_sample_is_computed_once_and_read_only():
+    """``Sample.derive``: the copies the runner gives each method on one sample share it; its
+    arrays cannot be written; another argument is another value; a sample made any other way
+    (``replace``, ``Sample(**...)``), whose inputs may differ, starts without it."""
+    from dataclasses import replace
+
+    from pcfbench.data import Sample
+
+    sample, _ = toy_sample()
+    _mean_past.calls = 0
+    first = sample.for_method().derive(_mean_past, 2.0)
+    again = sample.for_method().derive(_mean_past, 2.0)
+    assert again is first and _mean_past.calls == 1
+    np.testing.assert_allclose(first["mean"], np.mean(np.concatenate(sample.past_points_ref), axis=0) * 2.0)
+    with pytest.raises(ValueError, match="read-only"):
+        first["mean"][0] = 0.0
+    assert sample.derive(_mean_past, 3.0)["scale"] == 3.0 and _mean_past.calls == 2
+    moved = tuple(read_only_copy(p + 1.0) for p in sample.past_points_ref)
+    for other in (replace(sample, past_points_ref=moved), Sample(**{**sample.__dict__, "past_points_ref": moved})):
+        got = other.derive(_mean_past, 2.0)
+        np.testing.assert_allclose(got["mean"], first["mean"] + 2.0, atol=1e-3)  # (float32 means)
+    assert _mean_past.calls == 4
