@@ -155,6 +155,20 @@ class SweepTruth:
         """Rays that meet the ROI and whose clamped ground-truth range exceeds 1 cm."""
         return self._clamps[4]
 
+    def kept_range_groups(self, width: float) -> list[tuple[int, np.ndarray]]:
+        """The kept rays (``ray_kept``, in their order) in bins of ``width`` metres of ground-truth
+        range: per bin k ([k width, (k + 1) width)), ascending, the positions among the kept rays
+        that fall in it, ascending (so ``x[positions]`` is ``x[bin == k]``, element for element).
+        Computed once per width (the store's range bins, ``pcfbench.store.ranges``)."""
+        groups = self.__dict__.setdefault("_range_groups", {})
+        if width not in groups:
+            b = np.floor(self.gt_ranges[self.ray_kept] / width).astype(np.int64)
+            order = np.argsort(b, kind="stable")
+            bins, starts = np.unique(b[order], return_index=True)
+            ends = [*starts[1:].tolist(), len(b)]
+            groups[width] = [(int(k), order[s:e]) for k, s, e in zip(bins, starts.tolist(), ends)]
+        return groups[width]
+
 
 def _bounds(box: Box) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) float64 of a box, for the kernels of pcfbench.metrics.rays."""

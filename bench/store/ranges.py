@@ -52,14 +52,12 @@ def sweep_bins(ctx) -> dict[str, list]:
     if errs is None or errs[0].size == 0:
         return empty
     l1, absrel = errs
-    b = np.floor(ctx.gt_ranges[ctx.ray_kept] / RANGE_BIN_M).astype(np.int64)
     out: dict[str, list] = {c: [] for c in LIST_COLUMNS}
-    for k in np.unique(b):
-        m = b == k
-        out["bin"].append(int(k))
-        out["rays"].append(int(m.sum()))
-        out["l1_sum"].append(float(np.sum(l1[m])))
-        out["absrel_sum"].append(float(np.sum(absrel[m])))
+    for k, rays in ctx.truth.kept_range_groups(RANGE_BIN_M):  # the truth's: shared by every method on the sample
+        out["bin"].append(k)
+        out["rays"].append(len(rays))
+        out["l1_sum"].append(float(np.sum(l1[rays])))
+        out["absrel_sum"].append(float(np.sum(absrel[rays])))
     return out
 
 

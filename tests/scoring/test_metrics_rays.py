@@ -76,3 +76,40 @@ def test_kernels_equal_the_numpy_chain_bit_for_bit(case):
     for name, a, b in [("t_enter", want[4][kept], got[4][kept]), ("t_exit", want[5][kept], got[5][kept]),
                        ("clamped", want[7][kept], got[7][kept]), ("err", want[9], got[9]), ("relerr", want[10], got[10])]:
         assert np.array_equal(np.signbit(a), np.signbit(b)), name
+
+
+def test_kept_range_groups_hand_computed():
+    """Rays at 0.5, 12, 3 and 25 m straight ahead inside the ROI, one of them too short to keep
+    (under the minimum range): bins of 10 m hold the kept rays' positions in order."""
+    from pcfbench.data import RayQuery
+    from pcfbench.metrics.base import SweepTruth
+
+    gt = np.array([[0.5, 0, 0], [12, 0, 0], [3, 0, 0], [25, 0, 0], [9.5, 0, 0]], np.float32)
+    dirs = (gt / np.linalg.norm(gt, axis=1, keepdims=True)).astype(np.float32)
+    truth = SweepTruth(gt, RayQuery(np.zeros(3), dirs), min_range_m=1.0)
+    assert truth.ray_kept.tolist() == [False, True, True, True, True]
+    groups = truth.kept_range_groups(10.0)
+    # kept rays: 12, 3, 25, 9.5 m at positions 0, 1, 2, 3
+    assert [(k, p.tolist()) for k, p in groups] == [(0, [1, 3]), (1, [0]), (2, [2])]
+    assert truth.kept_range_groups(10.0) is groups  # computed once per width
+    assert [k for k, _ in truth.kept_range_groups(20.0)] == [0, 1]
+
+
+@pytest.mark.parametrize("index", [8, 14])
+def test_kept_range_groups_select_what_the_bin_masks_select(index):
+    """Against the masks ``ranges.sweep_bins`` used before: the same rays in the same order per
+    bin, so the stored sums are bit for bit what they were."""
+    from pcfbench.metrics.base import SweepTruth
+    from pcfbench.testing import toy_sample
+
+    sample, truth_ = toy_sample("kitti-1s", index)
+    for gt, query in zip(truth_.future_points_ref, sample.queries):
+        truth = SweepTruth(gt, query)
+        b = np.floor(truth.gt_ranges[truth.ray_kept] / 10.0).astype(np.int64)
+        assert len(np.unique(b)) >= 4
+        errors = np.random.default_rng(index).random(len(b))
+        got = truth.kept_range_groups(10.0)
+        assert [k for k, _ in got] == np.unique(b).tolist()
+        for k, positions in got:
+            np.testing.assert_array_equal(errors[positions], errors[b == k])
+            assert np.sum(errors[positions]) == np.sum(errors[b == k])
