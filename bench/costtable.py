@@ -58,11 +58,13 @@ _INTRO = """\
 docs/performance-costs.json, which tests/benchmarks/test_bench_cost.py writes; do not edit by
 hand (tests/project/test_docs.py checks it). -->
 
-What a sample costs each built-in baseline, per dataset size, as the runner computes it: one
-pass over each sample for every method (the sample loaded and its ground truth's k-d tree,
-angles and ROI clamps built once, `pcfbench.running.group`), on one thread. The projection
-multiplies by the split's samples and divides by the cores, as if every core ran samples
-with no overhead; what the Ray executor adds per shard and where scaling stops:
+What a sample costs each built-in baseline, per dataset size, on one thread: run alone (a
+one-method run), and as its share of one pass over each sample for every method (the sample
+loaded once and what the methods share built once, `pcfbench.running.group`: the ground truth's
+k-d tree, angles and ROI clamps, paid by the first method's scoring; the past sweeps' aggregate
+and voxel grid of the ray casters, `Sample.derive`, paid by the first ray caster needing them).
+The projection multiplies by the split's samples and divides by the cores, as if every core ran
+samples with no overhead; what the Ray executor adds per shard and where scaling stops:
 [cluster.md](cluster.md#measured). The tuning history (what was tried, measured and kept):
 [journal/performance-tuning-2026-11.md](journal/performance-tuning-2026-11.md) and
 [journal/performance-2026-11.md](journal/performance-2026-11.md) (the default run's time).
@@ -94,20 +96,23 @@ def markdown(data: dict[str, Any] | None = None) -> str:
         if not rows:
             continue
         out += [f"## {size['name']}", "",
-                f"{size['description']}; medians over {rows[0]['samples']} kitti-1s samples, seconds per sample "
-                f"(load: once per sample, shared by the methods).", "",
-                "| method | load | forecast | scoring | alone (load + forecast + scoring) | "
+                f"{size['description']}; medians over {rows[0]['samples']} kitti-1s samples, seconds per sample. "
+                f"Load, forecast and scoring: the method's share of the one pass (load: once per sample, shared); "
+                f"alone: load + forecast + scoring in a one-method run, which the projection scales.", "",
+                "| method | load | forecast | scoring | alone | "
                 + " | ".join(f"full split, {c} core{'s' if c > 1 else ''}" for c in CORES) + " |",
                 "|---|---|---|---|---|" + "---|" * len(CORES)]
         load_s = rows[0]["load_s"]
         for c in rows:
-            alone = c["load_s"] + c["forecast_s"] + c["metrics_s"]
+            alone = c["alone_s"]
             out.append(f"| `{c['method']}` | {_s(c['load_s'])} | {_s(c['forecast_s'])} | {_s(c['metrics_s'])} | "
                        f"{_s(alone)} | " + " | ".join(_hours(total * alone / n) for n in CORES) + " |")
         five = load_s + sum(c["forecast_s"] + c["metrics_s"] for c in rows)
         out += [f"| all {len(rows)} in one pass | {_s(load_s)} | {_s(sum(c['forecast_s'] for c in rows))} | "
                 f"{_s(sum(c['metrics_s'] for c in rows))} | {_s(five)} | "
-                + " | ".join(_hours(total * five / n) for n in CORES) + " |", ""]
+                + " | ".join(_hours(total * five / n) for n in CORES) + " |",
+                f"| all {len(rows)}, one run each | | | | {_s(sum(c['alone_s'] for c in rows))} | "
+                + " | ".join(_hours(total * sum(c['alone_s'] for c in rows) / n) for n in CORES) + " |", ""]
     ratios = data.get("ratios", [])
     if ratios:
         out += ["## Ratios against named baselines", "",

@@ -8,7 +8,9 @@ is generated from (pcfbench.costtable).
 Per size, the five baselines run as the runner runs them (one pass over each sample for every
 method, ``run_group``), on one thread, into a fresh store: first on one sample (warm-up: numba's
 kernels, the page cache), then on ``SAMPLES``; the medians of the rows' ``t_load``,
-``t_method`` and ``t_metrics`` per method are the costs. Sizes: the toy street of the tests
+``t_method`` and ``t_metrics`` per method are its share of the pass. Then each method alone
+(``run_cell``, a one-method run) on the same samples: the median of its rows' sum is its cost
+alone. Sizes: the toy street of the tests
 (16 x 360 rays), and at full size the KITTI-sized toy street (64 x 1900) and, with
 ``PCFBENCH_BENCH_KITTI``, real KITTI sweeps. At full size it also measures the two ratios of
 issue 48 side by side (alternating rounds, medians): the metric suite against two pykdtree
@@ -31,7 +33,7 @@ from pcfbench.execution import available_cpus
 from pcfbench.method import options_hash
 from pcfbench.plugins import get_plugins
 from pcfbench.running.group import run_group
-from pcfbench.running.runner import RunOptions, default_metrics
+from pcfbench.running.runner import RunOptions, default_metrics, run_cell
 from pcfbench.store.cells import Cell, CellSpec
 
 FULL = os.environ.get("PCFBENCH_BENCH_FULL") == "1"
@@ -68,14 +70,19 @@ def _costs(size: dict, root: Path, split: str, tmp: Path) -> list[dict]:
 
     run_group(specs(1), tmp / "warm", options)
     run_group(specs(SAMPLES), tmp / "store", options)
+    for spec in specs(SAMPLES):  # each method alone, as a one-method run computes it
+        run_cell(spec, tmp / "alone", options)
     out = []
     for spec in specs(SAMPLES):
         df = Cell(tmp / "store", spec).read_rows()
         per = df[df.status == "ok"].drop_duplicates("sample_id")
+        alone = Cell(tmp / "alone", spec).read_rows()
+        alone = alone[alone.status == "ok"].drop_duplicates("sample_id")
         points = int(df[df.status == "ok"]["n_gt"].median())
         out.append({"method": spec.method, "size": size["name"], "samples": int(len(per)), "gt_points": points,
                     "load_s": float(per.t_load.median()), "forecast_s": float(per.t_method.median()),
-                    "metrics_s": float(per.t_metrics.median())})
+                    "metrics_s": float(per.t_metrics.median()),
+                    "alone_s": float((alone.t_load + alone.t_method + alone.t_metrics).median())})
     return out
 
 

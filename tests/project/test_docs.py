@@ -208,15 +208,19 @@ def test_the_cost_table_projects_a_split_onto_cores(tmp_path):
             "split": {"name": "a split", "samples": {"kitti-1s": 6000, "kitti-3s": 1000}},
             "sizes": [{"name": "small", "description": "a small street"}],
             "costs": [{"method": "a", "size": "small", "samples": 4, "gt_points": 10, "load_s": 0.5, "forecast_s": 1.0,
-                       "metrics_s": 1.5},
+                       "metrics_s": 1.5, "alone_s": 3.0},
                       {"method": "b", "size": "small", "samples": 4, "gt_points": 10, "load_s": 0.5, "forecast_s": 0.25,
-                       "metrics_s": 0.25}],
+                       "metrics_s": 0.25, "alone_s": 1.25}],
             "ratios": [{"what": "suite", "baseline": "floor", "ratio": 1.234, "bar": "<= 1.5", "rounds": 21, "where": "x"}]}
     text = costtable.markdown(data)
     # a: 3 s a sample x 7,000 samples = 5.8 h on one core, 21.9 min on 16, 164 s on 128
     assert "| `a` | 0.500 | 1.00 | 1.50 | 3.00 | 5.8 h | 22 min | 2.7 min |" in text
     # both in one pass: the sample loaded once, 0.5 + (1 + 0.25) + (1.5 + 0.25) = 3.5 s
     assert "| all 2 in one pass | 0.500 | 1.25 | 1.75 | 3.50 | 6.8 h | 26 min | 3.2 min |" in text
+    # b's share of the pass (1.0 s) is less than b alone (1.25 s, which its row projects): it shares
+    assert "| `b` | 0.500 | 0.250 | 0.250 | 1.25 | 2.4 h | 9.1 min | 1.1 min |" in text
+    # one run each: 3 + 1.25 = 4.25 s a sample
+    assert "| all 2, one run each | | | | 4.25 | 8.3 h | 31 min | 3.9 min |" in text
     assert "| suite | floor | 1.23 | <= 1.5 | 21 | x |" in text
     (tmp_path / "bad.json").write_text('{"measured": {}}')
     with pytest.raises(PcfbenchError, match="bad.json: no split, sizes, costs: not the cost benchmark's output"):
