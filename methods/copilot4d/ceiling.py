@@ -78,7 +78,7 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
         "copy-last": lambda sample, *_: copy_last.forecast(sample.for_method())},
         max_samples=max_samples, log=log, label=f"ceiling ({frame})")
     ch = np.asarray(changed, np.float64)
-    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": res["samples"],
+    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": res["samples"], "of_samples": res["of_samples"],
             "sweeps": len(res["rows"]["ceiling"]), **render, "eval_s": res["eval_s"], "means": res["means"],
             "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
             "rows": res["rows"]}
@@ -90,8 +90,8 @@ def score_beside(adapter, split: str, setting: str, forecasters: dict, *, max_sa
     returning a ``Forecast``; ``sample`` is the full one, a bound may read the future through
     ``builder``) on the protocol's samples of ``setting`` on ``split`` (``max_samples`` evenly
     spaced ones; None: all), by every registered metric as the runner scores them
-    (``score_sample``), in one loop. Returns ``samples``, per-entry flat means over (sample,
-    future sweep) (``means``), the per-sample rows (``rows``) and ``eval_s``."""
+    (``score_sample``), in one loop. Returns ``samples`` (of ``of_samples`` in the split), per-entry
+    flat means over (sample, future sweep) (``means``), the per-sample rows (``rows``) and ``eval_s``."""
     from pcfbench.metrics.base import score_sample
     from pcfbench.plugins import get_plugins, get_setting
     from pcfbench.protocol import SampleBuilder
@@ -109,6 +109,7 @@ def score_beside(adapter, split: str, setting: str, forecasters: dict, *, max_sa
         settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
         why = explain(builder, split, settings=settings, options=Options(setting="--ceiling {}", policy=None))
         raise PcfbenchError(f"the ceiling: {why.message}")
+    of_samples = len(keys)
     if max_samples:
         keys = [keys[i] for i in np.unique(np.linspace(0, len(keys) - 1, min(max_samples, len(keys))).round().astype(int))]
     rows: dict[str, list[dict]] = {name: [] for name in forecasters}
@@ -127,7 +128,7 @@ def score_beside(adapter, split: str, setting: str, forecasters: dict, *, max_sa
         return float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else float("nan")
 
     means = {name: {m.name: mean([r[m.name] for r in rs]) for m in metrics} for name, rs in rows.items()}
-    return {"samples": len(keys), "means": means, "rows": rows, "eval_s": time.monotonic() - t0}
+    return {"samples": len(keys), "of_samples": of_samples, "means": means, "rows": rows, "eval_s": time.monotonic() - t0}
 
 
 def write_beside(result: dict, meta: dict, out_dir: Path, stem: str, *, copy: str, target: str, head: list[str],
@@ -136,9 +137,13 @@ def write_beside(result: dict, meta: dict, out_dir: Path, stem: str, *, copy: st
     ceiling's means (``target`` labels it), the copy baseline ``copy``'s and copy-last's from the
     same loop, the ceiling's ratios to both and whether it beats ``copy`` on the bar's three
     columns (issue ``issue``). ``head``: the Markdown lines before the table (title, what the
-    target is, the samples); ``columns``: extra ``result`` keys written on every CSV row."""
+    target is, the samples); ``columns``: extra ``result`` keys written on every CSV row. A ceiling
+    of some of the split's samples (``samples`` < ``of_samples``) is written beside the whole
+    split's, never over it: ``<stem>-<samples>-samples``."""
     import csv
 
+    if result["samples"] < result.get("of_samples", result["samples"]):
+        stem = f"{stem}-{result['samples']}-samples"
     out_dir.mkdir(parents=True, exist_ok=True)
     m = result["means"]
     o, cp, c = m["ceiling"], m[copy], m["copy-last"]

@@ -91,7 +91,7 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
                             f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
     assert "ceiling (kitti-1s, frame t0, 1 samples) / bevworld-latent-copy: chamfer_nf" in r.output
-    md = next((tmp_path / "rep" / "bevworld").glob("ceiling-micro-kitti-on-kitti-test-kitti-1s-t0.md")).read_text()
+    md = next((tmp_path / "rep" / "bevworld").glob("ceiling-micro-kitti-on-kitti-test-kitti-1s-t0-1-samples.md")).read_text()
     assert "pcfbench bevworld-ceiling --method" in md and np.isfinite(float(md.split("| ceiling | ")[1].split()[0]))
     r = runner.invoke(cli, ["bevworld-ceiling", "--method", "copy-last", "--dataset", f"kitti={root}"])
     assert r.exit_code != 0 and "expected bevworld-latent-copy" in r.output

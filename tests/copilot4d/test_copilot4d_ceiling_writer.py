@@ -27,3 +27,15 @@ def test_writer_gives_ratios_and_the_bar_per_column(tmp_path):
     assert "issue 7: the ceiling beats occ-copy" in text
     assert "chamfer_nf met, l1_mean NOT met, l1_median NOT met." in text
     assert text.startswith("# title\n") and "- config: tiny" in text
+
+
+def test_a_ceiling_of_some_samples_is_written_beside_the_whole_splits(tmp_path):
+    means = {n: {"chamfer_nf": 1.0, "l1_mean": 1.0, "l1_median": 1.0} for n in ("ceiling", "occ-copy", "copy-last")}
+    result = {"means": means, "dataset": "d", "split": "test", "setting": "kitti-1s", "frame": "t0", "sweeps": 15}
+    whole = write_beside({**result, "samples": 84, "of_samples": 84}, {}, tmp_path, "c", copy="occ-copy", target="x",
+                         head=[], issue=7)
+    some = write_beside({**result, "samples": 12, "of_samples": 84}, {}, tmp_path, "c", copy="occ-copy", target="x",
+                        head=[], issue=7)
+    assert [p.name for p in whole] == ["c.md", "c.csv"]
+    assert [p.name for p in some] == ["c-12-samples.md", "c-12-samples.csv"]
+    assert list(csv.DictReader(open(whole[1])))[0]["samples"] == "84"  # left as it was

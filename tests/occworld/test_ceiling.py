@@ -92,19 +92,19 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     assert "ceiling (kitti-1s, frame t0, 1 samples) / occworld-occ-copy: chamfer_nf" in r.output
     # named by the tokenizer's non-default steps: it never writes over the default tokenizer's report
-    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-steps2-kitti-32x32x4-on-kitti-test-kitti-1s-t0.md"))
+    md = next((tmp_path / "rep" / "occworld").glob("ceiling-micro-steps2-kitti-32x32x4-on-kitti-test-kitti-1s-t0-1-samples.md"))
     assert "pcfbench occworld-ceiling --method" in md.read_text()
     # the representation's own bound needs no checkpoint; another grid only with it
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--grid",
                             "40x40x6", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
     # (the method's default readout=surface: the labels' planes, surface=front)
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-40x40x6-on-kitti-test-kitti-1s-t0-surface-front.md")
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-40x40x6-on-kitti-test-kitti-1s-t0-surface-front-1-samples.md")
     assert "perfect (the labels as tokens" in md.read_text() and "--perfect --grid 40x40x6" in md.read_text()
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--surface",
                             "none", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0.md").read_text()
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0-1-samples.md").read_text()
     assert "(surface=" not in md
     r = runner.invoke(cli, ["occworld-ceiling", "--grid", "40x40x6", "--dataset", f"kitti={root}"])
     assert r.exit_code != 0 and "--grid: only with --perfect" in r.output
@@ -114,7 +114,7 @@ def test_the_command_scores_a_trained_tokenizer(tmp_path, monkeypatch):
     r = runner.invoke(cli, ["occworld-ceiling", "--method", "occworld-occ-copy:config=micro", "--perfect", "--surface",
                             "front", "--dataset", f"kitti={root}", "--samples", "1", "--reports", str(tmp_path / "rep")])
     assert r.exit_code == 0, r.output
-    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0-surface-front.md").read_text()
+    md = (tmp_path / "rep" / "occworld" / "ceiling-perfect-32x32x4-on-kitti-test-kitti-1s-t0-surface-front-1-samples.md").read_text()
     assert "--perfect --surface front" in md and "(surface=front depth)" in md
 
 
