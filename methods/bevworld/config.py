@@ -105,8 +105,8 @@ TOKENIZERS = {
     "paper": TokenizerConfig("paper"),
     # CPU scale: Copilot4D's tiny encoder (256 x 256 x 16 voxels of 0.625 x 0.625 x 0.5625 m, 64 x 64
     # latent cells of 2.5 m) with 4 latent channels; a 256 x 256 x 16 volume of 8 features.
-    # 600 steps: a step (a 120k-point sweep, 2,048 rays of 64 samples) took 6.7 s (median of 7) on
-    # this 2-core machine while another training ran, so about 70 minutes; not trained yet
+    # 600 steps (a step: a 120k-point sweep, 2,048 rays of 64 samples): 554 s in frame t0 on this
+    # 2-core machine idle (docs/bevworld.md); the curve still falls at 600
     "tiny": TokenizerConfig("tiny", grid_xy=256, grid_z=16, pointnet_dim=32, bev_dim=32, patch_size=2, dims=(48, 96),
                             heads=(3, 6), depths=(2, 2), window=8, mlp_ratio=2.0, vol_up=2, vol_z=16, vol_dim=8,
                             samples_per_ray=64, rays_per_step=2048, warmup=50, batch_size=1, max_steps=600,

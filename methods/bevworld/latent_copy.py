@@ -7,11 +7,13 @@ decodes its latent to a feature volume and renders it along every future sweep's
 from that sweep's origin moved into the t=0 frame: the world seen through the tokenizer, not
 changing. What ``bevworld`` adds is measured against it.
 
-**The frame** (option ``frame``, the world model's): ``own`` trains on each sweep in its own
-sensor frame; ``t0`` on sweeps moved into the frame of another sweep of the same sequence, as
-far before or after it as the world model's windows reach (Copilot4D's lesson: an encoder that
-only ever saw sensor-centred sweeps fails on moved ones). Either way the copy encodes the t=0
-sweep in its own frame, which is the t=0 frame.
+**The frame** (option ``frame``, the world model's): ``t0`` (default) trains on sweeps moved
+into the frame of another sweep of the same sequence, as far before or after it as the world
+model's windows reach (Copilot4D's lesson: an encoder that only ever saw sensor-centred sweeps
+fails on moved ones); ``own`` on each sweep in its own sensor frame. Either way the copy encodes
+the t=0 sweep in its own frame, which is the t=0 frame. The default is the ceilings' choice
+(docs/bevworld.md, "The frame, by the ceiling"): an ``own`` tokenizer's field is only right
+seen from its centre (its copy, rendered from the future origins, misses by metres).
 """
 
 from __future__ import annotations
@@ -39,8 +41,8 @@ class BevOptions:
 
     config: str = option("tiny", help="configuration: tiny (CPU scale), paper (the published sizes, the rest "
                                       "inferred) or micro (tests)")
-    frame: str = option("own", help="the frame of a window's latents: own (each sweep in its own sensor frame) "
-                                    "or t0 (moved into the t=0 sensor frame)")
+    frame: str = option("t0", help="the frame of a window's latents: t0 (moved into the t=0 sensor frame; the "
+                                   "ceiling's choice, docs/bevworld.md) or own (each sweep in its own sensor frame)")
 
     def __post_init__(self) -> None:
         from pcfbench.methods.bevworld.config import tokenizer_config

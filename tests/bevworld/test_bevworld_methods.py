@@ -76,7 +76,7 @@ def test_the_curriculum_has_the_papers_three_stages():
 def test_missing_tokenizer_is_one_error_with_the_command(micro, kitti):
     from pcfbench.training import CheckpointError
 
-    with pytest.raises(CheckpointError, match=r"pcfbench train bevworld-latent-copy:config=micro,frame=own,steps=2"):
+    with pytest.raises(CheckpointError, match=r"pcfbench train bevworld-latent-copy:config=micro,frame=t0,steps=2"):
         _train(f"bevworld:{MICRO},steps=2", kitti)
 
 

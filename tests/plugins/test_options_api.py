@@ -37,8 +37,8 @@ GOLDEN_DEFAULT_HASHES = {
     "occworld-occ-copy": "8b6a8742f8ef",
     "occworld": "b8a054b791db",
     # issue 44: BEVWorld, its tokenizer and world model (no checkpoint ships)
-    "bevworld-latent-copy": "dfed14b9b2e1",
-    "bevworld": "837ab777853b",
+    "bevworld-latent-copy": "d4668c0e6c5d",
+    "bevworld": "65467b35e401",
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {
