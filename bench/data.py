@@ -110,6 +110,9 @@ class Sample:
         key is its module, name and ``args``. The value's arrays are made read-only (what one
         method derives cannot be changed under the next); the first method's ``t_method``
         includes computing it."""
+        if "<" in fn.__qualname__:  # a lambda or a nested function: its name is not a key
+            raise ValueError(f"Sample.derive: {fn.__qualname__!r} of {fn.__module__} is not a module-level function; "
+                             "two such functions could share a name, and so one's value")
         derived = _DERIVED.setdefault(self, {})
         key = (fn.__module__, fn.__qualname__, args)
         try:

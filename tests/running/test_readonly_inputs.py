@@ -120,3 +120,5 @@ def test_what_methods_derive_from_a_sample_is_computed_once_and_read_only():
         got = other.derive(_mean_past, 2.0)
         np.testing.assert_allclose(got["mean"], first["mean"] + 2.0, atol=1e-3)  # (float32 means)
     assert _mean_past.calls == 4
+    with pytest.raises(ValueError, match="not a module-level function"):
+        sample.derive(lambda s: 0)
