@@ -23,6 +23,8 @@ COSTS = Path("docs") / "performance-costs.json"
 #: the core counts of the projection
 CORES = (1, 16, 128)
 _KEYS = ("measured", "split", "sizes", "costs")
+#: what every cost entry needs (``alone_s`` since the one-method runs were measured)
+_COST_KEYS = ("method", "size", "samples", "load_s", "forecast_s", "metrics_s", "alone_s")
 
 
 def load(path: Path = COSTS) -> dict[str, Any]:
@@ -35,6 +37,11 @@ def load(path: Path = COSTS) -> dict[str, Any]:
     missing = [k for k in _KEYS if k not in data]
     if missing:
         raise PcfbenchError(f"{path}: no {', '.join(missing)}: not the cost benchmark's output")
+    for i, cost in enumerate(data["costs"]):
+        lacks = [k for k in _COST_KEYS if k not in cost]
+        if lacks:
+            raise PcfbenchError(f"{path}: costs[{i}] has no {', '.join(lacks)}: written by an older cost benchmark; "
+                                "run it again (tests/benchmarks/test_bench_cost.py)")
     return data
 
 

@@ -67,7 +67,8 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
         max_samples=max_samples, log=log, label=f"bevworld ceiling ({frame})")
     ch = np.asarray(change, np.float64)
     return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame,
-            "samples": res["samples"], "of_samples": res["of_samples"], "sweeps": len(res["rows"]["ceiling"]), "eval_s": res["eval_s"],
+            "samples": res["samples"], "of_samples": res["of_samples"],
+            "sweeps": len(res["rows"]["ceiling"]), "eval_s": res["eval_s"],
             "means": res["means"], "rows": res["rows"],
             "change": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]}}
 

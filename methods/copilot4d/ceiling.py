@@ -78,7 +78,8 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
         "copy-last": lambda sample, *_: copy_last.forecast(sample.for_method())},
         max_samples=max_samples, log=log, label=f"ceiling ({frame})")
     ch = np.asarray(changed, np.float64)
-    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": res["samples"], "of_samples": res["of_samples"],
+    return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": res["samples"],
+            "of_samples": res["of_samples"],
             "sweeps": len(res["rows"]["ceiling"]), **render, "eval_s": res["eval_s"], "means": res["means"],
             "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
             "rows": res["rows"]}

@@ -141,7 +141,8 @@ def evaluate_ceiling(model, adapter, split: str, setting: str, *, frame: str = "
     ch = np.asarray(changed, np.float64)
     return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame,
             "readout": readout if surface == "none" else f"surface={surface}",
-            "samples": res["samples"], "of_samples": res["of_samples"], "sweeps": len(res["rows"]["ceiling"]), "eval_s": res["eval_s"],
+            "samples": res["samples"], "of_samples": res["of_samples"],
+            "sweeps": len(res["rows"]["ceiling"]), "eval_s": res["eval_s"],
             "means": res["means"], "rows": res["rows"],
             "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]}}
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import json
 import os
 import re
 import subprocess
@@ -225,6 +226,10 @@ def test_the_cost_table_projects_a_split_onto_cores(tmp_path):
     (tmp_path / "bad.json").write_text('{"measured": {}}')
     with pytest.raises(PcfbenchError, match="bad.json: no split, sizes, costs: not the cost benchmark's output"):
         costtable.load(tmp_path / "bad.json")
+    old = {**data, "costs": [{k: v for k, v in c.items() if k != "alone_s"} for c in data["costs"]]}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    with pytest.raises(PcfbenchError, match=r"old.json: costs\[0\] has no alone_s: written by an older cost benchmark"):
+        costtable.load(tmp_path / "old.json")
 
 
 def test_metrics_doc_lists_every_metric_with_its_changelog():
