@@ -6,8 +6,9 @@ same configuration and frame, trained on the same data, plus the latent diffusio
 every ``anchor_every``-th anchor; Copilot4D's ``build_windows``) is encoded once in the option
 ``frame`` (``own``: each sweep in its own sensor frame; ``t0``: moved into the window's t=0
 sensor frame), standardised per channel with the tokenizer's statistics, and cached under
-``<cache>/bevworld/world-windows/<tokenizer sha256[:16]>/...``; the world model learns the
-noise of the future frames (equation 7) through :func:`pcfbench.training.fit_loop`. With
+``<cache>/bevworld/world-windows/<tokenizer sha256[:16]>/...``; the world model learns its
+``target`` (the future frames' change from the last past frame, or their noise: equation 7)
+through :func:`pcfbench.training.fit_loop`. With
 ``curriculum=on`` (the paper's three stages, 2 : 2 : 3 of the steps): the next frame from the 2
 frames before it at stride 1, then all future frames at stride 1, then the ``strides``. The
 checkpoint holds the world model's weights (``world.``) and the tokenizer's (``tokenizer.``);
@@ -53,6 +54,9 @@ class BevWorldOptions(BevOptions):
                                          "at stride 1, then the strides); off: the strides throughout")
     cond_dropout: float = option(0.0, help="training: the share of windows whose action is dropped (classifier-free "
                                            "guidance; the paper: 0)", min=0.0)
+    target: str = option("change", help="what the world model predicts: change (a future latent's change from the "
+                                        "last past one; a fresh model forecasts the latent copy) or eps (the "
+                                        "noise, the paper's equation 7)")
     tokenizer_steps: int = option(0, help="the bevworld-latent-copy checkpoint used: its steps option (0: its "
                                           "default)", min=0)
     strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames (kitti-1s "
@@ -63,6 +67,10 @@ class BevWorldOptions(BevOptions):
         super().__post_init__()
         if self.curriculum not in CURRICULA:
             raise PcfbenchError(f"curriculum={self.curriculum!r}: expected one of {', '.join(CURRICULA)}")
+        from pcfbench.methods.bevworld.diffusion import TARGETS
+
+        if self.target not in TARGETS:
+            raise PcfbenchError(f"target={self.target!r}: expected one of {', '.join(TARGETS)}")
         if self.cond_dropout >= 1:
             raise PcfbenchError(f"cond_dropout={self.cond_dropout}: expected a share below 1")
 
@@ -100,7 +108,7 @@ def stage_batch(windows: dict, stage: int, n_past: int, strides: tuple[int, ...]
 
 
 def train_world(cfg, windows: dict, run, *, steps: int, seed: int, strides: tuple[int, ...], curriculum: str,
-                cond_dropout: float, manifest_config, extra_weights: dict | None = None, resumed=None,
+                cond_dropout: float, target: str, manifest_config, extra_weights: dict | None = None, resumed=None,
                 log=print) -> dict:
     """The world model on ``windows`` through :func:`pcfbench.training.fit_loop` (AdamW, warm-up
     and cosine decay); the diffusion's timesteps and noise come from the loop's torch stream."""
@@ -121,15 +129,16 @@ def train_world(cfg, windows: dict, run, *, steps: int, seed: int, strides: tupl
     def step_fn(model, batch):
         lat, poses, frames, past, stage, gen = batch
         out = diffusion_loss(model, schedule, lat, poses, past, frames=frames, cond_dropout=cond_dropout,
-                             generator=gen)
-        return out["loss"], {"loss": out["loss"].item(), "mse": out["mse"].item(), "stage": float(stage)}
+                             target=target, generator=gen)
+        keys = ("loss", "mse", "changed", "static", "copy_changed", "copy_static", "changed_share")
+        return out["loss"], {**{k: float(out[k].detach()) for k in keys}, "stage": float(stage)}
 
     out = fit_loop(lambda: WorldModel(cfg).to(device),
                    lambda m: torch.optim.AdamW(m.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
                    sample_batch, step_fn, run, steps=steps, seed=seed, torch_generator=True,
                    schedule=lambda step: warmup_cosine(step, cfg.lr, cfg.warmup, steps, cfg.min_lr_ratio),
                    grad_clip=cfg.grad_clip, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
-                   progress_values={"noise MSE": "mse", "curriculum stage": "stage"},
+                   progress_values={"loss": "mse", "changed cells": "changed", "curriculum stage": "stage"},
                    weights_prefix="world.", extra_weights=extra_weights, manifest_config=manifest_config,
                    resumed=resumed, log=log)
     return {"model": out.model, "step": out.step, "history": out.history}
@@ -138,7 +147,11 @@ def train_world(cfg, windows: dict, run, *, steps: int, seed: int, strides: tupl
 def world_curve_panels() -> list:
     from pcfbench.training import Panel
 
-    return [Panel((("mse", "noise MSE (equation 7)"),), log=True), Panel((("stage", "curriculum stage"),))]
+    return [Panel((("mse", "loss (MSE of the target)"),), log=True),
+            Panel((("changed", "loss, cells that change"), ("copy_changed", "latent copy's, cells that change"),
+                   ("static", "loss, cells that do not"), ("copy_static", "latent copy's, cells that do not")),
+                  log=True),
+            Panel((("stage", "curriculum stage"),))]
 
 
 class BevWorld(TrainedMethod):
@@ -223,10 +236,11 @@ class BevWorld(TrainedMethod):
             "tokenizer_digest": tensor_digest(tok_state), "tokenizer_checkpoint": str(tok_ck.manifest_path),
             "parameters": count_parameters(model), "steps_target": self.training_steps(),
             "windows": int(len(built["tokens"])), "strides": list(o.strides), "frame": o.frame,
-            "curriculum": o.curriculum, "cond_dropout": o.cond_dropout,
+            "curriculum": o.curriculum, "cond_dropout": o.cond_dropout, "target": o.target,
         }
         out = train_world(cfg, windows, progress, steps=self.training_steps(), seed=o.seed, strides=tuple(o.strides),
-                          curriculum=o.curriculum, cond_dropout=o.cond_dropout, manifest_config=manifest_config,
+                          curriculum=o.curriculum, cond_dropout=o.cond_dropout, target=o.target,
+                          manifest_config=manifest_config,
                           resumed=resumed, extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()},
                           log=progress.log)
         if out["history"]:
@@ -247,6 +261,9 @@ class BevWorld(TrainedMethod):
         if world_config_from_dict(conf["world"]) != self.world_cfg:
             raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' world model "
                                   "configuration than this pcfbench defines; retrain it with --fresh")
+        if conf.get("target", "eps") != self.options.target:
+            raise CheckpointError(f"checkpoint {mf} predicts target={conf.get('target', 'eps')}, and these options "
+                                  f"read its output as target={self.options.target}")
         if self.options.guidance != 1.0 and not conf.get("cond_dropout"):
             raise PcfbenchError(f"guidance={self.options.guidance}: checkpoint {mf} was trained without dropping the "
                                 "action (cond_dropout=0), so it has no unconditional prediction to guide from; train "
@@ -302,7 +319,7 @@ class BevWorld(TrainedMethod):
         P, F = len(past), sample.num_future
         gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, o.sample_seed))
         x = sample_future(self.world, Schedule.of(cfg), past[None].to(dev), poses[None].to(dev).float(), F,
-                          steps=o.ddim_steps or cfg.ddim_steps, guidance=o.guidance,
+                          steps=o.ddim_steps or cfg.ddim_steps, guidance=o.guidance, target=o.target,
                           frames=torch.arange(P + F, device=dev), generator=gen)[0]
         return self.tokenizer.denormalise(x), T_s0_ref
 

@@ -48,7 +48,7 @@ def _train(spec: str, root, **kw):
 
 def test_options_are_checked():
     for bad, what in (("frame=world", "frame"), ("curriculum=maybe", "curriculum"), ("config=huge", "config"),
-                      ("cond_dropout=1", "cond_dropout")):
+                      ("cond_dropout=1", "cond_dropout"), ("target=x0", "target")):
         with pytest.raises(PcfbenchError, match=what):
             resolve_method(f"bevworld:{bad}")
     assert resolve_method("bevworld-latent-copy:frame=t0").options.frame == "t0"

@@ -119,6 +119,63 @@ def test_sampling_denoises_all_future_frames_jointly_from_the_clean_past():
     assert float(losses["mse"]) < 1e-8
 
 
+class _Zero(torch.nn.Module):
+    def forward(self, x, t, poses, frames=None, drop_action=None):
+        return torch.zeros_like(x)
+
+
+class _ChangeOracle(torch.nn.Module):
+    """Under the ``change`` target: the exact change of every future frame from the last past one."""
+
+    def __init__(self, future: torch.Tensor, n_past: int) -> None:
+        super().__init__()
+        self.future, self.n_past = future, n_past
+
+    def forward(self, x, t, poses, frames=None, drop_action=None):
+        out = torch.zeros_like(x)
+        out[:, self.n_past:] = self.future - x[:, self.n_past - 1:self.n_past]
+        return out
+
+
+def test_the_change_target_reads_the_output_as_the_change_from_the_last_past_frame():
+    s = Schedule(100, 1e-4, 0.02)
+    g = torch.Generator().manual_seed(5)
+    past, future = torch.randn(2, 3, 4, 4, 2, generator=g), torch.randn(2, 2, 4, 4, 2, generator=g)
+    poses = torch.eye(4).expand(2, 5, 4, 4)
+    for steps in (1, 4, 20):
+        # an output of zero (every fresh model) forecasts the last past frame: the latent copy, exactly
+        out = sample_future(_Zero(), s, past, poses, 2, steps=steps, target="change", generator=g)
+        torch.testing.assert_close(out, past[:, -1:].expand_as(out), rtol=0, atol=1e-5)
+        out = sample_future(_ChangeOracle(future, 3), s, past, poses, 2, steps=steps, target="change", generator=g)
+        torch.testing.assert_close(out, future, rtol=0, atol=1e-5)
+    # the same zero output read as noise is no copy
+    out = sample_future(_Zero(), s, past, poses, 2, steps=4, generator=g)
+    assert (out - past[:, -1:]).abs().amax() > 0.1
+    latents = torch.cat([past, future], 1)
+    assert float(diffusion_loss(_ChangeOracle(future, 3), s, latents, poses, 3, target="change", generator=g)["mse"]) < 1e-12
+    with pytest.raises(PcfbenchError, match="target='x0': expected one of eps, change"):
+        diffusion_loss(_Zero(), s, latents, poses, 3, target="x0")
+    assert int(WorldModel(_micro())(*_inputs(_micro())).abs().max()) == 0  # so a fresh model copies
+
+
+def test_the_loss_on_changing_and_unchanging_cells_by_hand():
+    # one past frame, one future frame, two cells of one channel: one changes by 1.0 (over CHANGED
+    # = 0.5), the other by 0.1; a zero output under the change target scores the copy
+    s = Schedule(100, 1e-4, 0.02)
+    latents = torch.tensor([[[[[0.0], [2.0]]], [[[1.0], [2.1]]]]])  # (B 1, T 2, H 1, W 2, C 1)
+    out = diffusion_loss(_Zero(), s, latents, torch.eye(4).expand(1, 2, 4, 4), 1, target="change",
+                         generator=torch.Generator().manual_seed(0))
+    assert float(out["loss"]) == pytest.approx((1.0 + 0.01) / 2, rel=1e-5)  # float32: 2.1 - 2.0
+    assert float(out["changed"]) == pytest.approx(1.0) and float(out["copy_changed"]) == pytest.approx(1.0)
+    assert float(out["static"]) == pytest.approx(0.01, rel=1e-5) and float(out["changed_share"]) == 0.5
+    assert float(out["copy_static"]) == pytest.approx(0.01, rel=1e-5)
+    # under eps the split is of the noise's error; a batch without a changing cell has no figure for it
+    still = latents.clone()
+    still[:, 1] = still[:, 0]
+    out = diffusion_loss(_Zero(), s, still, torch.eye(4).expand(1, 2, 4, 4), 1, generator=torch.Generator().manual_seed(0))
+    assert math.isnan(float(out["changed"])) and float(out["static"]) == pytest.approx(float(out["mse"]))
+
+
 def test_guidance_mixes_the_prediction_without_the_action():
     s = Schedule(100, 1e-4, 0.02)
 
@@ -213,7 +270,8 @@ def test_paper_parameter_count_is_the_derived_one():
     assert count_parameters(WorldModel(cfg)) == PAPER_PARAMETERS
 
 
-def test_a_short_run_overfits_one_window(one_thread):
+@pytest.mark.parametrize("target", ["eps", "change"])
+def test_a_short_run_overfits_one_window(one_thread, target):
     cfg = _micro()
     torch.manual_seed(0)
     m = WorldModel(cfg)
@@ -224,7 +282,7 @@ def test_a_short_run_overfits_one_window(one_thread):
     losses = []
     for _ in range(300):
         out = diffusion_loss(m, s, x.expand(4, -1, -1, -1, -1), poses.expand(4, -1, -1, -1), cfg.n_past,
-                             generator=g)
+                             target=target, generator=g)
         opt.zero_grad()
         out["loss"].backward()
         opt.step()
