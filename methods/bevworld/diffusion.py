@@ -18,7 +18,6 @@ Timesteps run 1..T with alpha_bar[t] = prod_{s<=t} (1 - beta_s); t = 0 means cle
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from pcfbench.errors import PcfbenchError
 

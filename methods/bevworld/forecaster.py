@@ -163,9 +163,10 @@ class BevWorld(TrainedMethod):
     inference_options = ("ddim_steps", "guidance", "sample_seed")
     # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 44)
     in_default_runs = False
-    # estimated, not measured: the median step (5.3 s, batch 2) on a 2-core CPU busy with another training
-    training_time = ("about 55 min for the tiny configuration on a 2-core CPU (600 steps at about 5.3 s), plus "
-                     "encoding the windows and its tokenizer's training (about 70 min)")
+    # measured (docs/bevworld.md): 2000 steps in 915 s on the idle 2-core machine; the windows' encoding
+    # took about 11 min beside the test suite; the tokenizer's 600 steps 554 s idle
+    training_time = ("about 15 min for the tiny configuration on an idle 2-core CPU (2000 steps at 0.46 s), plus "
+                     "encoding the training windows once (about 11 min) and its tokenizer's training (about 9 min)")
 
     def __init__(self, options: BevWorldOptions | None = None) -> None:
         super().__init__(options)

@@ -117,6 +117,13 @@ def test_train_resume_continues_the_same_curve(micro, kitti, frame):
     # guidance needs a model that learned the unconditional prediction
     with pytest.raises(PcfbenchError, match="trained without dropping the action"):
         resolve_method(spec + ",guidance=2").create().load(straight)
+    # its output read as the other target would be a plausible wrong forecast: refused
+    from pcfbench.training import CheckpointError
+
+    assert conf["target"] == "change"
+    with pytest.raises(CheckpointError, match="predicts target=change, and these options read its output as "
+                                              "target=eps"):
+        resolve_method(spec + ",target=eps").create().load(straight)
 
 
 def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
