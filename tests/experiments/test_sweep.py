@@ -440,10 +440,12 @@ WORLD_MODEL = {"copilot4d-cfg-weight.toml": "copilot4d", "copilot4d-sampling-ste
 
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
+BEVWORLD_DDIM = EXAMPLES / "bevworld-ddim-steps.toml"
 
 
 def test_every_example_experiment_is_checked():
-    assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name, *WORLD_MODEL])
+    assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name,
+                                                                      BEVWORLD_DDIM.name, *WORLD_MODEL])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
@@ -451,6 +453,10 @@ def test_every_example_experiment_is_checked():
     assert [v.label for v in exp.variants] == [*(f"occworld-occ-copy (steps=300, tokens={t})" for t in (25, 50, 100)),
                                                "occworld-occ-copy", "copy-last"]
     assert exp.train_on == ("synthetic-town-realistic",) and exp.settings == ("kitti-1s", "kitti-3s")
+    exp = load_experiment(BEVWORLD_DDIM)  # every kitti-3s sample, the one checkpoint at each step count
+    assert [v.label for v in exp.variants] == [*(f"bevworld (ddim_steps={n})" for n in (2, 5, 10, 50)), "bevworld",
+                                               "bevworld-latent-copy", "copy-last"]
+    assert exp.settings == ("kitti-3s",) and exp.policy == "full-context"
 
 
 @pytest.mark.parametrize("name", sorted(WORLD_MODEL))
