@@ -28,6 +28,11 @@ TARGETS = ("eps", "change")
 CHANGED = 0.5
 
 
+def check_target(target: str) -> None:
+    if target not in TARGETS:
+        raise PcfbenchError(f"target={target!r}: expected one of {', '.join(TARGETS)}")
+
+
 class Schedule:
     """DDPM's linear beta schedule; ``alpha_bar`` (T + 1,) float64 with alpha_bar[0] = 1."""
 
@@ -69,10 +74,9 @@ class Schedule:
         ab_t = float(self.alpha_bar[t])
         if target == "eps":
             return (x_t - (1.0 - ab_t) ** 0.5 * out) / ab_t ** 0.5, out
-        if target == "change":
-            x0 = last + out
-            return x0, (x_t - ab_t ** 0.5 * x0) / (1.0 - ab_t) ** 0.5
-        raise PcfbenchError(f"target={target!r}: expected one of {', '.join(TARGETS)}")
+        check_target(target)
+        x0 = last + out
+        return x0, (x_t - ab_t ** 0.5 * x0) / (1.0 - ab_t) ** 0.5
 
 
 def diffusion_loss(model, schedule: Schedule, latents: torch.Tensor, poses: torch.Tensor, n_past: int, *,
@@ -90,8 +94,7 @@ def diffusion_loss(model, schedule: Schedule, latents: torch.Tensor, poses: torc
     batch has none), ``copy_changed`` and ``copy_static`` (the mean squared change on each: what the
     latent copy scores there, comparable with ``changed`` and ``static`` under the ``change``
     target) and ``changed_share``."""
-    if target not in TARGETS:
-        raise PcfbenchError(f"target={target!r}: expected one of {', '.join(TARGETS)}")
+    check_target(target)
     B, T = latents.shape[:2]
     dev = latents.device
     gdev = generator.device if generator is not None else dev
@@ -110,14 +113,12 @@ def diffusion_loss(model, schedule: Schedule, latents: torch.Tensor, poses: torc
     mse = err.mean()
     change2 = ((future - last) ** 2).sum(-1)
     moving = change2 > CHANGED ** 2
-    with torch.no_grad():
-        cell_err = err.mean(-1)
-        nan = torch.tensor(float("nan"))
-        out = {"changed": cell_err[moving].mean() if moving.any() else nan,
-               "static": cell_err[~moving].mean() if (~moving).any() else nan,
-               "copy_changed": change2[moving].mean() / latents.shape[-1] if moving.any() else nan,
-               "copy_static": change2[~moving].mean() / latents.shape[-1] if (~moving).any() else nan,
-               "changed_share": moving.float().mean()}
+    with torch.no_grad():  # masked means: 0 / 0 is nan for a batch without such cells, and no branch syncs
+        cell_err, copy_err, m = err.mean(-1), change2 / latents.shape[-1], moving.float()
+        n, n_static = m.sum(), (1 - m).sum()
+        out = {"changed": (cell_err * m).sum() / n, "static": (cell_err * (1 - m)).sum() / n_static,
+               "copy_changed": (copy_err * m).sum() / n, "copy_static": (copy_err * (1 - m)).sum() / n_static,
+               "changed_share": m.mean()}
     return {"loss": mse, "mse": mse, **out}
 
 
@@ -130,8 +131,7 @@ def sample_future(model, schedule: Schedule, past: torch.Tensor, poses: torch.Te
     (``noise``, or drawn from ``generator``) and are denoised jointly by ``steps`` DDIM steps, the
     network's output read as ``target``. ``guidance`` != 1: out = out(no action) + guidance
     (out(action) - out(no action)) (the same mix of the noise: it is affine in the output)."""
-    if target not in TARGETS:
-        raise PcfbenchError(f"target={target!r}: expected one of {', '.join(TARGETS)}")
+    check_target(target)
     B, P = past.shape[:2]
     shape = (B, n_future, *past.shape[2:])
     if noise is None:

@@ -67,10 +67,9 @@ class BevWorldOptions(BevOptions):
         super().__post_init__()
         if self.curriculum not in CURRICULA:
             raise PcfbenchError(f"curriculum={self.curriculum!r}: expected one of {', '.join(CURRICULA)}")
-        from pcfbench.methods.bevworld.diffusion import TARGETS
+        from pcfbench.methods.bevworld.diffusion import check_target
 
-        if self.target not in TARGETS:
-            raise PcfbenchError(f"target={self.target!r}: expected one of {', '.join(TARGETS)}")
+        check_target(self.target)
         if self.cond_dropout >= 1:
             raise PcfbenchError(f"cond_dropout={self.cond_dropout}: expected a share below 1")
 
