@@ -6,6 +6,8 @@ one training loop. The names below are the API a trained method imports; the mod
     trained.py      the contract (TrainedMethod), the run handed to fit, the driver (train)
     claims.py       a manifest's claims checked: steps of planned, training data by content
     loop.py         the one training loop (fit_loop) and its generic pieces
+    tokenized.py    a world model on a tokenizer's checkpoint (OnTokenizer): found, resumed on,
+                    shipped without a second copy, loaded and checked
 
 A method that learns subclasses :class:`TrainedMethod` and implements ``fit`` (train on a
 :class:`TrainSource`, saving through the :class:`TrainingRun` it is handed, resuming from

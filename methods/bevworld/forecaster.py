@@ -24,7 +24,6 @@ future sensor's own frame, origin 0).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.methods.bevworld.latent_copy import BevOptions, encode_sweep, load_tokenizer, moved, render_sample
 from pcfbench.options import option
 from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
+from pcfbench.training.tokenized import OnTokenizer
 
 TOKENIZER_METHOD = "bevworld-latent-copy"
 CURRICULA = ("off", "on")
@@ -153,12 +153,13 @@ def world_curve_panels() -> list:
             Panel((("stage", "curriculum stage"),))]
 
 
-class BevWorld(TrainedMethod):
+class BevWorld(OnTokenizer, TrainedMethod):
     """BEVWorld: a continuous BEV latent tokenizer + latent diffusion transformer, DDIM."""
 
     name = "bevworld"
     version = "1"
     Options = BevWorldOptions
+    tokenizer_outputs = "latents"
     inference_options = ("ddim_steps", "guidance", "sample_seed")
     # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 44)
     in_default_runs = False
@@ -188,32 +189,19 @@ class BevWorld(TrainedMethod):
             opts["steps"] = str(o.tokenizer_steps)
         return resolve_method((TOKENIZER_METHOD, opts))
 
-    def tokenizer_checkpoint(self, train_source: TrainSource) -> Checkpoint:
-        from pcfbench.training import find_checkpoint, missing_checkpoint_message
-
-        spec = self.tokenizer_spec()
-        ck = find_checkpoint(spec, train_source.train_on)
-        if ck is None:
-            raise CheckpointError(f"{self.name} trains on the latents of its tokenizer: "
-                                  + missing_checkpoint_message(spec, train_source.train_on))
-        return ck
-
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
         from pcfbench.config import cache_dir
         from pcfbench.methods.bevworld.world import count_parameters
-        from pcfbench.methods.copilot4d.forecaster import build_windows, tensor_digest
+        from pcfbench.methods.copilot4d.forecaster import build_windows
         from pcfbench.training import write_curve
+        from pcfbench.training.tokenized import tensor_digest
 
         resumed = progress.resume()
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
         tokenizer = load_tokenizer(tok_ck, self.tok_cfg)
         tok_state = tokenizer.state_dict()
         if resumed is not None:
-            had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
-            if had != tok_ck.sha256:
-                raise CheckpointError(f"checkpoint {out_dir / 'manifest.json'} was trained on the latents of "
-                                      f"tokenizer {str(had)[:12]}, and {tok_ck.manifest_path} is now "
-                                      f"{tok_ck.sha256[:12]}: rerun with --fresh")
+            self.check_resumed_tokenizer(out_dir, tok_ck)
         cfg, o = self.world_cfg, self.options
         strides = tuple(sorted(set(o.strides) | ({1} if o.curriculum == "on" else set())))
         progress.log(f"{self.name} ({cfg.name}, frame {o.frame}, curriculum {o.curriculum}): tokenizer {tok_ck.dir} "
@@ -247,20 +235,17 @@ class BevWorld(TrainedMethod):
             csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
             progress.log(f"training curve: {csv_path} and {png}")
 
+    def read_tokenizer(self, checkpoint: Checkpoint, prefix: str = "", weights: dict | None = None):
+        return load_tokenizer(checkpoint, self.tok_cfg, prefix=prefix, weights=weights)
+
     def load(self, checkpoint: Checkpoint) -> None:
         from pcfbench.methods.bevworld.config import world_config_from_dict
         from pcfbench.methods.bevworld.world import WorldModel
-        from pcfbench.methods.copilot4d.forecaster import tensor_digest
         from pcfbench.training import default_device
 
+        tokenizer, world = self.load_world(checkpoint, WorldModel(self.world_cfg), world_config_from_dict)
         mf = checkpoint.manifest_path
         conf = checkpoint.manifest.get("config", {})
-        for key in ("world", "tokenizer", "tokenizer_digest"):
-            if key not in conf:
-                raise CheckpointError(f"checkpoint {mf} records no config.{key}: not a {self.name} checkpoint")
-        if world_config_from_dict(conf["world"]) != self.world_cfg:
-            raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' world model "
-                                  "configuration than this pcfbench defines; retrain it with --fresh")
         if conf.get("target", "eps") != self.options.target:
             raise CheckpointError(f"checkpoint {mf} predicts target={conf.get('target', 'eps')}, and these options "
                                   f"read its output as target={self.options.target}")
@@ -268,17 +253,6 @@ class BevWorld(TrainedMethod):
             raise PcfbenchError(f"guidance={self.options.guidance}: checkpoint {mf} was trained without dropping the "
                                 "action (cond_dropout=0), so it has no unconditional prediction to guide from; train "
                                 "with cond_dropout > 0 (e.g. 0.1) or use guidance=1")
-        tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.")
-        if tensor_digest(tokenizer.state_dict()) != conf["tokenizer_digest"]:
-            raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights are not the tokenizer "
-                                  f"it was trained with (the manifest {mf} records another digest); retrain with --fresh")
-        world = WorldModel(self.world_cfg)
-        try:
-            world.load_state_dict({k[len("world."):]: (v.float() if v.is_floating_point() else v)
-                                   for k, v in checkpoint.load_weights().items() if k.startswith("world.")})
-        except RuntimeError as exc:
-            raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its world model weights do not fit the "
-                                  f"network it records: {str(exc).splitlines()[0]}") from None
         self.tokenizer, self.world = tokenizer, world.to(default_device()).eval()
 
     # -- forecasting --------------------------------------------------------------------------

@@ -160,11 +160,13 @@ def tokenizer_curve_panels() -> list:
     return [Panel((("l1", "mean L1 depth error (m)"), ("median", "median L1 depth error (m)")), log=True)]
 
 
-def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = ""):
-    """The tokenizer of ``checkpoint`` (weights under ``prefix``), which must record ``cfg``."""
+def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = "", weights: dict | None = None):
+    """The tokenizer of ``checkpoint`` (weights under ``prefix``), which must record ``cfg``;
+    ``weights``: its weights already read (``checkpoint.load_weights()``), else read here."""
     from pcfbench.methods.bevworld.config import tokenizer_config_from_dict
     from pcfbench.methods.bevworld.tokenizer import LatentTokenizer
     from pcfbench.training import CheckpointError, default_device
+    from pcfbench.training.tokenized import load_network
 
     recorded = checkpoint.manifest.get("config", {}).get("tokenizer")
     if not isinstance(recorded, dict):
@@ -172,14 +174,8 @@ def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = ""):
     if tokenizer_config_from_dict(recorded) != cfg:
         raise CheckpointError(f"checkpoint {checkpoint.manifest_path} was trained with another '{cfg.name}' tokenizer "
                               "configuration than this pcfbench defines; retrain it with --fresh")
-    w = {k[len(prefix):]: (v.float() if v.is_floating_point() else v)
-         for k, v in checkpoint.load_weights().items() if k.startswith(prefix)}
-    model = LatentTokenizer(cfg)
-    try:
-        model.load_state_dict(w)
-    except RuntimeError as exc:
-        raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights do not fit the network "
-                              f"it records: {str(exc).splitlines()[0]}") from None
+    weights = checkpoint.load_weights() if weights is None else weights
+    model = load_network(LatentTokenizer(cfg), checkpoint, weights, prefix, "tokenizer")
     return model.to(default_device()).eval()
 
 

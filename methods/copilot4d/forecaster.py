@@ -42,6 +42,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.methods.copilot4d.options import RenderingOptions
 from pcfbench.options import option
 from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
+from pcfbench.training.tokenized import tensor_digest
 
 TOKENIZER_METHOD = "copilot4d-token-copy"
 CHECKPOINT_EVERY = 100
@@ -78,20 +79,6 @@ class WorldOptions(RenderingOptions):
 
 def sample_seed(sample_id: str, seed: int) -> int:
     return int.from_bytes(hashlib.sha256(f"{sample_id}#{seed}".encode()).digest()[:8], "little")
-
-
-def tensor_digest(state: dict) -> str:
-    """sha256 over the names, shapes and values of a state dict's tensors, floating-point ones
-    rounded to float16 (so the fp16 copy of float32 weights has the digest of the original)."""
-
-    h = hashlib.sha256()
-    for k in sorted(state):
-        t = state[k].detach().cpu()
-        if t.is_floating_point():
-            t = t.half().float()
-        h.update(f"{k}|{tuple(t.shape)}|{t.dtype}|".encode())
-        h.update(t.contiguous().numpy().tobytes())
-    return h.hexdigest()
 
 
 def relative_poses(T_ref_s0: np.ndarray, T_ref_sensor: np.ndarray) -> np.ndarray:

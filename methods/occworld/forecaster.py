@@ -23,7 +23,6 @@ that map (``t0``: the t=0 frame; ``own``: the future sensor's own frame, origin 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +32,8 @@ from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
 from pcfbench.methods.occworld.occ_copy import OccOptions, decode_grid, render_sample, sweep_labels, tokenize_labels
 from pcfbench.options import option
-from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
+from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSource
+from pcfbench.training.tokenized import OnTokenizer
 
 TOKENIZER_METHOD = "occworld-occ-copy"
 POSES = ("given", "predicted")
@@ -108,12 +108,13 @@ def world_curve_panels() -> list:
                    ("changed_share", "share of tokens that changed")), ylim=(0, 1))]
 
 
-class OccWorld(TrainedMethod):
+class OccWorld(OnTokenizer, TrainedMethod):
     """OccWorld: occupancy tokenizer + spatio-temporal generative transformer, autoregressive."""
 
     name = "occworld"
     version = "1"
     Options = OccWorldOptions
+    tokenizer_outputs = "tokens"
     inference_options = ("readout", "pose")
     # measured 2026-11-29 (the shipped checkpoint, idle 2-core machine): 1,398 s in all, the 216 windows about 8 min
     training_time = ("about 25 min for the tiny configuration on an idle 2-core CPU (labelling and tokenizing 216 "
@@ -145,21 +146,12 @@ class OccWorld(TrainedMethod):
             opts["steps"] = str(o.tokenizer_steps)
         return resolve_method((TOKENIZER_METHOD, opts))
 
-    def tokenizer_checkpoint(self, train_source: TrainSource) -> Checkpoint:
-        from pcfbench.training import find_checkpoint, missing_checkpoint_message
-
-        spec = self.tokenizer_spec()
-        ck = find_checkpoint(spec, train_source.train_on)
-        if ck is None:
-            raise CheckpointError(f"{self.name} trains on the tokens of its tokenizer: "
-                                  + missing_checkpoint_message(spec, train_source.train_on))
-        return ck
-
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
         import torch
 
         from pcfbench.config import cache_dir
-        from pcfbench.methods.copilot4d.forecaster import build_windows, tensor_digest
+        from pcfbench.methods.copilot4d.forecaster import build_windows
+        from pcfbench.training.tokenized import tensor_digest
         from pcfbench.methods.occworld.occ_copy import load_tokenizer
         from pcfbench.methods.occworld.world import WorldModel, count_parameters
         from pcfbench.training import default_device, write_curve
@@ -169,11 +161,7 @@ class OccWorld(TrainedMethod):
         tokenizer = load_tokenizer(tok_ck, self.tok_cfg)
         tok_state = tokenizer.state_dict()
         if resumed is not None:
-            had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
-            if had != tok_ck.sha256:
-                raise CheckpointError(f"checkpoint {out_dir / 'manifest.json'} was trained on the tokens of tokenizer "
-                                      f"{str(had)[:12]}, and {tok_ck.manifest_path} is now {tok_ck.sha256[:12]}: "
-                                      "rerun with --fresh")
+            self.check_resumed_tokenizer(out_dir, tok_ck)
         cfg, o = self.world_cfg, self.options
         progress.log(f"{self.name} ({cfg.name}, frame {o.frame}): tokenizer {tok_ck.dir} (sha256 "
                      f"{tok_ck.sha256[:12]}), {train_source.train_on.label}")
@@ -202,71 +190,17 @@ class OccWorld(TrainedMethod):
             csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
             progress.log(f"training curve: {csv_path} and {png}")
 
-    def shipped_tokenizer(self, checkpoint: Checkpoint) -> Checkpoint | None:
-        """The ``occworld-occ-copy`` checkpoint shipped for the data ``checkpoint`` was trained
-        on (verified by its own sha256), or None when none ships."""
-        from pcfbench.training.checkpoints import MANIFEST, shipped_dir
-
-        folder = shipped_dir(self.tokenizer_spec(), checkpoint.train_on["dataset"], checkpoint.train_on["split"])
-        return Checkpoint.open(folder) if folder is not None and (folder / MANIFEST).is_file() else None
-
-    def shipped_weights(self, checkpoint: Checkpoint, weights: dict) -> tuple[dict, dict | None]:
-        """The world model's tensors alone when its tokenizer ships (``occworld-occ-copy``'s
-        checkpoint for the same data holding the very tokenizer it trained with: the digest its
-        manifest records, which float16 rounding does not change): the copy would double the
-        package's checkpoints; ``load`` takes the tokenizer from there."""
-        from pcfbench.methods.copilot4d.forecaster import tensor_digest
+    def read_tokenizer(self, checkpoint: Checkpoint, prefix: str = "", weights: dict | None = None):
         from pcfbench.methods.occworld.occ_copy import load_tokenizer
 
-        tok_ck = self.shipped_tokenizer(checkpoint)
-        if (tok_ck is None or tensor_digest(load_tokenizer(tok_ck, self.tok_cfg).state_dict())
-                != checkpoint.manifest.get("config", {}).get("tokenizer_digest")):
-            return weights, None
-        return ({k: v for k, v in weights.items() if not k.startswith("tokenizer.")},
-                {"prefix": "tokenizer.", "method": TOKENIZER_METHOD, "weights_sha256": tok_ck.sha256})
+        return load_tokenizer(checkpoint, self.tok_cfg, prefix=prefix, weights=weights)
 
     def load(self, checkpoint: Checkpoint) -> None:
-        from pcfbench.methods.copilot4d.forecaster import tensor_digest
         from pcfbench.methods.occworld.config import world_config_from_dict
-        from pcfbench.methods.occworld.occ_copy import load_tokenizer
         from pcfbench.methods.occworld.world import WorldModel
         from pcfbench.training import default_device
 
-        mf = checkpoint.manifest_path
-        conf = checkpoint.manifest.get("config", {})
-        for key in ("world", "tokenizer", "tokenizer_digest"):
-            if key not in conf:
-                raise CheckpointError(f"checkpoint {mf} records no config.{key}: not an {self.name} checkpoint")
-        if world_config_from_dict(conf["world"]) != self.world_cfg:
-            raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' world model "
-                                  "configuration than this pcfbench defines; retrain it with --fresh")
-        weights = checkpoint.load_weights()
-        left_out = (checkpoint.manifest.get("shipped") or {}).get("left_out")
-        if any(k.startswith("tokenizer.") for k in weights):
-            tokenizer = load_tokenizer(checkpoint, self.tok_cfg, prefix="tokenizer.", weights=weights)
-        elif left_out:  # shipped without its tokenizer: the shipped occworld-occ-copy checkpoint holds it
-            # (which tokenizer it is, the digest check below says, as for a copy the checkpoint holds)
-            tok_ck = self.shipped_tokenizer(checkpoint)
-            if tok_ck is None or tok_ck.sha256 != left_out.get("weights_sha256"):
-                raise CheckpointError(f"checkpoint {mf} ships without its tokenizer, which the {TOKENIZER_METHOD} "
-                                      f"checkpoint shipped for {checkpoint.train_on_label} (weights sha256 "
-                                      f"{str(left_out.get('weights_sha256'))[:12]}) holds, and that one is "
-                                      f"{'missing' if tok_ck is None else 'another: ' + tok_ck.sha256[:12]}; "
-                                      "reinstall pcfbench or retrain both")
-            tokenizer = load_tokenizer(tok_ck, self.tok_cfg)
-        else:
-            raise CheckpointError(f"checkpoint {checkpoint.weights_path} holds no tokenizer weights: not an "
-                                  f"{self.name} checkpoint")
-        if tensor_digest(tokenizer.state_dict()) != conf["tokenizer_digest"]:
-            raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights are not the tokenizer "
-                                  f"it was trained with (the manifest {mf} records another digest); retrain with --fresh")
-        world = WorldModel(self.world_cfg)
-        try:
-            world.load_state_dict({k[len("world."):]: (v.float() if v.is_floating_point() else v)
-                                   for k, v in weights.items() if k.startswith("world.")})
-        except RuntimeError as exc:
-            raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its world model weights do not fit the "
-                                  f"network it records: {str(exc).splitlines()[0]}") from None
+        tokenizer, world = self.load_world(checkpoint, WorldModel(self.world_cfg), world_config_from_dict)
         self.tokenizer, self.world = tokenizer, world.to(default_device()).eval()
 
     # -- forecasting --------------------------------------------------------------------------

@@ -259,6 +259,7 @@ def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = "", weights: dict 
     from pcfbench.methods.occworld.config import tokenizer_config_from_dict
     from pcfbench.methods.occworld.tokenizer import SceneTokenizer
     from pcfbench.training import CheckpointError, default_device
+    from pcfbench.training.tokenized import load_network
 
     recorded = checkpoint.manifest.get("config", {}).get("tokenizer")
     if not isinstance(recorded, dict):
@@ -266,14 +267,8 @@ def load_tokenizer(checkpoint: Checkpoint, cfg, prefix: str = "", weights: dict 
     if tokenizer_config_from_dict(recorded) != cfg:
         raise CheckpointError(f"checkpoint {checkpoint.manifest_path} was trained with another '{cfg.name}' tokenizer "
                               "configuration than this pcfbench defines; retrain it with --fresh")
-    w = {k[len(prefix):]: (v.float() if v.is_floating_point() else v)
-         for k, v in (checkpoint.load_weights() if weights is None else weights).items() if k.startswith(prefix)}
-    model = SceneTokenizer(cfg)
-    try:
-        model.load_state_dict(w)
-    except RuntimeError as exc:
-        raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights do not fit the network "
-                              f"it records: {str(exc).splitlines()[0]}") from None
+    weights = checkpoint.load_weights() if weights is None else weights
+    model = load_network(SceneTokenizer(cfg), checkpoint, weights, prefix, "tokenizer")
     return model.to(default_device()).eval()
 
 

@@ -15,7 +15,8 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.method import resolve_method
 from pcfbench.methods.copilot4d import config as tok_config
 from pcfbench.methods.copilot4d import world_config
-from pcfbench.methods.copilot4d.forecaster import Copilot4D, Copilot4DMaskGIT, build_windows, tensor_digest
+from pcfbench.methods.copilot4d.forecaster import Copilot4D, Copilot4DMaskGIT, build_windows
+from pcfbench.training.tokenized import tensor_digest
 
 # the same architectures, small enough for seconds: 8 x 8 tokens of 64 codes, 2 past + 1 future
 MICRO_TOK = tok_config.TINY.with_overrides(

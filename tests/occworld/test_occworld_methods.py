@@ -164,47 +164,6 @@ def test_in_the_default_run_when_ready(monkeypatch):
     assert {"copilot4d-token-copy", "occworld", "occworld-occ-copy"} <= names
 
 
-def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(micro, kitti, tmp_path, monkeypatch):
-    """A world model's checkpoint holds a copy of its tokenizer; shipped, it leaves the copy out
-    when occworld-occ-copy's shipped checkpoint for the same data holds the same tokenizer, and
-    loads it from there; when that one is gone, loading is one error that says so."""
-    from pcfbench.methods.occworld.forecaster import OccWorld
-    from pcfbench.methods.occworld.occ_copy import OccCopy
-    from pcfbench.training import CheckpointError, open_training_data
-    from pcfbench.training.checkpoints import ship
-
-    for cls in (OccCopy, OccWorld):
-        monkeypatch.setattr(cls, "shipped_checkpoints", str(tmp_path / "shipped"))
-    tok = _train("occworld-occ-copy:config=micro,steps=2", kitti)
-    world = _train(f"occworld:{MICRO},steps=2", kitti)
-    train_on = open_training_data(f"kitti={kitti}", progress=False).train_on
-    spec, quiet = resolve_method(f"occworld:{MICRO},steps=2"), (lambda *_: None)
-
-    whole = ship(spec, world, train_on, "retrain", log=quiet)  # its tokenizer not shipped: the copy stays
-    assert {k.split(".")[0] for k in whole.load_weights()} == {"world", "tokenizer"}
-    assert "left_out" not in whole.manifest["shipped"]
-    with_copy, whole_bytes = spec.create(), whole.weights_path.stat().st_size
-    with_copy.load(whole)
-
-    tok_shipped = ship(resolve_method("occworld-occ-copy:config=micro,steps=2"), tok, train_on, "retrain", log=quiet)
-    alone = ship(spec, world, train_on, "retrain", log=quiet)
-    assert {k.split(".")[0] for k in alone.load_weights()} == {"world"}
-    assert alone.manifest["shipped"]["left_out"] == {"prefix": "tokenizer.", "method": "occworld-occ-copy",
-                                                     "weights_sha256": tok_shipped.sha256}
-    assert alone.weights_path.stat().st_size < whole_bytes  # shipped again into the same folder
-    m = spec.create()
-    m.load(alone)
-    for k, v in with_copy.tokenizer.state_dict().items():
-        assert torch.equal(v, m.tokenizer.state_dict()[k]), k
-    for k, v in with_copy.world.state_dict().items():
-        assert torch.equal(v, m.world.state_dict()[k]), k
-
-    for f in tok_shipped.dir.iterdir():
-        f.unlink()
-    with pytest.raises(CheckpointError, match="ships without its tokenizer.*missing"):
-        spec.create().load(alone)
-
-
 @pytest.mark.parametrize("frame", ["own", "t0"])
 def test_world_inputs_label_each_past_sweep_in_the_frame(tmp_path, monkeypatch, frame):
     """The forecast's past maps are the labels of each past sweep in its own sensor frame
