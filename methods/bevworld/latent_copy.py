@@ -31,8 +31,9 @@ from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSourc
 FRAMES = ("own", "t0")
 #: the world model's windows (the protocol's settings): 5 past and 5 future frames, strides up to 6
 WINDOW_PAST, WINDOW_FUTURE, MAX_STRIDE = 5, 5, 6
-#: rays rendered at a time at inference (bounds the memory of their samples' features)
-RENDER_CHUNK = 8192
+#: rays rendered at a time at inference: bounds the memory of their samples' features, and 1024
+#: keeps them in cache (a sweep 0.64x the time of 8192 at one thread, the same depths to the bit)
+RENDER_CHUNK = 1024
 
 
 @dataclass(frozen=True)
