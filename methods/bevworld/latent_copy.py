@@ -227,8 +227,6 @@ class LatentCopy(TrainedMethod):
     name = "bevworld-latent-copy"
     version = "1"
     Options = LatentCopyOptions
-    # not in the default benchmark until a checkpoint ships and its ceiling is measured (issue 44)
-    in_default_runs = False
     # measured: the tiny tokenizer trained in frame t0 on the idle 2-core machine (docs/bevworld.md)
     training_time = "about 9 min for the tiny configuration on an idle 2-core CPU (600 steps in 554 s, frame t0)"
 

@@ -187,6 +187,20 @@ def test_shipped_checkpoints_stay_small():
     assert sum(f.stat().st_size for f in files) <= SHIPPED_LIMIT_BYTES
 
 
+def test_shipping_counts_every_method_package_of_the_distribution():
+    """``ship`` weighs what the whole of pcfbench carries, not one method's folder: the same
+    files as this checkout's, installed editable or as a wheel (the copies there, by name)."""
+    from pcfbench.methods.bevworld.forecaster import BevWorld
+    from pcfbench.methods.copy_last import CopyLast
+    from pcfbench.training.checkpoints import shipped_files
+
+    here = sorted((f.parent.name, f.name, f.stat().st_size) for base in PACKAGES.values()
+                  for d in base.rglob("checkpoints") for f in d.rglob("*") if f.is_file())
+    assert here  # the project ships checkpoints
+    for cls in (BevWorld, CopyLast):  # any class of the package: CopyLast's own folder holds none
+        assert sorted((f.parent.name, f.name, f.stat().st_size) for f in shipped_files(cls)) == here
+
+
 @pytest.fixture
 def made(toy, monkeypatch):
     """``toy-made``: a dataset that makes its own data (the tiny KITTI root stands for it) by a
