@@ -91,3 +91,47 @@ def headless(exe: str, *args: str) -> str:
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     return res.stdout
+
+
+def check_ships_without_its_tokenizer(tok_spec: str, world_spec: str, kitti) -> None:
+    """A world model on a tokenizer (``pcfbench.training.tokenized.OnTokenizer``), both trained
+    on ``kitti`` here, the methods' shipped folders redirected by the caller: shipped alone, the
+    world model keeps its copy of the tokenizer; shipped after the tokenizer, it leaves the copy
+    out, says where it is, and loads the same tensors; with the tokenizer's gone, loading is one
+    error that says so."""
+    import pytest
+    import torch
+
+    from pcfbench.method import resolve_method
+    from pcfbench.training import CheckpointError, open_training_data, train
+    from pcfbench.training.checkpoints import ship
+
+    quiet = lambda *_: None  # noqa: E731
+    tok = train(resolve_method(tok_spec), f"kitti={kitti}", progress=False, log=quiet)
+    world = train(resolve_method(world_spec), f"kitti={kitti}", progress=False, log=quiet)
+    train_on = open_training_data(f"kitti={kitti}", progress=False).train_on
+    spec = resolve_method(world_spec)
+
+    whole = ship(spec, world, train_on, "retrain", log=quiet)  # its tokenizer not shipped: the copy stays
+    assert {k.split(".")[0] for k in whole.load_weights()} == {"world", "tokenizer"}
+    assert "left_out" not in whole.manifest["shipped"]
+    with_copy, whole_bytes = spec.create(), whole.weights_path.stat().st_size
+    with_copy.load(whole)
+
+    tok_shipped = ship(resolve_method(tok_spec), tok, train_on, "retrain", log=quiet)
+    alone = ship(spec, world, train_on, "retrain", log=quiet)
+    assert {k.split(".")[0] for k in alone.load_weights()} == {"world"}
+    assert alone.manifest["shipped"]["left_out"] == {"prefix": "tokenizer.", "method": tok_spec.split(":")[0],
+                                                     "weights_sha256": tok_shipped.sha256}
+    assert alone.weights_path.stat().st_size < whole_bytes  # shipped again into the same folder
+    m = spec.create()
+    m.load(alone)
+    for k, v in with_copy.tokenizer.state_dict().items():
+        assert torch.equal(v, m.tokenizer.state_dict()[k]), k
+    for k, v in with_copy.world.state_dict().items():
+        assert torch.equal(v, m.world.state_dict()[k]), k
+
+    for f in tok_shipped.dir.iterdir():
+        f.unlink()
+    with pytest.raises(CheckpointError, match="ships without its tokenizer.*missing"):
+        spec.create().load(alone)

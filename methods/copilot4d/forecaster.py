@@ -30,7 +30,6 @@ checkpoint sha256 and a digest of its tensors, which ``load`` checks.
 from __future__ import annotations
 
 import hashlib
-import json
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -42,7 +41,7 @@ from pcfbench.errors import PcfbenchError
 from pcfbench.methods.copilot4d.options import RenderingOptions
 from pcfbench.options import option
 from pcfbench.training import Checkpoint, CheckpointError, TrainedMethod, TrainingRun, TrainSource
-from pcfbench.training.tokenized import tensor_digest
+from pcfbench.training.tokenized import OnTokenizer, load_network, tensor_digest
 
 TOKENIZER_METHOD = "copilot4d-token-copy"
 CHECKPOINT_EVERY = 100
@@ -225,12 +224,13 @@ def world_curve_panels() -> list:
 
 
 # --------------------------------------------------------------------------- the methods
-class Copilot4D(TrainedMethod):
+class Copilot4D(OnTokenizer, TrainedMethod):
     """Copilot4D: tokenizer + discrete-diffusion world model, forecasting autoregressively."""
 
     name = "copilot4d"
     version = "1"
     Options = WorldOptions
+    tokenizer_outputs = "tokens"
     variant_name = "copilot4d"
     # the measurements behind it: docs/journal/copilot4d-2026-11.md, "Training times"
     training_time = ("about 25 min for the tiny configuration on a 2-core CPU (4 min of tokenizing, 600 steps "
@@ -267,17 +267,6 @@ class Copilot4D(TrainedMethod):
             opts["steps"] = str(self.options.tokenizer_steps)
         return resolve_method((TOKENIZER_METHOD, opts))
 
-    def tokenizer_checkpoint(self, train_source: TrainSource) -> Checkpoint:
-        """The tokenizer checkpoint trained on the same data; missing: one error with the command."""
-        from pcfbench.training import find_checkpoint, missing_checkpoint_message
-
-        spec = self.tokenizer_spec()
-        ck = find_checkpoint(spec, train_source.train_on)
-        if ck is None:
-            raise CheckpointError(f"{self.name} trains on the tokens of its tokenizer: "
-                                  + missing_checkpoint_message(spec, train_source.train_on))
-        return ck
-
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
         from pcfbench.methods.copilot4d.train import default_device, load_tokenizer
         from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
@@ -294,11 +283,7 @@ class Copilot4D(TrainedMethod):
         tok_state = tokenizer.state_dict()
         tok_digest = tensor_digest(tok_state)
         if resumed is not None:  # the same tokenizer, or the cached tokens and the weights disagree
-            had = json.loads((out_dir / "manifest.json").read_text())["config"].get("tokenizer_sha256")
-            if had != tok_ck.sha256:
-                raise CheckpointError(f"checkpoint {out_dir / 'manifest.json'} was trained on the tokens of tokenizer "
-                                      f"{str(had)[:12]}, and {tok_ck.manifest_path} is now {tok_ck.sha256[:12]}: "
-                                      "rerun with --fresh")
+            self.check_resumed_tokenizer(out_dir, tok_ck)
         cfg = self.world_cfg
         progress.log(f"{self.name} ({self.variant.name}, {cfg.name}): tokenizer {tok_ck.dir} "
                      f"(sha256 {tok_ck.sha256[:12]}), {train_source.train_on.label}")
@@ -325,8 +310,13 @@ class Copilot4D(TrainedMethod):
             progress.log(f"training curve: {csv_path} and {png}")
 
     # -- loading ------------------------------------------------------------------------------
-    def load(self, checkpoint: Checkpoint) -> None:
+    def read_tokenizer(self, checkpoint: Checkpoint, prefix: str = "", weights: dict | None = None):
         from pcfbench.methods.copilot4d.model import Tokenizer
+
+        weights = checkpoint.load_weights() if weights is None else weights
+        return load_network(Tokenizer(self.tok_cfg), checkpoint, weights, prefix, "tokenizer")
+
+    def load(self, checkpoint: Checkpoint) -> None:
         from pcfbench.methods.copilot4d.train import config_from_dict, default_device
         from pcfbench.methods.copilot4d.world import WorldModel
         from pcfbench.methods.copilot4d.world_config import WorldModelConfig
@@ -344,22 +334,8 @@ class Copilot4D(TrainedMethod):
             raise CheckpointError(f"checkpoint {mf} was trained with another '{self.options.config}' tokenizer or "
                                   "world model configuration than this pcfbench defines; retrain it with --fresh")
         weights = checkpoint.load_weights()
-        def part(prefix: str) -> dict:  # float32 whatever the stored precision (fp16 when shipped)
-            return {k[len(prefix):]: (v.float() if v.is_floating_point() else v)
-                    for k, v in weights.items() if k.startswith(prefix)}
-
-        tok_w, world_w = part("tokenizer."), part("world.")
-        if tensor_digest(tok_w) != conf["tokenizer_digest"]:
-            raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its tokenizer weights are not the tokenizer "
-                                  f"it was trained with (digest {tensor_digest(tok_w)[:12]}, the manifest {mf} "
-                                  f"records {str(conf['tokenizer_digest'])[:12]}); retrain it with --fresh")
-        tokenizer, world = Tokenizer(tok_cfg), WorldModel(world_cfg)
-        for what, net, w in (("tokenizer", tokenizer, tok_w), ("world model", world, world_w)):
-            try:
-                net.load_state_dict(w)
-            except RuntimeError as exc:
-                raise CheckpointError(f"checkpoint {checkpoint.weights_path}: its {what} weights do not fit the "
-                                      f"network it records: {str(exc).splitlines()[0]}") from None
+        tokenizer = self.checkpoint_tokenizer(checkpoint, weights)
+        world = load_network(WorldModel(world_cfg), checkpoint, weights, "world.", "world model")
         device = default_device()
         self.tokenizer, self.world = tokenizer.to(device).eval(), world.to(device).eval()
 

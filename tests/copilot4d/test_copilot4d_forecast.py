@@ -432,3 +432,14 @@ def test_top_k_reaches_the_sampler(monkeypatch):
         m.options = resolve_method(f"copilot4d:top_k={k},sampling_steps=4,cfg_weight=1").options
         m.forecast_tokens(s)
         assert (seen["top_k"], seen["steps"], seen["guidance"]) == (k, 4, 1.0)
+
+
+def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(micro, kitti, tmp_path, monkeypatch):
+    """As occworld's and bevworld's (tests/training/test_world_on_tokenizer.py): shipped after the
+    shipped token-copy checkpoint of the same data, copilot4d leaves out its copy of the tokenizer."""
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy
+    from tests_helpers import check_ships_without_its_tokenizer
+
+    for cls in (TokenCopy, Copilot4D):
+        monkeypatch.setattr(cls, "shipped_checkpoints", str(tmp_path / "shipped"))
+    check_ships_without_its_tokenizer("copilot4d-token-copy:config=micro,steps=2", f"copilot4d:{MICRO},steps=2", kitti)

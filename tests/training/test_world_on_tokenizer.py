@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from pcfbench.method import resolve_method
+from tests_helpers import check_ships_without_its_tokenizer
 
 #: (tokenizer spec, world model spec, the classes whose shipped folder the test redirects)
 FAMILIES = {
@@ -58,40 +59,10 @@ def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(fa
     """A world model's checkpoint holds a copy of its tokenizer; shipped, it leaves the copy out
     when the tokenizer's shipped checkpoint for the same data holds the same tokenizer, and loads
     it from there; when that one is gone, loading is one error that says so."""
-    from pcfbench.training import CheckpointError, open_training_data
-    from pcfbench.training.checkpoints import ship
-
     tok_spec, world_spec, classes = FAMILIES[family]
     for cls in classes:
         monkeypatch.setattr(_class(cls), "shipped_checkpoints", str(tmp_path / "shipped"))
-    tok = _train(tok_spec, kitti)
-    world = _train(world_spec, kitti)
-    train_on = open_training_data(f"kitti={kitti}", progress=False).train_on
-    spec, quiet = resolve_method(world_spec), (lambda *_: None)
-
-    whole = ship(spec, world, train_on, "retrain", log=quiet)  # its tokenizer not shipped: the copy stays
-    assert {k.split(".")[0] for k in whole.load_weights()} == {"world", "tokenizer"}
-    assert "left_out" not in whole.manifest["shipped"]
-    with_copy, whole_bytes = spec.create(), whole.weights_path.stat().st_size
-    with_copy.load(whole)
-
-    tok_shipped = ship(resolve_method(tok_spec), tok, train_on, "retrain", log=quiet)
-    alone = ship(spec, world, train_on, "retrain", log=quiet)
-    assert {k.split(".")[0] for k in alone.load_weights()} == {"world"}
-    assert alone.manifest["shipped"]["left_out"] == {"prefix": "tokenizer.", "method": tok_spec.split(":")[0],
-                                                     "weights_sha256": tok_shipped.sha256}
-    assert alone.weights_path.stat().st_size < whole_bytes  # shipped again into the same folder
-    m = spec.create()
-    m.load(alone)
-    for k, v in with_copy.tokenizer.state_dict().items():
-        assert torch.equal(v, m.tokenizer.state_dict()[k]), k
-    for k, v in with_copy.world.state_dict().items():
-        assert torch.equal(v, m.world.state_dict()[k]), k
-
-    for f in tok_shipped.dir.iterdir():
-        f.unlink()
-    with pytest.raises(CheckpointError, match="ships without its tokenizer.*missing"):
-        spec.create().load(alone)
+    check_ships_without_its_tokenizer(tok_spec, world_spec, kitti)
 
 
 @pytest.mark.parametrize("family", sorted(FAMILIES))
