@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from abc import abstractmethod
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -75,11 +76,14 @@ class OnTokenizer:
     tokenizer_outputs: ClassVar[str] = "tokens"
     name: ClassVar[str]
 
+    @abstractmethod  # with TrainedMethod (an ABC), a class that lacks one cannot be instantiated
     def tokenizer_spec(self) -> MethodSpec:
-        raise NotImplementedError
+        """The tokenizer method and options this method's options name."""
 
+    @abstractmethod
     def read_tokenizer(self, checkpoint: Checkpoint, prefix: str = "", weights: dict | None = None) -> Any:
-        raise NotImplementedError
+        """The tokenizer network of ``checkpoint`` (its tensors under ``prefix``; ``weights``: the
+        checkpoint's tensors when already read)."""
 
     def tokenizer_checkpoint(self, train_source: TrainSource) -> Checkpoint:
         spec = self.tokenizer_spec()

@@ -151,10 +151,10 @@ class OccWorld(OnTokenizer, TrainedMethod):
 
         from pcfbench.config import cache_dir
         from pcfbench.methods.copilot4d.forecaster import build_windows
-        from pcfbench.training.tokenized import tensor_digest
         from pcfbench.methods.occworld.occ_copy import load_tokenizer
         from pcfbench.methods.occworld.world import WorldModel, count_parameters
         from pcfbench.training import default_device, write_curve
+        from pcfbench.training.tokenized import tensor_digest
 
         resumed = progress.resume()
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
