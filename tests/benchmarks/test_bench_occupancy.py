@@ -6,7 +6,9 @@ which failed on a loaded machine; its figure belongs here.
     PCFBENCH_BENCH_FULL=1 .venv/bin/python -m pytest tests/benchmarks/test_bench_occupancy.py --benchmark-enable
 
 With PCFBENCH_BENCH_FULL the sweep has 120,000 returns (a KITTI sweep's order); otherwise 12,000,
-so the default (disabled, run-once) pass stays quick.
+so the default (disabled, run-once) pass stays quick. The bar the unit test held: under 0.5 s for
+the 120,000 returns (``extra_info["bar_s"]``, compared by whoever reads the benchmark, not asserted
+on a noisy machine).
 """
 
 from __future__ import annotations
@@ -30,5 +32,6 @@ def test_label_one_sweep(benchmark):
     label_occupancy(grid, pts[:10], origin)  # compiled outside the timing
     lab = benchmark(label_occupancy, grid, pts, origin)
     benchmark.extra_info["returns"] = n
+    benchmark.extra_info["bar_s"] = 0.5 if FULL else None
     assert lab.shape == (200, 200, 16)
     assert (lab == OCCUPIED).any() and (lab == FREE).any()
