@@ -30,6 +30,7 @@ import csv
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Mapping, Sequence
@@ -279,7 +280,9 @@ def fit_loop(build_model: "Callable[[], nn.Module] | nn.Module", make_optimizer:
                "step_s": dt}
         window.append(rec)
         if step % log_every == 0 or step == steps:
-            avg = {k: float(np.nanmean([r[k] for r in window])) for k in rec}
+            with warnings.catch_warnings():  # a column NaN over the whole window (a stage's own loss) stays NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                avg = {k: float(np.nanmean([r[k] for r in window])) for k in rec}
             avg.update(step=step, elapsed_s=elapsed, cpu_s=cpu)
             history.append(avg)
             window = []
