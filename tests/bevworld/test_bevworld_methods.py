@@ -164,6 +164,23 @@ def test_the_render_stage_follows_the_latent_training_and_resumes(micro, kitti):
     assert resolve_method("bevworld:config=paper").create().render_plan() == (0.0, 0)
 
 
+def test_a_reseeded_stage_draws_the_same_whatever_came_before():
+    """reseed_stage: streams that drew different amounts before draw the same after it, and
+    another seed or stage draws otherwise."""
+    from pcfbench.methods.bevworld.forecaster import reseed_stage
+    from pcfbench.training.loop import Randoms
+
+    def draws(used: int, seed: int = 0, stage: int = 4):
+        rand = Randoms(np.random.default_rng(7), torch.Generator().manual_seed(8))
+        rand.numpy.random(used), torch.randn(used, generator=rand.torch), torch.rand(used)
+        reseed_stage(rand, seed, stage)
+        return (rand.numpy.integers(0, 1000, 4).tolist(), torch.randint(0, 1000, (4,), generator=rand.torch).tolist(),
+                torch.randint(0, 1000, (4,)).tolist())
+
+    assert draws(0) == draws(5) == draws(123)
+    assert draws(0, seed=1)[0] != draws(0)[0] and draws(0, stage=3)[1] != draws(0)[1]
+
+
 def test_render_stage_rays_are_the_future_sweeps_seen_from_their_sensor():
     """A return 10 m ahead of a sensor standing 5 m ahead of the t=0 one: in the t=0 frame the ray
     starts at (5, 0, 0) and reaches 10 m along +x; in its own frame it starts at the origin."""
