@@ -51,7 +51,9 @@ class WindowRays:
             f"{time.monotonic() - t0:.0f} s")
 
     def rays(self, cfg, window: int, frame: int, own: bool, count: int, rng: np.random.Generator):
-        """``count`` rays (drawn without replacement: at most the sweep's returns in the grid; drawn with replacement, the stage lost kitti-3s's win in every training, docs/bevworld.md) of window ``window``'s frame ``frame`` (0-based,
+        """``count`` rays (drawn without replacement, so at most the sweep's returns in the grid:
+        drawn with replacement, the stage lost kitti-3s's win in every training; docs/bevworld.md)
+        of window ``window``'s frame ``frame`` (0-based,
         past frames first) whose return lies inside the tokenizer's grid, seen in the window's
         frame (``own``: the sweep's own sensor frame, origin 0; else the t=0 frame): (origins,
         unit directions (count, 3), depths (count,)) float32, or None when it has none."""
