@@ -171,6 +171,15 @@ class WorldConfig:
     max_steps: int = 70_000  # the three stages: 20k + 20k + 30k
     log_every: int = 50
     checkpoint_every: int = 1000
+    # --- the render stage (not the paper's; render_loss.py): steps after max_steps at a constant
+    # learning rate, the depth L1 of the predicted latents rendered by the frozen tokenizer added
+    # with weight render_weight (0: no render stage) ---
+    render_weight: float = 0.0
+    render_steps: int = 0
+    render_lr: float = 1e-4
+    render_rays: int = 512  # rays per rendered frame
+    render_frames: int = 1  # future frames rendered per window per step
+    render_per_sweep: int = 4096  # returns kept per future sweep to draw rays from
 
     def __post_init__(self) -> None:
         if self.dim % self.heads or self.dim % 2:
@@ -200,9 +209,12 @@ WORLDS = {
     # CPU scale: 16 x 16 tokens of 4 x 4 latent cells, 4 block pairs of width 128. 2000 steps: a step
     # (batch 2, 10 frames) about 0.6 s on this 2-core machine idle, within the 30-minute budget with
     # the windows' encoding (docs/bevworld.md). 2 DDIM steps: measured better than 20 on every
-    # column at kitti-3s and on the L1 columns at kitti-1s (chamfer_nf a tie), and cheaper
+    # column at kitti-3s and on the L1 columns at kitti-1s (chamfer_nf a tie), and cheaper. Then the
+    # render stage: 300 steps with the rendered depth L1 at weight 1 (about 0.8 s a step), which broke
+    # that tie (docs/bevworld.md, "The render stage")
     "tiny": WorldConfig("tiny", dim=128, depth=4, heads=4, patch=4, freq_dim=64, warmup=50, batch_size=2,
-                        max_steps=2000, log_every=10, checkpoint_every=100, ddim_steps=2),
+                        max_steps=2000, log_every=10, checkpoint_every=100, ddim_steps=2, render_weight=1.0,
+                        render_steps=300),
     "micro": WorldConfig("micro", dim=32, depth=2, heads=2, patch=2, freq_dim=16, n_past=2, n_future=5,
                          diffusion_steps=100, ddim_steps=5, lr=2e-3, warmup=2, batch_size=2, max_steps=40,
                          log_every=1, checkpoint_every=20),

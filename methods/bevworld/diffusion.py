@@ -93,7 +93,8 @@ def diffusion_loss(model, schedule: Schedule, latents: torch.Tensor, poses: torc
     change by more than :data:`CHANGED` from the last past frame, and over the rest; nan when a
     batch has none), ``copy_changed`` and ``copy_static`` (the mean squared change on each: what the
     latent copy scores there, comparable with ``changed`` and ``static`` under the ``change``
-    target) and ``changed_share``."""
+    target) and ``changed_share``; with ``change``, ``x0``: the predicted future latents (B, F, H,
+    W, C'), differentiable."""
     check_target(target)
     B, T = latents.shape[:2]
     dev = latents.device
@@ -119,6 +120,8 @@ def diffusion_loss(model, schedule: Schedule, latents: torch.Tensor, poses: torc
         out = {"changed": (cell_err * m).sum() / n, "static": (cell_err * (1 - m)).sum() / n_static,
                "copy_changed": (copy_err * m).sum() / n, "copy_static": (copy_err * (1 - m)).sum() / n_static,
                "changed_share": m.mean()}
+    if target == "change":
+        out["x0"] = last + pred  # the predicted clean future latents, with their graph (the render stage)
     return {"loss": mse, "mse": mse, **out}
 
 

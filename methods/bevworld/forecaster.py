@@ -10,8 +10,10 @@ sensor frame), standardised per channel with the tokenizer's statistics, and cac
 ``target`` (the future frames' change from the last past frame, or their noise: equation 7)
 through :func:`pcfbench.training.fit_loop`. With
 ``curriculum=on`` (the paper's three stages, 2 : 2 : 3 of the steps): the next frame from the 2
-frames before it at stride 1, then all future frames at stride 1, then the ``strides``. The
-checkpoint holds the world model's weights (``world.``) and the tokenizer's (``tokenizer.``);
+frames before it at stride 1, then all future frames at stride 1, then the ``strides``. With
+a render stage (``render_weight`` > 0; ``tiny``'s default, not the paper's: :mod:`.render_loss`),
+``render_steps`` more steps follow at a constant learning rate, the predicted future latents'
+rendered depth L1 added to the loss. The checkpoint holds the world model's weights (``world.``) and the tokenizer's (``tokenizer.``);
 its manifest records the tokenizer checkpoint's sha256 and a digest of its tensors.
 
 **Forecast**: the newest past sweeps are encoded in the frame and standardised, every frame's
@@ -57,6 +59,11 @@ class BevWorldOptions(BevOptions):
     target: str = option("change", help="what the world model predicts: change (a future latent's change from the "
                                         "last past one; a fresh model forecasts the latent copy) or eps (the "
                                         "noise, the paper's equation 7)")
+    render_weight: float = option(-1.0, help="the render stage's weight on the rendered depth L1 (m) beside the "
+                                             "latent MSE (-1: the configuration's, 1 in tiny, none in paper; "
+                                             "0: no render stage; not the paper's)", min=-1.0)
+    render_steps: int = option(0, help="the render stage's steps after the latent training (0: the "
+                                       "configuration's, 300 in tiny)", min=0)
     tokenizer_steps: int = option(0, help="the bevworld-latent-copy checkpoint used: its steps option (0: its "
                                           "default)", min=0)
     strides: tuple[int, ...] = option((2, 6), help="training windows: source sweeps between frames (kitti-1s "
@@ -70,6 +77,9 @@ class BevWorldOptions(BevOptions):
         from pcfbench.methods.bevworld.diffusion import check_target
 
         check_target(self.target)
+        if self.render_weight not in (-1.0, 0.0) and self.render_weight < 0:
+            raise PcfbenchError(f"render_weight={self.render_weight}: expected -1 (the configuration's), 0 or a "
+                                "positive weight")
         if self.cond_dropout >= 1:
             raise PcfbenchError(f"cond_dropout={self.cond_dropout}: expected a share below 1")
 
@@ -91,8 +101,9 @@ def stage_of(step: int, steps: int, curriculum: str) -> int:
 
 def stage_batch(windows: dict, stage: int, n_past: int, strides: tuple[int, ...], picks_rng, batch_size: int):
     """A batch of ``stage``: (latents (B, T', H, W, C'), poses (B, T', 4, 4), frames (T',), past
-    count). Stage 1: frames n_past - 2 .. n_past of stride-1 windows (the next frame from 2);
-    stage 2: stride-1 windows whole; stage 3: windows of ``strides``."""
+    count, the windows' indices (B,)). Stage 1: frames n_past - 2 .. n_past of stride-1 windows
+    (the next frame from 2); stage 2: stride-1 windows whole; stage 3 (and the render stage):
+    windows of ``strides``."""
     import torch
 
     pool = windows["by_stride"][1] if stage < 3 else np.concatenate([windows["by_stride"][s] for s in strides])
@@ -103,43 +114,117 @@ def stage_batch(windows: dict, stage: int, n_past: int, strides: tuple[int, ...]
         lat, poses, past = lat[:, frames], poses[:, frames], 2
     else:
         frames, past = np.arange(lat.shape[1]), n_past
-    return torch.from_numpy(lat), torch.from_numpy(poses), torch.from_numpy(frames), past
+    return torch.from_numpy(lat), torch.from_numpy(poses), torch.from_numpy(frames), past, picks
+
+
+#: the render stage's number in the curve's ``stage`` column (after the curriculum's 1-3)
+RENDER_STAGE = 4
+
+
+@dataclass(frozen=True)
+class RenderStage:
+    """What the render stage (:mod:`.render_loss`) needs: the frozen tokenizer, the future
+    sweeps' returns, whether latents are in each sweep's own frame, its weight and steps."""
+
+    tokenizer: object
+    rays: object  # a render_loss.WindowRays
+    own: bool
+    weight: float
+    steps: int
+
+
+def reseed_stage(rand, seed: int, stage: int) -> None:
+    """Reseed the loop's streams (``rand``'s numpy and torch generators, torch's global one) from
+    ``(seed, stage)`` in place: a stage that starts here draws the same windows, rays, timesteps,
+    noise and jitter whatever the steps before it drew (how many latent steps, which
+    curriculum). The loop saves the streams after each step, so a resumed run goes on from where
+    the stage had got to."""
+    import torch
+
+    words = np.random.SeedSequence([seed, stage]).generate_state(3, np.uint64)
+    rand.numpy.bit_generator.state = np.random.default_rng(int(words[0])).bit_generator.state
+    if rand.torch is not None:
+        rand.torch.manual_seed(int(words[1]))
+    torch.manual_seed(int(words[2]))
 
 
 def train_world(cfg, windows: dict, run, *, steps: int, seed: int, strides: tuple[int, ...], curriculum: str,
                 cond_dropout: float, target: str, manifest_config, extra_weights: dict | None = None, resumed=None,
-                log=print) -> dict:
+                render: RenderStage | None = None, log=print) -> dict:
     """The world model on ``windows`` through :func:`pcfbench.training.fit_loop` (AdamW, warm-up
-    and cosine decay); the diffusion's timesteps and noise come from the loop's torch stream."""
+    and cosine decay over ``steps``); the diffusion's timesteps and noise come from the loop's
+    torch stream. With ``render``, ``render.steps`` more steps follow at the constant
+    ``cfg.render_lr`` with the optimiser's state cleared and the streams reseeded
+    (:func:`reseed_stage`), the render loss added (:mod:`.render_loss`); the steps before it draw
+    exactly what they draw without it."""
     import torch
 
     from pcfbench.methods.bevworld.diffusion import Schedule, diffusion_loss
+    from pcfbench.methods.bevworld.render_loss import render_l1
     from pcfbench.methods.bevworld.world import WorldModel
     from pcfbench.training import default_device, fit_loop, warmup_cosine
 
     schedule = Schedule.of(cfg)
     device = default_device()
+    total = steps + (render.steps if render is not None else 0)
 
     def sample_batch(rand, step: int):
-        stage = stage_of(step, steps, curriculum)
-        lat, poses, frames, past = stage_batch(windows, stage, cfg.n_past, strides, rand.numpy, cfg.batch_size)
-        return lat.to(device), poses.to(device), frames.to(device), past, stage, rand.torch
+        stage = stage_of(step, steps, curriculum) if step < steps else RENDER_STAGE
+        if step == steps and render is not None:
+            reseed_stage(rand, seed, RENDER_STAGE)
+        lat, poses, frames, past, picks = stage_batch(windows, min(stage, 3), cfg.n_past, strides, rand.numpy,
+                                                      cfg.batch_size)
+        rays = []
+        if stage == RENDER_STAGE:
+            tcfg = render.tokenizer.cfg
+            for b, w in enumerate(picks.tolist()):
+                for f in rand.numpy.choice(cfg.n_future, cfg.render_frames, replace=False).tolist():
+                    r = render.rays.rays(tcfg, w, cfg.n_past + f, render.own, cfg.render_rays, rand.numpy)
+                    if r is not None:
+                        rays.append((b, f, *(torch.from_numpy(a).to(device) for a in r)))
+        return lat.to(device), poses.to(device), frames.to(device), past, stage, rays, rand.torch
 
     def step_fn(model, batch):
-        lat, poses, frames, past, stage, gen = batch
+        lat, poses, frames, past, stage, rays, gen = batch
         out = diffusion_loss(model, schedule, lat, poses, past, frames=frames, cond_dropout=cond_dropout,
                              target=target, generator=gen)
         keys = ("loss", "mse", "changed", "static", "copy_changed", "copy_static", "changed_share")
-        return out["loss"], {**{k: float(out[k].detach()) for k in keys}, "stage": float(stage)}
+        loss, logged = out["loss"], {"render_l1": float("nan")}
+        if rays:
+            # the decoder's transmittance underflows behind sharp surfaces; subnormal floats there make
+            # its backward several times slower on x86 (docs/bevworld.md); this stage is new, so flushing
+            # them changes no earlier training's numbers
+            torch.set_flush_denormal(True)
+            l1 = render_l1(render.tokenizer, out["x0"], rays)
+            loss = loss + render.weight * l1
+            logged["render_l1"] = float(l1.detach())
+        return loss, {**{k: float(out[k].detach()) for k in keys}, **logged, "loss": float(loss.detach()),
+                      "stage": float(stage)}
 
-    out = fit_loop(lambda: WorldModel(cfg).to(device),
-                   lambda m: torch.optim.AdamW(m.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
-                   sample_batch, step_fn, run, steps=steps, seed=seed, torch_generator=True,
-                   schedule=lambda step: warmup_cosine(step, cfg.lr, cfg.warmup, steps, cfg.min_lr_ratio),
-                   grad_clip=cfg.grad_clip, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
-                   progress_values={"loss": "mse", "changed cells": "changed", "curriculum stage": "stage"},
-                   weights_prefix="world.", extra_weights=extra_weights, manifest_config=manifest_config,
-                   resumed=resumed, log=log)
+    def lr(step: int) -> float:
+        return warmup_cosine(step, cfg.lr, cfg.warmup, steps, cfg.min_lr_ratio) if step < steps else cfg.render_lr
+
+    def after_step(model, opt, step: int):
+        # the render stage starts its optimiser afresh: AdamW's second moments hold the latent loss's
+        # gradient scale, and the depth loss's larger gradients divided by them would take steps far
+        # larger than render_lr for the hundreds of steps they take to adapt (the stage was measured
+        # with a fresh AdamW)
+        if render is not None and step == steps - 1:
+            opt.state.clear()
+
+    shown = {"loss": "mse", "changed cells": "changed", "curriculum stage": "stage"}
+    if render is not None:
+        shown["rendered depth L1 (m)"] = "render_l1"
+    try:
+        out = fit_loop(lambda: WorldModel(cfg).to(device),
+                       lambda m: torch.optim.AdamW(m.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay),
+                       sample_batch, step_fn, run, steps=total, seed=seed, torch_generator=True, schedule=lr,
+                       after_step=after_step,
+                       grad_clip=cfg.grad_clip, log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every,
+                       progress_values=shown, weights_prefix="world.", extra_weights=extra_weights,
+                       manifest_config=manifest_config, resumed=resumed, log=log)
+    finally:
+        torch.set_flush_denormal(False)
     return {"model": out.model, "step": out.step, "history": out.history}
 
 
@@ -150,14 +235,15 @@ def world_curve_panels() -> list:
             Panel((("changed", "loss, cells that change"), ("copy_changed", "latent copy's, cells that change"),
                    ("static", "loss, cells that do not"), ("copy_static", "latent copy's, cells that do not")),
                   log=True),
-            Panel((("stage", "curriculum stage"),))]
+            Panel((("render_l1", "rendered depth L1 (m), render stage"),)),
+            Panel((("stage", "curriculum stage (4: render stage)"),))]
 
 
 class BevWorld(OnTokenizer, TrainedMethod):
     """BEVWorld: a continuous BEV latent tokenizer + latent diffusion transformer, DDIM."""
 
     name = "bevworld"
-    version = "2"  # 2: tiny's DDIM steps 20 -> 2
+    version = "3"  # 2: tiny's DDIM steps 20 -> 2; 3: tiny's render stage (300 steps, weight 1)
     Options = BevWorldOptions
     tokenizer_outputs = "latents"
     inference_options = ("ddim_steps", "guidance", "sample_seed")
@@ -175,8 +261,22 @@ class BevWorld(OnTokenizer, TrainedMethod):
         self.tokenizer = None
         self.world = None
 
-    def training_steps(self) -> int:
+    def latent_steps(self) -> int:
+        """The latent training's steps (the render stage's follow them)."""
         return self.options.steps or self.world_cfg.max_steps
+
+    def training_steps(self) -> int:
+        return self.latent_steps() + self.render_plan()[1]
+
+    def render_plan(self) -> tuple[float, int]:
+        """The render stage's (weight, steps); (0, 0) without one."""
+        o, cfg = self.options, self.world_cfg
+        weight = cfg.render_weight if o.render_weight < 0 else o.render_weight
+        steps = o.render_steps or cfg.render_steps
+        if o.render_weight > 0 and not steps:
+            raise PcfbenchError(f"render_weight={o.render_weight}: configuration {cfg.name!r} has no render stage "
+                                "steps; give render_steps too")
+        return (weight, steps) if weight > 0 and steps > 0 else (0.0, 0)
 
     def tokenizer_spec(self):
         from pcfbench.method import resolve_method
@@ -191,7 +291,7 @@ class BevWorld(OnTokenizer, TrainedMethod):
         from pcfbench.config import cache_dir
         from pcfbench.methods.bevworld.world import count_parameters
         from pcfbench.methods.copilot4d.forecaster import build_windows
-        from pcfbench.training import write_curve
+        from pcfbench.training import default_device, write_curve
         from pcfbench.training.tokenized import tensor_digest
 
         resumed = progress.resume()
@@ -217,18 +317,33 @@ class BevWorld(OnTokenizer, TrainedMethod):
                 raise PcfbenchError(f"dataset {train_source.adapter.name!r} split {train_source.split!r}: no window "
                                     f"of stride {s} (the curriculum's stride-1 stages need one)")
         progress.log(f"{len(built['tokens'])} training windows of {cfg.frames} frames")
+        weight, render_steps = self.render_plan()
+        render = None
+        if render_steps:
+            from pcfbench.methods.bevworld.render_loss import WindowRays
+
+            if o.target != "change":
+                raise PcfbenchError(f"{self.name}: the render stage renders the predicted clean latents, which "
+                                    f"target={o.target} does not give stably; use target=change or render_weight=0")
+            rays = WindowRays(train_source.adapter, built, cfg.n_past, per_sweep=cfg.render_per_sweep, seed=o.seed,
+                              log=progress.log)
+            tokenizer.eval()
+            for p in tokenizer.parameters():
+                p.requires_grad_(False)
+            render = RenderStage(tokenizer.to(default_device()), rays, o.frame == "own", weight, render_steps)
         manifest_config = lambda model: {  # noqa: E731
             "world": cfg.to_dict(), "tokenizer": self.tok_cfg.to_dict(), "tokenizer_sha256": tok_ck.sha256,
             "tokenizer_digest": tensor_digest(tok_state), "tokenizer_checkpoint": str(tok_ck.manifest_path),
             "parameters": count_parameters(model), "steps_target": self.training_steps(),
             "windows": int(len(built["tokens"])), "strides": list(o.strides), "frame": o.frame,
             "curriculum": o.curriculum, "cond_dropout": o.cond_dropout, "target": o.target,
+            "render_weight": weight, "render_steps": render_steps,
         }
-        out = train_world(cfg, windows, progress, steps=self.training_steps(), seed=o.seed, strides=tuple(o.strides),
+        out = train_world(cfg, windows, progress, steps=self.latent_steps(), seed=o.seed, strides=tuple(o.strides),
                           curriculum=o.curriculum, cond_dropout=o.cond_dropout, target=o.target,
                           manifest_config=manifest_config,
                           resumed=resumed, extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()},
-                          log=progress.log)
+                          render=render, log=progress.log)
         if out["history"]:
             csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
             progress.log(f"training curve: {csv_path} and {png}")

@@ -100,7 +100,9 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                   anchor_every: int, cache: Path | None, log=print, frame: str = "t0", tokenize=None,
                   token_shape: tuple[int, ...] | None = None, token_dtype=np.int16) -> dict[str, np.ndarray]:
     """Token maps of every training window: ``tokens`` (A, T, H, W) int16, ``poses`` (A, T, 4, 4)
-    float32 (each frame's sensor pose in the window's t=0 sensor frame), ``stride`` (A,).
+    float32 (each frame's sensor pose in the window's t=0 sensor frame), ``stride`` (A,), and
+    where each frame comes from: ``sequence`` (A,) (an index into ``sequences``, the split's
+    sequence names) and ``sweeps`` (A, T) (the sweep's index in its sequence).
 
     A window of stride s anchored at sweep i holds sweeps i + (j - n_past + 1) s, j = 0..T-1,
     each tokenized (ego returns removed) in the ``frame`` of ``WorldOptions``: ``t0``, after
@@ -120,8 +122,9 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
 
         token_shape = (tokenizer.cfg.bev_tokens, tokenizer.cfg.bev_tokens)
     T = n_past + n_future
-    toks, poses, strides_out = [], [], []
-    for name in adapter.sequence_names(split):
+    toks, poses, strides_out, seq_out, sweeps_out = [], [], [], [], []
+    names = list(adapter.sequence_names(split))
+    for q, name in enumerate(names):
         seq = None
         own_tokens: dict[int, np.ndarray] = {}  # frame own: each sweep tokenized once, whatever its windows
         for s in strides:
@@ -164,7 +167,12 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
             toks.append(t)
             poses.append(p)
             strides_out.append(np.full(len(t), s, np.int64))
-    out = {"tokens": np.concatenate(toks), "poses": np.concatenate(poses), "stride": np.concatenate(strides_out)}
+            seq_out.append(np.full(len(t), q, np.int64))
+            anchors = (n_past - 1) * s + anchor_every * np.arange(len(t), dtype=np.int64)  # as ``anchors`` above
+            sweeps_out.append(anchors[:, None] + (np.arange(T, dtype=np.int64) - n_past + 1) * s)
+    out = {"tokens": np.concatenate(toks), "poses": np.concatenate(poses), "stride": np.concatenate(strides_out),
+           "sequence": np.concatenate(seq_out), "sweeps": np.concatenate(sweeps_out).reshape(-1, T),
+           "sequences": np.array(names)}
     if not len(out["tokens"]):
         raise PcfbenchError(f"dataset {adapter.name!r} split {split!r}: no sequence is long enough for a window of "
                             f"{n_past} past and {n_future} future sweeps at strides {list(strides)}")

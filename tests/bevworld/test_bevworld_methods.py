@@ -64,12 +64,12 @@ def test_the_curriculum_has_the_papers_three_stages():
     windows = {"latents": lat, "poses": poses, "by_stride": {1: np.array([0, 1]), 2: np.array([2, 3]),
                                                               6: np.array([4, 5])}}
     rng = np.random.default_rng(0)
-    x, p, frames, past = stage_batch(windows, 1, 5, (2, 6), rng, 8)
+    x, p, frames, past, _ = stage_batch(windows, 1, 5, (2, 6), rng, 8)
     assert x.shape[1] == 3 and frames.tolist() == [3, 4, 5] and past == 2
     assert set((x[:, 0, 0, 0, 0] // 10).tolist()) <= {0, 1}  # stride-1 windows only
-    x, _, frames, past = stage_batch(windows, 2, 5, (2, 6), rng, 8)
+    x, _, frames, past, _ = stage_batch(windows, 2, 5, (2, 6), rng, 8)
     assert x.shape[1] == 10 and past == 5 and set((x[:, 0, 0, 0, 0] // 10).tolist()) <= {0, 1}
-    x, _, _, _ = stage_batch(windows, 3, 5, (2, 6), rng, 64)
+    x, _, _, _, _ = stage_batch(windows, 3, 5, (2, 6), rng, 64)
     assert set((x[:, 0, 0, 0, 0] // 10).tolist()) == {2, 3, 4, 5}
 
 
@@ -124,6 +124,96 @@ def test_train_resume_continues_the_same_curve(micro, kitti, frame):
     with pytest.raises(CheckpointError, match="predicts target=change, and these options read its output as "
                                               "target=eps"):
         resolve_method(spec + ",target=eps").create().load(straight)
+
+
+def test_the_render_stage_follows_the_latent_training_and_resumes(micro, kitti):
+    """render_weight > 0: render_steps more steps (stage 4) add the rendered depth L1; the latent
+    steps before them log exactly what a run without the stage logs, and a run stopped before the
+    stage resumes into it as a straight run trains."""
+    _train("bevworld-latent-copy:config=micro,frame=t0,steps=2", kitti)
+    plain = _train(f"bevworld:{MICRO},steps=2,render_weight=0", kitti)
+    spec = f"bevworld:{MICRO},steps=2,render_weight=0.5,render_steps=2"
+    first = _train(spec, kitti, max_minutes=0)
+    assert first.steps == 1 and not first.manifest["complete"]
+    resumed = _train(spec, kitti)
+    straight = _train(spec, kitti, fresh=True)
+    assert straight.steps == 4 and straight.manifest["config"]["render_weight"] == 0.5
+    assert straight.manifest["config"]["render_steps"] == 2 and straight.manifest["config"]["steps_target"] == 4
+    keys = ("step", "loss", "mse", "render_l1", "stage", "grad_norm")
+    rows = _rows(straight.dir / "curve.csv", keys)
+    assert _rows(resumed.dir / "curve.csv", keys) == rows
+    assert [r[4] for r in rows] == ["3.0", "3.0", "4.0", "4.0"]
+    assert [r[3] for r in rows[:2]] == ["nan", "nan"] and all(float(r[3]) > 0 for r in rows[2:])
+    # the render stage's loss is the MSE plus its weight times the depth L1
+    for r in rows[2:]:
+        assert float(r[1]) == pytest.approx(float(r[2]) + 0.5 * float(r[3]), rel=1e-5)
+    base = ("step", "loss", "mse", "grad_norm")
+    assert _rows(plain.dir / "curve.csv", base) == _rows(straight.dir / "curve.csv", base)[:2]
+    for k, v in resumed.load_weights().items():
+        assert torch.equal(v, straight.load_weights()[k]), k
+    # the stage's optimiser started afresh: AdamW has counted its 2 steps, not 4
+    state = torch.load(straight.dir / "state-00000004.pt", weights_only=True)
+    assert {int(v["step"]) for v in state["optimizer"]["state"].values()} == {2}
+    for bad in ("-2", "-0.5"):
+        with pytest.raises(PcfbenchError, match="render_weight"):
+            resolve_method(f"bevworld:{MICRO},render_weight={bad}")
+    # a weight asked for where the configuration has no stage steps is not silently dropped
+    with pytest.raises(PcfbenchError, match="give render_steps too"):
+        resolve_method(f"bevworld:{MICRO},render_weight=1").create().training_steps()
+    assert resolve_method("bevworld").create().render_plan() == (1.0, 300)
+    assert resolve_method("bevworld:config=paper").create().render_plan() == (0.0, 0)
+
+
+def test_a_reseeded_stage_draws_the_same_whatever_came_before():
+    """reseed_stage: streams that drew different amounts before draw the same after it, and
+    another seed or stage draws otherwise."""
+    from pcfbench.methods.bevworld.forecaster import reseed_stage
+    from pcfbench.training.loop import Randoms
+
+    def draws(used: int, seed: int = 0, stage: int = 4):
+        rand = Randoms(np.random.default_rng(7), torch.Generator().manual_seed(8))
+        rand.numpy.random(used), torch.randn(used, generator=rand.torch), torch.rand(used)
+        reseed_stage(rand, seed, stage)
+        return (rand.numpy.integers(0, 1000, 4).tolist(), torch.randint(0, 1000, (4,), generator=rand.torch).tolist(),
+                torch.randint(0, 1000, (4,)).tolist())
+
+    assert draws(0) == draws(5) == draws(123)
+    assert draws(0, seed=1)[0] != draws(0)[0] and draws(0, stage=3)[1] != draws(0)[1]
+
+
+def test_render_stage_rays_are_the_future_sweeps_seen_from_their_sensor():
+    """A return 10 m ahead of a sensor standing 5 m ahead of the t=0 one: in the t=0 frame the ray
+    starts at (5, 0, 0) and reaches 10 m along +x; in its own frame it starts at the origin."""
+    from pcfbench.methods.bevworld.config import tokenizer_config
+    from pcfbench.methods.bevworld.render_loss import WindowRays
+
+    class Seq:
+        def load_points(self, k):
+            return np.array([[10.0, 0.0, 0.0], [0.2, 0.0, 0.0]], np.float32) if k == 3 else np.zeros((0, 3))
+
+    class Adapter:
+        class ego_box:  # noqa: N801
+            @staticmethod
+            def remove(p):
+                return p
+
+        def sequence(self, name):
+            assert name == "a"
+            return Seq()
+
+    pose = np.eye(4, dtype=np.float32)
+    pose[0, 3] = 5.0
+    windows = {"sequences": np.array(["a"]), "sequence": np.array([0]), "sweeps": np.array([[1, 2, 3, 4]]),
+               "poses": np.stack([np.eye(4, dtype=np.float32)] * 2 + [pose, pose])[None]}
+    wr = WindowRays(Adapter(), windows, 2, per_sweep=8, seed=0, log=lambda *_: None)
+    cfg, rng = tokenizer_config("micro"), np.random.default_rng(0)
+    o, d, depth = wr.rays(cfg, 0, 2, False, 3, rng)  # the 0.2 m return is no ray; each return at most once
+    np.testing.assert_allclose(o, [[5, 0, 0]])
+    np.testing.assert_allclose(d, [[1, 0, 0]])
+    np.testing.assert_allclose(depth, [10.0])
+    o, _, depth = wr.rays(cfg, 0, 2, True, 1, rng)
+    np.testing.assert_allclose(o, [[0, 0, 0]]) and np.testing.assert_allclose(depth, [10.0])
+    assert wr.rays(cfg, 0, 3, False, 1, rng) is None  # sweep 4 has no returns
 
 
 def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):

@@ -128,10 +128,14 @@ def test_windows_are_tokenized_in_the_t0_frame(monkeypatch, tmp_path):
         assert [int(w["tokens"][a, j, 0, 0]) for j in range(3)] == [10 + 2 * (k - i) for k in frames]
         np.testing.assert_allclose(w["poses"][a, :, 0, 3], [2.0 * (k - i) for k in frames])
     assert [k for _, k in seen] == [k for i in anchors for k in (i - 2, i, i + 2)]
+    # where each frame comes from: the sequence and the sweep index
+    assert list(w["sequences"]) == ["a"] and list(w["sequence"]) == [0, 0, 0]
+    assert w["sweeps"].tolist() == [[i - 2, i, i + 2] for i in anchors]
     # cached: a second call tokenizes nothing and returns the same arrays
     seen.clear()
     w2 = build_windows(tok, _Adapter(), "train", 2, 1, (2,), 3, tmp_path / "c", log=lambda *_: None)
     assert not seen and np.array_equal(w2["tokens"], w["tokens"]) and np.array_equal(w2["poses"], w["poses"])
+    assert np.array_equal(w2["sweeps"], w["sweeps"]) and np.array_equal(w2["sequence"], w["sequence"])
     with pytest.raises(PcfbenchError, match="no sequence is long enough"):
         build_windows(tok, _Adapter(), "train", 5, 5, (2,), 1, None, log=lambda *_: None)
 

@@ -36,9 +36,9 @@ GOLDEN_DEFAULT_HASHES = {
     # when the option surface came in (the planes' offsets), readout went to surface and frame to t0
     "occworld-occ-copy": "8b6a8742f8ef",
     "occworld": "b8a054b791db",
-    # issue 44: BEVWorld, its tokenizer and world model (no checkpoint ships)
+    # issue 44: BEVWorld, its tokenizer and world model
     "bevworld-latent-copy": "d4668c0e6c5d",
-    "bevworld": "1e69f043404e",
+    "bevworld": "b477dfee934d",  # the render stage's options (render_weight, render_steps) came in
 }
 #: and of a few non-default specs, from the same code
 GOLDEN_SPEC_HASHES = {
