@@ -96,6 +96,21 @@ def window_cache_dir(tokenizer_sha: str, train_on_key: str) -> Path:
     return cache_dir() / "copilot4d" / "world-windows" / tokenizer_sha[:16] / train_on_key
 
 
+def window_sweeps(n_past: int, n_future: int, stride: int, anchor_every: int, *, n_sweeps: int | None = None,
+                  n_windows: int | None = None) -> np.ndarray:
+    """(A, T) sweep indices of training windows, T = n_past + n_future: window a, anchored at
+    sweep ``i_a = (n_past - 1) stride + a anchor_every``, holds sweeps ``i_a + (j - n_past + 1)
+    stride``. Every window that fits in a sequence of ``n_sweeps`` sweeps, or the first
+    ``n_windows`` (a cached window file keeps no anchors: its count gives them back)."""
+    if (n_sweeps is None) == (n_windows is None):
+        raise PcfbenchError("window_sweeps: give exactly one of n_sweeps and n_windows")
+    first = (n_past - 1) * stride
+    if n_windows is None:
+        n_windows = len(range(first, n_sweeps - n_future * stride, anchor_every))
+    anchors = first + anchor_every * np.arange(n_windows, dtype=np.int64)
+    return anchors[:, None] + (np.arange(n_past + n_future, dtype=np.int64) - n_past + 1) * stride
+
+
 def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, strides: tuple[int, ...],
                   anchor_every: int, cache: Path | None, log=print, frame: str = "t0", tokenize=None,
                   token_shape: tuple[int, ...] | None = None, token_dtype=np.int16) -> dict[str, np.ndarray]:
@@ -135,16 +150,15 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                     t, p = z["tokens"], z["poses"]
             else:
                 seq = seq or adapter.sequence(name)
-                n = len(seq)
-                anchors = list(range((n_past - 1) * s, n - n_future * s, anchor_every))
-                t = np.zeros((len(anchors), T, *token_shape), token_dtype)
-                p = np.zeros((len(anchors), T, 4, 4), np.float32)
+                sweeps = window_sweeps(n_past, n_future, s, anchor_every, n_sweeps=len(seq))
+                t = np.zeros((len(sweeps), T, *token_shape), token_dtype)
+                p = np.zeros((len(sweeps), T, 4, 4), np.float32)
                 clouds: dict[int, np.ndarray] = {}
                 t0 = time.monotonic()
-                for a, i in enumerate(anchors):
+                for a, i in enumerate(sweeps[:, n_past - 1]):
                     T_s0_world = np.linalg.inv(seq.T_world_sensor[i])
                     for j in range(T):
-                        k = i + (j - n_past + 1) * s
+                        k = int(sweeps[a, j])
                         T_s0_k = T_s0_world @ seq.T_world_sensor[k]
                         p[a, j] = T_s0_k
                         if frame == "own":  # a sweep's tokens in its own frame do not depend on the window
@@ -156,9 +170,9 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
                         if k not in clouds:
                             clouds[k] = adapter.ego_box.remove(seq.load_points(k))
                         t[a, j] = tokenize(clouds[k], T_s0_k)
-                    for k in [k for k in clouds if k < i + (1 - n_past) * s + anchor_every]:
+                    for k in [k for k in clouds if k < sweeps[a, 0] + anchor_every]:  # before the next window's first
                         del clouds[k]
-                log(f"{name} stride {s}: {len(anchors)} windows tokenized in {time.monotonic() - t0:.0f} s")
+                log(f"{name} stride {s}: {len(sweeps)} windows tokenized in {time.monotonic() - t0:.0f} s")
                 if path is not None:
                     path.parent.mkdir(parents=True, exist_ok=True)
                     tmp = path.with_name(path.name + ".tmp.npz")
@@ -168,8 +182,7 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
             poses.append(p)
             strides_out.append(np.full(len(t), s, np.int64))
             seq_out.append(np.full(len(t), q, np.int64))
-            anchors = (n_past - 1) * s + anchor_every * np.arange(len(t), dtype=np.int64)  # as ``anchors`` above
-            sweeps_out.append(anchors[:, None] + (np.arange(T, dtype=np.int64) - n_past + 1) * s)
+            sweeps_out.append(window_sweeps(n_past, n_future, s, anchor_every, n_windows=len(t)))
     out = {"tokens": np.concatenate(toks), "poses": np.concatenate(poses), "stride": np.concatenate(strides_out),
            "sequence": np.concatenate(seq_out), "sweeps": np.concatenate(sweeps_out).reshape(-1, T),
            "sequences": np.array(names)}

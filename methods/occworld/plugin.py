@@ -1,8 +1,8 @@
 """OccWorld as a plugin (the ``builtin-occworld`` entry point): the tokenizer as the trained
 method ``occworld-occ-copy`` (the last past occupancy's tokens, decoded and rendered at every
 future pose) and the world model ``occworld`` on top of its checkpoint, and the command
-``pcfbench occworld-ceiling``. Neither ships a checkpoint yet; the default run leaves them out
-(docs/occworld.md)."""
+``pcfbench occworld-ceiling``. Both ship their ``tiny`` checkpoints and stand on the default
+leaderboard (docs/occworld.md)."""
 
 from __future__ import annotations
 

@@ -140,6 +140,60 @@ def test_windows_are_tokenized_in_the_t0_frame(monkeypatch, tmp_path):
         build_windows(tok, _Adapter(), "train", 5, 5, (2,), 1, None, log=lambda *_: None)
 
 
+def test_window_sweeps_name_the_sweeps_whose_poses_the_windows_hold(monkeypatch, tmp_path):
+    """The provenance (``sequence``, ``sweeps``) names, for every frame of every window, the sweep
+    whose pose the window holds: ``poses[a, j]`` is T_s0_k = inv(T_world_sensor[i]) T_world_sensor[k]
+    for k = ``sweeps[a, j]`` and the anchor i = ``sweeps[a, n_past - 1]``, on a drive that turns
+    and changes speed, at two strides, in both frames, built and read back from the cache (which
+    keeps no anchors)."""
+    from pcfbench.methods.copilot4d import evaluate
+    from pcfbench.methods.copilot4d.forecaster import window_sweeps
+
+    rng = np.random.default_rng(3)
+    lengths = {"a": 23, "b": 17}
+    drives = {}
+    for name, n in lengths.items():
+        yaw, xy = np.cumsum(rng.uniform(-0.2, 0.2, n)), np.cumsum(rng.uniform(0.5, 3.0, (n, 2)), axis=0)
+        T = np.repeat(np.eye(4)[None], n, 0)
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+        T[:, :2, 3], T[:, 2, 3] = xy, rng.uniform(-1, 1, n)
+        drives[name] = T
+
+    class Seq(_Seq):
+        def __init__(self, name):
+            super().__init__(lengths[name])
+            self.T_world_sensor = drives[name]
+
+    class Adapter(_Adapter):
+        def sequence_names(self, split):
+            return list(lengths)
+
+        def sequence(self, name):
+            return Seq(name)
+
+    monkeypatch.setattr(evaluate, "tokenize_sweep", lambda model, pts: torch.zeros((2, 2), dtype=torch.int64))
+    tok = type("Tok", (), {"cfg": type("C", (), {"bev_tokens": 2})()})()
+    n_past, n_future, strides, every = 3, 2, (1, 3), 2
+    for frame in ("t0", "own"):
+        built = [build_windows(tok, Adapter(), "train", n_past, n_future, strides, every, tmp_path / "c",
+                               log=lambda *_: None, frame=frame) for _ in range(2)]  # the second from the cache
+        for w in built:
+            assert w["sweeps"].shape == (len(w["poses"]), n_past + n_future) and list(w["sequences"]) == ["a", "b"]
+            for a in range(len(w["poses"])):
+                T = drives[str(w["sequences"][w["sequence"][a]])]
+                i = w["sweeps"][a, n_past - 1]
+                for j, k in enumerate(w["sweeps"][a]):
+                    np.testing.assert_allclose(w["poses"][a, j], np.linalg.inv(T[i]) @ T[k], atol=1e-5)
+            # every window that fits: per sequence and stride, (n - n_future s - (n_past - 1) s) / every, rounded up
+            assert len(w["poses"]) == sum(-(-(n - (n_future + n_past - 1) * s) // every)
+                                          for n in lengths.values() for s in strides)
+        np.testing.assert_array_equal(built[0]["sweeps"], built[1]["sweeps"])
+    assert window_sweeps(2, 1, 2, 3, n_sweeps=12).tolist() == [[0, 2, 4], [3, 5, 7], [6, 8, 10]]
+    np.testing.assert_array_equal(window_sweeps(2, 1, 2, 3, n_windows=2), window_sweeps(2, 1, 2, 3, n_sweeps=12)[:2])
+    with pytest.raises(PcfbenchError, match="exactly one"):
+        window_sweeps(2, 1, 2, 3)
+
+
 def test_windows_in_their_own_frame_keep_each_sweep_sensor_centred(monkeypatch, tmp_path):
     """frame=own: each sweep is tokenized as the sensor saw it (the point 10 m ahead stays 10 m
     ahead in every frame), once however many windows hold it, the poses are still each frame's
