@@ -11,7 +11,8 @@ The plane of an occupied voxel (``surface=front``, or ``mean``):
 
 - its **normal** comes from the occupancy grid itself (:func:`free_normals`): the unit sum of
   the unit directions (in metres) from the voxel to those of its 26 neighbours that are free,
-  so it points to the space the rays came through; zero where no neighbour is free;
+  so it points to the space the rays came through; zero where no neighbour is free (a decoded
+  grid weights each neighbour by its free probability: ``occ_copy.decoded_normals``);
 - its **offset** is the one extra number per voxel the labels carry (:func:`surface_offsets`):
   the largest signed distance, along that normal, from the voxel's centre to the returns that
   fell in it (the front of the returns, as seen from the free side; inside the voxel, so

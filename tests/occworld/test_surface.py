@@ -197,8 +197,8 @@ def test_no_ray_of_the_sweep_passes_its_own_return():
 
 def test_a_decoded_grid_renders_through_its_planes():
     """``occ_copy.render_grid`` with ``readout="surface"``: a decoded occupancy probability and
-    its decoded offsets render as ``render_surface`` with the normals of the voxels below 0.5
-    (free); the same grid without offsets (a tokenizer trained with surface=none) is one error."""
+    its decoded offsets render as ``render_surface`` with the normals weighted by the neighbours'
+    free probability (here those of the voxels below 0.5: the side neighbours cancel); the same grid without offsets (a tokenizer trained with surface=none) is one error."""
     from pcfbench.methods.occworld.config import TokenizerConfig
     from pcfbench.methods.occworld.occ_copy import render_grid
 
@@ -215,3 +215,39 @@ def test_a_decoded_grid_renders_through_its_planes():
     assert render_grid(cfg, (prob, None), o, d, "threshold") == pytest.approx(render_depths(STRIP, prob, o, d, "threshold"))
     with pytest.raises(PcfbenchError, match="no offset head"):
         render_grid(cfg, (prob, None), o, d, "surface")
+
+
+def test_decoded_normals_weight_each_neighbour_by_its_free_probability():
+    """A ground voxel with a free voxel above it and a neighbour beside it decoded at 0.45 (free
+    by the 0.5 threshold): counted whole, the neighbour tilts the normal by 45 degrees; weighted
+    by 1 - p = 0.55, by atan(0.55) = 28.8. A grazing ray that the 45-degree plane stops in front
+    of the voxel's return passes over the weighted one and reaches its ground plane."""
+    from pcfbench.methods.occworld.occ_copy import decoded_normals
+
+    grid = OccGrid.over((0.0, 0.0, 0.0), (3.0, 1.0, 2.0), (3, 1, 2))  # 1 m voxels
+    prob = np.ones((3, 1, 2))
+    prob[:, 0, 1] = 0.0  # the upper layer free
+    prob[0, 0, 0] = 0.45  # the lower layer's first voxel: decoded just free
+    soft, hard = decoded_normals(prob, grid.voxel), free_normals(prob < 0.5, grid.voxel)
+    np.testing.assert_allclose(hard[1, 0, 0], np.array([-1.0, 0.0, 1.0]) / np.sqrt(2))
+    np.testing.assert_allclose(soft[1, 0, 0], np.array([-0.55, 0.0, 1.0]) / np.hypot(0.55, 1.0))
+    # certain grids: the same normals either way
+    certain = (prob >= 0.5) * 1.0
+    np.testing.assert_allclose(decoded_normals(certain, grid.voxel), free_normals(certain < 0.5, grid.voxel))
+    # a grazing ray (0.1 m down per m) entering voxel 1 from above at x = 1.3, towards a return on
+    # the ground farther on: each tilted plane (through the centre + 0.4 m along its normal) stops
+    # it where the ray crosses it, the weighted one 0.11 m later, nearer the return
+    offsets = np.zeros((3, 1, 2))
+    offsets[:, 0, 0] = 0.4
+    occupied = prob.copy()
+    occupied[0, 0, 0] = 0.0  # decoded free
+    o, d = np.array([0.0, 0.5, 1.13]), np.array([1.0, 0.0, -0.1])
+    depths = {}
+    for name, normals in (("hard", hard), ("soft", soft)):
+        n = normals[1, 0, 0]
+        m = np.array([1.5, 0.5, 0.5]) + 0.4 * n
+        t = (m - o) @ n / (d / np.linalg.norm(d) @ n)  # where the ray crosses voxel 1's plane
+        assert 1.3 < o[0] + t * d[0] / np.linalg.norm(d) < 2.0  # inside voxel 1
+        depths[name] = render_surface(grid, occupied, normals, offsets, o, d[None])[0]
+        assert depths[name] == pytest.approx(t)
+    assert depths["soft"] - depths["hard"] == pytest.approx(0.11, abs=0.01)
