@@ -198,7 +198,8 @@ def test_no_ray_of_the_sweep_passes_its_own_return():
 def test_a_decoded_grid_renders_through_its_planes():
     """``occ_copy.render_grid`` with ``readout="surface"``: a decoded occupancy probability and
     its decoded offsets render as ``render_surface`` with the normals weighted by the neighbours'
-    free probability (here those of the voxels below 0.5: the side neighbours cancel); the same grid without offsets (a tokenizer trained with surface=none) is one error."""
+    free probability (here those of the voxels below 0.5: the side neighbours cancel); the same
+    grid without offsets (a tokenizer trained with surface=none) is one error."""
     from pcfbench.methods.occworld.config import TokenizerConfig
     from pcfbench.methods.occworld.occ_copy import render_grid
 
