@@ -139,7 +139,10 @@ def decoded_normals(prob: np.ndarray, voxel) -> np.ndarray:
     free, so a ground voxel often has a "free" neighbour beside it; counted whole, it tilts the
     normal by 45 degrees towards it, and the tilted plane stops grazing rays in front of their
     returns. Weighted (a free voxel above), a neighbour decoded at 0.45 tilts it by 29 degrees,
-    one at 0.1 by 42. A certain grid (0 or 1) gives the same normals either way."""
+    one at 0.1 by 42. A certain grid (0 or 1) gives the same normals either way. Not yet
+    handled: a decoded voxel whose neighbours are all occupied keeps a tiny, non-zero free sum
+    and so a unit normal of little meaning, where a certain grid gives none and stops the ray at
+    the voxel's entry (``surface.render_surface``); not measured how often a ray reaches one."""
     from pcfbench.methods.occworld.surface import free_normals
 
     return free_normals(1.0 - np.asarray(prob, np.float64), voxel)
