@@ -440,12 +440,14 @@ WORLD_MODEL = {"copilot4d-cfg-weight.toml": "copilot4d", "copilot4d-sampling-ste
 
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
+OCCWORLD_WORLD_TOKENS = EXAMPLES / "occworld-world-tokens.toml"
 BEVWORLD_DDIM = EXAMPLES / "bevworld-ddim-steps.toml"
 
 
 def test_every_example_experiment_is_checked():
     assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name,
-                                                                      BEVWORLD_DDIM.name, *WORLD_MODEL])
+                                                                      OCCWORLD_WORLD_TOKENS.name, BEVWORLD_DDIM.name,
+                                                                      *WORLD_MODEL])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
@@ -453,6 +455,14 @@ def test_every_example_experiment_is_checked():
     assert [v.label for v in exp.variants] == [*(f"occworld-occ-copy (steps=300, tokens={t})" for t in (25, 50, 100)),
                                                "occworld-occ-copy", "copy-last"]
     assert exp.train_on == ("synthetic-town-realistic",) and exp.settings == ("kitti-1s", "kitti-3s")
+    exp = load_experiment(OCCWORLD_WORLD_TOKENS)  # its forecasting side: a world model on each of those tokenizers
+    world = [f"occworld (steps=300, tokenizer_steps=300, tokens={t})" for t in (25, 50, 100)]
+    assert [v.label for v in exp.variants] == [*world, *(f"occworld-occ-copy (steps=300, tokens={t})" for t in
+                                                         (25, 50, 100)), "copy-last"]
+    assert exp.tables[0].reference.label == world[1] and exp.train_on == ("synthetic-town-realistic",)
+    for v in exp.variants[:3]:  # each world model on the very tokenizer its occupancy copy row scores
+        assert v.method.create().tokenizer_spec().options.tokens == v.method.options.tokens
+        assert v.method.create().tokenizer_spec().options.steps == 300
     exp = load_experiment(BEVWORLD_DDIM)  # every kitti-3s sample, the one checkpoint at each step count
     assert [v.label for v in exp.variants] == [*(f"bevworld (ddim_steps={n})" for n in (5, 10, 20, 50)), "bevworld",
                                                "bevworld-latent-copy", "copy-last"]
