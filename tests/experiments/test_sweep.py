@@ -456,7 +456,7 @@ def test_every_example_experiment_is_checked():
                                                "occworld-occ-copy", "copy-last"]
     assert exp.train_on == ("synthetic-town-realistic",) and exp.settings == ("kitti-1s", "kitti-3s")
     exp = load_experiment(OCCWORLD_WORLD_TOKENS)  # its forecasting side: a world model on each of those tokenizers
-    world = [f"occworld (steps=300, tokenizer_steps=300, tokens={t})" for t in (25, 50, 100)]
+    world = [f"occworld (anchor_every=4, steps=300, tokenizer_steps=300, tokens={t})" for t in (25, 50, 100)]
     assert [v.label for v in exp.variants] == [*world, *(f"occworld-occ-copy (steps=300, tokens={t})" for t in
                                                          (25, 50, 100)), "copy-last"]
     assert exp.tables[0].reference.label == world[1] and exp.train_on == ("synthetic-town-realistic",)
