@@ -289,7 +289,7 @@ def _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, l
         for split, setting, method in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
             cells.append(
                 CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, ds_policy, limit,
-                         metric_names, **checkpoints.get(method.name, {}))
+                         metric_names, **checkpoints.get((method.name, method.options_hash), {}))
             )
     return cells
 
@@ -388,9 +388,10 @@ def interrupted_note(store_path, finished, total: int):
         sys.exit(130)
 
 
-def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress) -> dict[str, dict]:
-    """Per trained method of the run, the CellSpec fields of its checkpoint (one error for a
-    missing, altered or mismatched one before any work)."""
+def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress) -> dict[tuple[str, str], dict]:
+    """Per trained method variant of the run (name, options hash: two variants of one method are
+    two checkpoints), the CellSpec fields of its checkpoint (one error for a missing, altered or
+    mismatched one before any work)."""
     from pcfbench.training import checkpoint_for, is_trained
 
     trained = [m for m in method_specs if is_trained(m.cls)]
@@ -401,7 +402,8 @@ def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progr
     for m in trained:
         ck = checkpoint_for(m, checkpoint=checkpoint, train_on=train_on, split=train_split, plugins=plugins,
                             progress=progress)
-        out[m.name] = {"checkpoint": str(ck.dir.resolve()), "checkpoint_sha256": ck.sha256, "train_on": ck.train_on_label}
+        out[m.name, m.options_hash] = {"checkpoint": str(ck.dir.resolve()), "checkpoint_sha256": ck.sha256,
+                                       "train_on": ck.train_on_label}
     return out
 
 

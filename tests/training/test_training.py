@@ -376,6 +376,29 @@ def test_cli_train_and_run_with_checkpoint_and_train_on(env, monkeypatch):
     assert r.exit_code == 2 and "does not train" in r.output
 
 
+def test_run_gives_each_variant_of_a_trained_method_its_own_checkpoint(env, monkeypatch):
+    """Two variants of one trained method in one run (a token-resolution sweep by hand): each
+    cell is evaluated with its own variant's checkpoint. Before, the run kept one checkpoint per
+    method name, the last variant's, and the other variant's cell refused it as another
+    configuration's."""
+    from click.testing import CliRunner
+
+    from pcfbench.cli import build_cli
+
+    monkeypatch.setattr("pcfbench.cli.get_plugins", lambda: env.plugins)
+    runner = CliRunner()
+    cks = {n: _train(env, f"toy-trained:steps={n}") for n in (6, 9)}
+    store = env.tmp / "store"
+    r = runner.invoke(build_cli(), ["run", "-m", "toy-trained:steps=6", "-m", "toy-trained:steps=9", "-d", env.data,
+                                    "-s", "kitti-1s", "--limit", "1", "-q", "--store", str(store), "--reports",
+                                    str(env.tmp / "reports"), "--metric", "chamfer", "--train-on", env.data])
+    assert r.exit_code == 0, r.output
+    cells = [json.loads(p.read_text()) for p in store.rglob("cell.json")]
+    assert sorted((c["spec"]["options"]["steps"], c["checkpoint_sha256"]) for c in cells) == sorted(
+        (str(n), ck.sha256) for n, ck in cks.items())
+    assert cks[6].sha256 != cks[9].sha256
+
+
 def test_transfer_table_layout(env):
     """A trained cell on other data than its training data gets a Table-5 block: the trained row
     and the untrained baselines of the same block, the paper's columns, the leaderboard's values."""
