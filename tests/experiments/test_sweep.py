@@ -459,7 +459,9 @@ def test_every_example_experiment_is_checked():
     world = [f"occworld (anchor_every=4, steps=300, tokenizer_steps=300, tokens={t})" for t in (25, 50, 100)]
     assert [v.label for v in exp.variants] == [*world, *(f"occworld-occ-copy (steps=300, tokens={t})" for t in
                                                          (25, 50, 100)), "copy-last"]
-    assert exp.tables[0].reference.label == world[1] and exp.train_on == ("synthetic-town-realistic",)
+    assert [(t.stem, t.reference.label) for t in exp.tables] == [  # each resolution against its own copy
+        (f"occworld-world-tokens-{t}", f"occworld-occ-copy (steps=300, tokens={t})") for t in (25, 50, 100)]
+    assert exp.train_on == ("synthetic-town-realistic",)
     for v in exp.variants[:3]:  # each world model on the very tokenizer its occupancy copy row scores
         assert v.method.create().tokenizer_spec().options.tokens == v.method.options.tokens
         assert v.method.create().tokenizer_spec().options.steps == 300
