@@ -142,7 +142,9 @@ def decoded_normals(prob: np.ndarray, voxel) -> np.ndarray:
     one at 0.1 by 42. A certain grid (0 or 1) gives the same normals either way. Not yet
     handled: a decoded voxel whose neighbours are all occupied keeps a tiny, non-zero free sum
     and so a unit normal of little meaning, where a certain grid gives none and stops the ray at
-    the voxel's entry (``surface.render_surface``); not measured how often a ray reaches one."""
+    the voxel's entry (``surface.render_surface``). Dropping the normal where the weighted free
+    sum is under 0.5 was measured (2026-12-01, docs/occworld.md): it helps under-trained
+    tokenizers' copies, and worsens the shipped one's l1_median (0.291 -> 0.315), so not adopted."""
     from pcfbench.methods.occworld.surface import free_normals
 
     return free_normals(1.0 - np.asarray(prob, np.float64), voxel)
