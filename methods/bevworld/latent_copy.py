@@ -31,8 +31,9 @@ from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSourc
 FRAMES = ("own", "t0")
 #: the world model's windows (the protocol's settings): 5 past and 5 future frames, strides up to 6
 WINDOW_PAST, WINDOW_FUTURE, MAX_STRIDE = 5, 5, 6
-#: rays rendered at a time at inference: bounds the memory of their samples' features, and 1024
-#: keeps them in cache (a sweep 0.64x the time of 8192 at one thread, the same depths to the bit)
+#: rays rendered at a time by the torch path (a GPU's; the CPU marches them with numba,
+#: :mod:`.raymarch`): bounds the memory of their samples' features, and 1024 keeps them in cache
+#: (a sweep 0.64x the time of 8192 at one thread, the same depths to the bit)
 RENDER_CHUNK = 1024
 
 
@@ -198,10 +199,8 @@ def render_sample(model, latents, sample: Sample, T_frame_ref) -> list[np.ndarra
     """Depths along every future sweep's query rays: ``latents`` one raw latent (H, W, C') per
     future sweep (or one for all), latent k in the frame ``T_frame_ref[k]`` maps the reference
     frame into (one 4x4 for all, or one per sweep); the query's origin and directions are moved
-    there, the latent decoded and rendered (:func:`.render.render_rays`)."""
+    there, the latent decoded and rendered (:func:`render_volume`)."""
     import torch
-
-    from pcfbench.methods.bevworld.render import render_rays
 
     F = sample.num_future
     Ts = [np.asarray(T_frame_ref, np.float64)] * F if np.ndim(T_frame_ref) == 2 else list(T_frame_ref)
@@ -211,14 +210,36 @@ def render_sample(model, latents, sample: Sample, T_frame_ref) -> list[np.ndarra
     with torch.no_grad():
         for k, q in enumerate(sample.queries):
             if decoded is not zs[k]:  # one decode when one latent serves every sweep
-                volume, decoded = model.decode(zs[k][None].to(dev))[0], zs[k]
+                volume, decoded = model.decode(zs[k][None].to(dev), channels_last=dev.type == "cpu")[0], zs[k]
             R, t = Ts[k][:3, :3], Ts[k][:3, 3]
             dirs = torch.from_numpy((q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)).to(dev)
             o = torch.from_numpy((R @ q.origin_ref + t).astype(np.float32)).to(dev).expand(len(dirs), 3)
-            d, _, _ = render_rays(model, volume, o, dirs, n=model.cfg.samples_per_ray, jitter=False,
-                                  chunk=RENDER_CHUNK)
-            out.append(d.cpu().numpy().astype(np.float64))
+            out.append(render_volume(model, volume, o, dirs).astype(np.float64))
     return out
+
+
+def render_volume(model, volume, origins, dirs) -> np.ndarray:
+    """Expected depths (float32 numpy, (R,)) of rays (``origins``, unit ``dirs`` (R, 3) tensors
+    in the grid frame, one origin for all) through one decoded ``volume`` (F, Z, X, Y) of
+    ``model``, at inference: on the CPU by the numba marcher (:func:`.raymarch.march`, its
+    early stop included: docs/bevworld.md, "Inference time"), elsewhere by the torch path
+    training uses, ``RENDER_CHUNK`` rays at a time."""
+    from pcfbench.methods.bevworld import raymarch
+    from pcfbench.methods.bevworld.render import render_rays
+    from pcfbench.methods.copilot4d.render import box_interval
+
+    cfg = model.cfg
+    if len(dirs) == 0:
+        return np.zeros(0, np.float32)
+    if volume.device.type != "cpu":
+        return render_rays(model, volume, origins, dirs, n=cfg.samples_per_ray, jitter=False,
+                           chunk=RENDER_CHUNK)[0].cpu().numpy()
+    near, far = box_interval(cfg, origins, dirs)
+    mlp = tuple(p.detach().float().numpy() for p in (model.decoder.mlp1.weight, model.decoder.mlp1.bias,
+                                                       model.decoder.mlp2.weight, model.decoder.mlp2.bias))
+    box = ((cfg.x_range[0], cfg.y_range[0], cfg.z_range[0]), (cfg.x_range[1], cfg.y_range[1], cfg.z_range[1]))
+    return raymarch.march(volume.float().permute(2, 3, 1, 0).numpy(), origins[0].numpy(), dirs.numpy(), near.numpy(),
+                          far.numpy(), box, mlp, samples=cfg.samples_per_ray)
 
 
 class LatentCopy(TrainedMethod):

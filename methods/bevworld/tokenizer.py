@@ -36,8 +36,10 @@ class VolumeDecoder(nn.Module):
         self.mlp1 = nn.Linear(cfg.vol_dim, cfg.mlp_hidden)
         self.mlp2 = nn.Linear(cfg.mlp_hidden, 1)
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        """Latents (B, H, W, C') -> volumes (B, F, Z, X, Y), X = 2 H vol_up."""
+    def forward(self, z: torch.Tensor, channels_last: bool = False) -> torch.Tensor:
+        """Latents (B, H, W, C') -> volumes (B, F, Z, X, Y), X = 2 H vol_up. With
+        ``channels_last`` the volume's memory is laid out as (B, X, Y, Z, F) (the same shape and
+        values, a permuted view: what the CPU ray march reads, without a second copy)."""
         cfg = self.cfg
         B, H = z.shape[0], z.shape[1]
         x = self.from_latent(z)
@@ -45,10 +47,13 @@ class VolumeDecoder(nn.Module):
         x = self.stage1(self.upsample(self.stage2(x)))  # (B, 2H, 2H, d1)
         S, u, Zn, Fd = x.shape[1], cfg.vol_up, cfg.vol_z, cfg.vol_dim
         v = self.vol_linear(self.vol_norm(x)).view(B, S, S, u, u, Zn, Fd)
+        if channels_last:  # X = (row, its u), Y = (column, its u)
+            return v.permute(0, 1, 3, 2, 4, 5, 6).reshape(B, S * u, S * u, Zn, Fd).permute(0, 4, 3, 1, 2)
         return v.permute(0, 6, 5, 1, 3, 2, 4).reshape(B, Fd, Zn, S * u, S * u)
 
     def density(self, feats: torch.Tensor) -> torch.Tensor:
-        """(..., F) features -> (...,) densities (1/m), >= 0."""
+        """(..., F) features -> (...,) densities (1/m), >= 0. Inference on the CPU repeats this
+        arithmetic in numba (``raymarch._march``; its tests hold the two together)."""
         return F.softplus(self.mlp2(F.relu(self.mlp1(feats)))).squeeze(-1)
 
 
@@ -97,9 +102,10 @@ class LatentTokenizer(nn.Module):
     def denormalise(self, x: torch.Tensor) -> torch.Tensor:
         return x * torch.sqrt(self.latent_var + 1e-6) + self.latent_mean
 
-    def decode(self, z: torch.Tensor) -> torch.Tensor:
-        """Raw latents (B, H, W, C') -> volumes (B, F, Z, X, Y)."""
-        return self.decoder(z)
+    def decode(self, z: torch.Tensor, channels_last: bool = False) -> torch.Tensor:
+        """Raw latents (B, H, W, C') -> volumes (B, F, Z, X, Y) (``channels_last``: see
+        :meth:`VolumeDecoder.forward`)."""
+        return self.decoder(z, channels_last)
 
     def density(self, feats: torch.Tensor) -> torch.Tensor:
         return self.decoder.density(feats)

@@ -13,13 +13,21 @@ from pcfbench.methods.bevworld.config import tokenizer_config
 
 class _Occupancy(torch.nn.Module):
     """A stand-in tokenizer whose latent is the sweep's occupancy on its grid (one channel per
-    height) and whose volume is that occupancy, opaque where occupied: a perfect tokenizer at the
-    grid's resolution, so the ceiling measures the frames, origins and rendering alone."""
+    height) and whose volume is that occupancy, opaque where occupied (density softplus(100 f -
+    30): 70 / m in an occupied voxel, 1e-13 in a free one): a perfect tokenizer at the grid's
+    resolution, so the ceiling measures the frames, origins and rendering alone. Its density MLP
+    is the real decoder's shape, which inference on the CPU reads."""
 
     def __init__(self, cfg) -> None:
         super().__init__()
         self.cfg = cfg
         self.unit = torch.nn.Parameter(torch.ones(()))
+        self.decoder = torch.nn.Module()
+        self.decoder.mlp1, self.decoder.mlp2 = torch.nn.Linear(1, 1), torch.nn.Linear(1, 1)
+        with torch.no_grad():
+            for layer, w, b in ((self.decoder.mlp1, 1.0, 0.0), (self.decoder.mlp2, 100.0, -30.0)):
+                layer.weight.fill_(w)
+                layer.bias.fill_(b)
 
     def encode(self, points, batch, batch_size):
         cfg = self.cfg
@@ -32,11 +40,12 @@ class _Occupancy(torch.nn.Module):
     def normalise(self, z):
         return z
 
-    def decode(self, z):  # (1, X, Y, Z) -> (1, 1, Z, X, Y)
+    def decode(self, z, channels_last=False):  # (1, X, Y, Z) -> (1, 1, Z, X, Y), (X, Y, Z, 1) in memory
         return z.permute(0, 3, 1, 2)[:, None]
 
     def density(self, f):
-        return f[..., 0] * 100.0
+        d = self.decoder
+        return torch.nn.functional.softplus(d.mlp2(torch.relu(d.mlp1(f)))).squeeze(-1)
 
 
 @pytest.mark.parametrize("frame", ["own", "t0"])
