@@ -34,7 +34,8 @@ from pcfbench.protocol.validate import FORECAST_RATIO, check_forecast_size, vali
 #: Flush a chunk after this many samples or seconds, whichever comes first.
 CHUNK_SAMPLES = int(os.environ.get("PCFBENCH_CHUNK_SAMPLES", 64))
 CHUNK_SECONDS = float(os.environ.get("PCFBENCH_CHUNK_SECONDS", 20.0))
-#: With ``jobs=0`` (auto), cells with fewer samples to do than this run serially.
+#: With ``jobs=0`` (auto), unisolated cells with fewer samples to do than this run serially (in
+#: this process); isolated ones start a worker per CPU whatever their count (``RunOptions.workers``).
 AUTO_POOL_MIN_SAMPLES = 24
 
 
@@ -278,8 +279,10 @@ class RunOptions:
     """How :func:`run_cell` computes a cell. None of it changes a row; ``allow_train_split``
     decides whether a trained method's cell on its own training data runs at all.
 
-    ``jobs``: worker processes; 0 picks a pool of one worker per CPU when there are enough
-    samples to pay for starting it, else runs serially. ``threads``: the run's thread budget
+    ``jobs``: worker processes; 0 picks a pool of one worker per CPU when the samples are
+    isolated (a worker is started for them either way, and the workers start side by side) or
+    there are enough of them to pay for starting it, else runs serially. A pool never has more
+    workers than samples. ``threads``: the run's thread budget
     (default: every CPU this process may use); a serial run keeps all of it, each of N
     workers gets ``max(1, threads // N)`` (:mod:`pcfbench.execution`).
 
@@ -339,7 +342,9 @@ class RunOptions:
 
     def workers(self, todo: int) -> int:
         if self.jobs == 0:
-            return (os.cpu_count() or 1) if todo >= AUTO_POOL_MIN_SAMPLES else 1
+            # isolated, one worker with every thread scored 4 samples of the default run's 9
+            # methods in 94 s, two with one thread each in 76 s (docs/performance.md)
+            return (os.cpu_count() or 1) if self.isolated or todo >= AUTO_POOL_MIN_SAMPLES else 1
         return self.jobs
 
 

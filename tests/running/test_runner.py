@@ -224,6 +224,8 @@ def test_run_options_pick_the_workers_and_the_isolation():
     auto = RunOptions(jobs=0)
     assert auto.workers(AUTO_POOL_MIN_SAMPLES - 1) == 1  # too few samples to pay for a pool
     assert auto.workers(AUTO_POOL_MIN_SAMPLES) == (os.cpu_count() or 1)
+    # isolated, a worker starts either way: one per CPU from the first sample (the callers cap it at the samples)
+    assert RunOptions(jobs=0, isolate=True).workers(2) == RunOptions(jobs=0, timeout=5).workers(1) == (os.cpu_count() or 1)
     assert RunOptions(jobs=3).workers(1) == 3  # a pool asked for is a pool (run_cell caps it at the samples)
     assert not RunOptions().isolated and RunOptions(timeout=5).isolated  # a time limit needs a worker to kill
     assert not RunOptions(timeout=5, isolate=False).isolated and RunOptions(isolate=True).isolated
