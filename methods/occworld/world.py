@@ -183,19 +183,21 @@ class WorldModel(nn.Module):
         self.pose_decoder = nn.Sequential(nn.Linear(C, C), nn.ReLU(), nn.Linear(C, cfg.pose_dim))
 
     @staticmethod
-    def _temporal(layers, q, k, B, T, mask):
-        """Temporal attention at every spatial position: (B*T, c, h, w) queries and keys."""
+    def _temporal(layers, q, k, B, mask):
+        """Temporal attention at every spatial position: (B*Tq, c, h, w) queries attend to
+        (B*T, c, h, w) keys."""
         _, c, h, w = q.shape
-        qs = q.view(B, T, c, h * w).permute(0, 3, 1, 2).reshape(B * h * w, T, c)
+        Tq, T = q.shape[0] // B, k.shape[0] // B
+        qs = q.view(B, Tq, c, h * w).permute(0, 3, 1, 2).reshape(B * h * w, Tq, c)
         ks = k.view(B, T, c, h * w).permute(0, 3, 1, 2).reshape(B * h * w, T, c)
         for layer in layers:
             qs = layer(qs, ks, mask)
-        return qs.view(B, h * w, T, c).permute(0, 2, 3, 1).reshape(B * T, c, h, w)
+        return qs.view(B, h * w, Tq, c).permute(0, 2, 3, 1).reshape(B * Tq, c, h, w)
 
     @staticmethod
-    def _pose(layers, pq, pk, q, B, T, mask):
+    def _pose(layers, pq, pk, q, B, mask):
         _, c, h, w = q.shape
-        scene = q.view(B * T, c, h * w).transpose(1, 2)
+        scene = q.view(q.shape[0], c, h * w).transpose(1, 2)
         for layer in layers:
             pq = layer(pq, pk, scene, mask)
         return pq
@@ -203,41 +205,64 @@ class WorldModel(nn.Module):
     def forward(self, codes_vec: torch.Tensor, poses: torch.Tensor):
         """(B, T, C, h, w) code vectors and (B, T, pose_dim) motions -> (B, T, N, h, w) logits
         of the next frame's codes and (B, T, pose_dim) the next motion."""
-        B, T, C, H, W = codes_vec.shape
+        T = codes_vec.shape[1]
         if T > self.cfg.positions:
             raise ValueError(f"{T} frames: the model holds at most {self.cfg.positions}")
-        mask = causal_mask(T, codes_vec.device)
-        x = codes_vec.reshape(B * T, C, H, W)
-        emb_k = self.time_embed.weight[:T].repeat(B, 1)[:, :, None, None]
-        emb_q = self.time_embed.weight[1:T + 1].repeat(B, 1)[:, :, None, None]
-        k, q = x + emb_k, x + emb_q
-        p = self.pose_encoder(poses)
-        pk = p + self.pose_time_embed.weight[None, :T]
-        pq = p + self.pose_time_embed.weight[None, 1:T + 1]
-        skips = []
-        for tl, blocks, down, pl, pmlp, ego in zip(self.enc_temporal, self.enc_blocks, self.downs, self.enc_pose,
-                                                   self.enc_pose_mlp, self.enc_ego):
-            pq = self._pose(pl, pq, pk, q, B, T, mask)
-            q = q + ego(pq).reshape(B * T, -1, 1, 1)  # every scene query of frame t hears its ego token
-            pq, pk = pmlp(pq), pmlp(pk)
-            q = self._temporal(tl, q, k, B, T, mask)
-            q, k = blocks(q), blocks(k)
-            skips.append((q, k, pq, pk))
-            q, k = down(q), down(k)
-        q, k = self.mid(q), self.mid(k)
-        pq, pk = self.pose_mid(pq), self.pose_mid(pk)
-        for up, tl, blocks, pup, pl, pmlp, ego, (sq, sk, spq, spk) in zip(
-                self.ups, self.dec_temporal, self.dec_blocks, self.pose_up, self.dec_pose, self.dec_pose_mlp,
-                self.dec_ego, skips[::-1]):
-            q, k = self._fit(up(q), sq), self._fit(up(k), sk)
-            q, k = torch.cat([q, sq], 1), torch.cat([k, sk], 1)
-            q = self._temporal(tl, q, k, B, T, mask)
-            pq, pk = torch.cat([pup(pq), spq], -1), torch.cat([pup(pk), spk], -1)
-            pq = self._pose(pl, pq, pk, q, B, T, mask)
-            q = q + ego(pq).reshape(B * T, -1, 1, 1)
-            pq, pk = pmlp(pq), pmlp(pk)
-            q, k = blocks(q), blocks(k)
-        logits = self.conv_out(q).view(B, T, self.cfg.codebook_size, H, W)
+        return self.queries(codes_vec, poses, self.keys(codes_vec, poses), 0, causal_mask(T, codes_vec.device))
+
+    def keys(self, codes_vec: torch.Tensor, poses: torch.Tensor, start: int = 0) -> list:
+        """The key side of frames at positions start .. start + T - 1 ((B, T, C, h, w) code
+        vectors, (B, T, pose_dim) motions): at each attention site, in order, the (pose keys
+        (B, T, c), scene keys (B*T, c', h', w')) the queries attend to there. A frame's keys
+        depend on that frame and its position alone, so the keys of a longer window are these
+        frames' beside the others' (``cat_keys``): what an autoregressive forecast keeps."""
+        B, T, C, H, W = codes_vec.shape
+        k = codes_vec.reshape(B * T, C, H, W) + self.time_embed.weight[start:start + T].repeat(B, 1)[:, :, None, None]
+        pk = self.pose_encoder(poses) + self.pose_time_embed.weight[None, start:start + T]
+        sites, skips = [], []
+        for blocks, down, pmlp in zip(self.enc_blocks, self.downs, self.enc_pose_mlp):
+            sites.append((pk, k))
+            pk, k = pmlp(pk), blocks(k)
+            skips.append((k, pk))
+            k = down(k)
+        k, pk = self.mid(k), self.pose_mid(pk)
+        for up, blocks, pup, pmlp, (sk, spk) in zip(self.ups, self.dec_blocks, self.pose_up, self.dec_pose_mlp,
+                                                    skips[::-1]):
+            k = torch.cat([self._fit(up(k), sk), sk], 1)
+            pk = torch.cat([pup(pk), spk], -1)
+            sites.append((pk, k))
+            pk, k = pmlp(pk), blocks(k)
+        return sites
+
+    def queries(self, codes_vec: torch.Tensor, poses: torch.Tensor, sites: list, start: int, mask: torch.Tensor):
+        """The logits (B, Tq, N, h, w) and next motions (B, Tq, pose_dim) of the frames at
+        positions start .. start + Tq - 1 ((B, Tq, C, h, w) code vectors, (B, Tq, pose_dim)
+        motions), their queries attending to the keys ``sites`` (:meth:`keys`) of T frames
+        under ``mask`` (Tq, T) (True: blocked)."""
+        B, Tq, C, H, W = codes_vec.shape
+        q = codes_vec.reshape(B * Tq, C, H, W) + self.time_embed.weight[start + 1:start + Tq + 1].repeat(B, 1)[:, :, None,
+                                                                                                               None]
+        pq = self.pose_encoder(poses) + self.pose_time_embed.weight[None, start + 1:start + Tq + 1]
+        n_enc, skips = len(self.enc_blocks), []
+        for (pk, k), tl, blocks, down, pl, pmlp, ego in zip(sites, self.enc_temporal, self.enc_blocks, self.downs,
+                                                             self.enc_pose, self.enc_pose_mlp, self.enc_ego):
+            pq = self._pose(pl, pq, pk, q, B, mask)
+            q = q + ego(pq).reshape(B * Tq, -1, 1, 1)  # every scene query of frame t hears its ego token
+            pq = pmlp(pq)
+            q = blocks(self._temporal(tl, q, k, B, mask))
+            skips.append((q, pq))
+            q = down(q)
+        q, pq = self.mid(q), self.pose_mid(pq)
+        for (pk, k), up, tl, blocks, pup, pl, pmlp, ego, (sq, spq) in zip(
+                sites[n_enc:], self.ups, self.dec_temporal, self.dec_blocks, self.pose_up, self.dec_pose,
+                self.dec_pose_mlp, self.dec_ego, skips[::-1]):
+            q = torch.cat([self._fit(up(q), sq), sq], 1)
+            q = self._temporal(tl, q, k, B, mask)
+            pq = self._pose(pl, torch.cat([pup(pq), spq], -1), pk, q, B, mask)
+            q = q + ego(pq).reshape(B * Tq, -1, 1, 1)
+            pq = pmlp(pq)
+            q = blocks(q)
+        logits = self.conv_out(q).view(B, Tq, self.cfg.codebook_size, H, W)
         return logits, self.pose_decoder(self.pose_out(pq))
 
     @staticmethod
@@ -286,19 +311,47 @@ def world_losses(model: WorldModel, codes: torch.Tensor, code_vectors: torch.Ten
             "changed_accuracy": ch_acc, "changed_share": changed.float().mean()}
 
 
+def cat_keys(a: list, b: list, B: int) -> list:
+    """The keys (:meth:`WorldModel.keys`) of the frames of ``a`` followed by those of ``b``."""
+    def cat(x, y):
+        if x.dim() == 3:  # pose keys (B, T, c)
+            return torch.cat([x, y], 1)
+        return torch.cat([x.view(B, -1, *x.shape[1:]), y.view(B, -1, *y.shape[1:])], 1).flatten(0, 1)
+
+    return [(cat(pa, pb), cat(ka, kb)) for (pa, ka), (pb, kb) in zip(a, b)]
+
+
 @torch.no_grad()
 def forecast_codes(model: WorldModel, embed, past_codes: torch.Tensor, poses: torch.Tensor, n_future: int, *,
-                   predict_poses: bool = False) -> torch.Tensor:
+                   predict_poses: bool = False, cached: bool = True) -> torch.Tensor:
     """Autoregressive forecast: (B, P, h, w) past codes, (B, P + n_future, 4, 4) every frame's
     sensor pose in one frame -> (B, n_future, h, w) codes (arg max, as the public inference).
     ``embed`` maps codes to their vectors (the tokenizer's codebook). With ``predict_poses``,
     the motions into future frames are the model's predictions instead of the given poses.
-    The context holds the last ``positions`` frames."""
+    The context holds the last ``positions`` frames.
+
+    ``cached`` (with the given poses, and when the window never slides: P + n_future - 1 <=
+    positions): each step computes the newest frame's keys and its queries alone, the earlier
+    frames' keys kept (``WorldModel.keys``: causal, a frame's keys depend on it alone), instead
+    of the whole window again; the same logits to float rounding (the tests compare the codes),
+    0.2x the world model's time at the tiny configuration (docs/occworld.md)."""
     motions = window_motions(poses)  # (B, P + F - 1, 9)
     seq = past_codes
-    P = past_codes.shape[1]
+    B, P = past_codes.shape[:2]
     L = model.cfg.positions
     out = []
+    if cached and not predict_poses and P + n_future - 1 <= L:
+        sites = model.keys(embed(seq), motions[:, :P])
+        for f in range(n_future):
+            n = P + f  # frames so far; the newest, at position n - 1, predicts frame n
+            logits = model.queries(embed(seq[:, n - 1:]), motions[:, n - 1:n], sites, n - 1,
+                                   causal_mask(n, seq.device)[n - 1:])[0]
+            nxt = logits[:, -1].argmax(1)
+            out.append(nxt)
+            seq = torch.cat([seq, nxt[:, None]], 1)
+            if f < n_future - 1:
+                sites = cat_keys(sites, model.keys(embed(nxt[:, None]), motions[:, n:n + 1], n), B)
+        return torch.stack(out, 1)
     if predict_poses and P >= 2:  # the motion into the first future frame, from the last past position but one
         motions = motions.clone()
         motions[:, P - 1] = model(embed(seq[:, max(0, P - 1 - L):P - 1]), motions[:, max(0, P - 1 - L):P - 1])[1][:, -1]
