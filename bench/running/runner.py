@@ -343,7 +343,7 @@ class RunOptions:
     def workers(self, todo: int) -> int:
         if self.jobs == 0:
             # isolated, one worker with every thread scored 4 samples of the default run's 9
-            # methods in 94 s, two with one thread each in 76 s (docs/performance.md)
+            # methods in 94 s, two with one thread each in 76 s (journal/performance-tuning-2026-11.md)
             return (os.cpu_count() or 1) if self.isolated or todo >= AUTO_POOL_MIN_SAMPLES else 1
         return self.jobs
 
