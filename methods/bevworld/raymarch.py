@@ -30,7 +30,8 @@ import math
 import numba as nb
 import numpy as np
 
-from pcfbench.execution import ExecutionContext, current
+from pcfbench.execution import ExecutionContext
+from pcfbench.methods.copilot4d.raymarch import azimuth_order, march_pieces
 
 #: a ray stops when its transmittance falls below this (see the module docstring); 0: never
 STOP = 1e-7
@@ -127,25 +128,18 @@ def march(volume_cl: np.ndarray, origin: np.ndarray, dirs: np.ndarray, t_near: n
     lo, hi = (np.asarray(v, f32) for v in box)
     w1, b1, w2, b2 = (np.ascontiguousarray(a, dtype=f32) for a in mlp)
     dirs = np.asarray(dirs, dtype=f32)
-    order = np.argsort(np.arctan2(dirs[:, 1], dirs[:, 0]), kind="stable")
+    order = azimuth_order(dirs)
     sorted_dirs = np.ascontiguousarray(dirs[order])
     near = np.ascontiguousarray(np.asarray(t_near, f32)[order])
     far = np.ascontiguousarray(np.asarray(t_far, f32)[order])
     vol = np.ascontiguousarray(volume_cl, dtype=f32)
     origin32 = np.ascontiguousarray(origin, dtype=f32)
-    out = np.empty(len(dirs), f32)
 
-    def piece(bounds: tuple[int, int]) -> int:  # rays [a, b) of the sorted ones, into out[a:b]
-        a, b = bounds
-        stopped = np.zeros(1, np.int64)
+    def piece(a: int, b: int, out: np.ndarray, stopped: np.ndarray) -> None:
         _march(origin32, sorted_dirs[a:b], near[a:b], far[a:b], lo, hi - lo, vol, w1, b1, w2.reshape(-1),
-               f32(b2.reshape(-1)[0]), samples, f32(stop), out[a:b], stopped)
-        return int(stopped[0])
+               f32(b2.reshape(-1)[0]), samples, f32(stop), out, stopped)
 
-    cuts = list(range(0, len(dirs), CHUNK)) + [len(dirs)]
-    stopped = sum((execution or current()).map(piece, zip(cuts[:-1], cuts[1:])))
+    depth, stopped = march_pieces(order, piece, CHUNK, execution)
     if stats is not None:
         stats["stopped"] = stopped
-    depth = np.empty_like(out)
-    depth[order] = out
     return depth

@@ -220,24 +220,44 @@ def march(cfg, nfg_cl: np.ndarray, mask: np.ndarray | None, origin: np.ndarray, 
     n_cand = int(diag / cfg.candidate_step) + 1  # as sample_along_rays: candidates out to diag
     w1, b1, w2, b2 = (np.ascontiguousarray(a, dtype=f32) for a in mlp)
     dirs = np.asarray(dirs, dtype=f32)
-    order = np.argsort(np.arctan2(dirs[:, 1], dirs[:, 0]), kind="stable")
-    out = np.empty(len(dirs), f32)
+    order = azimuth_order(dirs)
     sorted_dirs = np.ascontiguousarray(dirs[order])
     args = (np.ascontiguousarray(mask, dtype=np.bool_), mask_cell, use_mask, np.ascontiguousarray(nfg_cl, dtype=f32),
             nfg_cell, w1, b1, w2.reshape(-1), f32(b2.reshape(-1)[0]), samples, step, n_cand, READOUT_CODES[readout],
             far_bound, early_stop)
     origin32 = np.ascontiguousarray(origin, dtype=f32)
 
-    def piece(bounds: tuple[int, int]) -> int:  # rays [a, b) of the sorted ones, into out[a:b]
-        a, b = bounds
-        stopped = np.zeros(1, np.int64)
-        _march(origin32, sorted_dirs[a:b], lo, hi, *args, out[a:b], stopped)
-        return int(stopped[0])
+    def piece(a: int, b: int, out: np.ndarray, stopped: np.ndarray) -> None:
+        _march(origin32, sorted_dirs[a:b], lo, hi, *args, out, stopped)
 
-    cuts = list(range(0, len(dirs), CHUNK)) + [len(dirs)]
-    stopped = sum((execution or current()).map(piece, zip(cuts[:-1], cuts[1:])))
+    depth, stopped = march_pieces(order, piece, CHUNK, execution)
     if stats is not None:
         stats["stopped"] = stopped
+    return depth
+
+
+def azimuth_order(dirs: np.ndarray) -> np.ndarray:
+    """The rays ``dirs`` (R, 3) in order of azimuth (stable): marched so, rays next to each other
+    read the same columns of a volume, which keeps them in cache."""
+    return np.argsort(np.arctan2(dirs[:, 1], dirs[:, 0]), kind="stable")
+
+
+def march_pieces(order: np.ndarray, piece, chunk: int, execution: ExecutionContext | None = None):
+    """(float32 depths (R,) in the rays' own order, rays stopped early): the rays taken in
+    ``order`` cut into ``chunk``-ray pieces that ``execution``'s threads (default: the
+    process's) march as they come free; ``piece(a, b, out, stopped)`` marches sorted rays
+    [a, b) into ``out`` (b - a,) and adds its early stops to ``stopped[0]``. A ray's depth does
+    not depend on its piece, so the depths are the same whatever the thread count."""
+    out = np.empty(len(order), np.float32)
+
+    def run(bounds: tuple[int, int]) -> int:
+        a, b = bounds
+        stopped = np.zeros(1, np.int64)
+        piece(a, b, out[a:b], stopped)
+        return int(stopped[0])
+
+    cuts = list(range(0, len(order), chunk)) + [len(order)]
+    stopped = sum((execution or current()).map(run, zip(cuts[:-1], cuts[1:])))
     depth = np.empty_like(out)
     depth[order] = out
-    return depth
+    return depth, stopped
