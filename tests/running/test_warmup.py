@@ -54,3 +54,25 @@ def test_the_warm_up_fills_the_numba_cache_the_workers_read(tmp_path, monkeypatc
     indexes = [p for p in tmp_path.rglob("*.nbi")]
     # the metric's nearest-neighbour kernels (bench/metrics/nn.py), compiled and saved
     assert any(p.name.startswith("nn.") for p in indexes), sorted(os.path.relpath(p, tmp_path) for p in indexes)
+
+
+def test_two_warm_ups_share_the_methods_by_claims(tmp_path):
+    """Each method is warmed by the one warm-up that claims it first: the second finds the
+    first's claims and warms none of them; one from the end stops where the other began."""
+    methods = ("copy-last", "raycast-zbuffer", "raycast-4docc")
+    (tmp_path / "a").mkdir()
+    assert warm(methods, ("chamfer_nf",), str(tmp_path / "a"), reverse=True) == [
+        "raycast-4docc", "raycast-zbuffer", "copy-last"]
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "1.claim").touch()  # raycast-zbuffer taken by another
+    assert warm(methods, ("chamfer_nf",), str(tmp_path / "b")) == ["copy-last", "raycast-4docc"]
+    assert warm(methods, ("chamfer_nf",), str(tmp_path / "b"), reverse=True) == []
+
+
+def test_once_the_data_is_ready_a_second_warm_up_helps_the_first():
+    w = KernelWarmup(("copy-last", "raycast-zbuffer"), ("chamfer_nf",))
+    w.start()
+    claims = w._claims.name
+    w.join()  # the first child is still importing: a helper starts, from the end
+    assert w.helper is not None and w.process.returncode == 0 and w.helper.returncode == 0
+    assert not os.path.exists(claims)  # the shared folder is gone with them
