@@ -213,14 +213,14 @@ def render_sample(model, latents, sample: Sample, T_frame_ref) -> list[np.ndarra
                 volume, decoded = model.decode(zs[k][None].to(dev), channels_last=dev.type == "cpu")[0], zs[k]
             R, t = Ts[k][:3, :3], Ts[k][:3, 3]
             dirs = torch.from_numpy((q.directions_ref.astype(np.float64) @ R.T).astype(np.float32)).to(dev)
-            o = torch.from_numpy((R @ q.origin_ref + t).astype(np.float32)).to(dev).expand(len(dirs), 3)
+            o = torch.from_numpy((R @ q.origin_ref + t).astype(np.float32)).to(dev)
             out.append(render_volume(model, volume, o, dirs).astype(np.float64))
     return out
 
 
-def render_volume(model, volume, origins, dirs) -> np.ndarray:
-    """Expected depths (float32 numpy, (R,)) of rays (``origins``, unit ``dirs`` (R, 3) tensors
-    in the grid frame, one origin for all) through one decoded ``volume`` (F, Z, X, Y) of
+def render_volume(model, volume, origin, dirs) -> np.ndarray:
+    """Expected depths (float32 numpy, (R,)) of rays from one ``origin`` (3,) along unit ``dirs``
+    (R, 3) (tensors in the grid frame) through one decoded ``volume`` (F, Z, X, Y) of
     ``model``, at inference: on the CPU by the numba marcher (:func:`.raymarch.march`, its
     early stop included: docs/bevworld.md, "Inference time"), elsewhere by the torch path
     training uses, ``RENDER_CHUNK`` rays at a time."""
@@ -229,8 +229,11 @@ def render_volume(model, volume, origins, dirs) -> np.ndarray:
     from pcfbench.methods.copilot4d.render import box_interval
 
     cfg = model.cfg
+    if origin.shape != (3,):
+        raise ValueError(f"render_volume: one origin (3,) for every ray, not {tuple(origin.shape)}")
     if len(dirs) == 0:
         return np.zeros(0, np.float32)
+    origins = origin.expand(len(dirs), 3)
     if volume.device.type != "cpu":
         return render_rays(model, volume, origins, dirs, n=cfg.samples_per_ray, jitter=False,
                            chunk=RENDER_CHUNK)[0].cpu().numpy()
@@ -238,7 +241,7 @@ def render_volume(model, volume, origins, dirs) -> np.ndarray:
     mlp = tuple(p.detach().float().numpy() for p in (model.decoder.mlp1.weight, model.decoder.mlp1.bias,
                                                        model.decoder.mlp2.weight, model.decoder.mlp2.bias))
     box = ((cfg.x_range[0], cfg.y_range[0], cfg.z_range[0]), (cfg.x_range[1], cfg.y_range[1], cfg.z_range[1]))
-    return raymarch.march(volume.float().permute(2, 3, 1, 0).numpy(), origins[0].numpy(), dirs.numpy(), near.numpy(),
+    return raymarch.march(volume.float().permute(2, 3, 1, 0).numpy(), origin.numpy(), dirs.numpy(), near.numpy(),
                           far.numpy(), box, mlp, samples=cfg.samples_per_ray)
 
 

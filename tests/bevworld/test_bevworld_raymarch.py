@@ -100,7 +100,9 @@ def test_the_marcher_agrees_with_the_torch_path_training_uses(seed):
         assert np.abs(every - ref).max() < 1e-4
         assert np.abs(stopped - ref).max() < 1e-4
         assert 0 < stats["stopped"] < len(dirs)  # the stop is exercised, not every ray
-        assert np.array_equal(render_volume(m, vol, o, torch.from_numpy(dirs)), stopped)
+        assert np.array_equal(render_volume(m, vol, torch.from_numpy(origin), torch.from_numpy(dirs)), stopped)
+        with pytest.raises(ValueError, match="one origin"):  # per-ray origins: refused, not read as the first
+            render_volume(m, vol, o, torch.from_numpy(dirs))
 
 
 def test_depths_do_not_depend_on_the_thread_count(monkeypatch):
