@@ -48,6 +48,23 @@ class SweepSource:
         pts = self.sequences[name].load_points(i)
         return self.adapter.ego_box.remove(pts)
 
+    def window_sensor(self, cfg: TokenizerConfig, k: int, rng: np.random.Generator) -> np.ndarray:
+        """``T_grid_sensor`` (4, 4) of sweep ``k`` seen as a world-model window holds it
+        (``cfg.sensor_moves == "window"``): with probability ``cfg.sensor_moved_share`` the sweep
+        is frame j (uniform over ``window_past + window_future``) of a window of stride s (uniform
+        over ``window_strides``), and the grid is that window's t=0 sensor frame, anchor
+        a = i - (j - (window_past - 1)) s clipped to the sequence: ``inv(T_world_a) @ T_world_i``;
+        else the identity."""
+        T = np.eye(4)
+        if cfg.sensor_moved_share <= 0 or rng.random() >= cfg.sensor_moved_share:
+            return T
+        name, i = self.keys[k]
+        poses = self.sequences[name].T_world_sensor
+        j = int(rng.integers(0, cfg.window_past + cfg.window_future))
+        s = int(cfg.window_strides[int(rng.integers(0, len(cfg.window_strides)))])
+        a = min(max(i - (j - (cfg.window_past - 1)) * s, 0), len(poses) - 1)
+        return np.linalg.inv(poses[a]) @ poses[i]
+
 
 @dataclass
 class Batch:
@@ -85,14 +102,18 @@ def moved_sensor(cfg: TokenizerConfig, rng: np.random.Generator) -> np.ndarray:
 
 
 def make_batch(cfg: TokenizerConfig, clouds: list[np.ndarray], rays: int | None, rng: np.random.Generator,
-               min_range: float = 0.5) -> Batch:
+               min_range: float = 0.5, sensors: list[np.ndarray] | None = None) -> Batch:
     """Encoder input: every point inside the grid. Rays: ``rays`` random returns per sweep inside
     the grid (all of them when ``rays`` is None), from the sensor origin. With moved sensors
     (``cfg.sensor_moved_share``), a sweep is first moved into a grid frame where its sensor sits
-    at ``T_grid_sensor``'s origin (:func:`moved_sensor`), and its rays start there."""
+    at ``T_grid_sensor``'s origin (``sensors[b]`` when given, else :func:`moved_sensor`), and its
+    rays start there."""
+    if sensors is None and cfg.sensor_moves == "window":
+        raise ValueError(f"tokenizer config {cfg.name!r} moves sensors as windows do: make_batch needs their sensors "
+                         "(SweepSource.window_sensor)")
     pts, pb, origins, dirs, depth, rb = [], [], [], [], [], []
     for b, p in enumerate(clouds):
-        T_grid_sensor = moved_sensor(cfg, rng)
+        T_grid_sensor = sensors[b] if sensors is not None else moved_sensor(cfg, rng)
         moved = not np.array_equal(T_grid_sensor, np.eye(4))
         if moved:
             p = (p.astype(np.float64) @ T_grid_sensor[:3, :3].T + T_grid_sensor[:3, 3]).astype(np.float32)

@@ -27,7 +27,8 @@ from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSourc
 @dataclass(frozen=True)
 class TokenCopyOptions(RenderingOptions):
     config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale), tiny-moved (tiny, trained also on "
-                                      "sweeps seen from moved sensors) or paper (A.2.1 sizes)")
+                                      "sweeps seen from moved sensors), tiny-window (tiny, on sweeps moved as the "
+                                      "world model's windows move them) or paper (A.2.1 sizes)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)")
     seed: int = option(0, help="training seed (initialisation, batches, rays)")
 

@@ -93,7 +93,11 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
 
     def sample_batch(rand, step: int) -> Batch:
         picks = rand.numpy.integers(0, len(source), cfg.batch_size)
-        return make_batch(cfg, [source.points(int(k)) for k in picks], cfg.rays_per_step, rand.numpy).to(device)
+        sensors = None
+        if cfg.sensor_moves == "window":
+            sensors = [source.window_sensor(cfg, int(k), rand.numpy) for k in picks]
+        return make_batch(cfg, [source.points(int(k)) for k in picks], cfg.rays_per_step, rand.numpy,
+                          sensors=sensors).to(device)
 
     def step_fn(model: Tokenizer, batch: Batch):
         out = compute_losses(model, batch, cfg)

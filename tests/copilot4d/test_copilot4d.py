@@ -523,6 +523,50 @@ def test_moved_sensor_batches_start_their_rays_at_the_moved_sensor(toy_sweeps):
     assert TINY_MOVED.sensor_moved_share > 0 and TINY_MOVED.bev_tokens == 64
 
 
+def test_window_moves_are_the_relative_poses_a_window_holds(toy_sweeps):
+    """tiny-window's training sweeps: sweep i is seen from the t=0 sensor of a window that holds
+    it as frame j at stride s: T_grid_sensor = inv(T_world_a) @ T_world_i with a = i - (j - 4) s,
+    clipped to the sequence. On a straight drive of 1 m per sweep that is a shift of i - a metres
+    along x: every draw is one of the offsets the windows allow ({-8..10 by 2} and {-24..30 by 6},
+    0 for the t=0 frame), each of them is drawn, and near the sequence's start the anchor clips
+    to its first sweep. A batch from those sensors starts its rays at them."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from pcfbench.methods.copilot4d.config import TINY_WINDOW
+    from pcfbench.methods.copilot4d.data import SweepSource
+
+    n = 80
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n, dtype=float)
+    source = object.__new__(SweepSource)
+    source.sequences = {"road": SimpleNamespace(T_world_sensor=poses)}
+    source.keys = [("road", i) for i in range(n)]
+    cfg = replace(MICRO, sensor_moved_share=1.0, sensor_moves="window")
+    rng = np.random.default_rng(0)
+    allowed = {-(j - 4) * s for j in range(10) for s in (2, 6)}
+    assert allowed == set(range(-10, 9, 2)) | set(range(-30, 25, 6))
+    seen = set()
+    for _ in range(2000):
+        T = source.window_sensor(cfg, 40, rng)
+        np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-12)
+        assert T[1, 3] == 0 and T[2, 3] == 0
+        seen.add(-int(round(T[0, 3])))  # a - i
+    assert seen == allowed
+    # near the start a later frame's anchor lies 2 m back or clips to sweep 0 (i = 3 m); earlier frames'
+    # anchors lie ahead (negative shifts), the t=0 frame is itself
+    shifts = {int(round(source.window_sensor(cfg, 3, rng)[0, 3])) for _ in range(500)}
+    assert shifts == {3, 2, 0, -2, -4, -6, -8, -12, -18, -24}
+    # share 0: always the identity
+    assert np.array_equal(source.window_sensor(replace(cfg, sensor_moved_share=0.0), 40, rng), np.eye(4))
+    T = source.window_sensor(cfg, 40, np.random.default_rng(7))
+    b = make_batch(cfg, [toy_sweeps[0]], 64, np.random.default_rng(1), sensors=[T])
+    np.testing.assert_allclose(b.origins.double().numpy(), np.broadcast_to(T[:3, 3], (64, 3)), atol=1e-5)
+    with pytest.raises(ValueError, match="needs their sensors"):
+        make_batch(cfg, [toy_sweeps[0]], 64, np.random.default_rng(1))
+    assert TINY_WINDOW.sensor_moves == "window" and TINY_WINDOW.bev_tokens == 64
+
+
 def test_changed_share_counts_the_tokens_that_differ():
     from pcfbench.methods.copilot4d.evaluate import changed_share
 
