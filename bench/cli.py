@@ -192,6 +192,10 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
               help="Sample policy of the protocol file, e.g. subsample-4000 (Copilot4D's Argoverse 2 Table 2); "
                    "default: each dataset's own (full-context; synthetic-town-realistic: every-third).")
 @click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first N samples (partial: kept out of leaderboards).")
+@click.option("--subset", type=click.IntRange(min=0), default=None, metavar="N",
+              help="At most N of the policy's samples per cell, evenly spaced: a documented subset, ranked beside "
+                   "the other cells with its sample count (not partial). Default: without --method, each method's "
+                   "own (the costliest learned methods score 10; docs/protocol.md); 0: every sample for every method.")
 @click.option("--jobs", "-j", type=click.IntRange(min=0), default=0, show_default=True,
               help="Worker processes; 0: one per CPU for cells with enough samples, else serial.")
 @click.option("--threads", type=click.IntRange(min=1), default=None,
@@ -215,7 +219,7 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
                    "and the run goes on (0: no limit).")
 @limit_options
 @executor_options
-def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threads, force, store, reports, no_report, quiet,
+def run(datasets, settings, splits, methods, metrics, policy, limit, subset, jobs, threads, force, store, reports, no_report, quiet,
         train_on, train_split, checkpoint, allow_train_split, keep_going, timeout, scoring_timeout, max_memory,
         max_forecast_ratio, metrics_backend, executor, address, shard_samples, cpus_per_task, gpus_per_task):
     """Run (or resume) every cell of method x dataset x split x setting.
@@ -231,7 +235,7 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
     ray_executor = _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jobs, threads, timeout or None,
                              scoring_timeout or None)
     cells = _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, limit, train_on, train_split,
-                        checkpoint, progress=not quiet, warm=executor == "local")
+                        checkpoint, progress=not quiet, warm=executor == "local", subset=subset)
     reports_path = config.reports_dir(reports)
     store_path = config.store_dir(store, reports_path)
     options = RunOptions(jobs=jobs, force=force, progress=not quiet, threads=threads, allow_train_split=allow_train_split,
@@ -256,9 +260,11 @@ def run(datasets, settings, splits, methods, metrics, policy, limit, jobs, threa
 
 
 def _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, limit, train_on, train_split, checkpoint,
-                progress: bool, warm: bool) -> list:
+                progress: bool, warm: bool, subset: int | None = None) -> list:
     """The run's cells (method x dataset x split x setting), every name checked and every
-    trained method's checkpoint found before any work."""
+    trained method's checkpoint found before any work. ``subset``: N (every cell scores at most
+    N evenly spaced samples of its policy), 0 (every sample) or None: without ``methods`` (the
+    default method set) each method's ``default_run_subset``, with them every sample."""
     from pcfbench.running.runner import default_metrics
     from pcfbench.running.warmup import warm_while_preparing
     from pcfbench.store.cells import CellSpec
@@ -289,9 +295,18 @@ def _plan_cells(plugins, datasets, settings, splits, methods, metrics, policy, l
         for split, setting, method in itertools.product(splits or (cls.default_split,), ds_settings, method_specs):
             cells.append(
                 CellSpec(method.name, dict(method.raw), method.options_hash, name, root, split, setting, ds_policy, limit,
-                         metric_names, **checkpoints.get((method.name, method.options_hash), {}))
+                         metric_names, **checkpoints.get((method.name, method.options_hash), {}),
+                         subset=_subset(method, subset, default_set=not methods))
             )
     return cells
+
+
+def _subset(method, subset: int | None, default_set: bool) -> int | None:
+    """A cell's ``CellSpec.subset``: ``--subset N`` for every method (0: none), else the
+    method's ``default_run_subset`` in a run of the default method set (no ``--method``)."""
+    if subset is not None:
+        return subset or None
+    return getattr(method.cls, "default_run_subset", None) if default_set else None
 
 
 def _run_cells(cells, store_path, options, plugins) -> tuple[int, int]:

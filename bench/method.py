@@ -36,6 +36,11 @@ class Method(ABC):
     name: ClassVar[str]
     version: ClassVar[str] = "1"
     Options: ClassVar[type] = NoOptions
+    #: In a run of the default method set (``pcfbench run`` without ``--method``), score at most
+    #: this many of each cell's samples, evenly spaced (``CellSpec.subset``; None: every sample).
+    #: For methods too slow for the default run's budget; the run prints and the leaderboard
+    #: shows their sample count, and ``--subset 0`` scores every sample (docs/protocol.md).
+    default_run_subset: ClassVar[int | None] = None
 
     def __init__(self, options: Any = None) -> None:
         """``options``: an instance of ``Options`` (default: its defaults); from a spec's

@@ -248,7 +248,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             "options_hash": spec.options_hash, "train_on": spec.train_on or "",
             "checkpoint_sha256": spec.checkpoint_sha256 or "",
             "on_training_data": bool(meta.get("evaluated_on_training_data", False)),
-            "limit": spec.limit if partial else None, "horizon_s": _horizon(spec.setting),
+            "limit": spec.limit if partial else None, "subset": spec.subset, "horizon_s": _horizon(spec.setting),
             "cell_dir": str(cell_dir.resolve()), **provenance(meta),
         }
         for k, v in sorted(spec.options.items()):
@@ -303,6 +303,7 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             notes.append(f"{r['dataset']} / {r['split']} / {r['setting']}{limit} {r['variant']}: INCOMPLETE, "
                          f"{r['coverage']} samples scored ({r['failed']} failed, {r['missing']} without rows): "
                          "not ranked (leaderboard_incomplete.csv)")
+    notes.extend(_subset_notes(table))
     for _, r in table.iterrows():
         if r["ci_units"] < stats.MIN_UNITS:
             limit = _partial_note(r)
@@ -320,6 +321,23 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
     return Leaderboard(complete.reset_index(drop=True), pd.DataFrame(step_rows), metric_cols, units,
                        partial_t.reset_index(drop=True), comparisons, resampling, reference, sorted(set(notes)),
                        incomplete=incomplete.reset_index(drop=True), higher_is_better=directions, scope=scope)
+
+
+def _subset_notes(table: pd.DataFrame) -> list[str]:
+    """One note per table whose rows score different samples: which methods scored a subset
+    (``CellSpec.subset``) and how many of the most any row of the table scored."""
+    if not len(table) or "subset" not in table or not table["subset"].notna().any():
+        return []
+    out = []
+    for key, g in table.groupby(["dataset", "split", "setting", "policy"], sort=True):
+        sub = g[g["subset"].notna() & ~g["partial"].astype(bool)]
+        if not len(sub):
+            continue
+        names = ", ".join(f"{m} ({int(n)})" for m, n in sorted(zip(sub["method"], sub["samples"])))
+        out.append(f"{' / '.join(map(str, key[:3]))}: {names} scored a subset of the {int(g['samples'].max())} samples, "
+                   "evenly spaced (the default run's for its slowest methods, docs/protocol.md); each is compared "
+                   "with the reference on the samples they share; `pcfbench run --subset 0` scores every sample")
+    return out
 
 
 def _partial_note(r) -> str:

@@ -2,7 +2,7 @@
 the same samples, computed together.
 
 Cells that differ only in the method (and its options or checkpoint) share their samples: the
-same dataset, root, split, setting, policy, limit and metrics. :func:`run_group` loads each
+same dataset, root, split, setting, policy, limit, subset and metrics. :func:`run_group` loads each
 such sample once and builds its ground truth's structures once (the k-d tree, the angles, the
 ROI masks and clamps: :class:`~pcfbench.metrics.base.SweepTruth`), then runs and scores every
 method that still needs the sample on it, one after the other, in the same process
@@ -38,7 +38,8 @@ from pcfbench.store.cells import Cell, CellSpec
 
 def group_key(spec: CellSpec) -> tuple:
     """What cells must share to share their samples: everything but the method's part."""
-    return (spec.dataset, spec.dataset_root, spec.split, spec.setting, spec.policy, spec.limit, tuple(spec.metrics))
+    return (spec.dataset, spec.dataset_root, spec.split, spec.setting, spec.policy, spec.limit, spec.subset,
+            tuple(spec.metrics))
 
 
 def groups(specs: Iterable[CellSpec]) -> list[list[CellSpec]]:
@@ -68,7 +69,8 @@ def run_group(specs: list[CellSpec], store_root, options: RunOptions | None = No
     options = options or RunOptions()
     specs = list(specs)
     if len({group_key(s) for s in specs}) != 1:
-        raise ValueError("run_group: the cells must share dataset, root, split, setting, policy, limit and metrics")
+        raise ValueError("run_group: the cells must share dataset, root, split, setting, policy, limit, subset and "
+                         "metrics")
     if len(specs) == 1 or not shares(options):
         return [runner.run_cell(spec, store_root, options, plugins=plugins) for spec in specs]
     start = time.perf_counter()

@@ -27,6 +27,7 @@ from pcfbench.metrics.base import Metric, SweepTruth, score_sample, sweep_truths
 from pcfbench.plugins import Plugins, get_plugins
 from pcfbench.plugins import get_setting
 from pcfbench.protocol import SampleBuilder, check_compatible, ids_hash, sample_id
+from pcfbench.protocol.settings import evenly_spaced
 from pcfbench.dataset import FINGERPRINT_KIND, options_identity
 from pcfbench.store.cells import RANGE_KEY, Cell, CellSpec, check_identity, spec_to_meta
 from pcfbench.protocol.validate import FORECAST_RATIO, check_forecast_size, validate_forecast
@@ -418,7 +419,8 @@ def close_cell(cell: Cell, res: Resolved, spec: CellSpec, meta: dict[str, Any], 
 
 
 def sample_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -> list[tuple[str, int]]:
-    """The cell's samples, ``(sequence, reference index)``, the first ``spec.limit`` of them;
+    """The cell's samples, ``(sequence, reference index)``: the policy's, ``spec.subset`` of them
+    evenly spaced when it is set, then the first ``spec.limit`` of those;
     none is an error that says why (the split's sequences are elsewhere, too short for the
     setting, or absent) and the option that fixes it (:mod:`pcfbench.protocol.nosamples`)."""
     from pcfbench.errors import unknown_name
@@ -438,6 +440,8 @@ def sample_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -
     if not keys:
         settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
         raise DataError(explain(builder, spec.split, settings=settings).message)
+    if spec.subset is not None:
+        keys = [keys[i] for i in evenly_spaced(len(keys), spec.subset)]
     return keys if spec.limit is None else keys[: spec.limit]
 
 

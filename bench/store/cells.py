@@ -59,7 +59,8 @@ KEY_COLUMNS = ("sample_id", "step", "status")
 
 @dataclass(frozen=True)
 class CellSpec:
-    """What identifies a cell: method + options x dataset x split x setting (+ policy, limit)."""
+    """What identifies a cell: method + options x dataset x split x setting (+ policy, limit,
+    subset)."""
 
     method: str
     options: dict[str, Any]
@@ -76,6 +77,12 @@ class CellSpec:
     checkpoint: str | None = None
     checkpoint_sha256: str | None = None
     train_on: str | None = None
+    #: At most this many of the policy's samples, evenly spaced
+    #: (``pcfbench.protocol.settings.evenly_spaced``): a documented subset (the default run's for
+    #: its costliest learned methods, ``Method.default_run_subset``; ``pcfbench run --subset``).
+    #: Unlike ``limit`` it is not partial: complete once those samples are scored, it is ranked
+    #: beside the full cells with its own sample count, and compared on the samples it shares.
+    subset: int | None = None
 
     @property
     def partial(self) -> bool:
@@ -84,6 +91,8 @@ class CellSpec:
     @property
     def label(self) -> str:
         extra = f" limit={self.limit}" if self.limit is not None else ""
+        if self.subset is not None:
+            extra = f" subset={self.subset}{extra}"
         if self.policy != "full-context":
             extra = f" ({self.policy}){extra}"
         trained = f" [trained on {self.train_on}]" if self.train_on else ""
@@ -94,6 +103,8 @@ class CellSpec:
         leaf = f"{self.method}.{self.options_hash}"
         if self.checkpoint_sha256:
             leaf += f".ck{self.checkpoint_sha256[:12]}"
+        if self.subset is not None:
+            leaf += f".subset{self.subset}"
         if self.limit is not None:
             leaf += f".limit{self.limit}"
         return Path(self.dataset) / setting / self.split / leaf

@@ -91,6 +91,46 @@ def test_limit_is_partial_and_kept_out_of_leaderboard(tiny_kitti, store, tmp_pat
     assert len(table) == 1 and table.samples.iloc[0] == 6
 
 
+def test_a_subset_is_complete_ranked_beside_the_full_cells_and_compared_on_the_shared_samples(tiny_kitti, store):
+    """CellSpec.subset: at most N of the policy's samples, evenly spaced (i * count // N); its
+    own folder and label; not partial, so ranked in the same table as the full cells with its
+    sample count, a note saying which rows scored a subset, and compared with the reference on
+    the samples the two share."""
+    from dataclasses import replace
+
+    full = _spec(tiny_kitti)
+    sub = replace(_spec(tiny_kitti, "raycast-zbuffer"), subset=4)
+    assert sub.relpath().name.endswith(".subset4") and "subset=4" in sub.label and not sub.partial
+    run_cell(full, store, RunOptions(progress=False))
+    res = run_cell(sub, store, RunOptions(progress=False))
+    all_ids = sorted(set(Cell(store, full).read_rows().sample_id))
+    assert len(all_ids) == 6 and res.samples == 4
+    assert sorted(set(Cell(store, sub).read_rows().sample_id)) == [all_ids[i] for i in (0, 1, 3, 4)]  # i * 6 // 4
+    meta = json.loads((Cell(store, sub).dir / "cell.json").read_text())
+    assert meta["status"] == "complete" and meta["spec"]["subset"] == 4 and not meta["partial"]
+    lb = collect(store)
+    table = lb.table.set_index("method")
+    assert table.loc["raycast-zbuffer", "samples"] == 4 and table.loc["copy-last", "samples"] == 6
+    assert any("raycast-zbuffer (4) scored a subset of the 6 samples" in n for n in lb.notes), lb.notes
+    cmp = lb.comparisons[lb.comparisons.method == "raycast-zbuffer"]
+    assert len(cmp) and set(cmp.shared_samples) == {4}
+    # a second subset of another size is another cell; the full cell is untouched
+    assert Cell(store, replace(sub, subset=2)).dir != Cell(store, sub).dir
+
+
+def test_the_default_run_subset_applies_to_the_default_method_set_only():
+    from types import SimpleNamespace
+
+    from pcfbench.cli import _subset
+
+    slow = SimpleNamespace(cls=type("Slow", (), {"default_run_subset": 10}))
+    fast = SimpleNamespace(cls=CopyLast)
+    assert _subset(slow, None, default_set=True) == 10 and _subset(fast, None, default_set=True) is None
+    assert _subset(slow, None, default_set=False) is None  # named with --method: every sample
+    assert _subset(slow, 0, default_set=True) is None and _subset(fast, 0, default_set=True) is None  # --subset 0
+    assert _subset(fast, 5, default_set=False) == 5 and _subset(slow, 5, default_set=True) == 5  # --subset 5
+
+
 def test_rerun_with_changed_samples_requires_force(tmp_path):
     root = write_kitti_tree(tmp_path / "k", num_sweeps=24)
     run_cell(_spec(root), tmp_path / "s", RunOptions(progress=False))
