@@ -108,7 +108,8 @@ def make_batch(cfg: TokenizerConfig, clouds: list[np.ndarray], rays: int | None,
     (``cfg.sensor_moved_share``), a sweep is first moved into a grid frame where its sensor sits
     at ``T_grid_sensor``'s origin (``sensors[b]`` when given, else :func:`moved_sensor`), and its
     rays start there."""
-    if sensors is None and cfg.sensor_moves == "window":
+    # BEVWorld's tokenizer configuration has the moved-sensor fields but the window moves
+    if sensors is None and getattr(cfg, "sensor_moves", "disc") == "window":
         raise ValueError(f"tokenizer config {cfg.name!r} moves sensors as windows do: make_batch needs their sensors "
                          "(SweepSource.window_sensor)")
     pts, pb, origins, dirs, depth, rb = [], [], [], [], [], []
