@@ -330,11 +330,12 @@ def _subset_notes(table: pd.DataFrame) -> list[str]:
         return []
     out = []
     for key, g in table.groupby(["dataset", "split", "setting", "policy"], sort=True):
-        sub = g[g["subset"].notna() & ~g["partial"].astype(bool)]
-        if not len(sub):
+        most = int(g["samples"].max())
+        sub = g[g["subset"].notna() & ~g["partial"].astype(bool) & (g["samples"] < most)]
+        if not len(sub):  # a subset as large as the policy's samples is all of them
             continue
         names = ", ".join(f"{m} ({int(n)})" for m, n in sorted(zip(sub["method"], sub["samples"])))
-        out.append(f"{' / '.join(map(str, key[:3]))}: {names} scored a subset of the {int(g['samples'].max())} samples, "
+        out.append(f"{' / '.join(map(str, key[:3]))}: {names} scored a subset of the {most} samples, "
                    "evenly spaced (the default run's for its slowest methods, docs/protocol.md); each is compared "
                    "with the reference on the samples they share; `pcfbench run --subset 0` scores every sample")
     return out

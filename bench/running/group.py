@@ -2,7 +2,8 @@
 the same samples, computed together.
 
 Cells that differ only in the method (and its options or checkpoint) share their samples: the
-same dataset, root, split, setting, policy, limit, subset and metrics. :func:`run_group` loads each
+same dataset, root, split, setting, policy, limit and metrics; a cell that scores a subset of
+them (``CellSpec.subset``) joins the pass and is given only its own. :func:`run_group` loads each
 such sample once and builds its ground truth's structures once (the k-d tree, the angles, the
 ROI masks and clamps: :class:`~pcfbench.metrics.base.SweepTruth`), then runs and scores every
 method that still needs the sample on it, one after the other, in the same process
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import time
+from dataclasses import replace
 from typing import Any, Iterable
 
 from tqdm import tqdm
@@ -38,8 +40,7 @@ from pcfbench.store.cells import Cell, CellSpec
 
 def group_key(spec: CellSpec) -> tuple:
     """What cells must share to share their samples: everything but the method's part."""
-    return (spec.dataset, spec.dataset_root, spec.split, spec.setting, spec.policy, spec.limit, spec.subset,
-            tuple(spec.metrics))
+    return (spec.dataset, spec.dataset_root, spec.split, spec.setting, spec.policy, spec.limit, tuple(spec.metrics))
 
 
 def groups(specs: Iterable[CellSpec]) -> list[list[CellSpec]]:
@@ -69,8 +70,7 @@ def run_group(specs: list[CellSpec], store_root, options: RunOptions | None = No
     options = options or RunOptions()
     specs = list(specs)
     if len({group_key(s) for s in specs}) != 1:
-        raise ValueError("run_group: the cells must share dataset, root, split, setting, policy, limit, subset and "
-                         "metrics")
+        raise ValueError("run_group: the cells must share dataset, root, split, setting, policy, limit and metrics")
     if len(specs) == 1 or not shares(options):
         return [runner.run_cell(spec, store_root, options, plugins=plugins) for spec in specs]
     start = time.perf_counter()
@@ -80,8 +80,12 @@ def run_group(specs: list[CellSpec], store_root, options: RunOptions | None = No
         return [runner.run_cell(spec, store_root, options, plugins=plugins) for spec in specs]
     for res in resolved:
         res.builder = builder  # one builder: its sweep cache serves every method
-    keys = runner.sample_keys(resolved[0], specs[0], plugins)
-    ids = [sample_id(s, i) for s, i in keys]
+    # each cell's own samples (a subset cell's are some of the others'); the pass goes over
+    # their union in the policy's order
+    own = [runner.sample_keys(res, spec, plugins) for res, spec in zip(resolved, specs)]
+    wanted = {key for keys in own for key in keys}
+    keys = [key for key in runner.sample_keys(resolved[0], replace(specs[0], subset=None, limit=None), plugins)
+            if key in wanted]
     fingerprint = builder.adapter.fingerprint(specs[0].split)
     results: list[CellResult | None] = [None] * len(specs)
     with contextlib.ExitStack() as stack:
@@ -91,7 +95,8 @@ def run_group(specs: list[CellSpec], store_root, options: RunOptions | None = No
         cells = {j: stack.enter_context(Cell(store_root, specs[j], wait=options.wait)) for j in order}
         for j, (spec, res) in enumerate(zip(specs, resolved)):
             cell = cells[j]
-            meta, done, todo = runner.open_cell(cell, res, spec, keys, ids, fingerprint, options)
+            ids = [sample_id(s, i) for s, i in own[j]]
+            meta, done, todo = runner.open_cell(cell, res, spec, own[j], ids, fingerprint, options)
             if meta is None:
                 results[j] = CellResult(spec, cell.dir, "complete", len(ids), len(done), 0, 0, 0.0)
             else:
@@ -99,8 +104,9 @@ def run_group(specs: list[CellSpec], store_root, options: RunOptions | None = No
         if open_:
             failed = _compute(specs, resolved, open_, keys, options, plugins)
             for j, cell, meta, done, todo in open_:
-                elapsed = runner.close_cell(cell, resolved[j], specs[j], meta, fingerprint, len(ids), start)
-                results[j] = CellResult(specs[j], cell.dir, "complete", len(ids), len(done), len(todo), failed[j], elapsed)
+                n = len(own[j])
+                elapsed = runner.close_cell(cell, resolved[j], specs[j], meta, fingerprint, n, start)
+                results[j] = CellResult(specs[j], cell.dir, "complete", n, len(done), len(todo), failed[j], elapsed)
     return results  # type: ignore[return-value]
 
 

@@ -160,6 +160,33 @@ def test_an_interrupted_group_resumes_each_cell_where_it_stopped(tiny_kitti, tmp
     assert [(r.status, r.processed) for r in again] == [("complete", 0), ("complete", 0)]
 
 
+@pytest.mark.parametrize("options", [RunOptions(progress=False), RunOptions(progress=False, jobs=2, isolate=True)],
+                         ids=["serial", "jobs2"])
+def test_a_subset_cell_joins_the_pass_and_is_given_only_its_samples(tiny_kitti, tmp_path, monkeypatch, options):
+    """CellSpec.subset: a cell scoring 3 of the 6 samples groups with the full cells, gets the
+    rows a separate run of it writes (samples 0, 2 and 4: i * 6 // 3) and no others, and the
+    pass loads each of the 6 samples once."""
+    from dataclasses import replace
+
+    p = plugins()
+    full, sub = _spec(tiny_kitti, "copy-last"), replace(_spec(tiny_kitti, "raycast-zbuffer"), subset=3)
+    assert groups([full, sub]) == [[full, sub]]
+    run_cell(sub, tmp_path / "apart", RunOptions(progress=False), plugins=p)
+    results = run_group([full, sub], tmp_path / "group", options, plugins=p)
+    assert [(r.status, r.samples, r.processed) for r in results] == [("complete", 6, 6), ("complete", 3, 3)]
+    a = Cell(tmp_path / "apart", sub).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
+    g = Cell(tmp_path / "group", sub).read_rows().sort_values(["sample_id", "step"]).reset_index(drop=True)
+    _assert_rows_equal(g.drop(columns=TIMINGS), a.drop(columns=TIMINGS))
+    everything = sorted(set(Cell(tmp_path / "group", full).read_rows().sample_id))
+    assert sorted(set(g.sample_id)) == [everything[i] for i in (0, 2, 4)]
+    assert Cell(tmp_path / "group", sub).read_meta()["samples"] == 3
+    built = []
+    original = SampleBuilder.build
+    monkeypatch.setattr(SampleBuilder, "build", lambda self, s, i: built.append((s, i)) or original(self, s, i))
+    run_group([full, sub], tmp_path / "again", RunOptions(progress=False), plugins=p)
+    assert len(built) == 6 and len(set(built)) == 6
+
+
 def test_groups_are_the_cells_that_share_their_samples(tiny_kitti):
     a, b = _spec(tiny_kitti, "copy-last"), _spec(tiny_kitti, "raycast-zbuffer")
     c = CellSpec("copy-last", {}, options_hash(None), "kitti", str(tiny_kitti), "test", "kitti-3s", "full-context", None,

@@ -114,8 +114,13 @@ def test_a_subset_is_complete_ranked_beside_the_full_cells_and_compared_on_the_s
     assert any("raycast-zbuffer (4) scored a subset of the 6 samples" in n for n in lb.notes), lb.notes
     cmp = lb.comparisons[lb.comparisons.method == "raycast-zbuffer"]
     assert len(cmp) and set(cmp.shared_samples) == {4}
-    # a second subset of another size is another cell; the full cell is untouched
-    assert Cell(store, replace(sub, subset=2)).dir != Cell(store, sub).dir
+    # a subset of another size is another cell; one as large as the policy's samples is all of
+    # them, and no note calls it a subset
+    whole = replace(_spec(tiny_kitti, "raycast-4docc"), subset=10)
+    assert Cell(store, whole).dir != Cell(store, replace(whole, subset=4)).dir
+    assert run_cell(whole, store, RunOptions(progress=False)).samples == 6
+    notes = [n for n in collect(store).notes if "scored a subset" in n]
+    assert len(notes) == 1 and "raycast-4docc" not in notes[0]
 
 
 def test_the_default_run_subset_applies_to_the_default_method_set_only():
