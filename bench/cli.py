@@ -195,7 +195,7 @@ def _executor(executor, address, shard_samples, cpus_per_task, gpus_per_task, jo
 @click.option("--subset", type=click.IntRange(min=0), default=None, metavar="N",
               help="At most N of the policy's samples per cell, evenly spaced: a documented subset, ranked beside "
                    "the other cells with its sample count (not partial). Default: without --method, each method's "
-                   "own (the costliest learned methods score 10; docs/protocol.md); 0: every sample for every method.")
+                   "own (the costliest learned methods score 8; docs/protocol.md); 0: every sample for every method.")
 @click.option("--jobs", "-j", type=click.IntRange(min=0), default=0, show_default=True,
               help="Worker processes; 0: one per CPU for cells with enough samples, else serial.")
 @click.option("--threads", type=click.IntRange(min=1), default=None,

@@ -243,9 +243,9 @@ class BevWorld(OnTokenizer, TrainedMethod):
     """BEVWorld: a continuous BEV latent tokenizer + latent diffusion transformer, DDIM."""
 
     name = "bevworld"
-    # the default run scores 10 evenly spaced samples of each cell (its 10-minute budget on a
+    # the default run scores 8 evenly spaced samples of each cell (its 10-minute budget on a
     # 2-core CPU; docs/protocol.md, "The default run's subset"); --subset 0 or naming the method: all
-    default_run_subset = 10
+    default_run_subset = 8
     version = "3"  # 2: tiny's DDIM steps 20 -> 2; 3: tiny's render stage (300 steps, weight 1)
     Options = BevWorldOptions
     tokenizer_outputs = "latents"

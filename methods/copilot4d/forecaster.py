@@ -249,9 +249,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     """Copilot4D: tokenizer + discrete-diffusion world model, forecasting autoregressively."""
 
     name = "copilot4d"
-    # the default run scores 10 evenly spaced samples of each cell (its 10-minute budget on a
+    # the default run scores 8 evenly spaced samples of each cell (its 10-minute budget on a
     # 2-core CPU; docs/protocol.md, "The default run's subset"); --subset 0 or naming the method: all
-    default_run_subset = 10
+    default_run_subset = 8
     version = "1"
     Options = WorldOptions
     tokenizer_outputs = "tokens"

@@ -37,9 +37,9 @@ class TokenCopy(TrainedMethod):
     """Copilot4D's tokenizer decoding the t=0 sweep's tokens at every future pose."""
 
     name = "copilot4d-token-copy"
-    # the default run scores 10 evenly spaced samples of each cell (its 10-minute budget on a
+    # the default run scores 8 evenly spaced samples of each cell (its 10-minute budget on a
     # 2-core CPU; docs/protocol.md, "The default run's subset"); --subset 0 or naming the method: all
-    default_run_subset = 10
+    default_run_subset = 8
     version = "3"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m); 3: tiny has 64 x 64 tokens (2.5 m)
     Options = TokenCopyOptions
     inference_options = tuple(f.name for f in fields(RenderingOptions))

@@ -112,9 +112,9 @@ class OccWorld(OnTokenizer, TrainedMethod):
     """OccWorld: occupancy tokenizer + spatio-temporal generative transformer, autoregressive."""
 
     name = "occworld"
-    # the default run scores 10 evenly spaced samples of each cell (its 10-minute budget on a
+    # the default run scores 8 evenly spaced samples of each cell (its 10-minute budget on a
     # 2-core CPU; docs/protocol.md, "The default run's subset"); --subset 0 or naming the method: all
-    default_run_subset = 10
+    default_run_subset = 8
     version = "1"
     Options = OccWorldOptions
     tokenizer_outputs = "tokens"

@@ -292,9 +292,9 @@ class OccCopy(TrainedMethod):
     """OccWorld's tokenizer decoding the t=0 sweep's occupancy tokens at every future pose."""
 
     name = "occworld-occ-copy"
-    # the default run scores 10 evenly spaced samples of each cell (its 10-minute budget on a
+    # the default run scores 8 evenly spaced samples of each cell (its 10-minute budget on a
     # 2-core CPU; docs/protocol.md, "The default run's subset"); --subset 0 or naming the method: all
-    default_run_subset = 10
+    default_run_subset = 8
     version = "1"
     Options = OccCopyOptions
     inference_options = ("readout",)
