@@ -50,8 +50,9 @@ LOG_EVERY = 10
 
 @dataclass(frozen=True)
 class WorldOptions(RenderingOptions):
-    config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale), paper (A.2.2 "
-                                      "sizes) or wide (the paper's network on the tiny tokenizer; GPU scale)")
+    config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale), tiny-window "
+                                      "(tiny on the tiny-window tokenizer), paper (A.2.2 sizes) or wide (the paper's "
+                                      "network on the tiny tokenizer; GPU scale)")
     cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)

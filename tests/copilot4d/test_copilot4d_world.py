@@ -69,7 +69,8 @@ def test_wide_is_the_paper_network_on_the_tiny_tokenizer():
     assert (WIDE.dims, WIDE.heads, WIDE.windows, WIDE.groups_down, WIDE.groups_up, WIDE.batch_size) == (
         PAPER.dims, PAPER.heads, PAPER.windows, PAPER.groups_down, PAPER.groups_up, PAPER.batch_size)
     assert (WIDE.token_grid, WIDE.codebook_size) == (tok_config.TINY.bev_tokens, tok_config.TINY.codebook_size)
-    assert [tokenizer_config_name(n) for n in ("tiny", "paper", "wide")] == ["tiny", "paper", "tiny"]
+    assert [tokenizer_config_name(n) for n in ("tiny", "paper", "wide", "tiny-window")] == ["tiny", "paper", "tiny",
+                                                                                           "tiny-window"]
     with pytest.raises(UnknownNameError, match="did you mean 'wide'"):
         tokenizer_config_name("wdie")
     for name in ("copilot4d", "copilot4d-maskgit"):
