@@ -81,6 +81,10 @@ def markdown(rows: pd.DataFrame, units: dict[str, str], scope: str = "",
             vals = [tables._num(r[m], units.get(m, "")) for m, _ in metrics]
             lines.append("| " + " | ".join([md_text(r["method_label"]), md_text(train), *vals, str(int(r["samples"]))]) + " |")
         lines.append("")
+        if g["samples"].nunique() > 1:  # a subset (CellSpec.subset): its means are over fewer samples
+            lines += [f"Rows with n below {int(g['samples'].max())} scored a subset of the samples, evenly spaced (the "
+                      "default run's for its slowest methods, docs/protocol.md); their means are over their own "
+                      "samples.", ""]
     return "\n".join(lines)
 
 

@@ -78,3 +78,17 @@ def test_the_transfer_table_arrows_follow_each_metric_s_direction():
     assert "Chamfer ↓" in head and "L1 Mean ↑" in head and "L1 Mean ↓" not in head
     # no directions given: every column is lower-is-better, as before
     assert "L1 Mean ↓" in markdown(rows, {"chamfer_nf": "m^2", "l1_mean": "m"})
+
+
+def test_a_transfer_block_whose_rows_scored_different_samples_says_so():
+    import pandas as pd
+
+    from pcfbench.reporting.transfer import markdown
+
+    row = {"dataset": "kitti", "split": "test", "setting": "kitti-1s", "policy": "full-context", "limit": float("nan"),
+           "horizon_s": 1.0, "method_label": "copy-last", "train_on": "", "checkpoint_sha256": "",
+           "on_training_data": False, "samples": 28, "chamfer_nf": 0.5}
+    same = pd.DataFrame([row, dict(row, method_label="m", train_on="town:train", checkpoint_sha256="ab" * 32)])
+    assert "scored a subset" not in markdown(same, {"chamfer_nf": "m^2"})
+    text = markdown(same.assign(samples=[28, 8]), {"chamfer_nf": "m^2"})
+    assert "Rows with n below 28 scored a subset of the samples" in text
