@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import replace
 from typing import Any, Iterable
 
 from tqdm import tqdm
@@ -82,10 +81,10 @@ def run_group(specs: list[CellSpec], store_root, options: RunOptions | None = No
         res.builder = builder  # one builder: its sweep cache serves every method
     # each cell's own samples (a subset cell's are some of the others'); the pass goes over
     # their union in the policy's order
-    own = [runner.sample_keys(res, spec, plugins) for res, spec in zip(resolved, specs)]
+    every = runner.policy_keys(resolved[0], specs[0], plugins)
+    own = [runner.cell_keys(every, spec) for spec in specs]
     wanted = {key for keys in own for key in keys}
-    keys = [key for key in runner.sample_keys(resolved[0], replace(specs[0], subset=None, limit=None), plugins)
-            if key in wanted]
+    keys = [key for key in every if key in wanted]
     fingerprint = builder.adapter.fingerprint(specs[0].split)
     results: list[CellResult | None] = [None] * len(specs)
     with contextlib.ExitStack() as stack:

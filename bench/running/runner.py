@@ -419,10 +419,23 @@ def close_cell(cell: Cell, res: Resolved, spec: CellSpec, meta: dict[str, Any], 
 
 
 def sample_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -> list[tuple[str, int]]:
-    """The cell's samples, ``(sequence, reference index)``: the policy's, ``spec.subset`` of them
-    evenly spaced when it is set, then the first ``spec.limit`` of those;
-    none is an error that says why (the split's sequences are elsewhere, too short for the
-    setting, or absent) and the option that fixes it (:mod:`pcfbench.protocol.nosamples`)."""
+    """The cell's samples, ``(sequence, reference index)``: :func:`cell_keys` of
+    :func:`policy_keys`."""
+    return cell_keys(policy_keys(res, spec, plugins), spec)
+
+
+def cell_keys(keys: list[tuple[str, int]], spec: CellSpec) -> list[tuple[str, int]]:
+    """The cell's share of its policy's samples ``keys``: ``spec.subset`` of them evenly spaced
+    when it is set, then the first ``spec.limit`` of those."""
+    if spec.subset is not None:
+        keys = [keys[i] for i in evenly_spaced(len(keys), spec.subset)]
+    return keys if spec.limit is None else keys[: spec.limit]
+
+
+def policy_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -> list[tuple[str, int]]:
+    """Every sample of the cell's split under its setting and policy, ``(sequence, reference
+    index)``; none is an error that says why (the split's sequences are elsewhere, too short for
+    the setting, or absent) and the option that fixes it (:mod:`pcfbench.protocol.nosamples`)."""
     from pcfbench.errors import unknown_name
     from pcfbench.protocol.nosamples import explain
 
@@ -440,9 +453,7 @@ def sample_keys(res: Resolved, spec: CellSpec, plugins: Plugins | None = None) -
     if not keys:
         settings = [get_setting(name, plugins) for name in type(adapter).default_settings]
         raise DataError(explain(builder, spec.split, settings=settings).message)
-    if spec.subset is not None:
-        keys = [keys[i] for i in evenly_spaced(len(keys), spec.subset)]
-    return keys if spec.limit is None else keys[: spec.limit]
+    return keys
 
 
 def _layout_hint(spec: CellSpec, plugins: Plugins | None) -> str:

@@ -9,6 +9,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 
 
+#: how moved-sensor training sweeps are drawn (``TokenizerConfig.sensor_moves``)
+SENSOR_MOVES = ("disc", "window")
+
+
 @dataclass(frozen=True)
 class TokenizerConfig:
     name: str
@@ -83,6 +87,13 @@ class TokenizerConfig:
     window_strides: tuple[int, ...] = (2, 6)
     window_past: int = 5
     window_future: int = 5
+
+    def __post_init__(self) -> None:
+        if self.sensor_moves not in SENSOR_MOVES:
+            from pcfbench.errors import PcfbenchError
+
+            raise PcfbenchError(f"tokenizer config {self.name!r}: sensor_moves must be one of {', '.join(SENSOR_MOVES)}, "
+                                f"not {self.sensor_moves!r}")
 
     @property
     def voxel_size(self) -> tuple[float, float, float]:

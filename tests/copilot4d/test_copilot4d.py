@@ -565,6 +565,11 @@ def test_window_moves_are_the_relative_poses_a_window_holds(toy_sweeps):
     with pytest.raises(ValueError, match="needs their sensors"):
         make_batch(cfg, [toy_sweeps[0]], 64, np.random.default_rng(1))
     assert TINY_WINDOW.sensor_moves == "window" and TINY_WINDOW.bev_tokens == 64
+    # a misspelt kind would train as an unmoved tokenizer under the new name: refused
+    from pcfbench.errors import PcfbenchError
+
+    with pytest.raises(PcfbenchError, match="sensor_moves must be one of disc, window, not 'windows'"):
+        replace(MICRO, sensor_moves="windows")
 
 
 def test_changed_share_counts_the_tokens_that_differ():
