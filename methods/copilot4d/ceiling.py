@@ -54,20 +54,8 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
     changed: list[list[float]] = []
 
     def ceiling(sample, builder, seq_name: str, ref: int):
-        seq = builder.sequence(seq_name)
-        stride = builder.setting.stride
-        T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
-        last = ev.tokenize_sweep(model, builder.points_sensor(seq, ref))
-        codes, frames = [], []
-        for k in range(sample.num_future):
-            pts = builder.points_sensor(seq, ref + (k + 1) * stride)
-            if frame == "t0":
-                T_s0_sk = T_s0_ref @ sample.future_T_ref_sensor[k]
-                pts = (pts.astype(np.float64) @ T_s0_sk[:3, :3].T + T_s0_sk[:3, 3]).astype(np.float32)
-                frames.append(T_s0_ref)
-            else:
-                frames.append(np.linalg.inv(sample.future_T_ref_sensor[k]))
-            codes.append(ev.tokenize_sweep(model, pts))
+        last = ev.tokenize_sweep(model, builder.points_sensor(builder.sequence(seq_name), ref))
+        codes, frames = future_targets(model, sample, builder, seq_name, ref, frame)
         changed.append([ev.changed_share(c, last) for c in codes])
         gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
         return Forecast.from_depths(sample, ev.render_queries(model, codes, sample, frames, generator=gen, **render))
@@ -83,6 +71,28 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
             "sweeps": len(res["rows"]["ceiling"]), **render, "eval_s": res["eval_s"], "means": res["means"],
             "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
             "rows": res["rows"]}
+
+
+def future_targets(model: Tokenizer, sample, builder, seq_name: str, ref: int, frame: str):
+    """The world model's training target for the ground-truth future of ``sample`` (built by
+    ``builder`` from sweep ``ref`` of ``seq_name``): one token map per future sweep k, its points
+    (ego returns removed) moved into the t=0 sensor frame and tokenized there (``frame="t0"``) or
+    tokenized in their own sensor frame (``"own"``), and per map the frame it is rendered from
+    (``T_g_ref``: the t=0 sensor's, or the future sensor's own)."""
+    seq = builder.sequence(seq_name)
+    stride = builder.setting.stride
+    T_s0_ref = np.linalg.inv(sample.past_T_ref_sensor[-1])
+    codes, frames = [], []
+    for k in range(sample.num_future):
+        pts = builder.points_sensor(seq, ref + (k + 1) * stride)
+        if frame == "t0":
+            T_s0_sk = T_s0_ref @ sample.future_T_ref_sensor[k]
+            pts = (pts.astype(np.float64) @ T_s0_sk[:3, :3].T + T_s0_sk[:3, 3]).astype(np.float32)
+            frames.append(T_s0_ref)
+        else:
+            frames.append(np.linalg.inv(sample.future_T_ref_sensor[k]))
+        codes.append(ev.tokenize_sweep(model, pts))
+    return codes, frames
 
 
 def score_beside(adapter, split: str, setting: str, forecasters: dict, *, max_samples: int | None = None,

@@ -3,7 +3,8 @@
 NAME``), the world model ``copilot4d`` and its MaskGIT variant ``copilot4d-maskgit``
 (trained methods on top of that tokenizer's checkpoint), and the tokenizer's commands ``pcfbench tokenize`` (cache BEV token maps for the
 world model), ``pcfbench tokenizer-report`` (Table 7's reconstruction numbers) and ``pcfbench world-report``
-(a world model's forecast tokens, changed and unchanged apart); the first two take
+(a world model's forecast tokens, changed and unchanged apart) and ``pcfbench world-changes``
+(what its changes are worth, beside bounds that see the future); the first two take
 the trained checkpoint the way ``pcfbench run`` does (``--train-on`` or ``--checkpoint``)."""
 
 from __future__ import annotations
@@ -60,15 +61,24 @@ def spec_options(method: str):
     return resolve_method(method).options
 
 
-def _tokenizer_options(f):
-    f = click.option("--checkpoint", type=click.Path(exists=True), default=None,
-                     help="Checkpoint folder or file (default: the one trained on --train-on).")(f)
-    f = click.option("--train-split", default="train", show_default=True)(f)
-    f = click.option("--train-on", default=None, metavar="NAME[=ROOT]",
-                     help="The tokenizer trained on this dataset (default: synthetic-town-realistic).")(f)
-    f = click.option("--method", "method", default=TOKENIZER, show_default=True, metavar="NAME[:k=v,...]",
-                     help="Which tokenizer: its method spec, e.g. copilot4d-token-copy:config=paper.")(f)
-    return f
+def _checkpoint_options(default: str, what: str, method_help: str):
+    """The options that pick a trained method and its checkpoint, as ``pcfbench run`` picks them:
+    ``--method`` (default ``default``), ``--train-on``, ``--train-split``, ``--checkpoint``."""
+    def add(f):
+        f = click.option("--checkpoint", type=click.Path(exists=True), default=None,
+                         help="Checkpoint folder or file (default: the one trained on --train-on).")(f)
+        f = click.option("--train-split", default="train", show_default=True)(f)
+        f = click.option("--train-on", default=None, metavar="NAME[=ROOT]",
+                         help=f"The {what} trained on this dataset (default: synthetic-town-realistic).")(f)
+        return click.option("--method", "method", default=default, show_default=True, metavar="NAME[:k=v,...]",
+                            help=method_help)(f)
+    return add
+
+
+_tokenizer_options = _checkpoint_options(TOKENIZER, "tokenizer",
+                                         "Which tokenizer: its method spec, e.g. copilot4d-token-copy:config=paper.")
+_world_options = _checkpoint_options("copilot4d", "checkpoint",
+                                     "The world model: copilot4d or copilot4d-maskgit, with its options.")
 
 
 def _open(spec: str):
@@ -89,6 +99,7 @@ def _any_split(spec: str) -> str:
 @hookimpl
 def register_commands(cli):  # noqa: ANN001
     _world_report_command(cli)
+    _world_changes_command(cli)
 
     @cli.command("tokenize")
     @_tokenizer_options
@@ -174,13 +185,7 @@ def register_commands(cli):  # noqa: ANN001
 
 def _world_report_command(cli):  # noqa: ANN001
     @cli.command("world-report")
-    @click.option("--method", "method", default="copilot4d", show_default=True, metavar="NAME[:k=v,...]",
-                  help="The world model: copilot4d or copilot4d-maskgit, with its options.")
-    @click.option("--train-on", default=None, metavar="NAME[=ROOT]",
-                  help="The checkpoint trained on this dataset (default: synthetic-town-realistic).")
-    @click.option("--train-split", default="train", show_default=True)
-    @click.option("--checkpoint", type=click.Path(exists=True), default=None,
-                  help="Checkpoint folder or file (default: the one trained on --train-on).")
+    @_world_options
     @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the held-out windows")
     @click.option("--split", default="test", show_default=True)
     @click.option("--windows", "max_windows", type=int, default=12, show_default=True,
@@ -216,4 +221,49 @@ def _world_report_command(cli):  # noqa: ANN001
             click.echo(f"stride {r['stride']}, step {r['step']}: changed {sh['changed_share']:.1%}, accuracy on "
                        f"changed {sh['changed_accuracy']:.1%}, on unchanged {sh['unchanged_accuracy']:.1%}, "
                        f"moved {sh['moved_share']:.1%} (precision {sh['moved_precision']:.1%})")
+        click.echo(f"wrote {md} and {csv_path}")
+
+
+def _world_changes_command(cli):  # noqa: ANN001
+    @cli.command("world-changes")
+    @_world_options
+    @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the held-out samples")
+    @click.option("--split", default="test", show_default=True)
+    @click.option("--setting", required=True, help="The protocol setting whose samples are scored, e.g. kitti-1s")
+    @click.option("--samples", "max_samples", type=int, default=12, show_default=True,
+                  help="Evenly spaced samples (0: all).")
+    @click.option("--shares", default=",".join(f"{p:g}" for p in (0.1, 0.25, 0.5)), show_default=True,
+                  help="Comma-separated shares of the real changes the bound entries get right.")
+    @click.option("--reports", default=None)
+    def world_changes(method, train_on, train_split, checkpoint, dataset_spec, split, setting, max_samples, shares,
+                      reports):
+        """What a world model's changes are worth (frame t0): its forecast beside the t=0 map with only
+        its right changes, with the real changes on a random share of the tokens, and the ceiling,
+        with token-copy and copy-last, scored by the harness on the same samples (sees the future)."""
+        from pcfbench.config import reports_dir
+        from pcfbench.errors import PcfbenchError
+        from pcfbench.methods.copilot4d.changes import (COLUMNS, COPY, FORECAST, HITS, check_shares, evaluate_changes,
+                                                        write_changes)
+        from pcfbench.methods.copilot4d.forecaster import Copilot4D
+
+        try:
+            values = check_shares(float(v) for v in shares.split(",") if v.strip())
+        except ValueError:
+            raise PcfbenchError(f"--shares {shares!r}: expected comma-separated numbers in (0, 1]") from None
+        m, ck = _loaded(method, Copilot4D, "copilot4d or copilot4d-maskgit[:options]", train_on, train_split,
+                        checkpoint)
+        adapter = _open(dataset_spec)
+        res = evaluate_changes(m, adapter, split, setting, change_shares=values, max_samples=max_samples or None,
+                               log=click.echo)
+        meta = {"method": method, "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256,
+                "steps": ck.steps, "trained_on": ck.train_on_label,
+                "regenerate": f"pcfbench world-changes --method {method} --dataset {dataset_spec} --split {split} "
+                              f"--setting {setting} --samples {max_samples} --shares {shares}"}
+        md, csv_path = write_changes(res, meta, reports_dir(reports) / "copilot4d",
+                                     f"world-changes-{m.variant.name}-{ck.sha256[:12]}-on-{adapter.name}-{split}-"
+                                     f"{setting}")
+        ref = res["means"][COPY]
+        for name in (FORECAST, HITS):
+            click.echo(f"{name} / token-copy: " + ", ".join(f"{c} {res['means'][name][c] / ref[c]:.2f}"
+                                                              for c in COLUMNS))
         click.echo(f"wrote {md} and {csv_path}")
