@@ -38,6 +38,23 @@ CHANGE_SHARES = (0.1, 0.25, 0.5)
 #: the columns the report compares (issue 42's bar)
 COLUMNS = ("chamfer_nf", "l1_mean", "l1_median")
 FORECAST, HITS, COPY = "world model", "its right changes only", "copilot4d-token-copy"
+#: the edges (m) of the rings of distance from the t=0 sensor the token counts are also split by
+RING_EDGES = (20.0, 40.0, 60.0)
+
+
+def token_rings(cfg, shape: tuple[int, int], edges=RING_EDGES) -> np.ndarray:
+    """Per token of a (H, W) map over the tokenizer's grid (``cfg.x_range``, ``cfg.y_range``; the
+    t=0 sensor at the origin), the index of the ring its centre's distance from the origin falls
+    in: 0 below ``edges[0]``, ..., ``len(edges)`` at or beyond the last edge."""
+    H, W = shape
+    x = cfg.x_range[0] + (np.arange(H) + 0.5) * (cfg.x_range[1] - cfg.x_range[0]) / H
+    y = cfg.y_range[0] + (np.arange(W) + 0.5) * (cfg.y_range[1] - cfg.y_range[0]) / W
+    return np.searchsorted(np.asarray(edges, np.float64), np.hypot(x[:, None], y[None, :]), side="right")
+
+
+def ring_labels(edges=RING_EDGES) -> list[str]:
+    bounds = [0.0, *edges]
+    return [f"{a:g}-{b:g} m" for a, b in zip(bounds, bounds[1:])] + [f"{edges[-1]:g} m and beyond"]
 
 
 def share_entry(p: float) -> str:
@@ -80,6 +97,7 @@ def evaluate_changes(method, adapter, split: str, setting: str, *, change_shares
     token_copy = TokenCopy(TokenCopyOptions(**render))
     token_copy.model = tok
     counts: list[dict[str, int]] = []
+    by_ring = [dict.fromkeys(COUNTS, 0) for _ in range(len(RING_EDGES) + 1)]
     memo: dict[str, tuple] = {}
 
     def tokens(sample, builder, seq_name, ref):
@@ -91,12 +109,18 @@ def evaluate_changes(method, adapter, split: str, setting: str, *, change_shares
             last = ev.tokenize_sweep(tok, transform(seen.past_points_ref[-1], T_s0_ref)).cpu()
             target, _ = future_targets(tok, sample, builder, seq_name, ref, "t0")
             pred = [p.cpu() for p in method.forecast_tokens(seen)[0]]
+            rings = token_rings(tok.cfg, tuple(last.shape))
             for k, (p, t) in enumerate(zip(pred, target)):
                 c = score_tokens(p.numpy(), t.cpu().numpy(), last.numpy())
                 if len(counts) <= k:
                     counts.append(dict.fromkeys(COUNTS, 0))
                 for key, v in c.items():
                     counts[k][key] += v
+                for i, ring in enumerate(by_ring):
+                    inside = rings == i
+                    for key, v in score_tokens(p.numpy()[inside], t.cpu().numpy()[inside],
+                                               last.numpy()[inside]).items():
+                        ring[key] += v
             memo[sample.sample_id] = (last, [t.cpu() for t in target], pred, T_s0_ref)
         return memo[sample.sample_id]
 
@@ -127,7 +151,7 @@ def evaluate_changes(method, adapter, split: str, setting: str, *, change_shares
     }
     res = score_beside(adapter, split, setting, forecasters, max_samples=max_samples, log=log,
                        label=f"{method.name} changes")
-    return {**res, "counts": counts, "setting": setting, "split": split, "dataset": adapter.name,
+    return {**res, "counts": counts, "by_ring": by_ring, "setting": setting, "split": split, "dataset": adapter.name,
             "shares": list(change_shares)}
 
 
@@ -157,6 +181,10 @@ def write_changes(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         w.writerow(["future step", *COUNTS, *shares(dict.fromkeys(COUNTS, 0))])
         for k, c in enumerate(result["counts"]):
             w.writerow([k + 1, *(c[n] for n in COUNTS), *(f"{v:.6g}" for v in shares(c).values())])
+        w.writerow([])
+        w.writerow(["distance from the t=0 sensor", *COUNTS, *shares(dict.fromkeys(COUNTS, 0))])
+        for label, c in zip(ring_labels(), result["by_ring"]):
+            w.writerow([label, *(c[n] for n in COUNTS), *(f"{v:.6g}" for v in shares(c).values())])
     names = list(shares(dict.fromkeys(COUNTS, 0)))
     total = {n: sum(c[n] for c in result["counts"]) for n in COUNTS}
     lines = [
@@ -179,6 +207,11 @@ def write_changes(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         *(f"| {k + 1} | " + " | ".join(f"{100 * v:.1f} %" for v in shares(c).values()) + " |"
           for k, c in enumerate(result["counts"])),
         "| all | " + " | ".join(f"**{100 * v:.1f} %**" for v in shares(total).values()) + " |",
+        "", "The same counts by the token's distance from the t=0 sensor (all future steps):", "",
+        "| distance | tokens | " + " | ".join(n.replace("_", " ") for n in names) + " |",
+        "|---|---:|" + "---:|" * len(names),
+        *(f"| {label} | {c['tokens']} | " + " | ".join(f"{100 * v:.1f} %" for v in shares(c).values()) + " |"
+          for label, c in zip(ring_labels(), result["by_ring"])),
         "", *(f"- {k}: {md_text(v)}" for k, v in meta.items()),
     ]
     md.write_text("\n".join(lines) + "\n")

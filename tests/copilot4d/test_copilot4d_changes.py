@@ -10,7 +10,8 @@ import torch
 
 from pcfbench.errors import PcfbenchError
 from pcfbench.methods.copilot4d.changes import (COPY, FORECAST, HITS, check_shares, evaluate_changes, random_changes,
-                                                share_entry, with_changes, write_changes)
+                                                ring_labels, share_entry, token_rings, with_changes,
+                                                write_changes)
 
 
 def test_with_changes_takes_the_target_only_where_asked_and_it_differs():
@@ -35,6 +36,18 @@ def test_a_random_share_changes_that_share_of_the_changed_tokens_and_nothing_els
         assert torch.all((out == last) | (out == target))
         assert float((out[changed] == target[changed]).double().mean()) == pytest.approx(p, abs=0.01)
     assert torch.equal(random_changes(last, target, 1.0, torch.Generator().manual_seed(1)), target)
+
+
+def test_tokens_fall_in_the_rings_of_their_centres_distance():
+    """4 x 4 tokens of 20 m over [-40, 40]^2: centres at +-10 and +-30 m, so 4 tokens at 14.1 m, 8
+    at 31.6 m and 4 at 42.4 m."""
+    cfg = SimpleNamespace(x_range=(-40.0, 40.0), y_range=(-40.0, 40.0))
+    rings = token_rings(cfg, (4, 4))
+    assert rings.tolist() == [[2, 1, 1, 2], [1, 0, 0, 1], [1, 0, 0, 1], [2, 1, 1, 2]]
+    # a centre exactly on an edge belongs to the ring above it
+    small = SimpleNamespace(x_range=(-20.0, 20.0), y_range=(-20.0, 20.0))
+    assert token_rings(small, (2, 2), edges=(float(np.hypot(10.0, 10.0)),)).tolist() == [[1, 1], [1, 1]]
+    assert ring_labels((20.0, 40.0)) == ["0-20 m", "20-40 m", "40 m and beyond"]
 
 
 def test_shares_lie_in_the_open_closed_unit_interval():
@@ -75,7 +88,8 @@ def tiny(tmp_path, monkeypatch):
 
 
 def _method(forecast, frame="t0"):
-    return SimpleNamespace(name="copilot4d", options=SimpleNamespace(frame=frame, seed=0), tokenizer="stand-in",
+    return SimpleNamespace(name="copilot4d", options=SimpleNamespace(frame=frame, seed=0),
+                           tokenizer=SimpleNamespace(cfg=SimpleNamespace(x_range=(-40.0, 40.0), y_range=(-40.0, 40.0))),
                            render={"threshold": 0.02, "noise": False, "readout": "median"},
                            forecast_tokens=lambda sample: (forecast(sample), None, None))
 
@@ -105,8 +119,12 @@ def test_a_forecast_that_copies_scores_as_token_copy_and_the_full_share_as_the_c
         assert c["moved"] == c["moved_hit"] == c["changed_hit"] == 0
         assert c["unchanged_hit"] == c["tokens"] - c["changed"]
     assert m["ceiling"]["l1_mean"] != pytest.approx(m[COPY]["l1_mean"])  # the entries differ at all
+    # the rings split the same counts: 4, 8 and 4 of each map's 16 tokens, nothing beyond 60 m
+    for key in ("tokens", "changed", "unchanged_hit"):
+        assert sum(r[key] for r in res["by_ring"]) == sum(c[key] for c in counts)
+    assert [r["tokens"] for r in res["by_ring"]] == [5 * res["samples"] * n for n in (4, 8, 4, 0)]
     md, csv_path = write_changes(res, {"method": "copilot4d"}, tmp_path / "r", "w")
-    assert md.name == "w.md" and "| its right changes only |" in md.read_text()
+    assert md.name == "w.md" and "| its right changes only |" in md.read_text() and "| 0-20 m |" in md.read_text()
     assert csv_path.read_text().startswith("entry,chamfer_nf,l1_mean,l1_median,")
 
 
