@@ -87,7 +87,12 @@ def evaluate_changes(method, adapter, split: str, setting: str, *, change_shares
     """Score ``method`` (a loaded ``Copilot4D`` trained in frame t0) beside the bounds above on
     ``setting``'s samples of ``split`` (``max_samples`` evenly spaced; None: all). Returns
     ``score_beside``'s result (``means``, ``rows``, ``samples``...) with ``counts``: per future
-    step the token counts of the forecast against the target (``token_report.COUNTS``)."""
+    step the token counts of the forecast against the target (``token_report.COUNTS``), and
+    ``by_ring``: the same over every step, per ring of ``token_rings``.
+
+    The t=0 map is tokenized from the points the world model is given (``sample.for_method()``),
+    the targets from the builder's sweeps (as the ceiling builds them): the two are the same
+    points for the t=0 sweep (a test holds them so), or every token would count as changed."""
     if method.options.frame != "t0":
         raise PcfbenchError(f"{method.name}: frame={method.options.frame}; the changes of a forecast are measured "
                             "against the t=0 map in the frame that map is in: frame=t0 only")
@@ -109,19 +114,17 @@ def evaluate_changes(method, adapter, split: str, setting: str, *, change_shares
             last = ev.tokenize_sweep(tok, transform(seen.past_points_ref[-1], T_s0_ref)).cpu()
             target, _ = future_targets(tok, sample, builder, seq_name, ref, "t0")
             pred = [p.cpu() for p in method.forecast_tokens(seen)[0]]
+            target = [t.cpu() for t in target]
             rings = token_rings(tok.cfg, tuple(last.shape))
-            for k, (p, t) in enumerate(zip(pred, target)):
-                c = score_tokens(p.numpy(), t.cpu().numpy(), last.numpy())
-                if len(counts) <= k:
-                    counts.append(dict.fromkeys(COUNTS, 0))
-                for key, v in c.items():
-                    counts[k][key] += v
-                for i, ring in enumerate(by_ring):
-                    inside = rings == i
-                    for key, v in score_tokens(p.numpy()[inside], t.cpu().numpy()[inside],
-                                               last.numpy()[inside]).items():
-                        ring[key] += v
-            memo[sample.sample_id] = (last, [t.cpu() for t in target], pred, T_s0_ref)
+            ln = last.numpy()
+            while len(counts) < len(pred):
+                counts.append(dict.fromkeys(COUNTS, 0))
+            for step, p, t in zip(counts, pred, target):
+                pn, tn = p.numpy(), t.numpy()
+                for into, where in [(step, slice(None)), *((r, rings == i) for i, r in enumerate(by_ring))]:
+                    for key, v in score_tokens(pn[where], tn[where], ln[where]).items():
+                        into[key] += v
+            memo[sample.sample_id] = (last, target, pred, T_s0_ref)
         return memo[sample.sample_id]
 
     def entry(maps):
@@ -151,8 +154,7 @@ def evaluate_changes(method, adapter, split: str, setting: str, *, change_shares
     }
     res = score_beside(adapter, split, setting, forecasters, max_samples=max_samples, log=log,
                        label=f"{method.name} changes")
-    return {**res, "counts": counts, "by_ring": by_ring, "setting": setting, "split": split, "dataset": adapter.name,
-            "shares": list(change_shares)}
+    return {**res, "counts": counts, "by_ring": by_ring, "setting": setting, "split": split, "dataset": adapter.name}
 
 
 def _copy_last():

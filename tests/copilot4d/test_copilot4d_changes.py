@@ -155,6 +155,31 @@ def test_only_the_right_changes_enter_the_bound(tiny):
     assert res["samples"] == 3 and len(res["rows"][HITS]) == 15
 
 
+def test_the_t0_map_and_the_targets_come_from_the_same_points(tiny):
+    """The report tokenizes the t=0 map from what the world model is given and the targets from
+    the builder's sensor-frame sweeps: for the t=0 sweep both give the same points, so a forecast
+    that copies is not charged with changes that are only two pipelines disagreeing."""
+    from pcfbench.methods.copilot4d.forecaster import transform
+    from pcfbench.plugins import get_setting
+    from pcfbench.protocol import SampleBuilder
+
+    builder = SampleBuilder(tiny, get_setting("kitti-1s"))
+    for seq_name, ref in builder.sample_keys("test")[:3]:
+        sample, _ = builder.build(seq_name, ref)
+        given = transform(sample.for_method().past_points_ref[-1], np.linalg.inv(sample.past_T_ref_sensor[-1]))
+        built = builder.points_sensor(builder.sequence(seq_name), ref)
+        assert given.shape == built.shape
+        np.testing.assert_allclose(given, built, atol=1e-5)
+
+
+def test_the_command_defaults_to_the_modules_shares():
+    from pcfbench.cli import build_cli
+    from pcfbench.methods.copilot4d.changes import CHANGE_SHARES
+
+    option = next(p for p in build_cli().commands["world-changes"].params if p.name == "shares")
+    assert check_shares(option.default.split(",")) == CHANGE_SHARES
+
+
 def test_frame_own_is_refused(tiny):
     with pytest.raises(PcfbenchError, match="frame=t0 only"):
         evaluate_changes(_method(lambda s: [], frame="own"), tiny, "test", "kitti-1s")
