@@ -37,8 +37,9 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
     seeds it. Also per future sweep, the share of target tokens that differ from the last past
     sweep's (token-copy's tokens): what a world model has to change.
 
-    Returns per-entry flat means over (sample, future sweep), ``changed`` (mean share and per
-    step) and the per-sample rows (``rows``) for paired comparisons."""
+    Returns per-entry flat means over (sample, future sweep), ``changed`` (mean share, per step
+    and per ring of distance from the sensor at the grid's centre, :func:`.evaluate.changed_by_ring`) and the
+    per-sample rows (``rows``) for paired comparisons."""
     from pcfbench.data import Forecast
     from pcfbench.methods.copy_last import CopyLast
 
@@ -52,11 +53,16 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
     token_copy.model = model
     copy_last = CopyLast()
     changed: list[list[float]] = []
+    ring_changed = ring_tokens = 0
 
     def ceiling(sample, builder, seq_name: str, ref: int):
+        nonlocal ring_changed, ring_tokens
         last = ev.tokenize_sweep(model, builder.points_sensor(builder.sequence(seq_name), ref))
         codes, frames = future_targets(model, sample, builder, seq_name, ref, frame)
         changed.append([ev.changed_share(c, last) for c in codes])
+        for c in codes:
+            ch, n = ev.changed_by_ring(model.cfg, c, last)
+            ring_changed, ring_tokens = ring_changed + ch, ring_tokens + n
         gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
         return Forecast.from_depths(sample, ev.render_queries(model, codes, sample, frames, generator=gen, **render))
 
@@ -69,7 +75,8 @@ def evaluate_ceiling(model: Tokenizer, adapter, split: str, setting: str, *, fra
     return {"setting": setting, "split": split, "dataset": adapter.name, "frame": frame, "samples": res["samples"],
             "of_samples": res["of_samples"],
             "sweeps": len(res["rows"]["ceiling"]), **render, "eval_s": res["eval_s"], "means": res["means"],
-            "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)]},
+            "changed": {"mean": float(ch.mean()), "per_step": [float(v) for v in ch.mean(axis=0)],
+                        "by_ring": dict(zip(ev.ring_labels(), (float(v) for v in ring_changed / ring_tokens)))},
             "rows": res["rows"]}
 
 
@@ -207,7 +214,8 @@ def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         "",
         f"{result['samples']} samples, {result['sweeps']} future sweeps; evaluation took {result['eval_s']:.0f} s. "
         f"Target tokens that differ from the last past sweep's: {ch['mean']:.1%} on average "
-        f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step).",
+        f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step; by distance from the sensor at the grid's "
+        f"centre: {', '.join(f'{k} {v:.0%}' for k, v in ch.get('by_ring', {}).items())}).",
         "",
     ]
     return write_beside(result, meta, out_dir, stem, copy="copilot4d-token-copy",

@@ -29,6 +29,7 @@ import torch
 from pcfbench.errors import PcfbenchError
 from pcfbench.methods.copilot4d import evaluate as ev
 from pcfbench.methods.copilot4d.ceiling import future_targets, score_beside
+from pcfbench.methods.copilot4d.evaluate import RING_EDGES, ring_labels, token_rings
 from pcfbench.methods.copilot4d.forecaster import sample_seed, transform
 from pcfbench.methods.copilot4d.token_copy import TokenCopy, TokenCopyOptions
 from pcfbench.methods.copilot4d.token_report import COUNTS, score_tokens, shares
@@ -38,25 +39,6 @@ CHANGE_SHARES = (0.1, 0.25, 0.5)
 #: the columns the report compares (issue 42's bar)
 COLUMNS = ("chamfer_nf", "l1_mean", "l1_median")
 FORECAST, HITS, COPY = "world model", "its right changes only", "copilot4d-token-copy"
-#: the edges (m) of the rings of distance from the t=0 sensor the token counts are also split by
-RING_EDGES = (20.0, 40.0, 60.0)
-
-
-def token_rings(cfg, shape: tuple[int, int], edges=RING_EDGES) -> np.ndarray:
-    """Per token of a (H, W) map over the tokenizer's grid (``cfg.x_range``, ``cfg.y_range``; the
-    t=0 sensor at the origin), the index of the ring its centre's distance from the origin falls
-    in: 0 below ``edges[0]``, ..., ``len(edges)`` at or beyond the last edge."""
-    H, W = shape
-    x = cfg.x_range[0] + (np.arange(H) + 0.5) * (cfg.x_range[1] - cfg.x_range[0]) / H
-    y = cfg.y_range[0] + (np.arange(W) + 0.5) * (cfg.y_range[1] - cfg.y_range[0]) / W
-    return np.searchsorted(np.asarray(edges, np.float64), np.hypot(x[:, None], y[None, :]), side="right")
-
-
-def ring_labels(edges=RING_EDGES) -> list[str]:
-    bounds = [0.0, *edges]
-    return [f"{a:g}-{b:g} m" for a, b in zip(bounds, bounds[1:])] + [f"{edges[-1]:g} m and beyond"]
-
-
 def share_entry(p: float) -> str:
     return f"right on {p:g} of the changes"
 

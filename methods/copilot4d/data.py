@@ -65,6 +65,28 @@ class SweepSource:
         a = min(max(i - (j - (cfg.window_past - 1)) * s, 0), len(poses) - 1)
         return np.linalg.inv(poses[a]) @ poses[i]
 
+    def window_pair(self, cfg: TokenizerConfig, k: int, rng: np.random.Generator):
+        """Two views of one world-model window, for ``cfg.view_consistency``: sweep ``k`` (index i
+        of its sequence) as frame j of a window of stride s (both uniform, as
+        :meth:`window_sensor` draws them; anchor a = i - (j - (window_past - 1)) s clipped to the
+        sequence) and another frame j2 != j of the same window (sweep a + (j2 - (window_past - 1)) s,
+        clipped), both seen from the window's t=0 sensor. Returns ``[(points, T_grid_sensor)] * 2``,
+        the points in their own sensor frame (ego returns removed), as :func:`make_batch` takes them."""
+        name, i = self.keys[k]
+        seq = self.sequences[name]
+        poses = seq.T_world_sensor
+        n = cfg.window_past + cfg.window_future
+        j = int(rng.integers(0, n))
+        j2 = int(rng.integers(0, n - 1))
+        j2 += j2 >= j  # uniform over the other frames
+        s = int(cfg.window_strides[int(rng.integers(0, len(cfg.window_strides)))])
+        clip = lambda v: min(max(v, 0), len(poses) - 1)  # noqa: E731
+        a = clip(i - (j - (cfg.window_past - 1)) * s)
+        i2 = clip(a + (j2 - (cfg.window_past - 1)) * s)
+        T_a = np.linalg.inv(poses[a])
+        return [(self.points(k), T_a @ poses[i]),
+                (self.adapter.ego_box.remove(seq.load_points(i2)), T_a @ poses[i2])]
+
 
 @dataclass
 class Batch:

@@ -327,6 +327,36 @@ def changed_share(codes: torch.Tensor, last: torch.Tensor) -> float:
     return float((codes != last).float().mean())
 
 
+#: the edges (m) of the rings of distance from the t=0 sensor the token counts are also split by
+RING_EDGES = (20.0, 40.0, 60.0)
+
+
+def token_rings(cfg, shape: tuple[int, int], edges=RING_EDGES) -> np.ndarray:
+    """Per token of a (H, W) map over the tokenizer's grid (``cfg.x_range``, ``cfg.y_range``; the
+    t=0 sensor at the origin), the index of the ring its centre's distance from the origin falls
+    in: 0 below ``edges[0]``, ..., ``len(edges)`` at or beyond the last edge."""
+    H, W = shape
+    x = cfg.x_range[0] + (np.arange(H) + 0.5) * (cfg.x_range[1] - cfg.x_range[0]) / H
+    y = cfg.y_range[0] + (np.arange(W) + 0.5) * (cfg.y_range[1] - cfg.y_range[0]) / W
+    return np.searchsorted(np.asarray(edges, np.float64), np.hypot(x[:, None], y[None, :]), side="right")
+
+
+def ring_labels(edges=RING_EDGES) -> list[str]:
+    bounds = [0.0, *edges]
+    return [f"{a:g}-{b:g} m" for a, b in zip(bounds, bounds[1:])] + [f"{edges[-1]:g} m and beyond"]
+
+
+def changed_by_ring(cfg, codes: torch.Tensor, last: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Per ring of :func:`token_rings` (distance from the sensor at the grid's centre), the number
+    of tokens of ``codes`` that differ from ``last`` and the number of tokens (two maps of one shape)."""
+    if codes.shape != last.shape:
+        raise ValueError(f"token maps of shapes {tuple(codes.shape)} and {tuple(last.shape)}")
+    rings = token_rings(cfg, tuple(last.shape))
+    n = len(RING_EDGES) + 1
+    diff = (codes != last).cpu().numpy()
+    return np.bincount(rings[diff], minlength=n), np.bincount(rings.ravel(), minlength=n)
+
+
 #: the frames a world model's target can be tokenized in (issue 42): ``t0``, every sweep of a
 #: window moved into the t=0 sensor frame (what ``build_windows`` feeds the world model);
 #: ``own``, each sweep in its own sensor frame, rendered from its own origin.

@@ -54,7 +54,38 @@ def compute_losses(model: Tokenizer, batch: Batch, cfg: TokenizerConfig) -> dict
     depth, w = render_depth(model.decoder, nfg, cfg, batch.origins, batch.dirs, batch.ray_batch, h)
     l1, conc = render_loss(depth, w, h, batch.depth, cfg.epsilon)
     loss = l1 + conc + bce + l_vq.float()
-    return {"loss": loss, "l1": l1, "conc": conc, "bce": bce, "vq": l_vq.float(), "codes": codes}
+    out = {"loss": loss, "l1": l1, "conc": conc, "bce": bce, "vq": l_vq.float(), "codes": codes}
+    if cfg.view_consistency:
+        view, agree = view_pull(model, z, codes, occ, cfg)
+        out.update(loss=loss + cfg.view_consistency * view, view=view, view_agree=agree)
+    return out
+
+
+def observed_tokens(cfg: TokenizerConfig, occ: torch.Tensor) -> torch.Tensor:
+    """(B, T, T) bool: the token cells whose BEV patch holds at least one occupied voxel of ``occ``
+    (B, X, X, Z)."""
+    f = cfg.grid_xy // cfg.bev_tokens
+    return F.max_pool2d(occ.amax(-1)[:, None], f)[:, 0] > 0
+
+
+def view_pull(model: Tokenizer, z: torch.Tensor, codes: torch.Tensor, occ: torch.Tensor, cfg: TokenizerConfig):
+    """``cfg.view_consistency``'s term for a batch of view pairs (sweeps 2m and 2m+1 are two frames
+    of one window in its t=0 frame): on the token cells both views observe, each view's encoder
+    output against the other view's code, |z_a - sg[z_hat_b]|^2 + |z_b - sg[z_hat_a]|^2 (mean
+    over those cells and the code dimension, as L_vq's commitment term), and the share of those
+    cells where the two views already pick the same code."""
+    if z.shape[0] % 2:
+        raise ValueError(f"view_consistency needs pairs of views, got a batch of {z.shape[0]} sweeps")
+    both = observed_tokens(cfg, occ)
+    both = both[0::2] & both[1::2]
+    zq = model.vq.lookup(codes).detach().float()
+    za, zb, qa, qb = z[0::2].float(), z[1::2].float(), zq[0::2], zq[1::2]
+    n = both.sum()
+    if n == 0:
+        return z.sum() * 0.0, float("nan")
+    pull = (((za - qb) ** 2).sum(-1)[both].sum() + ((zb - qa) ** 2).sum(-1)[both].sum()) / (2 * n * z.shape[-1])
+    agree = (codes[0::2] == codes[1::2])[both].float().mean().item()
+    return pull, agree
 
 
 def config_from_dict(d: dict) -> TokenizerConfig:
@@ -93,6 +124,10 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
 
     def sample_batch(rand, step: int) -> Batch:
         picks = rand.numpy.integers(0, len(source), cfg.batch_size)
+        if cfg.view_consistency:  # two views of one window per example, consecutive in the batch
+            views = [v for k in picks for v in source.window_pair(cfg, int(k), rand.numpy)]
+            return make_batch(cfg, [p for p, _ in views], cfg.rays_per_step, rand.numpy,
+                              sensors=[T for _, T in views]).to(device)
         sensors = None
         if cfg.sensor_moves == "window":
             sensors = [source.window_sensor(cfg, int(k), rand.numpy) for k in picks]
@@ -101,9 +136,11 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
 
     def step_fn(model: Tokenizer, batch: Batch):
         out = compute_losses(model, batch, cfg)
-        return out["loss"], {"loss": out["loss"].item(), "l1": out["l1"].item(), "conc": out["conc"].item(),
-                             "bce": out["bce"].item(), "vq": out["vq"].item(),
-                             "batch_codes": int(out["codes"].unique().numel())}
+        logged = {"loss": out["loss"].item(), "l1": out["l1"].item(), "conc": out["conc"].item(),
+                  "bce": out["bce"].item(), "vq": out["vq"].item(), "batch_codes": int(out["codes"].unique().numel())}
+        if cfg.view_consistency:
+            logged.update(view=out["view"].item(), view_agree=out["view_agree"])
+        return out["loss"], logged
 
     def after_step(model: Tokenizer, opt: torch.optim.Optimizer, step: int) -> dict:
         return codebook_after_step(model.vq, opt, step, log)
@@ -121,17 +158,23 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
             "cpu_s": out.cpu_s}
 
 
-def curve_panels(codebook_size: int | None = None) -> list[Panel]:
+def curve_panels(codebook_size: int | None = None, views: bool = False) -> list[Panel]:
     """The tokenizer curve's figure: depth error and total loss; the loss terms; codebook use."""
     codes = [("alive_codes", "codes used in the last 256 it.")]
     if codebook_size:
         codes.append(("batch_codes", "codes used per step", codebook_size))
+    if views:  # view_consistency: the share of co-observed cells where both views pick one code
+        codes.append(("view_agree", "same code from both views"))
+    terms = (("conc", "weight mass > eps"), ("bce", "coarse BCE"), ("vq", "L_vq"))
+    if views:
+        terms += (("view", "pull to the other view's code"),)
     return [Panel((("l1", "L1 depth (m)"), ("loss", "total loss")), log=True),
-            Panel((("conc", "weight mass > eps"), ("bce", "coarse BCE"), ("vq", "L_vq")), log=True),
+            Panel(terms, log=True),
             Panel(tuple(codes), ylim=(0, 1.05))]
 
 
 def write_curve(history: list[dict], out_dir: Path, stem: str = "curve",
                 codebook_size: int | None = None) -> tuple[Path, Path]:
-    """The tokenizer's training curve as CSV and PNG."""
-    return write_any_curve(history, out_dir, stem, curve_panels(codebook_size))
+    """The tokenizer's training curve as CSV and PNG (with the views' agreement when it was logged)."""
+    views = any("view_agree" in r for r in history)
+    return write_any_curve(history, out_dir, stem, curve_panels(codebook_size, views))

@@ -118,7 +118,10 @@ WIDE = replace(PAPER, name="wide", codebook_size=TINY_TOKENIZER.codebook_size, t
 # (docs/copilot4d.md, "The ceiling of each frame").
 TINY_WINDOW = replace(TINY, name="tiny-window")
 
-CONFIGS = {"paper": PAPER, "tiny": TINY, "wide": WIDE, "tiny-window": TINY_WINDOW}
+# ``tiny`` on the ``tiny-views`` tokenizer (``tiny-window`` whose two views of a window are pulled to
+# the same codes)
+TINY_VIEWS = replace(TINY, name="tiny-views")
+CONFIGS = {"paper": PAPER, "tiny": TINY, "wide": WIDE, "tiny-window": TINY_WINDOW, "tiny-views": TINY_VIEWS}
 #: world-model configurations that work on a tokenizer configuration of another name (the
 #: others work on the tokenizer configuration of their own name)
 TOKENIZER_OF = {"wide": TINY_TOKENIZER.name}

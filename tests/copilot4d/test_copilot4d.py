@@ -468,11 +468,13 @@ def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch
     monkeypatch.setattr(ev, "render_codes", perfect_render)
     monkeypatch.setattr(ev, "decode", lambda model, codes: None)
     monkeypatch.setattr(ev, "changed_share", lambda codes, last: 0.0)
+    monkeypatch.setattr(ev, "changed_by_ring", lambda cfg, codes, last: (np.zeros(4), np.full(4, 2.0)))
     from pcfbench.methods.copilot4d.ceiling import evaluate_ceiling
 
     res = evaluate_ceiling(Tokenizer(MICRO), adapter, "test", "kitti-1s", frame=frame, log=lambda *a: None)
     o, tc, c = (res["means"][k] for k in ("ceiling", "copilot4d-token-copy", "copy-last"))
     assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
+    assert res["changed"]["by_ring"] == {"0-20 m": 0.0, "20-40 m": 0.0, "40-60 m": 0.0, "60 m and beyond": 0.0}
     for name in ("l1_mean", "l1_median", "chamfer_nf", "chamfer"):
         assert o[name] == pytest.approx(0.0, abs=1e-4), name
     assert c["chamfer_nf"] > 0.01 and tc["chamfer_nf"] > 0.01
@@ -570,6 +572,123 @@ def test_window_moves_are_the_relative_poses_a_window_holds(toy_sweeps):
 
     with pytest.raises(PcfbenchError, match="sensor_moves must be one of disc, window, not 'windows'"):
         replace(MICRO, sensor_moves="windows")
+
+
+def _straight_road_source(n: int = 80):
+    """A SweepSource over one straight drive of 1 m per sweep whose sweep i is the single point
+    (i, 0, 0) plus an ego return at the origin (the adapter's ego box removes it)."""
+    from types import SimpleNamespace
+
+    from pcfbench.methods.copilot4d.data import SweepSource
+
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 3] = np.arange(n, dtype=float)
+    load = lambda i: np.array([[i + 10.0, 0.0, 0.0], [0.0, 0.0, 0.0]], np.float32)  # noqa: E731
+    source = object.__new__(SweepSource)
+    source.adapter = SimpleNamespace(ego_box=SimpleNamespace(remove=lambda p: p[np.linalg.norm(p, axis=1) > 1]))
+    source.sequences = {"road": SimpleNamespace(T_world_sensor=poses, load_points=load)}
+    source.keys = [("road", i) for i in range(n)]
+    return source
+
+
+def test_window_pairs_are_two_frames_of_one_window_seen_from_its_t0_sensor():
+    """tiny-views' examples: sweep i as frame j of a window (stride s, anchor a = i - (j - 4) s)
+    and another frame j2 != j of the same window, sweep a + (j2 - 4) s, both seen from the
+    anchor: on a straight drive of 1 m per sweep the two grid shifts are i - a and i2 - a, they
+    differ by a non-zero multiple of the stride (unless clipped at the sequence's ends), every
+    pair of frames is drawn, and the second view's points are its own sweep's, ego returns
+    removed."""
+    from dataclasses import replace
+
+    source = _straight_road_source(130)  # sweep 60's windows reach sweeps 6..114: nothing clips
+    cfg = replace(MICRO, sensor_moved_share=1.0, sensor_moves="window", view_consistency=1.0)
+    rng = np.random.default_rng(0)
+    frames = set()
+    for _ in range(3000):
+        (p1, T1), (p2, T2) = source.window_pair(cfg, 60, rng)
+        for T in (T1, T2):
+            np.testing.assert_allclose(T[:3, :3], np.eye(3), atol=1e-12)
+            assert T[1, 3] == 0 and T[2, 3] == 0
+        d1, d2 = int(round(T1[0, 3])), int(round(T2[0, 3]))  # i - a and i2 - a
+        np.testing.assert_array_equal(p1, [[70.0, 0.0, 0.0]])
+        np.testing.assert_array_equal(p2, [[60 - d1 + d2 + 10.0, 0.0, 0.0]])  # sweep i2 = a + d2
+        # the frames j, j2 (i - a = (j - 4) s) at a stride that explains both shifts
+        fits = {(s, d1 // s + 4, d2 // s + 4) for s in (2, 6) if d1 % s == 0 and d2 % s == 0}
+        fits = {(s, j, j2) for s, j, j2 in fits if 0 <= j < 10 and 0 <= j2 < 10}
+        assert fits and d1 != d2, (d1, d2)
+        frames |= fits
+    # every ordered pair of distinct frames (j, j2) occurs at both strides
+    assert {(s, j, j2) for s in (2, 6) for j in range(10) for j2 in range(10) if j != j2} <= frames
+    # near the ends the anchor and the second frame clip to the sequence: still its sweeps, seen
+    # from the (clipped) anchor
+    for k in (1, 128):
+        for _ in range(200):
+            (_, T1), (p2, T2) = source.window_pair(cfg, k, rng)
+            a = k - T1[0, 3]
+            assert 0 <= a < 130 and 0 <= p2[0, 0] - 10 < 130 and T2[0, 3] == p2[0, 0] - 10 - a
+
+
+def test_view_pull_counts_only_the_cells_both_views_observe():
+    """view_consistency's term on a hand case: two views of 2 x 2 token cells, codes 0 or 1 of
+    a 2-code book in 2 dimensions; view a observes cells (0,0), (0,1), (1,0), view b (0,0), (1,0),
+    (1,1); the term is the mean over the two co-observed cells and the code dimension of
+    |z_a - e[code_b]|^2 + |z_b - e[code_a]|^2 halved, and the agreement the share of those cells
+    where both views pick one code."""
+    from types import SimpleNamespace
+
+    from pcfbench.methods.copilot4d.train import observed_tokens, view_pull
+
+    cfg = MICRO  # 64 x 64 voxels, 4 x 4 tokens of 16 x 16 voxels
+    book = torch.tensor([[0.0, 0.0], [1.0, 1.0]])
+    model = SimpleNamespace(vq=SimpleNamespace(lookup=lambda c: book[c]))
+    T, f = cfg.bev_tokens, cfg.grid_xy // cfg.bev_tokens
+    occ = torch.zeros(2, cfg.grid_xy, cfg.grid_xy, cfg.grid_z)
+    for cell in ((0, 0), (0, 1), (1, 0)):
+        occ[0, cell[0] * f + 3, cell[1] * f + 5, 2] = 1
+    for cell in ((0, 0), (1, 0), (1, 1)):
+        occ[1, cell[0] * f, cell[1] * f + f - 1, 7] = 1
+    seen = observed_tokens(cfg, occ)
+    assert seen.shape == (2, T, T) and seen.sum().item() == 6 and bool(seen[0, 0, 1]) and not seen[1, 0, 1]
+    z = torch.zeros(2, T, T, 2)
+    codes = torch.zeros(2, T, T, dtype=torch.long)
+    z[0, 0, 0] = torch.tensor([0.2, 0.0])  # both pick code 0 at (0, 0)
+    z[1, 0, 0] = torch.tensor([0.0, 0.4])
+    z[0, 1, 0] = torch.tensor([0.1, 0.1])  # a picks 0, b picks 1 at (1, 0)
+    z[1, 1, 0] = torch.tensor([0.9, 1.2])
+    codes[1, 1, 0] = 1
+    z[0, 0, 1] = torch.tensor([5.0, 5.0])  # observed by a only: not counted
+    pull, agree = view_pull(model, z, codes, occ, cfg)
+    # (0,0): |(.2,0)-(0,0)|^2 + |(0,.4)-(0,0)|^2 = .04 + .16; (1,0): |(.1,.1)-(1,1)|^2 + |(.9,1.2)-(0,0)|^2
+    want = (0.04 + 0.16 + (0.81 + 0.81) + (0.81 + 1.44)) / (2 * 2 * 2)
+    assert pull.item() == pytest.approx(want, rel=1e-6) and agree == 0.5
+    with pytest.raises(ValueError, match="pairs of views"):
+        view_pull(model, z[:1], codes[:1], occ[:1], cfg)
+
+
+def test_view_pairs_train_and_log_their_pull(toy_sweeps):
+    """A view-pair batch (two consecutive sweeps per example) adds view_consistency x the pull to
+    the loss and logs the views' agreement; the option is refused without window moves (it pairs
+    a window's frames)."""
+    from dataclasses import replace
+
+    from pcfbench.errors import PcfbenchError
+    from pcfbench.methods.copilot4d.config import TINY_VIEWS
+
+    cfg = replace(MICRO, sensor_moved_share=1.0, sensor_moves="window", view_consistency=2.0)
+    torch.manual_seed(0)
+    model = Tokenizer(cfg)
+    shift = np.eye(4)
+    shift[0, 3] = 2.0
+    batch = make_batch(cfg, [toy_sweeps[0], toy_sweeps[0]], 64, np.random.default_rng(0), sensors=[np.eye(4), shift])
+    out = compute_losses(model, batch, cfg)
+    rest = out["l1"] + out["conc"] + out["bce"] + out["vq"]
+    assert out["loss"].item() == pytest.approx((rest + 2.0 * out["view"]).item(), rel=1e-6)
+    assert out["view"].item() > 0 and 0.0 <= out["view_agree"] <= 1.0
+    out["loss"].backward()
+    assert model.encoder.to_code.weight.grad.abs().sum() > 0
+    assert TINY_VIEWS.view_consistency > 0 and TINY_VIEWS.sensor_moves == "window" and TINY_VIEWS.bev_tokens == 64
+    with pytest.raises(PcfbenchError, match="view_consistency pairs the frames of a window"):
+        replace(MICRO, view_consistency=1.0)
 
 
 def test_changed_share_counts_the_tokens_that_differ():

@@ -50,6 +50,24 @@ def test_tokens_fall_in_the_rings_of_their_centres_distance():
     assert ring_labels((20.0, 40.0)) == ["0-20 m", "20-40 m", "40 m and beyond"]
 
 
+def test_changed_tokens_are_counted_per_ring():
+    """The ceiling's changed share by ring on the 4 x 4 map above: the four centre tokens (ring 0),
+    eight edge tokens (ring 1) and four corners (ring 2, 42.4 m; ring 3 empty); one centre token,
+    two edge tokens and every corner changed."""
+    from pcfbench.methods.copilot4d.evaluate import changed_by_ring
+
+    cfg = SimpleNamespace(x_range=(-40.0, 40.0), y_range=(-40.0, 40.0))
+    last = torch.zeros(4, 4, dtype=torch.long)
+    codes = last.clone()
+    codes[1, 1] = 3
+    codes[0, 1] = codes[2, 0] = 5
+    codes[0, 0] = codes[0, 3] = codes[3, 0] = codes[3, 3] = 1
+    changed, tokens = changed_by_ring(cfg, codes, last)
+    assert changed.tolist() == [1, 2, 4, 0] and tokens.tolist() == [4, 8, 4, 0]
+    with pytest.raises(ValueError, match="shapes"):
+        changed_by_ring(cfg, codes, last[:2])
+
+
 def test_shares_lie_in_the_open_closed_unit_interval():
     assert check_shares(["0.1", 1]) == (0.1, 1.0)
     for bad in (0.0, -0.2, 1.5):
