@@ -67,10 +67,35 @@ class TokenCopy(TrainedMethod):
         progress.log(f"tokenizer {self.cfg.name}: {len(source)} {train_source.split} sweeps of "
                      f"{train_source.adapter.name}, device {device}, checkpoint {out_dir}")
         out = train(self.cfg, source, progress, steps=self.training_steps(), device=device, seed=self.options.seed,
-                    log=progress.log)
+                    log=progress.log, init=self.start_checkpoint(train_source, out_dir))
         if out["history"]:
             csv_path, png = write_curve(out["history"], Path(out_dir), "curve", self.cfg.codebook_size)
             progress.log(f"training curve: {csv_path} and {png}")
+
+    def start_checkpoint(self, train_source: TrainSource, out_dir: Path) -> Checkpoint | None:
+        """The complete checkpoint of ``cfg.init_from`` on the same training data that a training of
+        this configuration starts from (None when it starts from random weights); a training
+        resumed in ``out_dir`` goes on only from the one it started from."""
+        import json
+
+        from pcfbench.method import resolve_method
+        from pcfbench.training import find_checkpoint, missing_checkpoint_message
+        from pcfbench.training.checkpoints import MANIFEST
+
+        if not self.cfg.init_from:
+            return None
+        spec = resolve_method((self.name, {} if self.cfg.init_from == "tiny" else {"config": self.cfg.init_from}))
+        ck = find_checkpoint(spec, train_source.train_on)
+        if ck is None or not ck.manifest.get("complete"):
+            raise PcfbenchError(f"tokenizer config {self.cfg.name!r} starts from the trained {self.cfg.init_from!r}: "
+                                + missing_checkpoint_message(spec, train_source.train_on))
+        manifest = Path(out_dir) / MANIFEST
+        had = json.loads(manifest.read_text())["config"].get("init_from", {}) if manifest.is_file() else {}
+        if had and had.get("weights_sha256") != ck.sha256:
+            raise PcfbenchError(f"checkpoint {manifest} started from {self.cfg.init_from!r} weights "
+                                f"{str(had.get('weights_sha256'))[:12]}, and {ck.manifest_path} is now {ck.sha256[:12]}: "
+                                "rerun with --fresh")
+        return ck
 
     def load(self, checkpoint: Checkpoint) -> None:
         from pcfbench.methods.copilot4d.train import config_from_dict, load_tokenizer

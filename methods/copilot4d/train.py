@@ -102,21 +102,36 @@ def load_tokenizer(checkpoint, device: torch.device | None = None) -> Tokenizer:
     if not isinstance(tok, dict):
         raise PcfbenchError(f"checkpoint {checkpoint.manifest_path} records no tokenizer configuration (config.tokenizer)")
     model = Tokenizer(config_from_dict(tok))
-    try:
-        model.load_state_dict(checkpoint.load_weights())
-    except RuntimeError as exc:
-        raise PcfbenchError(f"checkpoint {checkpoint.weights_path} does not fit the tokenizer it records: "
-                            f"{str(exc).splitlines()[0]}") from None
+    load_state(model, checkpoint)
     return model.to(device or default_device()).eval()
 
 
+def load_state(model: Tokenizer, checkpoint) -> None:
+    """``checkpoint``'s weights into ``model`` (``weights_only=True``); one clear error when they do not fit."""
+    from pcfbench.errors import PcfbenchError
+
+    try:
+        model.load_state_dict(checkpoint.load_weights())
+    except RuntimeError as exc:
+        raise PcfbenchError(f"checkpoint {checkpoint.weights_path} does not fit the tokenizer "
+                            f"{model.cfg.name!r}: {str(exc).splitlines()[0]}") from None
+
+
 def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None = None,
-          device: torch.device | None = None, seed: int = 0, threads: int | None = None, log=print) -> dict:
+          device: torch.device | None = None, seed: int = 0, threads: int | None = None, log=print,
+          init=None) -> dict:
     """Train (or resume) until ``steps`` (default ``cfg.max_steps``) or until ``run`` (a
     ``pcfbench.training.TrainingRun``) says the time budget is spent, through
     :func:`pcfbench.training.fit_loop` (resume, random state, saves every
     ``cfg.checkpoint_every`` steps and at the end, the curve every ``cfg.log_every``).
-    Returns the model, step, curve and times."""
+    ``init``: the verified checkpoint of ``cfg.init_from`` a new training starts from (required
+    exactly when that names one; a resumed training keeps its own weights). Returns the model,
+    step, curve and times."""
+    from pcfbench.errors import PcfbenchError
+
+    if bool(cfg.init_from) != (init is not None):
+        raise PcfbenchError(f"tokenizer config {cfg.name!r} starts from {cfg.init_from or 'a random initialisation'}"
+                            f": {'give its checkpoint' if cfg.init_from else 'no checkpoint to start from'}")
     device = device or default_device()
     steps = steps or cfg.max_steps
     if threads and device.type == "cpu":
@@ -145,14 +160,21 @@ def train(cfg: TokenizerConfig, source: SweepSource, run, *, steps: int | None =
     def after_step(model: Tokenizer, opt: torch.optim.Optimizer, step: int) -> dict:
         return codebook_after_step(model.vq, opt, step, log)
 
+    def new_model() -> Tokenizer:
+        model = Tokenizer(cfg)
+        if init is not None:
+            load_state(model, init)
+        return model.to(device)
+
+    started = {"init_from": {"config": cfg.init_from, "weights_sha256": init.sha256}} if init is not None else {}
     out = fit_loop(
-        lambda: Tokenizer(cfg).to(device), lambda model: make_optimizer(model, cfg), sample_batch, step_fn, run,
+        new_model, lambda model: make_optimizer(model, cfg), sample_batch, step_fn, run,
         steps=steps, seed=seed, schedule=lambda step: lr_at(cfg, step), grad_clip=cfg.grad_clip,
         log_every=cfg.log_every, checkpoint_every=cfg.checkpoint_every, after_step=after_step,
         # labels a reader of the bar or the log understands (the curve keeps the column names)
         progress_values={"total loss": "loss", "L1 depth error (m)": "l1", "share of codes in use": "alive_codes"},
         manifest_config=lambda model: {"tokenizer": cfg.to_dict(), "parameters": count_parameters(model),
-                                       "steps_target": steps, "seed": seed},
+                                       "steps_target": steps, "seed": seed, **started},
         log=log)
     return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
             "cpu_s": out.cpu_s}

@@ -302,7 +302,7 @@ class _Run:
         buf = io.BytesIO()  # through torch.save / weights_only load, as the real checkpoint goes
         torch.save({"weights": weights, "state": state}, buf)
         d = torch.load(io.BytesIO(buf.getvalue()), weights_only=True)
-        self.saved = {"step": step, "weights": d["weights"], "state": copy.deepcopy(d["state"])}
+        self.saved = {"step": step, "weights": d["weights"], "state": copy.deepcopy(d["state"]), "config": config}
 
 
 def test_resume_continues_exactly(toy_sweeps):
@@ -326,6 +326,87 @@ def test_resume_continues_exactly(toy_sweeps):
     assert [r["loss"] for r in resumed["history"]] == pytest.approx([r["loss"] for r in straight["history"]], rel=1e-5)
     for (ka, a), (kb, b) in zip(straight["model"].state_dict().items(), resumed["model"].state_dict().items()):
         assert ka == kb and torch.allclose(a.float(), b.float(), atol=1e-6), ka
+
+
+def test_a_training_with_init_from_starts_from_that_checkpoint(toy_sweeps):
+    """init_from: a new training starts from the given checkpoint's weights and codebook (checked
+    before any step) and records which weights it started from; the checkpoint is required
+    exactly when the configuration names one. Its view pairs train from there."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from pcfbench.errors import PcfbenchError
+
+    cfg = replace(MICRO, rays_per_step=64, sensor_moved_share=1.0, sensor_moves="window", view_consistency=1.0,
+                  init_from="micro-window")
+    torch.manual_seed(123)
+    start = Tokenizer(cfg).state_dict()
+    init = SimpleNamespace(load_weights=lambda: start, sha256="ab" * 32, weights_path="w.pt")
+
+    class Source:
+        split = "train"
+
+        def __len__(self):
+            return len(toy_sweeps)
+
+        def window_pair(self, cfg, k, rng):
+            shift = np.eye(4)
+            shift[0, 3] = 1.5
+            return [(toy_sweeps[k], np.eye(4)), (toy_sweeps[(k + 1) % len(toy_sweeps)], shift)]
+
+    kw = {"steps": 2, "device": torch.device("cpu"), "log": lambda *_: None}
+    run = _Run(stop_after=0)
+    out = train(cfg, Source(), run, init=init, **kw)
+    assert out["step"] == 0
+    for k, v in out["model"].state_dict().items():
+        assert torch.equal(v, start[k]), k
+    assert run.saved["step"] == 0
+    assert run.saved["config"]["init_from"] == {"config": "micro-window", "weights_sha256": "ab" * 32}
+    trained = _Run()
+    train(cfg, Source(), trained, init=init, **kw)
+    assert trained.saved["step"] == 2 and not torch.equal(trained.saved["weights"]["encoder.to_code.weight"],
+                                                          start["encoder.to_code.weight"])
+    with pytest.raises(PcfbenchError, match="give its checkpoint"):
+        train(cfg, Source(), _Run(), **kw)
+    with pytest.raises(PcfbenchError, match="no checkpoint to start from"):
+        train(replace(cfg, init_from=""), Source(), _Run(), init=init, **kw)
+    # a checkpoint of another network is one clear error naming it
+    bad = SimpleNamespace(load_weights=lambda: {"x": torch.zeros(1)}, sha256="cd" * 32, weights_path="other.pt")
+    with pytest.raises(PcfbenchError, match="other.pt does not fit the tokenizer 'micro'"):
+        train(cfg, Source(), _Run(), init=bad, **kw)
+
+
+def test_tiny_views_starts_from_the_trained_tiny_window_or_says_how_to_train_it(tmp_path, monkeypatch):
+    """copilot4d-token-copy:config=tiny-views finds the complete tiny-window checkpoint on the same
+    data; without one it names the command that trains it; a resumed training whose manifest
+    started from other tiny-window weights is refused."""
+    import json
+    from types import SimpleNamespace
+
+    import pcfbench.training as training
+    from pcfbench.errors import PcfbenchError
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy, TokenCopyOptions
+    from pcfbench.training.data import TrainOn
+
+    method = TokenCopy(TokenCopyOptions(config="tiny-views"))
+    source = SimpleNamespace(train_on=TrainOn("synthetic-town-realistic", "train", "f" * 16))
+    asked = []
+    monkeypatch.setattr(training, "find_checkpoint", lambda spec, on: asked.append((spec.name, dict(spec.raw))))
+    with pytest.raises(PcfbenchError, match=r"starts from the trained 'tiny-window'.*pcfbench train "
+                                            r"copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic"):
+        method.start_checkpoint(source, tmp_path)
+    assert asked == [("copilot4d-token-copy", {"config": "tiny-window"})]
+    ck = SimpleNamespace(manifest={"complete": True}, sha256="ab" * 32, manifest_path="tw/manifest.json")
+    monkeypatch.setattr(training, "find_checkpoint", lambda spec, on: ck)
+    assert method.start_checkpoint(source, tmp_path) is ck
+    (tmp_path / "manifest.json").write_text(json.dumps({"config": {"init_from": {"config": "tiny-window",
+                                                                                 "weights_sha256": "cd" * 32}}}))
+    with pytest.raises(PcfbenchError, match="started from 'tiny-window' weights cdcdcdcdcdcd.*rerun with --fresh"):
+        method.start_checkpoint(source, tmp_path)
+    ck.manifest = {"complete": False}  # a training of tiny-window still under way is not a start
+    with pytest.raises(PcfbenchError, match="starts from the trained"):
+        method.start_checkpoint(source, tmp_path / "new")
+    assert TokenCopy(TokenCopyOptions(config="tiny-window")).start_checkpoint(source, tmp_path) is None
 
 
 def test_skipping_mask_threshold_and_noise():
