@@ -52,7 +52,7 @@ LOG_EVERY = 10
 @dataclass(frozen=True)
 class WorldOptions(RenderingOptions):
     config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale), tiny-window "
-                                      "(tiny on the tiny-window tokenizer), paper (A.2.2 sizes) or wide (the paper's "
+                                      "(tiny on the tiny-window tokenizer), tiny-views (on tiny-views), paper (A.2.2 sizes) or wide (the paper's "
                                       "network on the tiny tokenizer; GPU scale)")
     cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
                                min=0)

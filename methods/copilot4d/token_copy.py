@@ -28,7 +28,8 @@ from pcfbench.training import Checkpoint, TrainedMethod, TrainingRun, TrainSourc
 class TokenCopyOptions(RenderingOptions):
     config: str = option("tiny", help="tokenizer configuration: tiny (CPU scale), tiny-moved (tiny, trained also on "
                                       "sweeps seen from moved sensors), tiny-window (tiny, on sweeps moved as the "
-                                      "world model's windows move them) or paper (A.2.1 sizes)")
+                                      "world model's windows move them), tiny-views (tiny-window fine-tuned to give "
+                                      "two views of one window the same codes) or paper (A.2.1 sizes)")
     steps: int = option(0, help="training steps (0: the configuration's max_steps)")
     seed: int = option(0, help="training seed (initialisation, batches, rays)")
 
