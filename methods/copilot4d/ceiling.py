@@ -215,7 +215,7 @@ def write_ceiling(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[P
         f"{result['samples']} samples, {result['sweeps']} future sweeps; evaluation took {result['eval_s']:.0f} s. "
         f"Target tokens that differ from the last past sweep's: {ch['mean']:.1%} on average "
         f"({', '.join(f'{v:.0%}' for v in ch['per_step'])} by future step; by distance from the sensor at the grid's "
-        f"centre: {', '.join(f'{k} {v:.0%}' for k, v in ch.get('by_ring', {}).items())}).",
+        f"centre: {', '.join(f'{k} {v:.0%}' for k, v in ch['by_ring'].items())}).",
         "",
     ]
     return write_beside(result, meta, out_dir, stem, copy="copilot4d-token-copy",

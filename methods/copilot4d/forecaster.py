@@ -285,13 +285,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
 
     # -- the tokenizer this world model is trained on -------------------------------------------
     def tokenizer_spec(self):
-        from pcfbench.method import resolve_method
+        from pcfbench.methods.copilot4d.token_copy import tokenizer_spec
 
-        tok = self.tok_cfg.name
-        opts = {} if tok == "tiny" else {"config": tok}
-        if self.options.tokenizer_steps:
-            opts["steps"] = str(self.options.tokenizer_steps)
-        return resolve_method((TOKENIZER_METHOD, opts))
+        return tokenizer_spec(self.tok_cfg.name, self.options.tokenizer_steps)
 
     def fit(self, train_source: TrainSource, out_dir: Path, progress: TrainingRun) -> None:
         from pcfbench.methods.copilot4d.train import default_device, load_tokenizer

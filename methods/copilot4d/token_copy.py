@@ -79,13 +79,12 @@ class TokenCopy(TrainedMethod):
         resumed in ``out_dir`` goes on only from the one it started from."""
         import json
 
-        from pcfbench.method import resolve_method
         from pcfbench.training import find_checkpoint, missing_checkpoint_message
         from pcfbench.training.checkpoints import MANIFEST
 
         if not self.cfg.init_from:
             return None
-        spec = resolve_method((self.name, {} if self.cfg.init_from == "tiny" else {"config": self.cfg.init_from}))
+        spec = tokenizer_spec(self.cfg.init_from)
         ck = find_checkpoint(spec, train_source.train_on)
         if ck is None or not ck.manifest.get("complete"):
             raise PcfbenchError(f"tokenizer config {self.cfg.name!r} starts from the trained {self.cfg.init_from!r}: "
@@ -124,3 +123,14 @@ class TokenCopy(TrainedMethod):
         gen = torch.Generator().manual_seed(seed)
         return Forecast.from_depths(sample, render_queries(self.model, codes, sample, T_s0_ref, generator=gen,
                                                            execution=self.execution, **self.render))
+
+
+def tokenizer_spec(config: str, steps: int = 0):
+    """The resolved ``copilot4d-token-copy`` spec of tokenizer configuration ``config`` (and its
+    ``steps`` option when set): the checkpoint a world model or an ``init_from`` start looks up."""
+    from pcfbench.method import resolve_method
+
+    opts = {} if config == "tiny" else {"config": config}
+    if steps:
+        opts["steps"] = str(steps)
+    return resolve_method((TokenCopy.name, opts))

@@ -556,6 +556,11 @@ def test_ceiling_renders_each_target_from_the_right_origin(tmp_path, monkeypatch
     o, tc, c = (res["means"][k] for k in ("ceiling", "copilot4d-token-copy", "copy-last"))
     assert res["samples"] > 0 and res["sweeps"] == 5 * res["samples"]
     assert res["changed"]["by_ring"] == {"0-20 m": 0.0, "20-40 m": 0.0, "40-60 m": 0.0, "60 m and beyond": 0.0}
+    from pcfbench.methods.copilot4d.ceiling import write_ceiling
+
+    md, _ = write_ceiling(res, {"config": "micro"}, tmp_path / "rep", "ceiling")
+    assert "by distance from the sensor at the grid's centre: 0-20 m 0%, 20-40 m 0%, 40-60 m 0%, 60 m and beyond 0%" \
+        in md.read_text()
     for name in ("l1_mean", "l1_median", "chamfer_nf", "chamfer"):
         assert o[name] == pytest.approx(0.0, abs=1e-4), name
     assert c["chamfer_nf"] > 0.01 and tc["chamfer_nf"] > 0.01
