@@ -197,21 +197,26 @@ def test_groups_are_the_cells_that_share_their_samples(tiny_kitti):
 
 
 def _pid(key):
-    time.sleep(0.02)
+    time.sleep(0.05)
     return key, os.getpid()
 
 
-def _init():
-    pass
+def _both_started(directory, n):
+    """Wait (at most a minute) until ``n`` workers have started, so that on a loaded machine one
+    worker cannot finish every key before the other has reported ready."""
+    (directory / str(os.getpid())).touch()
+    deadline = time.monotonic() + 60
+    while len(list(directory.iterdir())) < n and time.monotonic() < deadline:
+        time.sleep(0.01)
 
 
 def _fail(key, kind, reason):
     return key, kind
 
 
-def test_supervised_tasks_of_one_kind_go_to_one_worker_in_turn():
+def test_supervised_tasks_of_one_kind_go_to_one_worker_in_turn(tmp_path):
     keys = [(s, m) for s in range(6) for m in range(3)]
-    out = list(workers.run_supervised(keys, 2, _init, (), _pid, _fail, affinity=lambda k: k[0]))
+    out = list(workers.run_supervised(keys, 2, _both_started, (tmp_path, 2), _pid, _fail, affinity=lambda k: k[0]))
     assert sorted(k for k, _ in out) == keys
     by_sample = {}
     for (s, _), pid in out:
