@@ -35,6 +35,9 @@ from pcfbench.errors import PcfbenchError, unknown_name
 HELP = "pcfbench.help"
 #: the field-metadata key holding an option's valid range (a ``Range``)
 RANGE = "pcfbench.range"
+#: the field-metadata key marking an option left out of ``options_dict`` (and so of
+#: ``options_hash``) while it holds its default
+QUIET_DEFAULT = "pcfbench.quiet_default"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +79,7 @@ class Range:
 def option(
     default: Any = dataclasses.MISSING, *, help: str, default_factory: Any = dataclasses.MISSING,  # noqa: A002
     min: float | None = None, max: float | None = None, gt: float | None = None,  # noqa: A002
-    lt: float | None = None, finite: bool = True,
+    lt: float | None = None, finite: bool = True, quiet_default: bool = False,
 ) -> Any:
     """A dataclass field of an ``Options`` class: its default, a one-line help text and,
     for a number, its valid range.
@@ -87,6 +90,11 @@ def option(
     ``float`` option (refused by default). ``parse_options`` checks them. All of it is
     metadata only: it does not enter the option values, ``dataclasses.asdict`` or
     ``options_hash``.
+
+    ``quiet_default=True``: while the option holds its default it is left out of
+    ``options_dict`` and ``options_hash``, so that an option added to a method whose
+    checkpoints and stored cells exist leaves their identity as it was; any other value
+    enters both as usual.
     """
     if not isinstance(help, str) or not help.strip():
         raise TypeError("pcfbench.option needs a non-empty help text (help=...)")
@@ -97,6 +105,8 @@ def option(
     metadata: dict[str, Any] = {HELP: help.strip()}
     if any(b is not None for b in bounds.values()) or not finite:
         metadata[RANGE] = Range(min=min, max=max, gt=gt, lt=lt, finite=bool(finite))
+    if quiet_default:
+        metadata[QUIET_DEFAULT] = True
     return dataclasses.field(default=default, default_factory=default_factory, metadata=metadata)
 
 
@@ -241,8 +251,17 @@ def _convert(value: object, typ: Any, where: str) -> object:
 
 
 def options_dict(options: Any) -> dict[str, Any]:
-    """The option values as a plain dict (help texts and other field metadata left out)."""
-    return dataclasses.asdict(options) if dataclasses.is_dataclass(options) else {}
+    """The option values as a plain dict (help texts and other field metadata left out), less
+    the ``quiet_default`` options that hold their default."""
+    if not dataclasses.is_dataclass(options):
+        return {}
+    out = dataclasses.asdict(options)
+    for f in dataclasses.fields(options):
+        if f.metadata.get(QUIET_DEFAULT):
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            if getattr(options, f.name) == default:
+                del out[f.name]
+    return out
 
 
 def options_hash(options: Any) -> str:

@@ -69,6 +69,9 @@ class WorldOptions(RenderingOptions):
     anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
     frame: str = option("t0", help="the frame every sweep of a window is tokenized in: t0 (moved into the t=0 "
                                    "sensor frame) or own (its own sensor frame; the poses say where it is)")
+    init_steps: int = option(0, help="train on from the complete checkpoint of these options with steps=init_steps "
+                                     "(its weights; a new optimiser, warm-up and cosine decay over steps); 0: "
+                                     "from random weights", min=0, quiet_default=True)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -323,13 +326,66 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             "windows": int(len(windows["tokens"])), "strides": list(self.options.strides),
             "frame": self.options.frame,
         }
-        # built on the CPU (then moved), so its initial weights do not depend on the device
-        out = train_world(lambda: WorldModel(cfg).to(device), cfg, windows, self.variant, progress,
-                          steps=self.training_steps(), seed=0, manifest_config=manifest_config, resumed=resumed,
+        start = self.start_checkpoint(train_source, out_dir, tok_ck)
+        if start is not None:
+            progress.log(f"starting from {start.dir} ({start.steps} steps, sha256 {start.sha256[:12]})")
+            started = {"init_from": {"steps": start.steps, "weights_sha256": start.sha256,
+                                     "checkpoint": str(start.manifest_path)}}
+            build = lambda: load_network(WorldModel(cfg), start, start.load_weights(), "world.",  # noqa: E731
+                                         "world model").to(device)
+        else:  # built on the CPU (then moved), so its initial weights do not depend on the device
+            started, build = {}, lambda: WorldModel(cfg).to(device)  # noqa: E731
+        with_start = lambda model: {**manifest_config(model), **started}  # noqa: E731
+        out = train_world(build, cfg, windows, self.variant, progress,
+                          steps=self.training_steps(), seed=0, manifest_config=with_start, resumed=resumed,
                           extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()}, log=progress.log)
         if out["history"]:
             csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
             progress.log(f"training curve: {csv_path} and {png}")
+
+    def start_spec(self):
+        """The spec whose complete checkpoint a training with ``init_steps`` goes on from: these
+        options with ``steps=init_steps`` and no ``init_steps`` (None without ``init_steps``)."""
+        from dataclasses import asdict, replace
+
+        from pcfbench.method import MethodSpec
+        from pcfbench.options import options_hash
+
+        if not self.options.init_steps:
+            return None
+        opts = replace(self.options, steps=self.options.init_steps, init_steps=0)
+        defaults = type(self.options)()
+        raw = {k: "/".join(map(str, v)) if isinstance(v, tuple) else str(v)
+               for k, v in asdict(opts).items() if v != getattr(defaults, k)}
+        return MethodSpec(self.name, raw, opts, options_hash(opts), type(self))
+
+    def start_checkpoint(self, train_source: TrainSource, out_dir: Path, tok_ck: Checkpoint) -> Checkpoint | None:
+        """The verified, complete checkpoint of :meth:`start_spec` on the same training data and
+        tokenizer (None without ``init_steps``); a training resumed in ``out_dir`` goes on only
+        from the weights it started from."""
+        import json
+
+        from pcfbench.training import find_checkpoint, missing_checkpoint_message
+        from pcfbench.training.checkpoints import MANIFEST
+
+        spec = self.start_spec()
+        if spec is None:
+            return None
+        ck = find_checkpoint(spec, train_source.train_on)
+        if ck is None or not ck.manifest.get("complete"):
+            raise PcfbenchError(f"{self.name} with init_steps={self.options.init_steps} goes on from a complete "
+                                f"training of {self.options.init_steps} steps: "
+                                + missing_checkpoint_message(spec, train_source.train_on))
+        if ck.manifest["config"].get("tokenizer_sha256") != tok_ck.sha256:
+            raise PcfbenchError(f"checkpoint {ck.manifest_path} was trained on tokenizer weights "
+                                f"{str(ck.manifest['config'].get('tokenizer_sha256'))[:12]}, and {tok_ck.manifest_path} "
+                                f"is now {tok_ck.sha256[:12]}: retrain it first")
+        manifest = Path(out_dir) / MANIFEST
+        had = json.loads(manifest.read_text())["config"].get("init_from", {}) if manifest.is_file() else {}
+        if had and had.get("weights_sha256") != ck.sha256:
+            raise PcfbenchError(f"checkpoint {manifest} started from weights {str(had.get('weights_sha256'))[:12]}, "
+                                f"and {ck.manifest_path} is now {ck.sha256[:12]}: rerun with --fresh")
+        return ck
 
     # -- loading ------------------------------------------------------------------------------
     def read_tokenizer(self, checkpoint: Checkpoint, prefix: str = "", weights: dict | None = None):

@@ -387,6 +387,45 @@ def test_checkpoint_refused_when_its_tokenizer_differs(micro, kitti):
         _train(f"copilot4d-maskgit:{MICRO},steps=1", kitti)
 
 
+def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, monkeypatch):
+    """copilot4d:init_steps=N trains from the complete checkpoint of the same options with
+    steps=N: a missing one is one error naming its train command; the weights it starts from are
+    that checkpoint's, recorded in its manifest; a resumed training whose start changed since is
+    refused; init_steps=0 is the options (and checkpoint) of before."""
+    from pcfbench.methods.copilot4d import forecaster
+
+    _tokenizer(kitti)
+    spec = f"copilot4d:{MICRO_TRAIN},steps=2,init_steps=1"
+    with pytest.raises(PcfbenchError, match=r"init_steps=1 goes on.*pcfbench train copilot4d:.*steps=1"):
+        _train(spec, kitti)
+    start = _train(f"copilot4d:{MICRO_TRAIN},steps=1", kitti)
+    assert resolve_method(f"copilot4d:{MICRO_TRAIN},steps=1,init_steps=0").options_hash == \
+        resolve_method(f"copilot4d:{MICRO_TRAIN},steps=1").options_hash
+    assert "init_from" not in start.manifest["config"]
+    built = {}
+    original = forecaster.train_world
+
+    def spy(model, *a, **kw):
+        built.update(model().state_dict())
+        return original(model, *a, **kw)
+
+    monkeypatch.setattr(forecaster, "train_world", spy)
+    ck = _train(spec, kitti)
+    w = start.load_weights()
+    assert set(built) == {k[len("world."):] for k in w if k.startswith("world.")}
+    for k, v in built.items():
+        assert torch.equal(v, w[f"world.{k}"]), k
+    assert ck.dir != start.dir and ck.steps == 2 and ck.manifest["complete"]
+    assert ck.manifest["config"]["init_from"] == {"steps": 1, "weights_sha256": start.sha256,
+                                                  "checkpoint": str(start.manifest_path)}
+    manifest = dict(ck.manifest, complete=False)
+    manifest["config"] = dict(manifest["config"], init_from=dict(manifest["config"]["init_from"],
+                                                                 weights_sha256="0" * 64))
+    ck.manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(PcfbenchError, match="started from weights 000000000000.*--fresh"):
+        _train(spec, kitti)
+
+
 def test_inference_options_reuse_the_trained_weights(micro, kitti):
     """copilot4d:cfg_weight=0 trains nothing new: its checkpoint is the one of the same
     training options (which embeds its tokenizer: the tokenizer's own checkpoint is not needed

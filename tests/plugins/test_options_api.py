@@ -14,7 +14,7 @@ from pcfbench import config
 from pcfbench.cli import cli
 from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.method import MethodSpec, options_hash, parse_method_spec, resolve_method
-from pcfbench.options import HELP, NoOptions, describe_options, option, type_name
+from pcfbench.options import HELP, NoOptions, describe_options, option, options_dict, type_name
 from pcfbench.plugins import load_plugins
 
 #: options_hash of each built-in method's default options, computed from the code before the
@@ -80,6 +80,27 @@ def test_options_hash_is_the_hash_of_the_values_alone():
     assert [f.metadata[HELP] for f in dataclasses.fields(Opts)] == ["b's help", "a's help"]
     with pytest.raises(TypeError, match="help"):
         option(1, help="  ")
+
+
+def test_an_option_added_with_a_quiet_default_keeps_the_hash_at_its_default():
+    """An option added later (``quiet_default``) leaves the hash of the options as they were
+    while it holds its default, and enters it like any other option once it does not."""
+    @dataclasses.dataclass(frozen=True)
+    class Before:
+        a: float = option(0.5, help="a")
+
+    @dataclasses.dataclass(frozen=True)
+    class After:
+        a: float = option(0.5, help="a")
+        n: int = option(0, help="added later", quiet_default=True)
+        t: tuple[int, ...] = option(default_factory=lambda: (1, 2), help="added later too", quiet_default=True)
+
+    assert options_hash(After()) == options_hash(Before())
+    assert options_dict(After()) == {"a": 0.5}
+    assert options_dict(After(n=3)) == {"a": 0.5, "n": 3}
+    assert options_dict(After(t=(2,))) == {"a": 0.5, "t": (2,)}
+    by_hand = hashlib.sha256(b'{"a": 0.5, "n": 3}').hexdigest()[:12]
+    assert options_hash(After(n=3)) == by_hand != options_hash(Before())
 
 
 def test_every_builtin_option_has_type_default_and_help(plugins):
