@@ -167,7 +167,8 @@ def corrupt(x0: torch.Tensor, n_past: int, codebook_size: int, variant: Variant 
 
 def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor, n_past: int,
                   variant: Variant = COPILOT4D, label_smoothing: float = 0.1,
-                  generator: torch.Generator | None = None) -> tuple[torch.Tensor, dict]:
+                  generator: torch.Generator | None = None, objective: torch.Tensor | None = None,
+                  ) -> tuple[torch.Tensor, dict]:
     """Algorithm 1 line 8: cross entropy (label smoothing) of the clean tokens given the
     corrupted sequence, averaged over the scored tokens of the batch. Returns the loss and
     {"loss", "accuracy" (argmax on scored tokens), "masked_accuracy"} as floats, and apart for
@@ -175,8 +176,45 @@ def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor
     ("changed_*") and those that do not ("unchanged_*"): cross entropy (``*_loss``) and
     argmax accuracy (``*_accuracy``), with the share of changed tokens among the future's
     ("changed_share"): a model that only copies scores well on the unchanged ones alone.
-    Measuring them draws no random number and changes no gradient."""
-    c = corrupt(x0, n_past, model.mask_token, variant, generator)
+    Measuring them draws no random number and changes no gradient. ``objective``: as
+    :func:`corrupt`'s (None: each sequence draws one from the mixture)."""
+    loss, sums = _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective)
+    div = lambda a, b: a / b if b else float("nan")  # noqa: E731
+    stats = {"loss": float(loss.detach()), "accuracy": div(sums["hits"], sums["scored"]),
+             "masked_accuracy": div(sums["masked_hits"], sums["masked"]),
+             "changed_share": div(sums["future_changed"], sums["future"])}
+    for name in ("changed", "unchanged"):
+        stats[f"{name}_loss"] = div(sums[f"{name}_ce"], sums[name])
+        stats[f"{name}_accuracy"] = div(sums[f"{name}_hits"], sums[name])
+    return loss, stats
+
+
+#: what :func:`objective_sums` adds up over a batch: counts of tokens, hits (arg max right) and
+#: summed cross entropies; ``changed``/``unchanged``: masked future tokens that differ / do not
+#: differ from the last past frame's token at their place
+#: the upper edges of the bins of a frame's masked share (the last bin ends at 1) in which
+#: ``changed_r<i>``/``changed_hits_r<i>`` count the changed tokens and the right ones: how the
+#: model does on what changed when little of its frame is visible, as Algorithm 2's first steps see
+#: it; ``first_*`` the same on the first future frame alone (whose context, under the "future"
+#: objective, is the clean past: the later ones see the true tokens of the future frames before them)
+MASK_RATE_EDGES = (0.5, 0.8, 0.95, 0.99)
+OBJECTIVE_SUMS = ("scored", "hits", "masked", "masked_hits", "future", "future_changed",
+                  "changed", "changed_hits", "changed_ce", "unchanged", "unchanged_hits", "unchanged_ce",
+                  *(f"{k}_r{i}" for i in range(len(MASK_RATE_EDGES) + 1) for k in ("changed", "changed_hits")),
+                  *(f"first_{k}_r{i}" for i in range(len(MASK_RATE_EDGES) + 1) for k in ("changed", "changed_hits")))
+
+
+@torch.no_grad()
+def objective_sums(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor, n_past: int,
+                   variant: Variant = COPILOT4D, label_smoothing: float = 0.1,
+                   generator: torch.Generator | None = None, objective: torch.Tensor | None = None) -> dict:
+    """:func:`training_loss`'s measurements as sums and counts (:data:`OBJECTIVE_SUMS`), so that
+    batches add up exactly: the training objective on windows the model did not learn from."""
+    return _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective)[1]
+
+
+def _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective):
+    c = corrupt(x0, n_past, model.mask_token, variant, generator, objective)
     logits = model(c.tokens, T_ref_sensor, c.temporal_mask)
     sel = c.loss_mask
     picked = logits[sel].float()
@@ -185,21 +223,28 @@ def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor
     with torch.no_grad():
         hit = picked.argmax(-1) == target
         on_masked = c.masked[sel]
-        stats = {
-            "loss": float(loss),
-            "accuracy": float(hit.float().mean()),
-            "masked_accuracy": float(hit[on_masked].float().mean()) if bool(on_masked.any()) else float("nan"),
-        }
         changed = x0 != x0[:, n_past - 1: n_past]  # (B, T, H, W): differs from the last past frame
         future = torch.zeros_like(changed)
         future[:, n_past:] = True
-        stats["changed_share"] = float(changed[future].float().mean())
         ce = F.cross_entropy(picked, target, label_smoothing=label_smoothing, reduction="none")
+        sums = {"scored": int(hit.numel()), "hits": int(hit.sum()), "masked": int(on_masked.sum()),
+                "masked_hits": int(hit[on_masked].sum()), "future": int(future.sum()),
+                "future_changed": int(changed[future].sum())}
         for name, which in (("changed", changed[sel]), ("unchanged", ~changed[sel])):
             on = on_masked & future[sel] & which
-            stats[f"{name}_loss"] = float(ce[on].mean()) if bool(on.any()) else float("nan")
-            stats[f"{name}_accuracy"] = float(hit[on].float().mean()) if bool(on.any()) else float("nan")
-    return loss, stats
+            sums[name], sums[f"{name}_hits"] = int(on.sum()), int(hit[on].sum())
+            sums[f"{name}_ce"] = float(ce[on].double().sum())
+        rate = c.masked.flatten(2).float().mean(-1)  # (B, T): each frame's masked share
+        rate_bin = torch.bucketize(rate, torch.tensor(MASK_RATE_EDGES, device=rate.device), right=True)
+        rate_bin = rate_bin[..., None, None].expand_as(changed)[sel]
+        first = torch.zeros_like(changed)  # the first future frame: its context is the clean past alone
+        first[:, n_past] = True
+        on = on_masked & future[sel] & changed[sel]
+        for i in range(len(MASK_RATE_EDGES) + 1):
+            for prefix, where in (("", on & (rate_bin == i)), ("first_", on & (rate_bin == i) & first[sel])):
+                sums[f"{prefix}changed_r{i}"] = int(where.sum())
+                sums[f"{prefix}changed_hits_r{i}"] = int(hit[where].sum())
+    return loss, sums
 
 
 def make_optimizer(model: nn.Module, cfg: WorldModelConfig) -> torch.optim.Optimizer:

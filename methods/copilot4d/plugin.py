@@ -190,38 +190,80 @@ def _world_report_command(cli):  # noqa: ANN001
     @click.option("--split", default="test", show_default=True)
     @click.option("--windows", "max_windows", type=int, default=12, show_default=True,
                   help="Evenly spaced windows per stride (0: all).")
+    @click.option("--objective-draws", type=click.IntRange(min=0), default=0, show_default=True,
+                  help="Also score the training objective (loss and accuracy on changed and unchanged tokens) "
+                       "on this many corruptions of each held-out window and of as many of the windows the "
+                       "model trained on (0: not).")
+    @click.option("--forecast/--no-forecast", default=True, show_default=True,
+                  help="Sample and score the forecast tokens (Algorithm 2).")
     @click.option("--reports", default=None)
-    def world_report(method, train_on, train_split, checkpoint, dataset_spec, split, max_windows, reports):
+    def world_report(method, train_on, train_split, checkpoint, dataset_spec, split, max_windows, objective_draws,
+                     forecast, reports):
         """A world model's forecast tokens on held-out windows against the real future's tokens,
-        apart on the tokens that changed since the last past frame and those that did not."""
+        apart on the tokens that changed since the last past frame and those that did not; with
+        --objective-draws, its training objective there and on the windows it trained on."""
         from pcfbench.config import reports_dir
+        from pcfbench.errors import PcfbenchError
         from pcfbench.methods.copilot4d.forecaster import Copilot4D, build_windows, window_cache_dir
-        from pcfbench.methods.copilot4d.token_report import shares, world_token_report, write_token_report
+        from pcfbench.methods.copilot4d.token_report import (curve_tail, objective_report, objective_shares, shares,
+                                                             world_token_report, write_objective_report,
+                                                             write_token_report)
         from pcfbench.training import open_training_data
 
+        if not forecast and not objective_draws:
+            raise PcfbenchError("--no-forecast without --objective-draws: nothing to report")
         m, ck = _loaded(method, Copilot4D, "copilot4d or copilot4d-maskgit[:options]", train_on, train_split,
                         checkpoint)
-        source = open_training_data(dataset_spec, split, split_option="--split {}")
         cfg, opts = m.world_cfg, m.options
-        windows = build_windows(m.tokenizer, source.adapter, split, cfg.n_past, cfg.n_future, tuple(opts.strides),
-                                opts.anchor_every,
-                                window_cache_dir(ck.manifest["config"]["tokenizer_sha256"], source.train_on.key),
-                                log=click.echo, frame=opts.frame)
-        result = world_token_report(m, windows, max_windows=max_windows or None, log=lambda *_: None)
+
+        def windows_of(source, split):
+            return build_windows(m.tokenizer, source.adapter, split, cfg.n_past, cfg.n_future, tuple(opts.strides),
+                                 opts.anchor_every,
+                                 window_cache_dir(ck.manifest["config"]["tokenizer_sha256"], source.train_on.key),
+                                 log=click.echo, frame=opts.frame)
+
+        source = open_training_data(dataset_spec, split, split_option="--split {}")
+        windows = windows_of(source, split)
+        regenerate = (f"pcfbench world-report --method {method} --dataset {dataset_spec} --split {split} "
+                      f"--windows {max_windows}")
         meta = {"method": method, "checkpoint": str(ck.manifest_path),
                 "weights_sha256": ck.sha256, "steps": ck.steps, "trained_on": ck.train_on_label,
-                "windows of": f"{source.train_on.label} (frame {opts.frame})",
-                "regenerate": f"pcfbench world-report --method {method} --dataset {dataset_spec} --split {split} "
-                              f"--windows {max_windows}"}
-        md, csv_path = write_token_report(result, meta, reports_dir(reports) / "copilot4d",
-                                          f"world-tokens-{m.variant.name}-{ck.sha256[:12]}-on-{source.adapter.name}-"
-                                          f"{split}")
-        for r in result["rows"]:
-            sh = shares(r)
-            click.echo(f"stride {r['stride']}, step {r['step']}: changed {sh['changed_share']:.1%}, accuracy on "
-                       f"changed {sh['changed_accuracy']:.1%}, on unchanged {sh['unchanged_accuracy']:.1%}, "
-                       f"moved {sh['moved_share']:.1%} (precision {sh['moved_precision']:.1%})")
-        click.echo(f"wrote {md} and {csv_path}")
+                "windows of": f"{source.train_on.label} (frame {opts.frame})"}
+        out = reports_dir(reports) / "copilot4d"
+        stem = f"{m.variant.name}-{ck.sha256[:12]}-on-{source.adapter.name}-{split}"
+        if forecast:
+            result = world_token_report(m, windows, max_windows=max_windows or None, log=lambda *_: None)
+            md, csv_path = write_token_report(result, {**meta, "regenerate": regenerate}, out, f"world-tokens-{stem}")
+            for r in result["rows"]:
+                sh = shares(r)
+                click.echo(f"stride {r['stride']}, step {r['step']}: changed {sh['changed_share']:.1%}, accuracy on "
+                           f"changed {sh['changed_accuracy']:.1%}, on unchanged {sh['unchanged_accuracy']:.1%}, "
+                           f"moved {sh['moved_share']:.1%} (precision {sh['moved_precision']:.1%})")
+            click.echo(f"wrote {md} and {csv_path}")
+        if objective_draws:
+            trained = open_training_data(train_on or ck.train_on["dataset"], ck.train_on["split"])
+            if trained.adapter.fingerprint(ck.train_on["split"]).digest != ck.train_on["fingerprint"]:
+                raise PcfbenchError(f"checkpoint {ck.manifest_path} was trained on {ck.train_on_label} of fingerprint "
+                                    f"{ck.train_on['fingerprint']}; --train-on {train_on or ck.train_on['dataset']} "
+                                    "has other data: name the data it trained on")
+            train_windows = windows_of(trained, ck.train_on["split"])
+            if len(train_windows["tokens"]) != ck.manifest["config"].get("windows", len(train_windows["tokens"])):
+                raise PcfbenchError(f"checkpoint {ck.manifest_path} trained on {ck.manifest['config']['windows']} "
+                                    f"windows; {method} makes {len(train_windows['tokens'])} of "
+                                    f"{ck.train_on_label}: its window options differ from its training's")
+            sets = {f"trained on: {ck.train_on_label}": train_windows, f"held out: {source.train_on.label}": windows}
+            res = objective_report(m.world, sets, n_past=cfg.n_past, variant=m.variant,
+                                   label_smoothing=cfg.label_smoothing, draws=objective_draws,
+                                   max_windows=max_windows or None, seed=int(opts.seed), log=lambda *_: None)
+            md, csv_path = write_objective_report(
+                res, {**meta, "regenerate": f"{regenerate} --objective-draws {objective_draws} --no-forecast"},
+                out, f"world-objective-{stem}", curve=curve_tail(ck.dir / "curve.csv"))
+            for r in res["rows"]:
+                sh = objective_shares(r)
+                click.echo(f"{r['set']}, {r['objective']}: changed loss {sh['changed_loss']:.2f} "
+                           f"(accuracy {sh['changed_accuracy']:.1%}), unchanged loss {sh['unchanged_loss']:.2f} "
+                           f"(accuracy {sh['unchanged_accuracy']:.1%})")
+            click.echo(f"wrote {md} and {csv_path}")
 
 
 def _world_changes_command(cli):  # noqa: ANN001

@@ -118,3 +118,150 @@ def write_token_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tu
         lines.append(f"| {s} | all | | " + " | ".join(f"**{100 * sh[n]:.1f} %**" for n in names) + " |")
     md.write_text("\n".join(lines) + "\n")
     return md, csv_path
+
+
+# --------------------------------------------------------------------------- the objective held out
+#: the objectives :func:`objective_report` scores: Algorithm 1's mixture as trained, and its
+#: "future" objective alone (past frames clean, every future frame masked at its own rate)
+OBJECTIVE_MODES = ("mixture", "future")
+
+
+def objective_report(model, sets: dict[str, dict[str, np.ndarray]], *, n_past: int, variant,
+                     label_smoothing: float, draws: int, max_windows: int | None = None, batch: int = 4,
+                     seed: int = 0, log=print) -> dict:
+    """The training objective (:func:`~.diffusion.objective_sums`) of ``model`` on each set of
+    windows in ``sets`` (name -> ``build_windows`` output, e.g. the training split's and a
+    held-out one's): ``draws`` corruptions of each of up to ``max_windows`` evenly spaced
+    windows, under each of :data:`OBJECTIVE_MODES`. Every set draws the same random sequence
+    (one generator seeded by ``seed`` per set and mode), so a gap between two sets is the
+    windows', not the draws'. Returns ``{"rows": [{set, objective, windows, draws, **sums}]}``."""
+    import torch
+
+    from pcfbench.methods.copilot4d.diffusion import OBJECTIVE_SUMS, objective_sums
+    from pcfbench.training import autocast
+
+    if draws < 1:
+        raise ValueError(f"draws={draws}: expected at least one corruption per window")
+    dev = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    rows = []
+    try:
+        for name, windows in sets.items():
+            idx = np.arange(len(windows["tokens"]))
+            if max_windows and len(idx) > max_windows:
+                idx = idx[np.unique(np.linspace(0, len(idx) - 1, max_windows).round().astype(int))]
+            for mode in OBJECTIVE_MODES:
+                gen = torch.Generator(dev).manual_seed(seed)
+                tot = dict.fromkeys(OBJECTIVE_SUMS, 0)
+                order = np.tile(idx, draws)
+                for b in range(0, len(order), batch):
+                    pick = order[b: b + batch]
+                    x0 = torch.from_numpy(windows["tokens"][pick].astype(np.int64)).to(dev)
+                    poses = torch.from_numpy(windows["poses"][pick].astype(np.float32)).to(dev)
+                    objective = None if mode == "mixture" else torch.zeros(len(pick), dtype=torch.long)
+                    with autocast(dev):
+                        sums = objective_sums(model, x0, poses, n_past, variant, label_smoothing, gen, objective)
+                    for k, v in sums.items():
+                        tot[k] += v
+                    log(f"{name}, {mode}: {min(b + batch, len(order))}/{len(order)}")
+                rows.append({"set": name, "objective": mode, "windows": len(idx), "draws": draws, **tot})
+    finally:
+        model.train(was_training)
+    return {"rows": rows}
+
+
+def objective_shares(r: dict) -> dict[str, float]:
+    """The ratios of one :func:`objective_report` row (NaN where a denominator is 0)."""
+    div = lambda a, b: a / b if b else float("nan")  # noqa: E731
+    return {"changed_share": div(r["future_changed"], r["future"]),
+            "changed_loss": div(r["changed_ce"], r["changed"]), "changed_accuracy": div(r["changed_hits"], r["changed"]),
+            "unchanged_loss": div(r["unchanged_ce"], r["unchanged"]),
+            "unchanged_accuracy": div(r["unchanged_hits"], r["unchanged"]),
+            "masked_accuracy": div(r["masked_hits"], r["masked"]),
+            **{f"{p}changed_accuracy_r{i}": div(r[f"{p}changed_hits_r{i}"], r[f"{p}changed_r{i}"])
+               for p in ("", "first_") for i in range(len(mask_rate_labels()))}}
+
+
+def mask_rate_labels() -> list[str]:
+    """The bins of a frame's masked share (``MASK_RATE_EDGES``), as the report heads them."""
+    from pcfbench.methods.copilot4d.diffusion import MASK_RATE_EDGES
+
+    edges = [0.0, *MASK_RATE_EDGES, 1.0]
+    return [f"{100 * a:g}-{100 * b:g} %" for a, b in zip(edges[:-1], edges[1:])]
+
+
+def curve_tail(curve_csv: Path, last: int = 100) -> dict[str, float] | None:
+    """Means of the objective's columns over a training curve's last ``last`` steps (None
+    without a curve): the model on the windows it learned from, as it learned."""
+    if not curve_csv.is_file():
+        return None
+    with open(curve_csv, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        return None
+    end = int(rows[-1]["step"])
+    tail = [r for r in rows if int(r["step"]) > end - last]
+    out = {}
+    for k in ("changed_share", "changed_loss", "changed_accuracy", "unchanged_loss", "unchanged_accuracy",
+              "masked_accuracy"):
+        vals = [float(r[k]) for r in tail if r.get(k) not in (None, "", "nan")]
+        out[k] = float(np.mean(vals)) if vals else float("nan")
+    out["steps"] = f"{end - last + 1}-{end}" if end > last else f"1-{end}"
+    return out
+
+
+def write_objective_report(result: dict, meta: dict, out_dir: Path, stem: str,
+                           curve: dict | None = None) -> tuple[Path, Path]:
+    """:func:`objective_report` as CSV (sums and ratios per set and objective) and Markdown,
+    with the training curve's tail (``curve``, from :func:`curve_tail`) as the first row."""
+    from pcfbench.methods.copilot4d.diffusion import OBJECTIVE_SUMS
+    from pcfbench.reporting.escape import md_text
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    csv_path, md = out_dir / f"{stem}.csv", out_dir / f"{stem}.md"
+    names = list(objective_shares(dict.fromkeys(OBJECTIVE_SUMS, 0)))
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["set", "objective", "windows", "draws", *OBJECTIVE_SUMS, *names])
+        for r in result["rows"]:
+            w.writerow([r["set"], r["objective"], r["windows"], r["draws"], *(r[k] for k in OBJECTIVE_SUMS),
+                        *(f"{v:.6g}" for v in objective_shares(r).values())])
+
+    def cells(sh):
+        return (f"{100 * sh['changed_share']:.1f} % | {sh['changed_loss']:.2f} | {100 * sh['changed_accuracy']:.1f} % | "
+                f"{sh['unchanged_loss']:.2f} | {100 * sh['unchanged_accuracy']:.1f} % | "
+                f"{100 * sh['masked_accuracy']:.1f} %")
+
+    lines = [f"# Copilot4D world model: its training objective on the windows it learned from and on held-out "
+             f"ones ({md_text(meta['method'])})", "",
+             "Algorithm 1's loss (cross entropy with label smoothing) and arg-max accuracy on the masked future "
+             "tokens, apart on those that *changed* since the last past frame and those that did not, with the "
+             "trained weights in evaluation mode; every set of windows draws the same corruptions. *mixture*: the "
+             "objectives as trained; *future*: past frames clean, each future frame masked at its own rate. "
+             "A held-out loss well above the training windows' says the model learned its windows rather than "
+             "the world; the two alike, with the curve still falling, say it has not learned enough yet.", "",
+             *(f"- {k}: {md_text(v)}" for k, v in meta.items()), "",
+             "| windows | objective | windows (draws) | changed share | changed loss | changed accuracy | "
+             "unchanged loss | unchanged accuracy | masked accuracy |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    if curve is not None:
+        lines.append(f"| training curve, steps {curve['steps']} | mixture | | {cells(curve)} |")
+    for r in result["rows"]:
+        lines.append(f"| {md_text(r['set'])} | {r['objective']} | {r['windows']} ({r['draws']}) | "
+                     f"{cells(objective_shares(r))} |")
+    labels = mask_rate_labels()
+    lines += ["", "Changed accuracy by the masked share of the token's frame (changed tokens scored), on every "
+              "future frame and on the first alone: Algorithm 2 decides a frame's first tokens with all of it "
+              "masked, and the first future frame's context is the past alone (a later one's, in training, holds "
+              "the true tokens of the future frames before it; in a forecast, the model's own).", "",
+              "| windows | objective | future frames | " + " | ".join(labels) + " |",
+              "|---|---|---|" + "---:|" * len(labels)]
+    for r in result["rows"]:
+        sh = objective_shares(r)
+        for p, which in (("", "all"), ("first_", "first")):
+            lines.append(f"| {md_text(r['set'])} | {r['objective']} | {which} | "
+                         + " | ".join(f"{100 * sh[f'{p}changed_accuracy_r{i}']:.1f} % ({r[f'{p}changed_r{i}']})"
+                                      for i in range(len(labels))) + " |")
+    md.write_text("\n".join(lines) + "\n")
+    return md, csv_path

@@ -63,3 +63,142 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
         assert sh["unchanged_accuracy"] == 1.0
     md, csv_path = write_token_report(res, {"method": "copilot4d|x"}, tmp_path, "r")
     assert "copilot4d\\|x" in md.read_text() and len(csv_path.read_text().splitlines()) == 7
+
+
+# --------------------------------------------------------------------------- the objective held out
+class _LastFrameCopier(torch.nn.Module):
+    """Predicts, everywhere, the input's token of the last past frame (code 0 where it is masked),
+    and records whether it ran in training mode."""
+
+    def __init__(self, V, n_past):
+        super().__init__()
+        self.V, self.n_past, self.mask_token = V, n_past, V
+        self.w = torch.nn.Parameter(torch.zeros(1))
+        self.modes = []
+
+    def forward(self, tokens, poses, mask):
+        self.modes.append(self.training)
+        last = tokens[:, self.n_past - 1: self.n_past].clamp(max=self.V - 1).expand_as(tokens)
+        return torch.nn.functional.one_hot(last, self.V).float() * 10 + self.w
+
+
+def _windows(seed, A=5, P=2, F=2, V=6):
+    rng = np.random.default_rng(seed)
+    tokens = rng.integers(0, V, (A, P + F, 3, 3)).astype(np.int16)
+    keep = rng.random((A, F, 3, 3)) < 0.5  # about half the future keeps the last past frame's token
+    tokens[:, P:] = np.where(keep, tokens[:, P - 1: P], tokens[:, P:])
+    return {"tokens": tokens, "poses": np.broadcast_to(np.eye(4, dtype=np.float32), (A, P + F, 4, 4)).copy(),
+            "stride": np.full(A, 2)}
+
+
+def test_objective_report_counts_by_hand_and_draws_alike_for_every_set():
+    """Under the "future" objective the past is clean, so a copier of the last past frame is right
+    on every unchanged masked future token and on no changed one; the future tokens and the changed
+    ones among them are counted by hand (draws x windows). Each set draws the same corruptions
+    (a set reported alone gives the same row as beside another), the model runs in evaluation
+    mode and is handed back in training mode."""
+    from pcfbench.methods.copilot4d.diffusion import COPILOT4D
+    from pcfbench.methods.copilot4d.token_report import objective_report, objective_shares
+
+    P, V, draws = 2, 6, 3
+    a, b = _windows(0), _windows(1)
+    model = _LastFrameCopier(V, P)
+    kw = dict(n_past=P, variant=COPILOT4D, label_smoothing=0.1, draws=draws, batch=2, log=lambda *_: None)
+    res = objective_report(model, {"a": a, "b": b}, **kw)
+    assert [(r["set"], r["objective"]) for r in res["rows"]] == [("a", "mixture"), ("a", "future"),
+                                                                ("b", "mixture"), ("b", "future")]
+    assert model.training and model.modes and not any(model.modes)
+    for r in res["rows"]:
+        w = a if r["set"] == "a" else b
+        assert r["windows"] == 5 and r["draws"] == draws
+        assert r["future"] == draws * 5 * 2 * 9
+        assert r["future_changed"] == draws * int((w["tokens"][:, P:] != w["tokens"][:, P - 1: P]).sum())
+        assert r["changed"] + r["unchanged"] <= r["masked"] <= r["scored"]
+        if r["objective"] == "future":
+            assert r["changed"] > 0 and r["unchanged"] > 0
+            assert r["changed_hits"] == 0 and r["unchanged_hits"] == r["unchanged"]
+            sh = objective_shares(r)
+            assert sh["changed_accuracy"] == 0.0 and sh["unchanged_accuracy"] == 1.0
+            assert all(r[f"changed_hits_r{i}"] == 0 == r[f"first_changed_hits_r{i}"] for i in range(5))
+            assert sh["changed_loss"] > sh["unchanged_loss"]
+        assert sum(r[f"changed_r{i}"] for i in range(5)) == r["changed"]
+    alone = objective_report(model, {"b": b}, **kw)["rows"]
+    assert alone == res["rows"][2:]
+    twice = objective_report(model, {"a": a, "again": a}, **kw)["rows"]
+    assert [dict(r, set=None) for r in twice[:2]] == [dict(r, set=None) for r in twice[2:]]
+    few = objective_report(model, {"a": a}, **{**kw, "draws": 1}, max_windows=2)["rows"]
+    assert few[0]["windows"] == 2 and few[0]["future"] == 2 * 2 * 9
+    with pytest.raises(ValueError, match="draws=0"):
+        objective_report(model, {"a": a}, **{**kw, "draws": 0})
+
+
+def test_objective_sums_are_the_training_losss_measurements():
+    """The same corruption (one seed) measured by training_loss (ratios) and objective_sums
+    (sums and counts) gives the same figures."""
+    from pcfbench.methods.copilot4d import diffusion as D
+    from pcfbench.methods.copilot4d.token_report import objective_shares
+
+    w = _windows(2)
+    x0 = torch.from_numpy(w["tokens"].astype(np.int64))
+    poses = torch.from_numpy(w["poses"])
+    model = _LastFrameCopier(6, 2)
+    for seed in range(4):
+        _, stats = D.training_loss(model, x0, poses, 2, generator=torch.Generator().manual_seed(seed))
+        sums = D.objective_sums(model, x0, poses, 2, generator=torch.Generator().manual_seed(seed))
+        assert set(sums) == set(D.OBJECTIVE_SUMS)
+        sh = objective_shares(sums)
+        for k in ("changed_share", "changed_loss", "changed_accuracy", "unchanged_loss", "unchanged_accuracy",
+                  "masked_accuracy"):
+            assert sh[k] == pytest.approx(stats[k], rel=1e-6, nan_ok=True), k
+        assert sums["hits"] / sums["scored"] == pytest.approx(stats["accuracy"])
+        # the changed tokens by their frame's masked share, counted token by token
+        c = D.corrupt(x0, 2, 6, D.COPILOT4D, torch.Generator().manual_seed(seed))
+        edges = (0.5, 0.8, 0.95, 0.99)
+        counts, first = [0] * 5, [0] * 5
+        for b in range(x0.shape[0]):
+            for t in range(2, x0.shape[1]):
+                rate = float(c.masked[b, t].float().mean())
+                i = sum(rate >= e for e in edges)
+                for y in range(3):
+                    for x in range(3):
+                        if c.masked[b, t, y, x] and x0[b, t, y, x] != x0[b, 1, y, x]:
+                            counts[i] += 1
+                            first[i] += t == 2
+        assert [sums[f"changed_r{i}"] for i in range(5)] == counts
+        assert [sums[f"first_changed_r{i}"] for i in range(5)] == first and 0 < sum(first) < sum(counts)
+
+
+def test_curve_tail_and_the_written_objective_report(tmp_path):
+    from pcfbench.methods.copilot4d.diffusion import OBJECTIVE_SUMS
+    from pcfbench.methods.copilot4d.token_report import curve_tail, write_objective_report
+
+    cols = ("changed_share", "changed_loss", "changed_accuracy", "unchanged_loss", "unchanged_accuracy",
+            "masked_accuracy")
+    lines = ["step," + ",".join(cols)]
+    for step in range(10, 301, 10):  # the last 100 steps: 210 .. 300, values 21 .. 30
+        lines.append(f"{step}," + ",".join(str(step / 10) for _ in cols))
+    (tmp_path / "curve.csv").write_text("\n".join(lines) + "\n")
+    tail = curve_tail(tmp_path / "curve.csv")
+    assert tail["steps"] == "201-300" and tail["changed_loss"] == pytest.approx(25.5)
+    assert curve_tail(tmp_path / "missing.csv") is None
+    row = dict.fromkeys(OBJECTIVE_SUMS, 0) | {"set": "held out: x|y", "objective": "future", "windows": 3, "draws": 2,
+                                              "future": 10, "future_changed": 4, "changed": 4, "changed_hits": 1,
+                                              "changed_ce": 8.0, "unchanged": 5, "unchanged_hits": 5,
+                                              "unchanged_ce": 1.0, "masked": 9, "masked_hits": 6,
+                                              "changed_r0": 4, "changed_hits_r0": 1}
+    md, csv_path = write_objective_report({"rows": [row]}, {"method": "copilot4d"}, tmp_path, "o", curve=tail)
+    text = md.read_text()
+    assert "| training curve, steps 201-300 | mixture | | 2550.0 % | 25.50 |" in text
+    assert "| held out: x\\|y | future | 3 (2) | 40.0 % | 2.00 | 25.0 % | 0.20 | 100.0 % | 66.7 % |" in text
+    assert "| held out: x\\|y | future | all | 25.0 % (4) | nan % (0) | nan % (0) | nan % (0) | nan % (0) |" in text
+    assert "| held out: x\\|y | future | first | nan % (0) | nan % (0) | nan % (0) | nan % (0) | nan % (0) |" in text
+    assert len(csv_path.read_text().splitlines()) == 2
+
+
+def test_world_report_refuses_to_report_nothing():
+    from click.testing import CliRunner
+
+    from pcfbench.cli import build_cli
+
+    r = CliRunner().invoke(build_cli(), ["world-report", "--dataset", "synthetic-town", "--no-forecast"])
+    assert r.exit_code != 0 and "nothing to report" in r.output
