@@ -233,7 +233,9 @@ def _world_report_command(cli):  # noqa: ANN001
         stem = f"{m.variant.name}-{ck.sha256[:12]}-on-{source.adapter.name}-{split}"
         if forecast:
             result = world_token_report(m, windows, max_windows=max_windows or None, log=lambda *_: None)
-            md, csv_path = write_token_report(result, {**meta, "regenerate": regenerate}, out, f"world-tokens-{stem}")
+            sampled = f"{m.variant.name}-{ck.sha256[:12]}{_inference_suffix(m)}-on-{source.adapter.name}-{split}"
+            md, csv_path = write_token_report(result, {**meta, "regenerate": regenerate}, out,
+                                              f"world-tokens-{sampled}")
             for r in result["rows"]:
                 sh = shares(r)
                 click.echo(f"stride {r['stride']}, step {r['step']}: changed {sh['changed_share']:.1%}, accuracy on "
@@ -264,6 +266,15 @@ def _world_report_command(cli):  # noqa: ANN001
                            f"(accuracy {sh['changed_accuracy']:.1%}), unchanged loss {sh['unchanged_loss']:.2f} "
                            f"(accuracy {sh['unchanged_accuracy']:.1%})")
             click.echo(f"wrote {md} and {csv_path}")
+
+
+def _inference_suffix(method) -> str:
+    """``-name=value`` for each inference option of ``method`` away from its default (sorted):
+    what tells apart two reports of one checkpoint sampled differently."""
+    defaults = type(method.options)()
+    changed = sorted(f"{n}={getattr(method.options, n)}" for n in method.inference_options
+                     if getattr(method.options, n) != getattr(defaults, n))
+    return "".join(f"-{c}" for c in changed)
 
 
 def _world_changes_command(cli):  # noqa: ANN001
@@ -302,7 +313,8 @@ def _world_changes_command(cli):  # noqa: ANN001
                 "regenerate": f"pcfbench world-changes --method {method} --dataset {dataset_spec} --split {split} "
                               f"--setting {setting} --samples {max_samples} --shares {shares}"}
         md, csv_path = write_changes(res, meta, reports_dir(reports) / "copilot4d",
-                                     f"world-changes-{m.variant.name}-{ck.sha256[:12]}-on-{adapter.name}-{split}-"
+                                     f"world-changes-{m.variant.name}-{ck.sha256[:12]}{_inference_suffix(m)}-on-"
+                                     f"{adapter.name}-{split}-"
                                      f"{setting}")
         ref = res["means"][COPY]
         for name in (FORECAST, HITS):

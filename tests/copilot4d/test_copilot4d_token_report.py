@@ -202,3 +202,16 @@ def test_world_report_refuses_to_report_nothing():
 
     r = CliRunner().invoke(build_cli(), ["world-report", "--dataset", "synthetic-town", "--no-forecast"])
     assert r.exit_code != 0 and "nothing to report" in r.output
+
+
+def test_reports_of_one_checkpoint_sampled_differently_have_their_own_names():
+    """world-report and world-changes name their files by the checkpoint and by the inference
+    options away from their defaults, so two samplings of one checkpoint do not overwrite each other."""
+    from pcfbench.method import resolve_method
+    from pcfbench.methods.copilot4d.plugin import _inference_suffix
+
+    def suffix(spec):
+        return _inference_suffix(resolve_method(spec).create())
+
+    assert suffix("copilot4d:config=tiny-window,steps=800,sampling_steps=10") == ""  # training options, a default
+    assert suffix("copilot4d:top_k=1,cfg_weight=0,sampling_steps=1") == "-cfg_weight=0.0-sampling_steps=1-top_k=1"
