@@ -426,6 +426,33 @@ def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, mon
         _train(spec, kitti)
 
 
+def test_world_report_scores_the_objective_on_trained_and_held_out_windows(micro, kitti, tmp_path):
+    """`pcfbench world-report --objective-draws` on a trained micro model: the report holds the
+    training curve's tail and both sets of windows; windows made with other window options than
+    the training's (another count than the manifest's) are refused by name."""
+    from pcfbench.cli import build_cli
+
+    _tokenizer(kitti)
+    spec = f"copilot4d:{MICRO_TRAIN},steps=2"
+    ck = _train(spec, kitti)
+    args = ["world-report", "--method", spec, "--train-on", f"kitti={kitti}", "--dataset", f"kitti={kitti}",
+            "--split", "test", "--windows", "2", "--objective-draws", "1", "--no-forecast",
+            "--reports", str(tmp_path / "rep")]
+    r = CliRunner().invoke(build_cli(), args)
+    assert r.exit_code == 0, r.output
+    md = tmp_path / "rep" / "copilot4d" / f"world-objective-copilot4d-{ck.sha256[:12]}-on-kitti-test.md"
+    text = md.read_text()
+    assert "| training curve, steps 1-2 | mixture |" in text
+    assert "| trained on: kitti:train | future | 2 (1) |" in text and "| held out: kitti:test | future |" in text
+    assert not list((tmp_path / "rep" / "copilot4d").glob("world-tokens-*"))  # --no-forecast
+    # the checkpoint's manifest says how many windows it trained on; a spec that makes others is refused
+    manifest = json.loads(ck.manifest_path.read_text())
+    manifest["config"]["windows"] += 1
+    ck.manifest_path.write_text(json.dumps(manifest))
+    r = CliRunner().invoke(build_cli(), args)
+    assert r.exit_code != 0 and "window options differ from its training's" in r.output
+
+
 def test_inference_options_reuse_the_trained_weights(micro, kitti):
     """copilot4d:cfg_weight=0 trains nothing new: its checkpoint is the one of the same
     training options (which embeds its tokenizer: the tokenizer's own checkpoint is not needed
