@@ -179,41 +179,48 @@ def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor
     Measuring them draws no random number and changes no gradient. ``objective``: as
     :func:`corrupt`'s (None: each sequence draws one from the mixture)."""
     loss, sums = _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective)
-    div = lambda a, b: a / b if b else float("nan")  # noqa: E731
-    stats = {"loss": float(loss.detach()), "accuracy": div(sums["hits"], sums["scored"]),
-             "masked_accuracy": div(sums["masked_hits"], sums["masked"]),
-             "changed_share": div(sums["future_changed"], sums["future"])}
-    for name in ("changed", "unchanged"):
-        stats[f"{name}_loss"] = div(sums[f"{name}_ce"], sums[name])
-        stats[f"{name}_accuracy"] = div(sums[f"{name}_hits"], sums[name])
-    return loss, stats
+    return loss, {"loss": float(loss.detach()), **objective_ratios(sums)}
 
 
-#: what :func:`objective_sums` adds up over a batch: counts of tokens, hits (arg max right) and
-#: summed cross entropies; ``changed``/``unchanged``: masked future tokens that differ / do not
-#: differ from the last past frame's token at their place
 #: the upper edges of the bins of a frame's masked share (the last bin ends at 1) in which
 #: ``changed_r<i>``/``changed_hits_r<i>`` count the changed tokens and the right ones: how the
 #: model does on what changed when little of its frame is visible, as Algorithm 2's first steps see
 #: it; ``first_*`` the same on the first future frame alone (whose context, under the "future"
 #: objective, is the clean past: the later ones see the true tokens of the future frames before them)
 MASK_RATE_EDGES = (0.5, 0.8, 0.95, 0.99)
+#: what :func:`objective_sums` adds up over a batch: counts of tokens, hits (arg max right) and
+#: summed cross entropies; ``changed``/``unchanged``: masked future tokens that differ / do not
+#: differ from the last past frame's token at their place; then the mask-rate bins
 OBJECTIVE_SUMS = ("scored", "hits", "masked", "masked_hits", "future", "future_changed",
                   "changed", "changed_hits", "changed_ce", "unchanged", "unchanged_hits", "unchanged_ce",
                   *(f"{k}_r{i}" for i in range(len(MASK_RATE_EDGES) + 1) for k in ("changed", "changed_hits")),
                   *(f"first_{k}_r{i}" for i in range(len(MASK_RATE_EDGES) + 1) for k in ("changed", "changed_hits")))
 
 
+def objective_ratios(sums: dict) -> dict[str, float]:
+    """:func:`training_loss`'s measurements (less the loss) from sums and counts (NaN where a
+    denominator is 0)."""
+    div = lambda a, b: a / b if b else float("nan")  # noqa: E731
+    stats = {"accuracy": div(sums["hits"], sums["scored"]), "masked_accuracy": div(sums["masked_hits"], sums["masked"]),
+             "changed_share": div(sums["future_changed"], sums["future"])}
+    for name in ("changed", "unchanged"):
+        stats[f"{name}_loss"] = div(sums[f"{name}_ce"], sums[name])
+        stats[f"{name}_accuracy"] = div(sums[f"{name}_hits"], sums[name])
+    return stats
+
+
 @torch.no_grad()
 def objective_sums(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor, n_past: int,
                    variant: Variant = COPILOT4D, label_smoothing: float = 0.1,
                    generator: torch.Generator | None = None, objective: torch.Tensor | None = None) -> dict:
-    """:func:`training_loss`'s measurements as sums and counts (:data:`OBJECTIVE_SUMS`), so that
-    batches add up exactly: the training objective on windows the model did not learn from."""
-    return _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective)[1]
+    """:func:`training_loss`'s measurements as sums and counts (:data:`OBJECTIVE_SUMS`, the
+    mask-rate bins included), so that batches add up exactly: the training objective on windows
+    the model did not learn from."""
+    return _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective,
+                          bins=True)[1]
 
 
-def _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective):
+def _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective, bins=False):
     c = corrupt(x0, n_past, model.mask_token, variant, generator, objective)
     logits = model(c.tokens, T_ref_sensor, c.temporal_mask)
     sel = c.loss_mask
@@ -234,6 +241,8 @@ def _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, ge
             on = on_masked & future[sel] & which
             sums[name], sums[f"{name}_hits"] = int(on.sum()), int(hit[on].sum())
             sums[f"{name}_ce"] = float(ce[on].double().sum())
+        if not bins:  # a training step does not need them
+            return loss, sums
         rate = c.masked.flatten(2).float().mean(-1)  # (B, T): each frame's masked share
         rate_bin = torch.bucketize(rate, torch.tensor(MASK_RATE_EDGES, device=rate.device), right=True)
         rate_bin = rate_bin[..., None, None].expand_as(changed)[sel]

@@ -189,7 +189,8 @@ def _world_report_command(cli):  # noqa: ANN001
     @click.option("--dataset", "dataset_spec", required=True, help="NAME or NAME=ROOT of the held-out windows")
     @click.option("--split", default="test", show_default=True)
     @click.option("--windows", "max_windows", type=int, default=12, show_default=True,
-                  help="Evenly spaced windows per stride (0: all).")
+                  help="Evenly spaced windows per stride for the forecast, per set of windows for the "
+                       "objective (0: all).")
     @click.option("--objective-draws", type=click.IntRange(min=0), default=0, show_default=True,
                   help="Also score the training objective (loss and accuracy on changed and unchanged tokens) "
                        "on this many corruptions of each held-out window and of as many of the windows the "
@@ -248,6 +249,9 @@ def _world_report_command(cli):  # noqa: ANN001
                 raise PcfbenchError(f"checkpoint {ck.manifest_path} was trained on {ck.train_on_label} of fingerprint "
                                     f"{ck.train_on['fingerprint']}; --train-on {train_on or ck.train_on['dataset']} "
                                     "has other data: name the data it trained on")
+            if trained.train_on.key == source.train_on.key:
+                raise PcfbenchError(f"--dataset {dataset_spec} --split {split} is the data {ck.manifest_path} trained "
+                                    "on: the objective needs held-out windows (another split or dataset)")
             train_windows = windows_of(trained, ck.train_on["split"])
             if len(train_windows["tokens"]) != ck.manifest["config"].get("windows", len(train_windows["tokens"])):
                 raise PcfbenchError(f"checkpoint {ck.manifest_path} trained on {ck.manifest['config']['windows']} "
@@ -257,9 +261,10 @@ def _world_report_command(cli):  # noqa: ANN001
             res = objective_report(m.world, sets, n_past=cfg.n_past, variant=m.variant,
                                    label_smoothing=cfg.label_smoothing, draws=objective_draws,
                                    max_windows=max_windows or None, seed=int(opts.seed), log=lambda *_: None)
+            went_on_from = ck.manifest["config"].get("init_from", {}).get("steps", 0)  # init_steps: its curve starts there
             md, csv_path = write_objective_report(
                 res, {**meta, "regenerate": f"{regenerate} --objective-draws {objective_draws} --no-forecast"},
-                out, f"world-objective-{stem}", curve=curve_tail(ck.dir / "curve.csv"))
+                out, f"world-objective-{stem}", curve=curve_tail(ck.dir / "curve.csv", first_step=went_on_from))
             for r in res["rows"]:
                 sh = objective_shares(r)
                 click.echo(f"{r['set']}, {r['objective']}: changed loss {sh['changed_loss']:.2f} "

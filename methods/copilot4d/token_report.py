@@ -173,14 +173,18 @@ def objective_report(model, sets: dict[str, dict[str, np.ndarray]], *, n_past: i
 
 def objective_shares(r: dict) -> dict[str, float]:
     """The ratios of one :func:`objective_report` row (NaN where a denominator is 0)."""
+    from pcfbench.methods.copilot4d.diffusion import objective_ratios
+
+    ratios = objective_ratios(r)
     div = lambda a, b: a / b if b else float("nan")  # noqa: E731
-    return {"changed_share": div(r["future_changed"], r["future"]),
-            "changed_loss": div(r["changed_ce"], r["changed"]), "changed_accuracy": div(r["changed_hits"], r["changed"]),
-            "unchanged_loss": div(r["unchanged_ce"], r["unchanged"]),
-            "unchanged_accuracy": div(r["unchanged_hits"], r["unchanged"]),
-            "masked_accuracy": div(r["masked_hits"], r["masked"]),
+    return {**{k: ratios[k] for k in CURVE_COLUMNS},
             **{f"{p}changed_accuracy_r{i}": div(r[f"{p}changed_hits_r{i}"], r[f"{p}changed_r{i}"])
                for p in ("", "first_") for i in range(len(mask_rate_labels()))}}
+
+
+#: the objective's ratios the training curve logs too (:func:`curve_tail` averages them)
+CURVE_COLUMNS = ("changed_share", "changed_loss", "changed_accuracy", "unchanged_loss", "unchanged_accuracy",
+                 "masked_accuracy")
 
 
 def mask_rate_labels() -> list[str]:
@@ -191,9 +195,11 @@ def mask_rate_labels() -> list[str]:
     return [f"{100 * a:g}-{100 * b:g} %" for a, b in zip(edges[:-1], edges[1:])]
 
 
-def curve_tail(curve_csv: Path, last: int = 100) -> dict[str, float] | None:
+def curve_tail(curve_csv: Path, last: int = 100, first_step: int = 0) -> dict[str, float] | None:
     """Means of the objective's columns over a training curve's last ``last`` steps (None
-    without a curve): the model on the windows it learned from, as it learned."""
+    without a curve): the model on the windows it learned from, as it learned. ``first_step``:
+    the steps its weights had when this curve began (a training that went on from another's),
+    added to the steps the result names."""
     if not curve_csv.is_file():
         return None
     with open(curve_csv, newline="") as fh:
@@ -203,11 +209,10 @@ def curve_tail(curve_csv: Path, last: int = 100) -> dict[str, float] | None:
     end = int(rows[-1]["step"])
     tail = [r for r in rows if int(r["step"]) > end - last]
     out = {}
-    for k in ("changed_share", "changed_loss", "changed_accuracy", "unchanged_loss", "unchanged_accuracy",
-              "masked_accuracy"):
+    for k in CURVE_COLUMNS:
         vals = [float(r[k]) for r in tail if r.get(k) not in (None, "", "nan")]
         out[k] = float(np.mean(vals)) if vals else float("nan")
-    out["steps"] = f"{end - last + 1}-{end}" if end > last else f"1-{end}"
+    out["steps"] = f"{first_step + max(end - last, 0) + 1}-{first_step + end}"
     return out
 
 

@@ -445,6 +445,10 @@ def test_world_report_scores_the_objective_on_trained_and_held_out_windows(micro
     assert "| training curve, steps 1-2 | mixture |" in text
     assert "| trained on: kitti:train | future | 2 (1) |" in text and "| held out: kitti:test | future |" in text
     assert not list((tmp_path / "rep" / "copilot4d").glob("world-tokens-*"))  # --no-forecast
+    # the windows it trained on are not held out
+    same = [a if a != "test" else "train" for a in args]
+    r = CliRunner().invoke(build_cli(), same)
+    assert r.exit_code != 0 and "is the data" in r.output and "held-out windows" in r.output
     # the checkpoint's manifest says how many windows it trained on; a spec that makes others is refused
     manifest = json.loads(ck.manifest_path.read_text())
     manifest["config"]["windows"] += 1

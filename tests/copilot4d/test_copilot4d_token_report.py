@@ -181,6 +181,8 @@ def test_curve_tail_and_the_written_objective_report(tmp_path):
     tail = curve_tail(tmp_path / "curve.csv")
     assert tail["steps"] == "201-300" and tail["changed_loss"] == pytest.approx(25.5)
     assert curve_tail(tmp_path / "missing.csv") is None
+    # a training that went on from an 800-step one: its curve's steps 201-300 are steps 1001-1100
+    assert curve_tail(tmp_path / "curve.csv", first_step=800)["steps"] == "1001-1100"
     row = dict.fromkeys(OBJECTIVE_SUMS, 0) | {"set": "held out: x|y", "objective": "future", "windows": 3, "draws": 2,
                                               "future": 10, "future_changed": 4, "changed": 4, "changed_hits": 1,
                                               "changed_ce": 8.0, "unchanged": 5, "unchanged_hits": 5,
