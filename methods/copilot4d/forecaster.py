@@ -69,9 +69,10 @@ class WorldOptions(RenderingOptions):
     anchor_every: int = option(2, help="training windows: every n-th t=0 sweep of the split", min=1)
     frame: str = option("t0", help="the frame every sweep of a window is tokenized in: t0 (moved into the t=0 "
                                    "sensor frame) or own (its own sensor frame; the poses say where it is)")
-    init_steps: int = option(0, help="train on from the complete checkpoint of these options with steps=init_steps "
-                                     "(its weights; a new optimiser, warm-up and cosine decay over steps); 0: "
-                                     "from random weights", min=0, quiet_default=True)
+    init_steps: int | tuple[int, ...] = option(
+        0, help="train on from the complete checkpoint of these options with steps=init_steps (its weights; a new "
+                "optimiser, warm-up and cosine decay over steps); 0: from random weights; a chain a/b/c: from the "
+                "training with steps=c that went on from init_steps=a/b", min=0, quiet_default=True)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -79,6 +80,16 @@ class WorldOptions(RenderingOptions):
 
         if self.frame not in CEILING_FRAMES:
             raise PcfbenchError(f"frame={self.frame!r}: expected one of {', '.join(CEILING_FRAMES)}")
+        if isinstance(self.init_steps, tuple) and (len(self.init_steps) < 2 or 0 in self.init_steps):
+            raise PcfbenchError(f"init_steps={'/'.join(map(str, self.init_steps))}: expected one number of steps "
+                                "or a chain of two or more, none of them 0")
+
+    @property
+    def init_chain(self) -> tuple[int, ...]:
+        """The steps of the trainings this one goes on from, first to last (() from random weights)."""
+        if isinstance(self.init_steps, tuple):
+            return self.init_steps
+        return (self.init_steps,) if self.init_steps else ()
 
 
 def sample_seed(sample_id: str, seed: int) -> int:
@@ -328,8 +339,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         }
         start = self.start_checkpoint(train_source, out_dir, tok_ck)
         if start is not None:
-            progress.log(f"starting from {start.dir} ({start.steps} steps, sha256 {start.sha256[:12]})")
-            started = {"init_from": {"steps": start.steps, "weights_sha256": start.sha256,
+            progress.log(f"starting from {start.dir} ({sum(self.options.init_chain)} steps, "
+                         f"sha256 {start.sha256[:12]})")
+            started = {"init_from": {"steps": sum(self.options.init_chain), "weights_sha256": start.sha256,
                                      "checkpoint": str(start.manifest_path)}}
             build = lambda: load_network(WorldModel(cfg), start, start.load_weights(), "world.",  # noqa: E731
                                          "world model").to(device)
@@ -345,15 +357,18 @@ class Copilot4D(OnTokenizer, TrainedMethod):
 
     def start_spec(self):
         """The spec whose complete checkpoint a training with ``init_steps`` goes on from: these
-        options with ``steps=init_steps`` and no ``init_steps`` (None without ``init_steps``)."""
+        options with ``steps=init_steps`` and no ``init_steps``, or for a chain ``a/b/c`` with
+        ``steps=c`` and ``init_steps=a/b`` (None without ``init_steps``)."""
         from dataclasses import asdict, replace
 
         from pcfbench.method import MethodSpec
         from pcfbench.options import options_hash
 
-        if not self.options.init_steps:
+        chain = self.options.init_chain
+        if not chain:
             return None
-        opts = replace(self.options, steps=self.options.init_steps, init_steps=0)
+        before = chain[:-1]
+        opts = replace(self.options, steps=chain[-1], init_steps=(before if len(before) > 1 else sum(before)))
         defaults = type(self.options)()
         raw = {k: "/".join(map(str, v)) if isinstance(v, tuple) else str(v)
                for k, v in asdict(opts).items() if v != getattr(defaults, k)}
@@ -373,8 +388,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             return None
         ck = find_checkpoint(spec, train_source.train_on)
         if ck is None or not ck.manifest.get("complete"):
-            raise PcfbenchError(f"{self.name} with init_steps={self.options.init_steps} goes on from a complete "
-                                f"training of {self.options.init_steps} steps: "
+            chain = self.options.init_chain
+            raise PcfbenchError(f"{self.name} with init_steps={'/'.join(map(str, chain))} goes on from a complete "
+                                f"training of {sum(chain)} steps: "
                                 + missing_checkpoint_message(spec, train_source.train_on))
         if ck.manifest["config"].get("tokenizer_sha256") != tok_ck.sha256:
             raise PcfbenchError(f"checkpoint {ck.manifest_path} was trained on tokenizer weights "

@@ -391,7 +391,8 @@ def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, mon
     """copilot4d:init_steps=N trains from the complete checkpoint of the same options with
     steps=N: a missing one is one error naming its train command; the weights it starts from are
     that checkpoint's, recorded in its manifest; a resumed training whose start changed since is
-    refused; init_steps=0 is the options (and checkpoint) of before."""
+    refused; init_steps=0 is the options (and checkpoint) of before; a chain a/b goes on from the
+    training with steps=b that went on from a."""
     from pcfbench.methods.copilot4d import forecaster
 
     _tokenizer(kitti)
@@ -418,6 +419,22 @@ def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, mon
     assert ck.dir != start.dir and ck.steps == 2 and ck.manifest["complete"]
     assert ck.manifest["config"]["init_from"] == {"steps": 1, "weights_sha256": start.sha256,
                                                   "checkpoint": str(start.manifest_path)}
+    # a chain: init_steps=1/2 goes on from the 2 steps that went on from 1 (3 in all)
+    assert resolve_method(f"copilot4d:{MICRO_TRAIN},steps=1,init_steps=1/2").create().start_spec().options_hash \
+        == resolve_method(spec).options_hash
+    with pytest.raises(PcfbenchError, match=r"init_steps=2/1 goes on from a complete training of 3 steps: "
+                                            r".*pcfbench train copilot4d:.*init_steps=2,steps=1"):
+        _train(f"copilot4d:{MICRO_TRAIN},steps=1,init_steps=2/1", kitti)
+    built.clear()
+    chained = _train(f"copilot4d:{MICRO_TRAIN},steps=1,init_steps=1/2", kitti)
+    w = ck.load_weights()
+    for k, v in built.items():
+        assert torch.equal(v, w[f"world.{k}"]), k
+    assert chained.manifest["config"]["init_from"] == {"steps": 3, "weights_sha256": ck.sha256,
+                                                       "checkpoint": str(ck.manifest_path)}
+    for bad in ("1/", "1/0"):
+        with pytest.raises(PcfbenchError, match="a chain of two or more, none of them 0"):
+            resolve_method(f"copilot4d:{MICRO_TRAIN},init_steps={bad}")
     manifest = dict(ck.manifest, complete=False)
     manifest["config"] = dict(manifest["config"], init_from=dict(manifest["config"]["init_from"],
                                                                  weights_sha256="0" * 64))
