@@ -117,7 +117,8 @@ WIDE = replace(PAPER, name="wide", codebook_size=TINY_TOKENIZER.codebook_size, t
 # their t=0 frame; issue 42's candidate (a)): the frame t0's ceiling on it beats its token copy
 # (docs/copilot4d.md, "The ceiling of each frame"). Trained 800 steps (anchor_every=1) it is its token
 # copy to within a few percent; 600 steps more (init_steps=800) it beats it at kitti-3s, not at
-# kitti-1s, its curve still falling (docs/copilot4d.md, "Held out against trained").
+# kitti-1s, its curve still falling (docs/copilot4d.md, "Held out against trained"); 1,000 more
+# (init_steps=800/600) its objective improves and its forecast does not ("1,000 steps more").
 TINY_WINDOW = replace(TINY, name="tiny-window")
 
 # ``tiny`` on the ``tiny-views`` tokenizer (``tiny-window`` whose two views of a window are pulled to
