@@ -81,7 +81,8 @@ class WorldOptions(RenderingOptions):
         if self.frame not in CEILING_FRAMES:
             raise PcfbenchError(f"frame={self.frame!r}: expected one of {', '.join(CEILING_FRAMES)}")
         if isinstance(self.init_steps, tuple) and (len(self.init_steps) < 2 or 0 in self.init_steps):
-            raise PcfbenchError(f"init_steps={'/'.join(map(str, self.init_steps))}: expected one number of steps "
+            shown = "/".join(map(str, self.init_steps)) + ("/" if len(self.init_steps) == 1 else "")
+            raise PcfbenchError(f"init_steps={shown}: expected one number of steps "
                                 "or a chain of two or more, none of them 0")
 
     @property
@@ -339,9 +340,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         }
         start = self.start_checkpoint(train_source, out_dir, tok_ck)
         if start is not None:
-            progress.log(f"starting from {start.dir} ({sum(self.options.init_chain)} steps, "
-                         f"sha256 {start.sha256[:12]})")
-            started = {"init_from": {"steps": sum(self.options.init_chain), "weights_sha256": start.sha256,
+            before = start.steps + start.manifest["config"].get("init_from", {}).get("steps", 0)  # its own start's
+            progress.log(f"starting from {start.dir} ({before} steps, sha256 {start.sha256[:12]})")
+            started = {"init_from": {"steps": before, "weights_sha256": start.sha256,
                                      "checkpoint": str(start.manifest_path)}}
             build = lambda: load_network(WorldModel(cfg), start, start.load_weights(), "world.",  # noqa: E731
                                          "world model").to(device)

@@ -433,7 +433,7 @@ def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, mon
     assert chained.manifest["config"]["init_from"] == {"steps": 3, "weights_sha256": ck.sha256,
                                                        "checkpoint": str(ck.manifest_path)}
     for bad in ("1/", "1/0"):
-        with pytest.raises(PcfbenchError, match="a chain of two or more, none of them 0"):
+        with pytest.raises(PcfbenchError, match=f"init_steps={bad}: .*a chain of two or more, none of them 0"):
             resolve_method(f"copilot4d:{MICRO_TRAIN},init_steps={bad}")
     manifest = dict(ck.manifest, complete=False)
     manifest["config"] = dict(manifest["config"], init_from=dict(manifest["config"]["init_from"],
