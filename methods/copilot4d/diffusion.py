@@ -168,7 +168,7 @@ def corrupt(x0: torch.Tensor, n_past: int, codebook_size: int, variant: Variant 
 def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor, n_past: int,
                   variant: Variant = COPILOT4D, label_smoothing: float = 0.1,
                   generator: torch.Generator | None = None, objective: torch.Tensor | None = None,
-                  ) -> tuple[torch.Tensor, dict]:
+                  extra=None) -> tuple[torch.Tensor, dict]:
     """Algorithm 1 line 8: cross entropy (label smoothing) of the clean tokens given the
     corrupted sequence, averaged over the scored tokens of the batch. Returns the loss and
     {"loss", "accuracy" (argmax on scored tokens), "masked_accuracy"} as floats, and apart for
@@ -177,9 +177,19 @@ def training_loss(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tensor
     argmax accuracy (``*_accuracy``), with the share of changed tokens among the future's
     ("changed_share"): a model that only copies scores well on the unchanged ones alone.
     Measuring them draws no random number and changes no gradient. ``objective``: as
-    :func:`corrupt`'s (None: each sequence draws one from the mixture)."""
-    loss, sums = _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective)
-    return loss, {"loss": float(loss.detach()), **objective_ratios(sums)}
+    :func:`corrupt`'s (None: each sequence draws one from the mixture). ``extra(logits,
+    targets, masked)``: a term added to the loss (the render stage's,
+    :class:`~pcfbench.methods.copilot4d.render_stage.RenderTerm`), returning it and its own
+    measurements; "loss" stays the cross entropy."""
+    seen = {}
+    loss, sums = _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective,
+                                keep=seen if extra is not None else None)
+    stats = {"loss": float(loss.detach()), **objective_ratios(sums)}
+    if extra is not None:
+        term, more = extra(seen["logits"], seen["corruption"].targets, seen["corruption"].masked)
+        loss = loss + term
+        stats.update(more)
+    return loss, stats
 
 
 #: the upper edges of the bins of a frame's masked share (the last bin ends at 1) in which
@@ -220,20 +230,45 @@ def objective_sums(model: nn.Module, x0: torch.Tensor, T_ref_sensor: torch.Tenso
                           bins=True)[1]
 
 
-def _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective, bins=False):
+def _cross_entropy(logits: torch.Tensor, target: torch.Tensor, smoothing, reduction: str = "mean") -> torch.Tensor:
+    """Cross entropy of ``logits`` (n, |V|) against ``target`` (n,) under label smoothing
+    ``smoothing``: a float (PyTorch's, towards the uniform distribution), or a (|V|, |V|) tensor
+    whose row v is the target distribution of true code v (:func:`neighbour_targets`)."""
+    if not isinstance(smoothing, torch.Tensor):
+        return F.cross_entropy(logits, target, label_smoothing=smoothing, reduction=reduction)
+    out = -(smoothing[target] * logits.log_softmax(-1)).sum(-1)
+    return out.mean() if reduction == "mean" else out
+
+
+def neighbour_targets(codebook: torch.Tensor, k: int, share: float, label_smoothing: float) -> torch.Tensor:
+    """(|V|, |V|) target distributions (not the paper's): true code v keeps 1 - ``share`` of its
+    mass, its ``k`` nearest codes (Euclidean, in the codebook) share ``share`` equally, and
+    ``label_smoothing`` of the whole is spread uniformly, as ``F.cross_entropy`` spreads it."""
+    V = codebook.shape[0]
+    d = torch.cdist(codebook.detach().float(), codebook.detach().float())
+    d.fill_diagonal_(float("inf"))
+    q = torch.eye(V) * (1.0 - share)
+    q.scatter_(1, d.topk(k, dim=1, largest=False).indices.cpu(), share / k)
+    return q * (1.0 - label_smoothing) + label_smoothing / V
+
+
+def _loss_and_sums(model, x0, T_ref_sensor, n_past, variant, label_smoothing, generator, objective, bins=False,
+                   keep: dict | None = None):
     c = corrupt(x0, n_past, model.mask_token, variant, generator, objective)
     logits = model(c.tokens, T_ref_sensor, c.temporal_mask)
+    if keep is not None:  # the caller's extra term needs them
+        keep.update(logits=logits, corruption=c)
     sel = c.loss_mask
     picked = logits[sel].float()
     target = c.targets[sel]
-    loss = F.cross_entropy(picked, target, label_smoothing=label_smoothing)
+    loss = _cross_entropy(picked, target, label_smoothing)
     with torch.no_grad():
         hit = picked.argmax(-1) == target
         on_masked = c.masked[sel]
         changed = x0 != x0[:, n_past - 1: n_past]  # (B, T, H, W): differs from the last past frame
         future = torch.zeros_like(changed)
         future[:, n_past:] = True
-        ce = F.cross_entropy(picked, target, label_smoothing=label_smoothing, reduction="none")
+        ce = _cross_entropy(picked, target, label_smoothing, reduction="none")
         sums = {"scored": int(hit.numel()), "hits": int(hit.sum()), "masked": int(on_masked.sum()),
                 "masked_hits": int(hit[on_masked].sum()), "future": int(future.sum()),
                 "future_changed": int(changed[future].sum())}
@@ -312,7 +347,7 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
                  steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                  revise: bool = True, generator: torch.Generator | None = None,
                  cache: bool = True, trace: list | None = None, first_position: int = 0,
-                 context_kv=None) -> torch.Tensor:
+                 context_kv=None, metric: torch.Tensor | None = None) -> torch.Tensor:
     """Algorithm 2: decode the frame after ``context`` (B, Tc, H, W) clean codes, given the
     poses ``T_ref_sensor`` (B, Tc + 1, 4, 4) of the context frames and of the new frame.
 
@@ -332,6 +367,13 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
     the Tc context frames at these positions, as :func:`forecast_sequence` keeps it from frame
     to frame); the steps write their frames' keys and values into one buffer per temporal
     block (:meth:`~.world.PastKV.with_room`) instead of concatenating the context's again.
+
+    ``metric`` (|V|, |V|), a distance between codes (not the paper's): x~0 is instead, at every
+    token, the code of least expected distance under the guided distribution, argmin_c sum_v
+    p(v) metric[v, c] (minimum Bayes risk; no sampling, ``top_k`` unused), and l_k its log p.
+    With the codebook's own distances a code near the true one renders nearly as the true one
+    does (docs/copilot4d.md, "Near misses"), so the choice weighs a spread of similar codes
+    against a single likely one by what they render.
     """
     if steps < 1:
         raise ValueError(f"steps={steps}: Algorithm 2 needs at least one step")
@@ -358,9 +400,12 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
             seq = torch.cat([context, x.view(B, 1, H, W)], 1)
             logits = guided_logits(model, seq, T_ref_sensor, guidance, positions)
         logits = logits.reshape(B, N, -1)
-        top_val, top_idx = logits.topk(min(top_k, logits.shape[-1]), dim=-1)
-        pick = (top_val + _gumbel(top_val.shape, generator, dev)).argmax(-1, keepdim=True)
-        x0 = top_idx.gather(-1, pick).squeeze(-1)
+        if metric is None:
+            top_val, top_idx = logits.topk(min(top_k, logits.shape[-1]), dim=-1)
+            pick = (top_val + _gumbel(top_val.shape, generator, dev)).argmax(-1, keepdim=True)
+            x0 = top_idx.gather(-1, pick).squeeze(-1)
+        else:
+            x0 = (logits.softmax(-1) @ metric.to(logits.dtype)).argmin(-1)
         logp = logits.log_softmax(-1).gather(-1, x0[..., None]).squeeze(-1)
         conf = logp + _gumbel(logp.shape, generator, dev) * (k / steps)
         decoded = x != mask_id
@@ -379,7 +424,7 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
                       n_frames: int, n_past: int, steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE,
                       top_k: int = DEFAULT_TOP_K, revise: bool = True, generator: torch.Generator | None = None,
                       cache: bool = True, reuse_context: bool = True,
-                      context=contextlib.nullcontext) -> list[torch.Tensor]:
+                      context=contextlib.nullcontext, metric: torch.Tensor | None = None) -> list[torch.Tensor]:
     """Algorithm 2 autoregressively, as the Copilot4D methods forecast: ``n_future`` frames
     (B, H, W) after ``past`` (B, P, H, W), oldest first, with poses ``T_ref_sensor``
     (B, P + n_future, 4, 4).
@@ -393,7 +438,8 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
     depend on later frames, so only the frame just decoded passes through the network (once)
     to join them, instead of the whole context again. ``False`` recomputes the context for
     every frame (the reference); ``cache=False`` computes every step over the whole sequence
-    (:func:`sample_frame`). ``context``: a context manager each network pass runs in (autocast)."""
+    (:func:`sample_frame`). ``context``: a context manager each network pass runs in (autocast).
+    ``metric``: :func:`sample_frame`'s."""
     P = past.shape[1]
     if T_ref_sensor.shape[1] != P + n_future:
         raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
@@ -419,7 +465,7 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
             kv_at = (start, first)
             nxt = sample_frame(model, seq[:, start:], pose, steps=steps, guidance=guidance, top_k=top_k,
                                revise=revise, generator=generator, first_position=first, cache=cache,
-                               context_kv=kv if reuse_context else None)
+                               context_kv=kv if reuse_context else None, metric=metric)
         seq = torch.cat([seq, nxt[:, None]], 1)
         out.append(nxt)
     return out
@@ -428,7 +474,8 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
 @torch.no_grad()
 def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
                     steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
-                    revise: bool = True, generator: torch.Generator | None = None, cache: bool = True) -> torch.Tensor:
+                    revise: bool = True, generator: torch.Generator | None = None, cache: bool = True,
+                    metric: torch.Tensor | None = None) -> torch.Tensor:
     """Autoregressive forecast (section 4.3): future frames one at a time with
     :func:`sample_frame`, each decoded frame joining the context of the next.
 
@@ -437,5 +484,6 @@ def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Te
     """
     P = past.shape[1]
     out = forecast_sequence(model, past, T_ref_sensor, n_future, n_frames=P + n_future, n_past=P, steps=steps,
-                            guidance=guidance, top_k=top_k, revise=revise, generator=generator, cache=cache)
+                            guidance=guidance, top_k=top_k, revise=revise, generator=generator, cache=cache,
+                            metric=metric)
     return torch.stack(out, 1)

@@ -46,6 +46,8 @@ from pcfbench.training.tokenized import OnTokenizer, load_network, tensor_digest
 
 TOKENIZER_METHOD = "copilot4d-token-copy"
 CHECKPOINT_EVERY = 100
+#: ``neighbour_targets``: the share of the target's mass its k nearest codes share
+NEIGHBOUR_SHARE = 0.5
 LOG_EVERY = 10
 
 
@@ -73,6 +75,18 @@ class WorldOptions(RenderingOptions):
         0, help="train on from the complete checkpoint of these options with steps=init_steps (its weights; a new "
                 "optimiser, warm-up and cosine decay over steps); 0: from random weights; a chain a/b/c: from the "
                 "training with steps=c that went on from init_steps=a/b", min=0, quiet_default=True)
+    mbr: bool = option(False, help="choose each token's code as the one of least expected codebook distance under "
+                                   "the guided distribution (minimum Bayes risk; not the paper's), instead of "
+                                   "sampling among the top_k", quiet_default=True)
+    neighbour_targets: int = option(
+        0, help="train towards the true code and its k nearest codes in the codebook (half the mass shared "
+                "among the k; not the paper's): near codes render nearly alike; 0: the true code (label "
+                "smoothing 0.1)", min=0, quiet_default=True)
+    render_weight: float = option(
+        0.0, help="train through the rendering (not the paper's): add this weight times the L1 depth error (m) of "
+                  "one future frame rendered from the model's masked tokens (this training only, not those it "
+                  "goes on from; measured harmful at 1: docs/copilot4d.md); 0: cross entropy alone", min=0,
+        quiet_default=True)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -211,13 +225,17 @@ def build_windows(tokenizer, adapter, split: str, n_past: int, n_future: int, st
 
 # --------------------------------------------------------------------------- training
 def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, steps: int, seed: int = 0,
-                manifest_config, extra_weights: dict | None = None, resumed=None, log=print) -> dict:
+                manifest_config, extra_weights: dict | None = None, resumed=None, log=print, render=None,
+                targets=None) -> dict:
     """Algorithm 1 on ``windows`` through :func:`pcfbench.training.fit_loop`, until ``steps``
     or until ``run`` says stop; checkpoints every ``CHECKPOINT_EVERY`` steps (weights
     ``world.*`` plus ``extra_weights``); ``resumed`` (what ``run.resume()`` gave) restores
     weights, optimiser, the random streams and the curve, so a resumed run continues the same
     curve. ``model``: the world model, or a function building it (called after the loop seeded
-    torch with ``seed``). Returns the model, the step reached and the curve."""
+    torch with ``seed``). ``render``: a :class:`~.render_stage.RenderTerm` (the rendered depth
+    added to the loss; its frames and rays drawn from the loop's numpy stream after the
+    windows). ``targets``: (|V|, |V|) target distributions instead of ``cfg.label_smoothing``
+    (:func:`~.diffusion.neighbour_targets`). Returns the model, the step reached and the curve."""
     import torch
 
     from pcfbench.methods.copilot4d import diffusion as D
@@ -227,32 +245,41 @@ def train_world(model, cfg, windows: dict[str, np.ndarray], variant, run, *, ste
     poses = torch.from_numpy(windows["poses"].astype(np.float32))
 
     def sample_batch(rand, step: int):
-        picks = torch.from_numpy(rand.numpy.integers(0, len(tokens), cfg.batch_size))
-        return tokens[picks], poses[picks], rand.torch  # the masking draws from the loop's torch generator
+        picks = rand.numpy.integers(0, len(tokens), cfg.batch_size)
+        drawn = None if render is None else [render.draw(int(w), rand.numpy) for w in picks]
+        picks = torch.from_numpy(picks)
+        return tokens[picks], poses[picks], rand.torch, drawn  # the masking draws from the loop's torch generator
 
     def step_fn(model, batch):
-        x0, pose, gen = batch
+        x0, pose, gen, drawn = batch
         device = next(model.parameters()).device
-        return D.training_loss(model, x0.to(device), pose.to(device), cfg.n_past, variant, cfg.label_smoothing,
-                               generator=gen)
+        extra = None if render is None else lambda logits, targets, masked: render(logits, targets, masked, drawn)
+        smoothing = cfg.label_smoothing if targets is None else targets.to(device)
+        return D.training_loss(model, x0.to(device), pose.to(device), cfg.n_past, variant, smoothing,
+                               generator=gen, extra=extra)
 
     out = fit_loop(model, lambda m: D.make_optimizer(m, cfg), sample_batch, step_fn, run, steps=steps, seed=seed,
                    schedule=lambda step: D.lr_at(cfg, step), grad_clip=cfg.grad_clip, log_every=LOG_EVERY,
                    checkpoint_every=CHECKPOINT_EVERY, torch_generator=True,
                    progress_values={"cross entropy": "loss", "token accuracy": "accuracy",
-                                    "changed-token accuracy": "changed_accuracy"}, weights_prefix="world.",
+                                    "changed-token accuracy": "changed_accuracy",
+                                    **({} if render is None else {"rendered L1 (m)": "render_l1"})},
+                   weights_prefix="world.",
                    extra_weights=extra_weights, manifest_config=manifest_config, resumed=resumed, log=log)
     return {"model": out.model, "step": out.step, "history": out.history, "elapsed_s": out.elapsed_s,
             "cpu_s": out.cpu_s}
 
 
-def world_curve_panels() -> list:
+def world_curve_panels(render: bool = False) -> list:
     """The world model curve's figure: the loss; token accuracy on the scored and the masked
     tokens; loss and accuracy on the masked future tokens that changed since the last past
-    frame and on those that did not."""
+    frame and on those that did not; with ``render``, the render stage's depth error beside
+    the copy's on the same rays."""
     from pcfbench.training import Panel
 
-    return [Panel((("loss", "cross entropy (label smoothing 0.1)"),)),
+    extra = [Panel((("render_l1", "rendered L1 (m), the model's masked tokens"),
+                    ("render_l1_copy", "rendered L1 (m), the last past frame's on them")))] if render else []
+    return extra + [Panel((("loss", "cross entropy (label smoothing 0.1)"),)),
             Panel((("accuracy", "token accuracy (scored tokens)"), ("masked_accuracy", "token accuracy (masked tokens)")),
                   ylim=(0, 1)),
             Panel((("changed_loss", "cross entropy, masked future tokens that changed"),
@@ -276,7 +303,8 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     # the measurements behind it: docs/journal/copilot4d-2026-11.md, "Training times"
     training_time = ("about 25 min for the tiny configuration on a 2-core CPU (4 min of tokenizing, 600 steps "
                      "at about 2 s), plus its tokenizer's training")
-    inference_options = ("cfg_weight", "sampling_steps", "top_k", "seed", *(f.name for f in fields(RenderingOptions)))
+    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "seed",
+                         *(f.name for f in fields(RenderingOptions)))
 
     def __init__(self, options: WorldOptions | None = None) -> None:
         super().__init__(options)
@@ -348,12 +376,32 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                          "world model").to(device)
         else:  # built on the CPU (then moved), so its initial weights do not depend on the device
             started, build = {}, lambda: WorldModel(cfg).to(device)  # noqa: E731
+        render = None
+        if self.options.render_weight:
+            from pcfbench.methods.bevworld.render_loss import WindowRays
+            from pcfbench.methods.copilot4d.render_stage import RENDER_PER_SWEEP, RENDER_RAYS, RenderTerm
+
+            rays = WindowRays(train_source.adapter, windows, cfg.n_past, per_sweep=RENDER_PER_SWEEP, seed=0,
+                              log=progress.log)
+            render = RenderTerm(tokenizer, rays, cfg.n_past, cfg.n_future,
+                                self.options.frame == "own", self.options.render_weight)
+            started = {**started, "render": {"weight": self.options.render_weight, "rays": RENDER_RAYS,
+                                             "per_sweep": RENDER_PER_SWEEP}}
+        targets = None
+        if self.options.neighbour_targets:
+            from pcfbench.methods.copilot4d.diffusion import neighbour_targets
+
+            targets = neighbour_targets(tokenizer.vq.codebook, self.options.neighbour_targets, NEIGHBOUR_SHARE,
+                                        cfg.label_smoothing)
+            started = {**started, "targets": {"neighbours": self.options.neighbour_targets, "share": NEIGHBOUR_SHARE,
+                                              "label_smoothing": cfg.label_smoothing}}
         with_start = lambda model: {**manifest_config(model), **started}  # noqa: E731
         out = train_world(build, cfg, windows, self.variant, progress,
                           steps=self.training_steps(), seed=0, manifest_config=with_start, resumed=resumed,
-                          extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()}, log=progress.log)
+                          extra_weights={f"tokenizer.{k}": v for k, v in tok_state.items()}, log=progress.log,
+                          render=render, targets=targets)
         if out["history"]:
-            csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels())
+            csv_path, png = write_curve(out["history"], Path(out_dir), "curve", world_curve_panels(render is not None))
             progress.log(f"training curve: {csv_path} and {png}")
 
     def start_spec(self):
@@ -369,7 +417,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         if not chain:
             return None
         before = chain[:-1]
-        opts = replace(self.options, steps=chain[-1], init_steps=(before if len(before) > 1 else sum(before)))
+        plain = type(self.options)()  # the render stage and the neighbour targets are this training's
+        opts = replace(self.options, steps=chain[-1], init_steps=(before if len(before) > 1 else sum(before)),
+                       render_weight=plain.render_weight, neighbour_targets=plain.neighbour_targets)
         defaults = type(self.options)()
         raw = {k: "/".join(map(str, v)) if isinstance(v, tuple) else str(v)
                for k, v in asdict(opts).items() if v != getattr(defaults, k)}
@@ -486,9 +536,19 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         out = [x[0] for x in forecast_sequence(self.world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
                                                n_past=cfg.n_past, steps=self.options.sampling_steps,
                                                guidance=self.options.cfg_weight, top_k=self.options.top_k,
-                                               revise=self.variant.revise,
+                                               revise=self.variant.revise, metric=self.code_metric(),
                                                generator=gen, context=lambda: autocast(dev))]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
+
+    def code_metric(self):
+        """With ``mbr``, the (|V|, |V|) Euclidean distances between the tokenizer's code embeddings
+        that Algorithm 2 chooses codes by (float32, the tokenizer's device); None otherwise."""
+        import torch
+
+        if not self.options.mbr:
+            return None
+        cb = self.tokenizer.vq.codebook.detach().float()
+        return torch.cdist(cb, cb)
 
 
 class Copilot4DMaskGIT(Copilot4D):

@@ -60,6 +60,7 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
     cfg, opts = method.world_cfg, method.options
     P, F = cfg.n_past, cfg.n_future
     dev = next(method.world.parameters()).device
+    metric = method.code_metric()  # mbr: the codebook's distances, once
     rows = []
     for s in sorted(set(int(v) for v in windows["stride"])):
         idx = np.flatnonzero(windows["stride"] == s)
@@ -73,7 +74,8 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
             with autocast(dev):
                 pred = forecast_tokens(method.world, toks[None, :P].to(dev), poses[None].to(dev), F,
                                        steps=opts.sampling_steps, guidance=opts.cfg_weight, top_k=opts.top_k,
-                                       revise=method.variant.revise, generator=gen)[0].cpu().numpy()
+                                       revise=method.variant.revise, generator=gen,
+                                       metric=metric)[0].cpu().numpy()
             last = windows["tokens"][a, P - 1]
             for f in range(F):
                 for k, v in score_tokens(pred[f], windows["tokens"][a, P + f], last).items():

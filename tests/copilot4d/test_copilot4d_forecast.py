@@ -576,7 +576,16 @@ def test_top_k_reaches_the_sampler(monkeypatch):
     for k in (1, 5):
         m.options = resolve_method(f"copilot4d:top_k={k},sampling_steps=4,cfg_weight=1").options
         m.forecast_tokens(s)
-        assert (seen["top_k"], seen["steps"], seen["guidance"]) == (k, 4, 1.0)
+        assert (seen["top_k"], seen["steps"], seen["guidance"], seen["metric"]) == (k, 4, 1.0, None)
+    # mbr: the codebook's Euclidean distances reach it; an inference option, quiet at its default
+    m.tokenizer = torch.nn.Module()
+    m.tokenizer.vq = torch.nn.Module()
+    m.tokenizer.vq.codebook = torch.nn.Parameter(torch.tensor([[0.0, 0.0], [3.0, 4.0], [0.0, 1.0]]))
+    m.options = resolve_method("copilot4d:mbr=true").options
+    m.forecast_tokens(s)
+    assert torch.allclose(seen["metric"], torch.tensor([[0.0, 5.0, 1.0], [5.0, 0.0, 4.2426405], [1.0, 4.2426405, 0.0]]))
+    assert "mbr" in Copilot4D.inference_options
+    assert resolve_method("copilot4d:mbr=false").options_hash == resolve_method("copilot4d").options_hash
 
 
 def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(micro, kitti, tmp_path, monkeypatch):

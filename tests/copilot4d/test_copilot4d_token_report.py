@@ -50,7 +50,8 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
     monkeypatch.setattr(diffusion, "forecast_tokens", fake_forecast)
     method = types.SimpleNamespace(
         world_cfg=types.SimpleNamespace(n_past=P, n_future=F), world=torch.nn.Linear(1, 1),
-        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1), variant=types.SimpleNamespace(revise=True))
+        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1), variant=types.SimpleNamespace(revise=True),
+        code_metric=lambda: None)
     res = world_token_report(method, windows, log=lambda *_: None)
     assert sorted(seen) == [(a, P + F, F) for a in range(A)]
     assert [(r["stride"], r["step"], r["windows"]) for r in res["rows"]] == [(s, f, 2) for s in (2, 6) for f in (1, 2, 3)]

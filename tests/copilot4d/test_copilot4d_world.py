@@ -375,6 +375,43 @@ class _ToyModel(nn.Module):
         return F.one_hot(code, self.V).float() * 30.0
 
 
+class _TokenLogits(nn.Module):
+    """Each token's logits: a fixed function of its input code (a table, mask token included) plus
+    a fixed vector of its place (H, W, |V|)."""
+
+    def __init__(self, table: torch.Tensor, by_place: torch.Tensor | float = 0.0) -> None:
+        super().__init__()
+        self.table, self.by_place, self.mask_token = table, by_place, table.shape[0] - 1
+
+    def forward(self, tokens, T_ref_sensor, temporal_mask, frame_index=None):
+        return self.table[tokens] + self.by_place
+
+
+def test_minimum_bayes_risk_chooses_the_code_of_least_expected_distance():
+    """Hand-built: p = (0.4, 0.3, 0.3) at every token, codes 1 and 2 one apart and ten from code 0.
+    Top-1 picks code 0; the expected distances are 6, 4.3 and 4.3, so the metric picks code 1 (the
+    first of the least). Under the 0-1 metric the choice is the arg max: one step decodes every
+    token, the same codes as top_k=1 on a model whose logits differ from token to token."""
+    p = torch.tensor([0.4, 0.3, 0.3])
+    model = _TokenLogits(p.log().expand(4, 3))
+    ctx = torch.zeros(1, 1, 2, 2, dtype=torch.long)
+    metric = torch.tensor([[0.0, 10.0, 10.0], [10.0, 0.0, 1.0], [10.0, 1.0, 0.0]])
+    kw = dict(steps=3, guidance=0.0, cache=False, generator=torch.Generator().manual_seed(0))
+    assert (D.sample_frame(model, ctx, _eye_poses(1, 2), top_k=1, **kw) == 0).all()
+    kw["generator"] = torch.Generator().manual_seed(0)
+    assert (D.sample_frame(model, ctx, _eye_poses(1, 2), metric=metric, **kw) == 1).all()
+    V = 16
+    gen = torch.Generator().manual_seed(3)
+    model = _TokenLogits(torch.randn(V + 1, V, generator=gen), torch.randn(6, 6, V, generator=gen))
+    ctx = torch.randint(0, V, (2, 2, 6, 6), generator=torch.Generator().manual_seed(4))
+    for guidance in (0.0, 2.0):
+        kw = dict(steps=1, guidance=guidance, cache=False)
+        top1 = D.sample_frame(model, ctx, _eye_poses(2, 3), top_k=1, generator=torch.Generator().manual_seed(5), **kw)
+        mbr = D.sample_frame(model, ctx, _eye_poses(2, 3), metric=1 - torch.eye(V),
+                             generator=torch.Generator().manual_seed(5), **kw)
+        assert torch.equal(top1, mbr) and len(top1.unique()) > 1
+
+
 @pytest.mark.parametrize("revise", [True, False])
 def test_sampling_on_a_toy_model(revise):
     V, H, K = 8, 10, 10
