@@ -245,10 +245,13 @@ def neighbour_targets(codebook: torch.Tensor, k: int, share: float, label_smooth
     mass, its ``k`` nearest codes (Euclidean, in the codebook) share ``share`` equally, and
     ``label_smoothing`` of the whole is spread uniformly, as ``F.cross_entropy`` spreads it."""
     V = codebook.shape[0]
-    d = torch.cdist(codebook.detach().float(), codebook.detach().float())
+    if not 0 < k < V:
+        raise ValueError(f"k={k} nearest codes: expected 1 to {V - 1} for a codebook of {V} codes")
+    cb = codebook.detach().float()
+    d = torch.cdist(cb, cb)
     d.fill_diagonal_(float("inf"))
-    q = torch.eye(V) * (1.0 - share)
-    q.scatter_(1, d.topk(k, dim=1, largest=False).indices.cpu(), share / k)
+    q = torch.eye(V, device=cb.device) * (1.0 - share)  # on the codebook's device: no copy per training step
+    q.scatter_(1, d.topk(k, dim=1, largest=False).indices, share / k)
     return q * (1.0 - label_smoothing) + label_smoothing / V
 
 

@@ -314,6 +314,10 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         from pcfbench.methods.copilot4d.world_config import get_world_config, tokenizer_config_name
 
         self.tok_cfg = get_config(tokenizer_config_name(self.options.config))
+        if self.options.neighbour_targets >= self.tok_cfg.codebook_size:
+            raise PcfbenchError(f"neighbour_targets={self.options.neighbour_targets}: the '{self.tok_cfg.name}' "
+                                f"tokenizer has {self.tok_cfg.codebook_size} codes, so at most "
+                                f"{self.tok_cfg.codebook_size - 1} neighbours")
         self.world_cfg = world_config_for(get_world_config(self.options.config), self.tok_cfg)
         if self.options.steps:  # a longer (or shorter) run decays its learning rate over its own steps
             self.world_cfg = self.world_cfg.with_overrides(max_steps=self.options.steps,
@@ -417,10 +421,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         if not chain:
             return None
         before = chain[:-1]
-        plain = type(self.options)()  # the render stage and the neighbour targets are this training's
+        defaults = type(self.options)()  # the render stage and the neighbour targets are this training's only
         opts = replace(self.options, steps=chain[-1], init_steps=(before if len(before) > 1 else sum(before)),
-                       render_weight=plain.render_weight, neighbour_targets=plain.neighbour_targets)
-        defaults = type(self.options)()
+                       render_weight=defaults.render_weight, neighbour_targets=defaults.neighbour_targets)
         raw = {k: "/".join(map(str, v)) if isinstance(v, tuple) else str(v)
                for k, v in asdict(opts).items() if v != getattr(defaults, k)}
         return MethodSpec(self.name, raw, opts, options_hash(opts), type(self))

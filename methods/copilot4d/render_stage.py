@@ -1,6 +1,7 @@
 """Training the world model through its rendering (**not the paper's**; docs/copilot4d.md,
-"Near misses"; measured harmful at weight 1, so off by default): with ``render_weight`` > 0, each training step adds to Algorithm 1's
-cross entropy that weight times the L1 depth error (m) of one future frame of the window,
+"Near misses"; measured harmful at weight 1, so off by default): with ``render_weight`` > 0,
+each training step adds to Algorithm 1's cross entropy that weight times the L1 depth error
+(m) of one future frame of the window,
 rendered through the frozen tokenizer's decoder along the true future sweep's rays from the
 future sensor's origin, as ``copilot4d`` renders its forecast.
 

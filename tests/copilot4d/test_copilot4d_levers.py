@@ -153,6 +153,9 @@ def test_neighbour_targets_by_hand():
     got = _cross_entropy(logits, target, q, reduction="none")
     assert torch.allclose(got, torch.stack(by_hand))
     assert float(_cross_entropy(logits, target, q)) == pytest.approx(float(got.mean()))
+    for bad in (0, 4):
+        with pytest.raises(ValueError, match=f"k={bad} nearest codes: expected 1 to 3 for a codebook of 4 codes"):
+            neighbour_targets(cb, bad, 0.5, 0.1)
     plain = neighbour_targets(cb, 1, 0.0, 0.1)
     assert torch.allclose(_cross_entropy(logits, target, plain, reduction="none"),
                           F.cross_entropy(logits, target, label_smoothing=0.1, reduction="none"))
@@ -162,6 +165,10 @@ def test_a_training_with_neighbour_targets_records_them(micro, kitti):  # noqa: 
     """`neighbour_targets` is a quiet training option, this training's only (the one it goes on
     from is the plain one); its manifest records the targets, and its weights differ from the same
     training's without them."""
+    from pcfbench.errors import PcfbenchError
+
+    with pytest.raises(PcfbenchError, match="neighbour_targets=64: the 'micro' tokenizer has 64 codes, so at most 63"):
+        resolve_method(f"copilot4d:{MICRO_TRAIN},neighbour_targets=64").create()
     _tokenizer(kitti)
     plain = f"copilot4d:{MICRO_TRAIN},steps=2"
     assert resolve_method(f"{plain},neighbour_targets=0").options_hash == resolve_method(plain).options_hash
