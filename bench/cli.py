@@ -500,7 +500,10 @@ def _training_interrupted(stop, resume: str) -> str:
 @click.option("--preset", default="paper", show_default=True, help="Table preset of leaderboard.* (see tables.toml).")
 @click.option("--tables", "tables_file", type=click.Path(dir_okay=False), default=None,
               help="A TOML file of extra table presets ([presets.NAME]).")
-@click.option("--reference", default=None, help="Method every cell is compared with (default: copy-last where present).")
+@click.option("--reference", default=None, metavar="NAME[:k=v,...]",
+              help="Method every cell is compared with: by name, its cell of the shortest label in each table; "
+                   "with options (as -m takes them), its cell of exactly those options (default: copy-last where "
+                   "present).")
 @click.option("--ci", type=click.Choice(["pm", "interval", "none"]), default="pm", show_default=True,
               help="Intervals shown as ±half-width, as [lo, hi], or not at all.")
 @click.option("--resample", default="sample", show_default=True, metavar="sample|sequence|block:N",

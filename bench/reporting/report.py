@@ -197,11 +197,15 @@ def _check_versions(versions: dict[str, dict[str, list[str]]]) -> None:
 
 def collect(store_root: Path, resampling: stats.Resampling | None = None,
             reference: str | None = None, cells: Iterable[Path] | None = None,
-            reference_options_hash: str | None = None, select: Selection | None = None) -> Leaderboard:
+            reference_options_hash: str | None = None, select: Selection | None = None,
+            plugins=None) -> Leaderboard:
     """Read and analyse every complete cell under ``store_root``.
 
     ``reference``: the method every cell is compared with; None means ``copy-last`` where a
-    group has it. A reference named explicitly must be a method of the store.
+    group has it. A reference named explicitly must be a method of the store; by its name alone
+    it is the method's cell of the shortest label in each group, as ``NAME:key=value,...`` (a
+    method spec, as ``pcfbench run -m`` takes it, resolved against ``plugins``, default the
+    installed ones) its cell of exactly those options, which the store must hold.
     ``reference_options_hash``: with ``reference``, only its cell of these options is the
     reference (a sweep's reference row). ``cells``: only these cell folders (a sweep's grid).
     ``select``: only the cells it matches (a pattern that matches no cell is one error listing
@@ -209,16 +213,25 @@ def collect(store_root: Path, resampling: stats.Resampling | None = None,
     """
     from threadpoolctl import threadpool_limits
 
+    label = reference
+    if reference is not None and ":" in reference:
+        if reference_options_hash is not None:
+            raise ValueError(f"reference {reference!r}: give its options in the spec or as reference_options_hash, not both")
+        from pcfbench.method import resolve_method
+
+        spec = resolve_method(reference, plugins)
+        reference, reference_options_hash = spec.name, spec.options_hash
     # The products are small (resamples x units x metrics): BLAS threads only add overhead.
     with threadpool_limits(1):
-        return _collect(Path(store_root), resampling or stats.Resampling(), reference,
-                        None if cells is None else {Path(c).resolve() for c in cells}, reference_options_hash,
-                        select or Selection())
+        board = _collect(Path(store_root), resampling or stats.Resampling(), reference,
+                         None if cells is None else {Path(c).resolve() for c in cells}, reference_options_hash,
+                         select or Selection(), label)
+    return dataclasses.replace(board, reference=label) if label != reference else board
 
 
 def _collect(store_root: Path, resampling: stats.Resampling, reference: str | None,
              cells: set[Path] | None = None, reference_options_hash: str | None = None,
-             select: Selection = Selection()) -> Leaderboard:
+             select: Selection = Selection(), label: str | None = None) -> Leaderboard:
     rows, step_rows, sums, notes = [], [], [], []
     held = []  # every cell this report could read: what a selection is checked against
     versions = {False: {}, True: {}}
@@ -293,6 +306,12 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             raise PcfbenchError(f"the reference method {reference!r} is not among the cells selected by "
                                 f"{select.describe()}: add --method {reference}")
         raise unknown_name("reference method", reference, set(table["method"]), "the store has no cell of it")
+    if len(table) and reference is not None and reference_options_hash is not None and label != reference:
+        own = table[(table["method"] == reference) & ~table["incomplete"].astype(bool)]
+        if not (own["options_hash"] == reference_options_hash).any():
+            raise PcfbenchError(f"reference {label!r}: the store has no complete cell of {reference} with these options "
+                                f"(options hash {reference_options_hash}); its cells: "
+                                f"{', '.join(sorted(set(own['variant'])))}")
     reference = reference or DEFAULT_REFERENCE
     incomplete = pd.DataFrame()
     if len(table):

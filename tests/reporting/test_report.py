@@ -302,6 +302,31 @@ def test_reference_choice(board, tmp_path):
     assert "shifted (dx=0) (ref)" in md and "reference 'shifted'" in md
 
 
+def test_reference_with_options_is_that_cell(board, tmp_path):
+    """``NAME:k=v``: the method's cell of exactly those options, not its shortest label; options
+    the store has no cell of are one error listing the cells it has."""
+    store, _, _ = board
+    lb = collect(store, reference="shifted:dx=0.5", plugins=_plugins())
+    ref = lb.table[lb.table.is_reference]
+    assert ref["variant"].tolist() == ["shifted (dx=0.5)"] and lb.reference == "shifted:dx=0.5"
+    rows = lb.table.set_index("variant")
+    assert np.isnan(rows.loc["shifted (dx=0.5)", "chamfer_rel"])  # the reference is not compared with itself
+    by_name = collect(store, reference="shifted").table.set_index("variant")
+    # the two shifted cells against each other, both ways round: mean / reference mean - 1
+    there, back = rows.loc["shifted (dx=0)", "chamfer_rel"], by_name.loc["shifted (dx=0.5)", "chamfer_rel"]
+    assert there != 0 and (1 + there) * (1 + back) == pytest.approx(1, rel=1e-12)
+    assert rows.loc["copy-last", "chamfer_rel"] == there  # dx=0 forecasts what copy-last does
+    comparisons = lb.comparisons
+    assert set(comparisons["reference"]) == {"shifted (dx=0.5)"}
+    with pytest.raises(PcfbenchError, match=r"reference 'shifted:dx=2': the store has no complete cell of shifted "
+                                             r"with these options \(options hash [0-9a-f]+\); its cells: "
+                                             r"shifted \(dx=0\), shifted \(dx=0.5\)"):
+        collect(store, reference="shifted:dx=2", plugins=_plugins())
+    md = write_reports(store, tmp_path / "r", ReportOptions(reference="shifted:dx=0.5"),
+                       leaderboard=lb)["md"].read_text()
+    assert "shifted (dx=0.5) (ref)" in md and "reference 'shifted:dx=0.5'" in md
+
+
 def test_too_few_units_are_noted(board):
     store, _, _ = board
     from pcfbench.reporting.stats import Resampling
