@@ -225,13 +225,21 @@ def collect(store_root: Path, resampling: stats.Resampling | None = None,
     with threadpool_limits(1):
         board = _collect(Path(store_root), resampling or stats.Resampling(), reference,
                          None if cells is None else {Path(c).resolve() for c in cells}, reference_options_hash,
-                         select or Selection(), label)
-    return dataclasses.replace(board, reference=label) if label != reference else board
+                         select or Selection())
+    if label == reference:
+        return board
+    scored = pd.concat([board.table, board.partial])
+    own = scored[scored["method"] == reference] if len(scored) else scored
+    if len(scored) and not (own["options_hash"] == reference_options_hash).any():
+        raise PcfbenchError(f"reference {label!r}: the store has no complete cell of {reference} with these options "
+                            f"(options hash {reference_options_hash}); its cells: "
+                            f"{', '.join(sorted(set(own['variant'])))}")
+    return dataclasses.replace(board, reference=label)
 
 
 def _collect(store_root: Path, resampling: stats.Resampling, reference: str | None,
              cells: set[Path] | None = None, reference_options_hash: str | None = None,
-             select: Selection = Selection(), label: str | None = None) -> Leaderboard:
+             select: Selection = Selection()) -> Leaderboard:
     rows, step_rows, sums, notes = [], [], [], []
     held = []  # every cell this report could read: what a selection is checked against
     versions = {False: {}, True: {}}
@@ -306,12 +314,6 @@ def _collect(store_root: Path, resampling: stats.Resampling, reference: str | No
             raise PcfbenchError(f"the reference method {reference!r} is not among the cells selected by "
                                 f"{select.describe()}: add --method {reference}")
         raise unknown_name("reference method", reference, set(table["method"]), "the store has no cell of it")
-    if len(table) and reference is not None and reference_options_hash is not None and label != reference:
-        own = table[(table["method"] == reference) & ~table["incomplete"].astype(bool)]
-        if not (own["options_hash"] == reference_options_hash).any():
-            raise PcfbenchError(f"reference {label!r}: the store has no complete cell of {reference} with these options "
-                                f"(options hash {reference_options_hash}); its cells: "
-                                f"{', '.join(sorted(set(own['variant'])))}")
     reference = reference or DEFAULT_REFERENCE
     incomplete = pd.DataFrame()
     if len(table):
