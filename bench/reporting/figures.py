@@ -663,6 +663,14 @@ def _canonical(value):
         return str(value)
 
 
+def _option_text(value) -> str:
+    """An option value as a legend writes it: a whole number without its ``.0`` (an int option
+    is a float after :func:`_canonical`), other numbers as ``%g``, anything else as its text."""
+    if isinstance(value, float):
+        return str(int(value)) if value.is_integer() else f"{value:g}"
+    return str(value)
+
+
 def _numeric(values: pd.Series) -> np.ndarray | None:
     try:
         return np.array([float(v) for v in values])
@@ -689,6 +697,13 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
         refs = g.iloc[0:0]
     numeric = _numeric(g[opt])
     ref_names, notes = short_labels(refs["variant"]) if len(refs) else ({}, [])
+    # the legend names only the options that tell its lines apart; those every line shares are
+    # one footnote (a sweep of one option with six fixed ones drew labels wider than the figure)
+    apart = [o for o in others if g[o].nunique(dropna=False) > 1]
+    shared = [o for o in others if o not in apart and g[o].notna().any()]
+    if shared:
+        notes = [*notes, "every line: " + ", ".join(
+            f"{o.removeprefix('option.')}={_option_text(g[o].dropna().iloc[0])}" for o in shared)]
     with _rc():
         n = len(columns)
         ncols = min(3, n)
@@ -709,7 +724,8 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 hi = k * line.get(f"{col.metric}_hi", pd.Series(np.nan, index=line.index)).to_numpy(float)[order]
                 yerr = np.vstack([np.where(np.isfinite(lo), y - lo, 0), np.where(np.isfinite(hi), hi - y, 0)])
                 label = " / ".join(str(v) for v in key[2:3]) + "".join(
-                    f", {o.removeprefix('option.')}={v}" for o, v in zip(others, key[3:]) if not pd.isna(v))
+                    f", {o.removeprefix('option.')}={_option_text(v)}" for o, v in zip(others, key[3:])
+                    if o in apart and not pd.isna(v))
                 if not (np.isfinite(lo) & np.isfinite(hi)).any():  # every cell of the line has < 2 units
                     label += " (no interval: < 2 resampling units)"
                 ax.errorbar(x[order], y, yerr=yerr, marker="o", ms=3, capsize=3, label=label)
@@ -737,7 +753,8 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
         handles, labels = axes[0].get_legend_handles_labels()
         body.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
         ref_note = "; dashed: the reference method, its band its interval" if len(refs) else ""
-        fig.suptitle(f"ablation: {method} {name}\nerror bars: {interval}{ref_note}")
+        # wrapped to the figure: one panel is 4.2 inches, narrower than the sentence
+        fig.suptitle(_wrap(f"ablation: {method} {name}\nerror bars: {interval}{ref_note}", 4.2 * ncols, 12))
     return fig
 
 

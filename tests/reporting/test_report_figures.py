@@ -240,6 +240,24 @@ def test_ablation_figure_plots_the_metric_against_the_option_value(made, tmp_pat
     assert units["voxel"] == "m" and "cone_factor" not in units  # "(0: thin rays)" is no unit
 
 
+def test_ablation_legend_names_the_options_that_tell_its_lines_apart_and_a_footnote_the_shared_ones():
+    """A sweep of `k` over two values of `w` with two options every line shares: the legend says
+    `w=0` and `w=2` (whole numbers without `.0`, `0.5` as written), not the shared options, which
+    one footnote names; before, every fixed option was in every label and the labels ran off the
+    figure."""
+    rows = [{"dataset": "d", "split": "test", "setting": "kitti-1s", "method": "m", "variant": f"m (k={k}, w={w})",
+             "option.k": float(k), "option.w": float(w), "option.steps": 1000.0, "option.config": "tiny-window",
+             "option.lr": 0.5, "l1_mean": 1.0 + k + w, "l1_mean_lo": 0.5 + k + w, "l1_mean_hi": 1.5 + k + w}
+            for w in (0, 2) for k in (1, 3)]
+    g = pd.DataFrame(rows)
+    others = ["option.w", "option.steps", "option.config", "option.lr"]
+    fig = figures._ablation_figure(g, "option.k", others, [L1], "m", {})
+    assert _legend_texts(fig) == ["kitti-1s, w=0", "kitti-1s, w=2"]
+    assert _footnotes(fig) == ["every line: steps=1000, config=tiny-window, lr=0.5"]
+    np.testing.assert_array_equal(fig.axes[0].lines[0].get_ydata(), [2, 4])  # w=0: k=1, 3
+    _texts_do_not_collide(fig)
+
+
 def test_html_page_is_self_contained_with_figures_sortable_rows_and_provenance(made):
     _, out, paths = made
     page = paths["html"].read_text()
