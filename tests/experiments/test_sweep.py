@@ -437,6 +437,9 @@ def test_a_sample_less_setting_fails_before_any_cell_runs(tmp_path):
 # -- the shipped example files ---------------------------------------------------------------
 WORLD_MODEL = {"copilot4d-cfg-weight.toml": "copilot4d", "copilot4d-sampling-steps.toml": "copilot4d",
                "copilot4d-vs-maskgit.toml": "copilot4d-maskgit"}
+# Tables 3-4 on the world model's tokenizer of issue 42 (`tiny-window`, frame t0)
+TINY_WINDOW = ("copilot4d-tiny-window-cfg-weight.toml", "copilot4d-tiny-window-vs-maskgit.toml",
+               "copilot4d-tiny-window-sampling-steps.toml")
 
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
@@ -447,7 +450,7 @@ BEVWORLD_DDIM = EXAMPLES / "bevworld-ddim-steps.toml"
 def test_every_example_experiment_is_checked():
     assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name,
                                                                       OCCWORLD_WORLD_TOKENS.name, BEVWORLD_DDIM.name,
-                                                                      *WORLD_MODEL])
+                                                                      *WORLD_MODEL, *TINY_WINDOW])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
@@ -469,6 +472,32 @@ def test_every_example_experiment_is_checked():
     assert [v.label for v in exp.variants] == [*(f"bevworld (ddim_steps={n})" for n in (5, 10, 20, 50)), "bevworld",
                                                "bevworld-latent-copy", "copy-last"]
     assert exp.settings == ("kitti-3s",) and exp.policy == "full-context"
+
+
+def test_the_tiny_window_tables_evaluate_the_chain_of_trainings_they_name():
+    """Every world-model row of Tables 3-4 on `tiny-window` is one checkpoint's inference options
+    (the 2,400-step chain, or the 1,400-step one of both variants), and each table's reference is
+    a row of its grid: the sweep would refuse a reference that is not, so this pins which rows."""
+    chain = "anchor_every=1, config=tiny-window, init_steps=800/600, steps=1000, top_k=1"
+    cfg, maskgit, steps = (load_experiment(EXAMPLES / name) for name in TINY_WINDOW)
+    for exp in (cfg, maskgit, steps):
+        assert exp.datasets == (("synthetic-town-realistic", None),) and exp.train_on == ("synthetic-town-realistic",)
+        assert exp.settings == ("kitti-1s", "kitti-3s") and exp.policy is None  # every third: the dataset's own
+    world = [f"copilot4d ({chain.replace('anchor_every=1, ', f'anchor_every=1, cfg_weight={w}, ')})"
+             for w in ("0.0", "1.0", "2.0", "4.0")]
+    assert [v.label for v in cfg.variants] == [*world, "copilot4d-token-copy (config=tiny-window)", "copy-last"]
+    assert [(t.stem, t.reference.label) for t in cfg.tables] == [
+        ("copilot4d-tiny-window-cfg-weight", world[0]),
+        ("copilot4d-tiny-window-cfg-weight-vs-token-copy", "copilot4d-token-copy (config=tiny-window)")]
+    warm = "anchor_every=1, config=tiny-window, init_steps=800, steps=600, top_k=1"
+    assert [v.label for v in maskgit.variants] == [f"copilot4d-maskgit ({warm})", f"copilot4d ({warm})",
+                                                   f"copilot4d ({chain})",
+                                                   "copilot4d-token-copy (config=tiny-window)", "copy-last"]
+    assert maskgit.tables[0].reference.label == f"copilot4d-maskgit ({warm})"
+    # inference options only: every row of a table but the copies is one training's checkpoint
+    trained = {v.method.options.init_steps for v in (*cfg.variants[:4], *steps.variants[:4])}
+    assert trained == {(800, 600)} and [v.method.options.sampling_steps for v in steps.variants[:4]] == [1, 3, 5, 10]
+    assert steps.tables[0].reference.label == steps.variants[3].label
 
 
 @pytest.mark.parametrize("name", sorted(WORLD_MODEL))
