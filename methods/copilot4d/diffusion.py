@@ -350,7 +350,8 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
                  steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                  revise: bool = True, generator: torch.Generator | None = None,
                  cache: bool = True, trace: list | None = None, first_position: int = 0,
-                 context_kv=None, metric: torch.Tensor | None = None) -> torch.Tensor:
+                 context_kv=None, metric: torch.Tensor | None = None, copy: torch.Tensor | None = None,
+                 change_confidence: float = 0.0) -> torch.Tensor:
     """Algorithm 2: decode the frame after ``context`` (B, Tc, H, W) clean codes, given the
     poses ``T_ref_sensor`` (B, Tc + 1, 4, 4) of the context frames and of the new frame.
 
@@ -377,10 +378,18 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
     With the codebook's own distances a code near the true one renders nearly as the true one
     does (docs/copilot4d.md, "Near misses"), so the choice weighs a spread of similar codes
     against a single likely one by what they render.
+
+    ``change_confidence`` c > 0 with ``copy`` (B, H, W) codes (not the paper's): x~0 keeps a code
+    other than ``copy``'s only where its guided probability is more than c, and takes ``copy``'s
+    code elsewhere (l_k then that code's log p): the frame changes only where the model is sure
+    of the change. c = 1 returns ``copy`` whatever the model says.
     """
     if steps < 1:
         raise ValueError(f"steps={steps}: Algorithm 2 needs at least one step")
     B, Tc, H, W = context.shape
+    if change_confidence > 0 and (copy is None or copy.shape != (B, H, W)):
+        raise ValueError(f"change_confidence={change_confidence} needs the codes to keep, copy=(B, H, W) = "
+                         f"({B}, {H}, {W}); got {None if copy is None else tuple(copy.shape)}")
     if T_ref_sensor.shape[:2] != (B, Tc + 1):
         raise ValueError(f"T_ref_sensor has shape {tuple(T_ref_sensor.shape)}; expected ({B}, {Tc + 1}, 4, 4): "
                          "the context frames' poses and the new frame's")
@@ -409,7 +418,12 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
             x0 = top_idx.gather(-1, pick).squeeze(-1)
         else:
             x0 = (logits.softmax(-1) @ metric.to(logits.dtype)).argmin(-1)
-        logp = logits.log_softmax(-1).gather(-1, x0[..., None]).squeeze(-1)
+        log_p = logits.log_softmax(-1)
+        logp = log_p.gather(-1, x0[..., None]).squeeze(-1)
+        if change_confidence > 0:
+            keep_copy = copy.reshape(B, N)
+            x0 = torch.where((x0 == keep_copy) | (logp.exp() > change_confidence), x0, keep_copy)
+            logp = log_p.gather(-1, x0[..., None]).squeeze(-1)
         conf = logp + _gumbel(logp.shape, generator, dev) * (k / steps)
         decoded = x != mask_id
         conf = conf.masked_fill(decoded, float("inf"))
@@ -427,7 +441,8 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
                       n_frames: int, n_past: int, steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE,
                       top_k: int = DEFAULT_TOP_K, revise: bool = True, generator: torch.Generator | None = None,
                       cache: bool = True, reuse_context: bool = True,
-                      context=contextlib.nullcontext, metric: torch.Tensor | None = None) -> list[torch.Tensor]:
+                      context=contextlib.nullcontext, metric: torch.Tensor | None = None,
+                      change_confidence: float = 0.0) -> list[torch.Tensor]:
     """Algorithm 2 autoregressively, as the Copilot4D methods forecast: ``n_future`` frames
     (B, H, W) after ``past`` (B, P, H, W), oldest first, with poses ``T_ref_sensor``
     (B, P + n_future, 4, 4).
@@ -442,7 +457,8 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
     to join them, instead of the whole context again. ``False`` recomputes the context for
     every frame (the reference); ``cache=False`` computes every step over the whole sequence
     (:func:`sample_frame`). ``context``: a context manager each network pass runs in (autocast).
-    ``metric``: :func:`sample_frame`'s."""
+    ``metric``: :func:`sample_frame`'s; ``change_confidence``: its, the codes to keep those of
+    the last past frame (t=0)."""
     P = past.shape[1]
     if T_ref_sensor.shape[1] != P + n_future:
         raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
@@ -468,7 +484,8 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
             kv_at = (start, first)
             nxt = sample_frame(model, seq[:, start:], pose, steps=steps, guidance=guidance, top_k=top_k,
                                revise=revise, generator=generator, first_position=first, cache=cache,
-                               context_kv=kv if reuse_context else None, metric=metric)
+                               context_kv=kv if reuse_context else None, metric=metric, copy=past[:, -1],
+                               change_confidence=change_confidence)
         seq = torch.cat([seq, nxt[:, None]], 1)
         out.append(nxt)
     return out
@@ -478,7 +495,7 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
 def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
                     steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                     revise: bool = True, generator: torch.Generator | None = None, cache: bool = True,
-                    metric: torch.Tensor | None = None) -> torch.Tensor:
+                    metric: torch.Tensor | None = None, change_confidence: float = 0.0) -> torch.Tensor:
     """Autoregressive forecast (section 4.3): future frames one at a time with
     :func:`sample_frame`, each decoded frame joining the context of the next.
 
@@ -488,5 +505,5 @@ def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Te
     P = past.shape[1]
     out = forecast_sequence(model, past, T_ref_sensor, n_future, n_frames=P + n_future, n_past=P, steps=steps,
                             guidance=guidance, top_k=top_k, revise=revise, generator=generator, cache=cache,
-                            metric=metric)
+                            metric=metric, change_confidence=change_confidence)
     return torch.stack(out, 1)

@@ -78,6 +78,10 @@ class WorldOptions(RenderingOptions):
     mbr: bool = option(False, help="choose each token's code as the one of least expected codebook distance under "
                                    "the guided distribution (minimum Bayes risk; not the paper's), instead of "
                                    "sampling among the top_k", quiet_default=True)
+    change_confidence: float = option(
+        0.0, help="a future token takes a code other than the t=0 map's only where its guided probability is more "
+                  "than this (not the paper's; 1: the t=0 map, token-copy's forecast); 0: off", min=0, max=1,
+        quiet_default=True)
     neighbour_targets: int = option(
         0, help="train towards the true code and its k nearest codes in the codebook (half the mass shared "
                 "among the k; not the paper's): near codes render nearly alike; 0: the true code (label "
@@ -94,6 +98,9 @@ class WorldOptions(RenderingOptions):
 
         if self.frame not in CEILING_FRAMES:
             raise PcfbenchError(f"frame={self.frame!r}: expected one of {', '.join(CEILING_FRAMES)}")
+        if self.change_confidence > 0 and self.frame != "t0":
+            raise PcfbenchError(f"change_confidence={self.change_confidence:g} keeps the t=0 map's codes: it needs "
+                                f"frame=t0, not frame={self.frame}")
         if isinstance(self.init_steps, tuple) and (len(self.init_steps) < 2 or 0 in self.init_steps):
             shown = "/".join(map(str, self.init_steps)) + ("/" if len(self.init_steps) == 1 else "")
             raise PcfbenchError(f"init_steps={shown}: expected one number of steps "
@@ -303,7 +310,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     # the measurements behind it: docs/journal/copilot4d-2026-11.md, "Training times"
     training_time = ("about 25 min for the tiny configuration on a 2-core CPU (4 min of tokenizing, 600 steps "
                      "at about 2 s), plus its tokenizer's training")
-    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "seed",
+    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "seed",
                          *(f.name for f in fields(RenderingOptions)))
 
     def __init__(self, options: WorldOptions | None = None) -> None:
@@ -540,6 +547,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                                n_past=cfg.n_past, steps=self.options.sampling_steps,
                                                guidance=self.options.cfg_weight, top_k=self.options.top_k,
                                                revise=self.variant.revise, metric=self.code_metric(),
+                                               change_confidence=self.options.change_confidence,
                                                generator=gen, context=lambda: autocast(dev))]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
 

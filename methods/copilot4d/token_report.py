@@ -74,8 +74,8 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
             with autocast(dev):
                 pred = forecast_tokens(method.world, toks[None, :P].to(dev), poses[None].to(dev), F,
                                        steps=opts.sampling_steps, guidance=opts.cfg_weight, top_k=opts.top_k,
-                                       revise=method.variant.revise, generator=gen,
-                                       metric=metric)[0].cpu().numpy()
+                                       revise=method.variant.revise, generator=gen, metric=metric,
+                                       change_confidence=opts.change_confidence)[0].cpu().numpy()
             last = windows["tokens"][a, P - 1]
             for f in range(F):
                 for k, v in score_tokens(pred[f], windows["tokens"][a, P + f], last).items():

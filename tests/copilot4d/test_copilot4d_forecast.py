@@ -586,6 +586,17 @@ def test_top_k_reaches_the_sampler(monkeypatch):
     assert torch.allclose(seen["metric"], torch.tensor([[0.0, 5.0, 1.0], [5.0, 0.0, 4.2426405], [1.0, 4.2426405, 0.0]]))
     assert "mbr" in Copilot4D.inference_options
     assert resolve_method("copilot4d:mbr=false").options_hash == resolve_method("copilot4d").options_hash
+    # change_confidence: handed on as given; an inference option, quiet at its default; frame t0 only
+    assert seen["change_confidence"] == 0.0
+    m.options = resolve_method("copilot4d:change_confidence=0.4").options
+    m.forecast_tokens(s)
+    assert seen["change_confidence"] == 0.4
+    assert "change_confidence" in Copilot4D.inference_options
+    assert resolve_method("copilot4d:change_confidence=0").options_hash == resolve_method("copilot4d").options_hash
+    with pytest.raises(PcfbenchError, match="frame=t0"):
+        resolve_method("copilot4d:frame=own,change_confidence=0.4")
+    with pytest.raises(PcfbenchError, match="change_confidence"):
+        resolve_method("copilot4d:change_confidence=1.5")
 
 
 def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(micro, kitti, tmp_path, monkeypatch):

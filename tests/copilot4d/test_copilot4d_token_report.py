@@ -43,14 +43,16 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
     def fake_forecast(model, past, poses, n_future, **kw):
         a = next(i for i in range(A) if np.array_equal(tokens[i, :P], past[0].numpy()))
         seen.append((a, poses.shape[1], n_future))
-        assert (kw["steps"], kw["guidance"], kw["top_k"]) == (2, 0.0, 1)  # the method's sampling options
+        # the method's sampling options
+        assert (kw["steps"], kw["guidance"], kw["top_k"], kw["change_confidence"]) == (2, 0.0, 1, 0.3)
         out = tokens[a, P:] if answer == "truth" else np.repeat(tokens[a, P - 1][None], F, 0)
         return torch.from_numpy(out.astype(np.int64))[None]
 
     monkeypatch.setattr(diffusion, "forecast_tokens", fake_forecast)
     method = types.SimpleNamespace(
         world_cfg=types.SimpleNamespace(n_past=P, n_future=F), world=torch.nn.Linear(1, 1),
-        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1), variant=types.SimpleNamespace(revise=True),
+        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1, change_confidence=0.3),
+        variant=types.SimpleNamespace(revise=True),
         code_metric=lambda: None)
     res = world_token_report(method, windows, log=lambda *_: None)
     assert sorted(seen) == [(a, P + F, F) for a in range(A)]

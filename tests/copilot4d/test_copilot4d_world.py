@@ -412,6 +412,42 @@ def test_minimum_bayes_risk_chooses_the_code_of_least_expected_distance():
         assert torch.equal(top1, mbr) and len(top1.unique()) > 1
 
 
+def test_change_confidence_changes_a_token_only_where_the_change_is_likelier_than_the_bar():
+    """Hand-built: four tokens whose copy codes are 0, 1, 2, 0 and whose arg max is code 1 at
+    p = 0.7, 0.5, 0.9, 0.4 (in that order). With the bar at 0.6 the first and third change (0.7
+    and 0.9 > 0.6), the second keeps its copy code 1 (no change: its arg max is its copy) and the
+    fourth keeps 0 (0.4 <= 0.6). At 0 the gate is off (the arg max everywhere); at 1 the frame is the
+    copy, whatever the model says; without ``copy`` it is refused."""
+    p = torch.tensor([[0.7, 0.2, 0.1], [0.5, 0.3, 0.2], [0.9, 0.05, 0.05], [0.4, 0.3, 0.3]])
+    p = p[:, [1, 0, 2]]  # the likeliest code is 1 at every token
+    model = _TokenLogits(torch.zeros(4, 3), p.log().view(2, 2, 3))
+    ctx = torch.zeros(1, 1, 2, 2, dtype=torch.long)
+    copy = torch.tensor([[[0, 1], [2, 0]]])
+    kw = dict(guidance=0.0, top_k=1, cache=False, copy=copy)
+    for steps in (1, 3):
+        assert D.sample_frame(model, ctx, _eye_poses(1, 2), steps=steps, change_confidence=0.6, **kw).tolist() \
+            == [[[1, 1], [1, 0]]]
+        assert (D.sample_frame(model, ctx, _eye_poses(1, 2), steps=steps, **kw) == 1).all()
+        assert torch.equal(D.sample_frame(model, ctx, _eye_poses(1, 2), steps=steps, change_confidence=1.0, **kw),
+                           copy)
+    with pytest.raises(ValueError, match="copy"):
+        D.sample_frame(model, ctx, _eye_poses(1, 2), steps=1, guidance=0.0, change_confidence=0.5)
+    # guided: the bar reads the guided distribution; the forecast keeps the last past frame's codes
+    V = 16
+    gen = torch.Generator().manual_seed(3)
+    model = _TokenLogits(torch.randn(V + 1, V, generator=gen), torch.randn(6, 6, V, generator=gen))
+    past = torch.randint(0, V, (2, 3, 6, 6), generator=torch.Generator().manual_seed(4))
+    free = D.forecast_tokens(model, past, _eye_poses(2, 5), 2, steps=1, guidance=2.0, top_k=1, cache=False)
+    gated = D.forecast_tokens(model, past, _eye_poses(2, 5), 2, steps=1, guidance=2.0, top_k=1, cache=False,
+                              change_confidence=0.5)
+    copy_all = D.forecast_tokens(model, past, _eye_poses(2, 5), 2, steps=1, guidance=2.0, top_k=1, cache=False,
+                                 change_confidence=1.0)
+    assert torch.equal(copy_all, past[:, -1:].expand(-1, 2, -1, -1))
+    changed, kept = free != past[:, -1:], gated != past[:, -1:]
+    assert (kept <= changed).all() and 0 < kept.sum() < changed.sum()  # some changes pass, not all
+    assert torch.equal(gated[kept], free[kept])
+
+
 @pytest.mark.parametrize("revise", [True, False])
 def test_sampling_on_a_toy_model(revise):
     V, H, K = 8, 10, 10
