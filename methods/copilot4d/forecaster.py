@@ -54,8 +54,9 @@ LOG_EVERY = 10
 @dataclass(frozen=True)
 class WorldOptions(RenderingOptions):
     config: str = option("tiny", help="world model and tokenizer configuration: tiny (CPU scale), tiny-window "
-                                      "(tiny on the tiny-window tokenizer), tiny-views (on tiny-views), paper (A.2.2 sizes) or wide (the paper's "
-                                      "network on the tiny tokenizer; GPU scale)")
+                                      "(tiny on the tiny-window tokenizer), tiny-window-view (tiny-window told where each frame's "
+                                      "sensor sees every token from; not the paper's), tiny-views (on tiny-views), paper (A.2.2 "
+                                      "sizes) or wide (the paper's network on the tiny tokenizer; GPU scale)")
     cfg_weight: float = option(2.0, help="classifier-free guidance weight w (0: no guidance; 1 is not 'none')",
                                min=0)
     sampling_steps: int = option(10, help="Algorithm 2 steps K per future frame", min=1)
@@ -571,8 +572,15 @@ class Copilot4DMaskGIT(Copilot4D):
 
 
 def world_config_for(world_cfg, tok_cfg):
-    """``world_cfg`` fitted to a tokenizer's output: its codebook size and token grid."""
-    if (world_cfg.codebook_size, world_cfg.token_grid) == (tok_cfg.codebook_size, tok_cfg.bev_tokens):
+    """``world_cfg`` fitted to a tokenizer's output: its codebook size and token grid (and, where
+    the world model is told where each sensor sees a token from, the grid's extent)."""
+    fitted = {"codebook_size": tok_cfg.codebook_size, "token_grid": tok_cfg.bev_tokens}
+    if world_cfg.view_freqs:
+        if tok_cfg.x_range != tok_cfg.y_range or tok_cfg.x_range[0] != -tok_cfg.x_range[1]:
+            raise PcfbenchError(f"world model config {world_cfg.name!r} places tokens on a square grid centred on the "
+                                f"sensor; the '{tok_cfg.name}' tokenizer's ranges are x {tok_cfg.x_range}, y {tok_cfg.y_range}")
+        fitted["bev_extent"] = float(tok_cfg.x_range[1])
+    if all(getattr(world_cfg, k) == v for k, v in fitted.items()):
         return world_cfg
-    return world_cfg.with_overrides(codebook_size=tok_cfg.codebook_size, token_grid=tok_cfg.bev_tokens)
+    return world_cfg.with_overrides(**fitted)
 

@@ -205,6 +205,30 @@ class LevelMerging(nn.Module):
         return self.reduction(self.norm(torch.cat([up, fine], dim=-1)))
 
 
+def view_features(T_ref_sensor: torch.Tensor, grid: int, extent: float, freqs: int) -> torch.Tensor:
+    """(B, T, grid, grid, 4 freqs + 2): where frame k's sensor sees every cell of a ``grid`` x
+    ``grid`` map over [-extent, extent]^2 of the reference frame from (cell [i, j] centred at x =
+    -extent + (i + 0.5) 2 extent / grid, y likewise with j, as the tokenizer's BEV grid).
+
+    ``T_ref_sensor`` (B, T, 4, 4) maps frame k's sensor frame into the reference frame; the cell's
+    centre, at the sensor's height, in the sensor frame is (lx, ly) = the first two rows of
+    R^T (c - t). Features, with u = lx / extent, v = ly / extent: sin and cos of pi 2^f u and of
+    pi 2^f v for f = 0 .. freqs-1, then the distance hypot(lx, ly) / extent and
+    log(1 + distance in m) / log(1 + extent)."""
+    poses = T_ref_sensor.float()
+    c = -extent + (torch.arange(grid, device=poses.device, dtype=poses.dtype) + 0.5) * (2.0 * extent / grid)
+    dx = c[None, None, :, None] - poses[..., 0, 3, None, None]  # (B, T, grid, 1): along x (rows i)
+    dy = c[None, None, None, :] - poses[..., 1, 3, None, None]  # (B, T, 1, grid): along y (columns j)
+    R = poses[..., :2, :2, None, None]  # (B, T, 2, 2, 1, 1)
+    lx = R[:, :, 0, 0] * dx + R[:, :, 1, 0] * dy  # R^T (c - t), first row
+    ly = R[:, :, 0, 1] * dx + R[:, :, 1, 1] * dy
+    dist = torch.hypot(lx, ly)
+    scale = math.pi * 2.0 ** torch.arange(freqs, device=poses.device, dtype=poses.dtype)
+    u, v = (lx / extent)[..., None] * scale, (ly / extent)[..., None] * scale
+    return torch.cat([u.sin(), u.cos(), v.sin(), v.cos(), (dist / extent)[..., None],
+                      (torch.log1p(dist) / math.log1p(extent))[..., None]], -1)
+
+
 def _lin_ln_lin(d_in: int, d: int) -> nn.Sequential:
     """Linear -> LayerNorm -> Linear: how every conditioning input enters (A.2.2)."""
     return nn.Sequential(nn.Linear(d_in, d, bias=False), nn.LayerNorm(d), nn.Linear(d, d, bias=False))
@@ -232,6 +256,8 @@ class WorldModel(nn.Module):
         self.time_embed = nn.Parameter(torch.zeros(cfg.n_frames, d1))
         self.register_buffer("pos_embed", sincos_2d(cfg.token_grid, cfg.token_grid, d1), persistent=False)
         self.action = nn.ModuleList(_lin_ln_lin(16, d) for d in cfg.dims)  # added at each level's start
+        if cfg.view_freqs:  # where each frame's sensor sees each token from, also at each level's start
+            self.view = nn.ModuleList(_lin_ln_lin(4 * cfg.view_freqs + 2, d) for d in cfg.dims)
         self.down1 = Stage(cfg.groups_down[0], d1, h1, w1, S, r)
         self.merge12 = PatchMerging(d1, d2)
         self.down2 = Stage(cfg.groups_down[1], d2, h2, w2, S, r)
@@ -262,7 +288,15 @@ class WorldModel(nn.Module):
         nn.init.normal_(self.time_embed, 0.0, 0.02)
 
     def _action(self, level: int, poses: torch.Tensor, T: int) -> torch.Tensor:
-        return self.action[level](poses)[:, -T:, None, None, :]  # (B, T, 1, 1, C): the last T frames'
+        """What frame k's pose adds at the start of ``level`` for the last T frames of ``poses``
+        (B, frames, 16): (B, T, 1, 1, C), or with ``view_freqs`` (B, T, H, W, C) (:func:`view_features`)."""
+        out = self.action[level](poses)[:, -T:, None, None, :]
+        if self.cfg.view_freqs:
+            cfg = self.cfg
+            feats = view_features(poses[:, -T:].reshape(*poses.shape[:1], T, 4, 4), cfg.token_grid >> level,
+                                  cfg.bev_extent, cfg.view_freqs).to(poses.dtype)
+            out = out + self.view[level](feats)
+        return out
 
     def forward(self, tokens: torch.Tensor, T_ref_sensor: torch.Tensor, temporal_mask: torch.Tensor,
                 frame_index: torch.Tensor | None = None, past_kv: "PastKV | None" = None,

@@ -4,6 +4,7 @@ Algorithm 2 (sampling, revision, guidance) and a short overfit run."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 
 import pytest
@@ -20,6 +21,7 @@ from pcfbench.methods.copilot4d.world import (
     count_parameters,
     guidance_mask,
     identity_mask,
+    view_features,
 )
 from pcfbench.methods.copilot4d.world_config import PAPER, TINY, WIDE, WorldModelConfig, get_world_config
 
@@ -710,3 +712,87 @@ def test_training_loss_reports_changed_and_unchanged_tokens_apart():
         D.corrupt(x0, n_past, V, D.COPILOT4D, gen2)
         assert torch.equal(gen.get_state(), gen2.get_state())
     assert both
+
+
+# --------------------------------------------------------------------------- where each sensor sees a token from
+def _view(x: float, y: float, extent: float, freqs: int) -> list[float]:
+    """The features of a cell at (x, y) in a sensor's frame, written out."""
+    out = []
+    for c in (x, y):
+        out += [math.sin(math.pi * 2 ** f * c / extent) for f in range(freqs)]
+        out += [math.cos(math.pi * 2 ** f * c / extent) for f in range(freqs)]
+    d = math.hypot(x, y)
+    return out + [d / extent, math.log1p(d) / math.log1p(extent)]
+
+
+def test_view_features_by_hand():
+    # a 2 x 2 grid over [-10, 10]^2: cells centred at x, y = -5 and 5; cell [i, j] at (x_i, y_j)
+    P = _eye_poses(1, 2)
+    P[0, 0, :3, 3] = torch.tensor([5.0, -5.0, 1.7])  # frame 0's sensor on cell [1, 0], 1.7 m up
+    P[0, 1, :2, :2] = torch.tensor([[0.0, -1.0], [1.0, 0.0]])  # frame 1's sensor at the origin, its x along y
+    f = view_features(P, 2, 10.0, 1)
+    assert f.shape == (1, 2, 2, 2, 6)
+    want = {(0, 1, 0): (0.0, 0.0), (0, 0, 1): (-10.0, 10.0), (0, 0, 0): (-10.0, 0.0), (0, 1, 1): (0.0, 10.0),
+            # frame 1 turned 90 degrees: the cell at (x, y) = (-5, 5) of the reference lies 5 m ahead, 5 m to its left
+            (1, 0, 1): (5.0, 5.0), (1, 1, 1): (5.0, -5.0), (1, 0, 0): (-5.0, 5.0), (1, 1, 0): (-5.0, -5.0)}
+    for (k, i, j), (x, y) in want.items():
+        assert torch.allclose(f[0, k, i, j], torch.tensor(_view(x, y, 10.0, 1)), atol=1e-6), (k, i, j)
+
+
+def test_view_features_against_a_slow_reference():
+    gen = torch.Generator().manual_seed(3)
+    P = _random_poses(2, 3, gen)
+    for b in range(2):
+        for k in range(3):
+            yaw = float(torch.rand(1, generator=gen)) * 6.0
+            P[b, k, :3, :3] = torch.tensor([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
+                                            [0, 0, 1]], dtype=torch.float64)
+    grid, extent = 4, 20.0
+    f = view_features(P, grid, extent, 3)
+    for b in range(2):
+        for k in range(3):
+            T_sensor_ref = torch.linalg.inv(P[b, k])
+            for i in range(grid):
+                for j in range(grid):
+                    c = torch.tensor([-extent + (i + 0.5) * 2 * extent / grid, -extent + (j + 0.5) * 2 * extent / grid,
+                                      float(P[b, k, 2, 3]), 1.0], dtype=torch.float64)
+                    x, y = (T_sensor_ref @ c)[:2].tolist()
+                    assert torch.allclose(f[b, k, i, j], torch.tensor(_view(x, y, extent, 3)), atol=1e-5)
+
+
+MICRO_VIEW = MICRO.with_overrides(name="micro-view", view_freqs=2, bev_extent=10.0)
+
+
+def test_a_view_field_model_tells_each_token_where_its_sensor_is():
+    torch.manual_seed(0)
+    m = WorldModel(MICRO_VIEW).eval()
+    assert count_parameters(m) - count_parameters(WorldModel(MICRO)) == sum(10 * d + 2 * d + d * d for d in MICRO.dims)
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randint(0, 16, (2, 3, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    with torch.no_grad():
+        _, kv = m(x[:, :2], P[:, :2], causal_mask(2), return_kv=True)
+        for w in (0.0, 2.0):  # a cached context is the same as the whole sequence
+            assert torch.allclose(D.guided_logits(m, x, P, w), D.guided_logits(m, x[:, 2:], P[:, 2:], w, past_kv=kv),
+                                  atol=1e-5, rtol=0)
+        # the sensor turned about its own position: the action alone cannot say where each token is seen
+        # from, so the turn changes that frame's logits, and not the others' (identity mask)
+        Q = P.clone()
+        Q[:, 2, :2, :2] = torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=torch.float64)
+        a, b = m(x, P, identity_mask(3)), m(x, Q, identity_mask(3))
+    assert torch.allclose(a[:, :2], b[:, :2], atol=1e-6) and not torch.allclose(a[:, 2], b[:, 2], atol=1e-4)
+
+
+def test_a_view_field_world_model_takes_its_tokenizers_extent():
+    from pcfbench.methods.copilot4d.forecaster import world_config_for
+    from pcfbench.methods.copilot4d.world_config import TINY_WINDOW, TINY_WINDOW_VIEW, tokenizer_config_name
+
+    tok = tok_config.get_config(tokenizer_config_name("tiny-window-view"))
+    assert tok.name == "tiny-window" and TINY_WINDOW_VIEW.with_overrides(name="tiny-window", view_freqs=0) == TINY_WINDOW
+    fitted = world_config_for(TINY_WINDOW_VIEW.with_overrides(bev_extent=1.0), tok)
+    assert fitted.bev_extent == 80.0 == tok.x_range[1] and fitted.view_freqs == 6
+    assert world_config_for(TINY_WINDOW.with_overrides(bev_extent=1.0), tok).bev_extent == 1.0  # unused, untouched
+    with pytest.raises(PcfbenchError, match="square grid centred on the sensor"):
+        world_config_for(TINY_WINDOW_VIEW, dataclasses.replace(tok, x_range=(-60.0, 100.0)))
+    with pytest.raises(PcfbenchError, match="view_freqs=-1 must be at least 0"):
+        MICRO.with_overrides(view_freqs=-1)
