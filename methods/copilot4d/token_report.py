@@ -51,22 +51,27 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
     """Forecast the future frames of each window (``build_windows`` output: its past frames and
     all poses given) with ``method`` (a loaded ``Copilot4D``: its world model, sampler options,
     variant), evenly spaced windows of each stride up to ``max_windows`` per stride. Returns
-    ``{"rows": [{stride, step, windows, **counts}], "options": ...}``."""
+    ``{"rows": [{stride, step, windows, **counts}], "rings": [{stride, ring, windows, **counts}]}``:
+    per future step, and per ring of distance from the t=0 sensor (``evaluate.token_rings`` of the
+    method's tokenizer grid, ``ring`` its index into ``evaluate.ring_labels()``) over every future step."""
     import torch
 
     from pcfbench.methods.copilot4d.diffusion import forecast_tokens
+    from pcfbench.methods.copilot4d.evaluate import RING_EDGES, token_rings
     from pcfbench.training import autocast
 
     cfg, opts = method.world_cfg, method.options
     P, F = cfg.n_past, cfg.n_future
     dev = next(method.world.parameters()).device
     metric = method.code_metric()  # mbr: the codebook's distances, once
-    rows = []
+    rings = token_rings(method.tok_cfg, tuple(windows["tokens"].shape[-2:]))
+    rows, ring_rows = [], []
     for s in sorted(set(int(v) for v in windows["stride"])):
         idx = np.flatnonzero(windows["stride"] == s)
         if max_windows and len(idx) > max_windows:
             idx = idx[np.unique(np.linspace(0, len(idx) - 1, max_windows).round().astype(int))]
         acc = [dict.fromkeys(COUNTS, 0) for _ in range(F)]
+        by_ring = [dict.fromkeys(COUNTS, 0) for _ in range(len(RING_EDGES) + 1)]
         for n, a in enumerate(idx):
             toks = torch.from_numpy(windows["tokens"][a].astype(np.int64))
             poses = torch.from_numpy(windows["poses"][a].astype(np.float32))
@@ -78,26 +83,32 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
                                        change_confidence=opts.change_confidence)[0].cpu().numpy()
             last = windows["tokens"][a, P - 1]
             for f in range(F):
-                for k, v in score_tokens(pred[f], windows["tokens"][a, P + f], last).items():
-                    acc[f][k] += v
+                for into, where in [(acc[f], slice(None)), *((r, rings == i) for i, r in enumerate(by_ring))]:
+                    for k, v in score_tokens(pred[f][where], windows["tokens"][a, P + f][where], last[where]).items():
+                        into[k] += v
             log(f"stride {s}: window {n + 1}/{len(idx)}")
         rows += [{"stride": s, "step": f + 1, "windows": len(idx), **acc[f]} for f in range(F)]
-    return {"rows": rows}
+        ring_rows += [{"stride": s, "ring": i, "windows": len(idx), **r} for i, r in enumerate(by_ring)]
+    return {"rows": rows, "rings": ring_rows}
 
 
 def write_token_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
     """The report as CSV (counts and shares per stride and future step) and Markdown."""
     from pcfbench.reporting.escape import md_text
 
+    from pcfbench.methods.copilot4d.evaluate import ring_labels
+
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path, md = out_dir / f"{stem}.csv", out_dir / f"{stem}.md"
     names = list(shares(dict.fromkeys(COUNTS, 0)))
+    labels = ring_labels()
+    ring_rows = result.get("rings", [])
     with open(csv_path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["stride", "step", "windows", *COUNTS, *names])
-        for r in result["rows"]:
-            w.writerow([r["stride"], r["step"], r["windows"], *(r[k] for k in COUNTS),
-                        *(f"{v:.6g}" for v in shares(r).values())])
+        w.writerow(["stride", "step", "ring", "windows", *COUNTS, *names])
+        for r in [*result["rows"], *ring_rows]:
+            w.writerow([r["stride"], r.get("step", "all"), labels[r["ring"]] if "ring" in r else "all", r["windows"],
+                        *(r[k] for k in COUNTS), *(f"{v:.6g}" for v in shares(r).values())])
     lines = [f"# Copilot4D world model: its forecast tokens, changed and unchanged ({md_text(meta['method'])})", "",
              "Algorithm 2's forecast of each held-out window's future frames from its past frames and every pose, "
              "against the tokenizer's tokens of the real future. *Changed*: the real token differs from the last "
@@ -118,6 +129,12 @@ def write_token_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tu
     for s, tot in by_stride.items():
         sh = shares(tot)
         lines.append(f"| {s} | all | | " + " | ".join(f"**{100 * sh[n]:.1f} %**" for n in names) + " |")
+    if ring_rows:
+        lines += ["", "Every future step, by the token's distance from the t=0 sensor:", "",
+                  "| stride | distance | windows | changed share | accuracy | changed accuracy | unchanged accuracy "
+                  "| moved share | moved precision |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += [f"| {r['stride']} | {labels[r['ring']]} | {r['windows']} | "
+                  + " | ".join(f"{100 * shares(r)[n]:.1f} %" for n in names) + " |" for r in ring_rows]
     md.write_text("\n".join(lines) + "\n")
     return md, csv_path
 

@@ -49,8 +49,11 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
         return torch.from_numpy(out.astype(np.int64))[None]
 
     monkeypatch.setattr(diffusion, "forecast_tokens", fake_forecast)
+    # a 3 x 3 grid over [-45, 45]^2 (centres at -30, 0, 30 m): the centre token within 20 m of the
+    # sensor, the edge ones at 30 m (20-40 m), the corners at 42.4 m (40-60 m), none beyond 60 m
     method = types.SimpleNamespace(
         world_cfg=types.SimpleNamespace(n_past=P, n_future=F), world=torch.nn.Linear(1, 1),
+        tok_cfg=types.SimpleNamespace(x_range=(-45.0, 45.0), y_range=(-45.0, 45.0)),
         options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1, change_confidence=0.3),
         variant=types.SimpleNamespace(revise=True),
         code_metric=lambda: None)
@@ -64,8 +67,19 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
         sh = shares(r)
         assert sh["changed_accuracy"] == (1.0 if answer == "truth" else 0.0)
         assert sh["unchanged_accuracy"] == 1.0
+    ring_of = np.array([[2, 1, 2], [1, 0, 1], [2, 1, 2]])
+    assert [(r["stride"], r["ring"]) for r in res["rings"]] == [(s, i) for s in (2, 6) for i in range(4)]
+    for r in res["rings"]:
+        sel = np.flatnonzero(windows["stride"] == r["stride"])
+        where = ring_of == r["ring"]
+        assert r["tokens"] == 2 * F * int(where.sum())
+        assert r["changed"] == int((tokens[sel, P:][..., where] != tokens[sel, P - 1, None][..., where]).sum())
+        assert r["changed_hit"] == (r["changed"] if answer == "truth" else 0)
+    assert sum(r["changed"] for r in res["rings"]) == sum(r["changed"] for r in res["rows"])
     md, csv_path = write_token_report(res, {"method": "copilot4d|x"}, tmp_path, "r")
-    assert "copilot4d\\|x" in md.read_text() and len(csv_path.read_text().splitlines()) == 7
+    text = md.read_text()
+    assert "copilot4d\\|x" in text and "| 6 | 20-40 m | 2 |" in text and "| 2 | 60 m and beyond | 2 | nan %" in text
+    assert len(csv_path.read_text().splitlines()) == 1 + 6 + 8
 
 
 # --------------------------------------------------------------------------- the objective held out
