@@ -1,0 +1,182 @@
+"""A look-up table of the `tiny-window` tokenizer's future codes (issue 42, 2026-12-02, stop 76).
+
+Fitted on the training windows of `copilot4d:config=tiny-window,anchor_every=1` (frame t0, strides
+2 and 6): for every future token, the key (its t=0 code; the distance and bearing bins of the
+token's centre seen from that future frame's sensor; the token's ring of distance from the t=0
+sensor) counts the future codes. The table's forecast of a future map is the t=0 map with, at every
+token whose key was seen at least 5 times, the key's most frequent code where that code's share of
+the key passes a bar (bar 0: wherever it is not the t=0 code). Not a method: a measurement of what
+the t=0 code and where the future sensor sees a token from say about its future code.
+
+    .venv/bin/python docs/experiments/copilot4d_token_table.py tokens            # held-out windows
+    .venv/bin/python docs/experiments/copilot4d_token_table.py score --split test  # kitti-1s, rendered
+
+`tokens` scores the forecast tokens of the held-out (test) windows against the real ones, per stride,
+over every future step and within 20 m of the t=0 sensor; `score` renders the table's forecasts of
+kitti-1s's every-third samples as `copilot4d` renders and scores them by the harness beside
+`copilot4d-token-copy:config=tiny-window` in one loop (about 11 min on 2 CPU cores for test's 28).
+Needs `pcfbench train copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic`
+(the windows are tokenized here when the world model's training has not cached them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+
+import numpy as np
+import torch
+
+from pcfbench.methods.copilot4d import evaluate as ev
+from pcfbench.methods.copilot4d.forecaster import build_windows, sample_seed, transform, window_cache_dir
+from pcfbench.methods.copilot4d.plugin import _loaded
+from pcfbench.methods.copilot4d.token_copy import TokenCopy
+from pcfbench.training import open_training_data
+
+DATASET, TOKENIZER = "synthetic-town-realistic", "copilot4d-token-copy:config=tiny-window"
+BARS = (0.0, 0.4, 0.5, 0.6)
+MIN_COUNT = 5
+
+tc, ck = _loaded(TOKENIZER, TokenCopy, "tokenizer", DATASET, "train", None)
+tok = tc.model
+E, G = tok.cfg.x_range[1], tok.cfg.bev_tokens
+centres = -E + (np.arange(G) + 0.5) * (2 * E / G)
+X, Y = np.meshgrid(centres, centres, indexing="ij")  # token [i, j] at (x_i, y_j) of the t=0 sensor frame
+R0 = np.hypot(X, Y)
+RING0 = np.digitize(R0, [5, 10, 15, 20, 30, 40, 60])
+
+
+def keys(c0: np.ndarray, T_s0_sensor: np.ndarray) -> np.ndarray:
+    """(H, W) keys of a t=0 map ``c0`` for a future sensor at ``T_s0_sensor`` (its pose in the t=0 frame)."""
+    t, yaw = T_s0_sensor[:2, 3], np.arctan2(T_s0_sensor[1, 0], T_s0_sensor[0, 0])
+    dx, dy = X - t[0], Y - t[1]
+    lx, ly = np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy
+    dist = np.digitize(np.hypot(lx, ly), [2.5, 5, 7.5, 10, 15, 20, 30, 40, 60])
+    bearing = ((np.arctan2(ly, lx) + np.pi) / (2 * np.pi) * 8).astype(np.int64) % 8
+    return c0.astype(np.int64) * 1000 + dist * 100 + bearing * 10 + RING0
+
+
+def windows(split: str) -> dict:
+    source = open_training_data(DATASET, split, split_option="--split {}")
+    return build_windows(tok, source.adapter, split, 5, 5, (2, 6), 1, window_cache_dir(ck.sha256, source.train_on.key),
+                         log=print)
+
+
+def fit() -> dict[int, tuple[int, float, int]]:
+    """key -> (most frequent future code, its share of the key, the key's count), on the train windows."""
+    w = windows("train")
+    counts: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
+    for a in range(len(w["tokens"])):
+        for j in range(5, 10):
+            k, target = keys(w["tokens"][a, 4], w["poses"][a, j]).ravel(), w["tokens"][a, j].ravel().astype(np.int64)
+            u, n = np.unique(k * 1024 + target, return_counts=True)
+            for x, m in zip(u.tolist(), n.tolist()):
+                counts[x // 1024][x % 1024] += m
+    table = {}
+    for k, c in counts.items():
+        (code, n) = c.most_common(1)[0]
+        table[k] = (code, n / sum(c.values()), sum(c.values()))
+    print(f"{len(table)} keys from {len(w['tokens'])} training windows")
+    return table
+
+
+def forecast(table, c0: np.ndarray, T_s0_sensor: np.ndarray, bar: float) -> np.ndarray:
+    out = c0.astype(np.int64).copy()
+    for (i, j), k in np.ndenumerate(keys(c0, T_s0_sensor)):
+        hit = table.get(int(k))
+        if hit is not None and hit[1] > bar and hit[2] >= MIN_COUNT:
+            out[i, j] = hit[0]
+    return out
+
+
+def tokens(table) -> None:
+    w = windows("test")
+    for bar in BARS:
+        st = collections.Counter()
+        for a in range(len(w["tokens"])):
+            s, c0 = int(w["stride"][a]), w["tokens"][a, 4].astype(np.int64)
+            for j in range(5, 10):
+                pred, truth = forecast(table, c0, w["poses"][a, j], bar), w["tokens"][a, j].astype(np.int64)
+                for where, sel in (("all", np.ones_like(R0, bool)), ("0-20 m", R0 < 20)):
+                    moved, changed = (pred != c0) & sel, (truth != c0) & sel
+                    st[s, where, "tokens"] += int(sel.sum())
+                    st[s, where, "changed"] += int(changed.sum())
+                    st[s, where, "moved"] += int(moved.sum())
+                    st[s, where, "hit"] += int((moved & (pred == truth)).sum())
+                    st[s, where, "right"] += int(((pred == truth) & sel).sum())
+                    st[s, where, "copy"] += int(((c0 == truth) & sel).sum())
+        for s in (2, 6):
+            for where in ("all", "0-20 m"):
+                g = lambda k: st[s, where, k]  # noqa: E731
+                print(f"bar {bar:g}, stride {s}, {where}: moved {100 * g('moved') / g('tokens'):.1f} %, precision "
+                      f"{100 * g('hit') / max(g('moved'), 1):.1f} %, changes right {100 * g('hit') / g('changed'):.1f} %, "
+                      f"accuracy {100 * g('right') / g('tokens'):.1f} % (copying {100 * g('copy') / g('tokens'):.1f} %)")
+
+
+def score(table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
+    import pcfbench.protocol as protocol
+    from pcfbench.data import Forecast
+    from pcfbench.methods.copilot4d.ceiling import score_beside
+
+    render = ev.rendering_kwargs(tc.options)
+    memo: dict[str, tuple] = {}
+
+    def maps(sample):
+        if sample.sample_id not in memo:
+            memo.clear()
+            seen = sample.for_method()
+            T_s0_ref = np.linalg.inv(seen.past_T_ref_sensor[-1])
+            c0 = ev.tokenize_sweep(tok, transform(seen.past_points_ref[-1], T_s0_ref)).cpu().numpy()
+            memo[sample.sample_id] = ({bar: [torch.from_numpy(forecast(table, c0, T_s0_ref @ T, bar))
+                                             for T in seen.future_T_ref_sensor] for bar in bars}, T_s0_ref)
+        return memo[sample.sample_id]
+
+    def entry(bar):
+        def fn(sample, *_):
+            m, T_s0_ref = maps(sample)
+            gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
+            return Forecast.from_depths(sample, ev.render_queries(tok, m[bar], sample, T_s0_ref, generator=gen,
+                                                                  **render))
+        return fn
+
+    builder = protocol.SampleBuilder
+
+    class EveryThird(builder):  # the samples `pcfbench run` scores (the every-third policy)
+        def __init__(self, adapter, setting, policy="every-third", **kw):
+            super().__init__(adapter, setting, policy, **kw)
+
+    protocol.SampleBuilder = EveryThird
+    try:
+        res = score_beside(open_training_data(DATASET, split, split_option="--split {}").adapter, split, "kitti-1s",
+                           {"copilot4d-token-copy": lambda sample, *_: tc.forecast(sample.for_method()),
+                            **{f"table, bar {b:g}": entry(b) for b in bars}}, log=print, label="table")
+    finally:
+        protocol.SampleBuilder = builder
+    cols = ("chamfer_nf", "l1_mean", "l1_median")
+    ref = res["means"]["copilot4d-token-copy"]
+    print(f"{DATASET} {split} kitti-1s, {res['samples']} samples; chamfer_nf / l1_mean / l1_median, then / token-copy")
+    per_sample = {}
+    for name, rows in res["rows"].items():
+        for r in rows:
+            for c in cols:
+                if r.get(c) is not None and np.isfinite(r[c]):
+                    per_sample.setdefault((name, c, r["sample_id"]), []).append(r[c])
+    for name, m in res["means"].items():
+        line = " / ".join(f"{m[c]:.3f}" for c in cols) + "   " + " / ".join(f"{m[c] / ref[c]:.3f}" for c in cols)
+        if name != "copilot4d-token-copy":  # paired over samples: better on how many, and a bootstrap interval
+            for c in cols:
+                d = np.array([np.mean(v) - np.mean(per_sample[("copilot4d-token-copy", c, sid)])
+                              for (n, cc, sid), v in per_sample.items() if n == name and cc == c])
+                boot = np.random.default_rng(0).choice(d, (2000, len(d))).mean(1)
+                lo, hi = np.percentile(boot, [2.5, 97.5])
+                line += f"; {c}: better on {int((d < 0).sum())}/{len(d)}, diff 95 % [{lo:+.4f}, {hi:+.4f}]"
+        print(f"{name}: {line}")
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("what", choices=("tokens", "score"))
+    p.add_argument("--split", default="test")
+    args = p.parse_args()
+    table = fit()
+    tokens(table) if args.what == "tokens" else score(table, args.split)
