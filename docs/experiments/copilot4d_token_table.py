@@ -11,10 +11,15 @@ the t=0 code and where the future sensor sees a token from say about its future 
     .venv/bin/python docs/experiments/copilot4d_token_table.py tokens            # held-out windows
     .venv/bin/python docs/experiments/copilot4d_token_table.py score --split test  # kitti-1s, rendered
 
+    .venv/bin/python docs/experiments/copilot4d_token_table.py rings --split test  # where the ceiling's gain is
+
 `tokens` scores the forecast tokens of the held-out (test) windows against the real ones, per stride,
 over every future step and within 20 m of the t=0 sensor; `score` renders the table's forecasts of
 kitti-1s's every-third samples as `copilot4d` renders and scores them by the harness beside
-`copilot4d-token-copy:config=tiny-window` in one loop (about 11 min on 2 CPU cores for test's 28).
+`copilot4d-token-copy:config=tiny-window` in one loop (about 11 min on 2 CPU cores for test's 28);
+`rings` scores, the same way, the t=0 map with the real future's tokens (the training target, as the
+ceiling builds it) within one ring of distance from the t=0 sensor only, for each ring, and everywhere
+(the ceiling): which ring's changes each column's gain over token-copy is made of.
 Needs `pcfbench train copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic`
 (the windows are tokenized here when the world model's training has not cached them).
 """
@@ -113,10 +118,83 @@ def tokens(table) -> None:
                       f"accuracy {100 * g('right') / g('tokens'):.1f} % (copying {100 * g('copy') / g('tokens'):.1f} %)")
 
 
-def score(table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
+def every_third(split: str, forecasters: dict) -> dict:
+    """``score_beside`` on kitti-1s's samples under the every-third policy (the ones `pcfbench run` scores)."""
     import pcfbench.protocol as protocol
-    from pcfbench.data import Forecast
     from pcfbench.methods.copilot4d.ceiling import score_beside
+
+    builder = protocol.SampleBuilder
+
+    class EveryThird(builder):
+        def __init__(self, adapter, setting, policy="every-third", **kw):
+            super().__init__(adapter, setting, policy, **kw)
+
+    protocol.SampleBuilder = EveryThird
+    try:
+        return score_beside(open_training_data(DATASET, split, split_option="--split {}").adapter, split, "kitti-1s",
+                            {"copilot4d-token-copy": lambda sample, *_: tc.forecast(sample.for_method()), **forecasters},
+                            log=print, label="table")
+    finally:
+        protocol.SampleBuilder = builder
+
+
+def print_beside(res: dict, split: str) -> None:
+    cols = ("chamfer_nf", "l1_mean", "l1_median")
+    ref = res["means"]["copilot4d-token-copy"]
+    print(f"{DATASET} {split} kitti-1s, {res['samples']} samples; chamfer_nf / l1_mean / l1_median, then / token-copy")
+    per_sample = {}
+    for name, rows in res["rows"].items():
+        for r in rows:
+            for c in cols:
+                if r.get(c) is not None and np.isfinite(r[c]):
+                    per_sample.setdefault((name, c, r["sample_id"]), []).append(r[c])
+    for name, m in res["means"].items():
+        line = " / ".join(f"{m[c]:.3f}" for c in cols) + "   " + " / ".join(f"{m[c] / ref[c]:.3f}" for c in cols)
+        if name != "copilot4d-token-copy":  # paired over samples: better on how many, and a bootstrap interval
+            for c in cols:
+                d = np.array([np.mean(v) - np.mean(per_sample[("copilot4d-token-copy", c, sid)])
+                              for (n, cc, sid), v in per_sample.items() if n == name and cc == c])
+                boot = np.random.default_rng(0).choice(d, (2000, len(d))).mean(1)
+                lo, hi = np.percentile(boot, [2.5, 97.5])
+                line += f"; {c}: better on {int((d < 0).sum())}/{len(d)}, diff 95 % [{lo:+.4f}, {hi:+.4f}]"
+        print(f"{name}: {line}")
+
+
+def rings(split: str) -> None:
+    from pcfbench.data import Forecast
+    from pcfbench.methods.copilot4d.ceiling import future_targets
+
+    render = ev.rendering_kwargs(tc.options)
+    ring = torch.from_numpy(ev.token_rings(tok.cfg, (G, G)))
+    labels = ev.ring_labels()
+    memo: dict[str, tuple] = {}
+
+    def maps(sample, builder, seq_name, ref):
+        if sample.sample_id not in memo:
+            memo.clear()
+            seen = sample.for_method()
+            T_s0_ref = np.linalg.inv(seen.past_T_ref_sensor[-1])
+            c0 = ev.tokenize_sweep(tok, transform(seen.past_points_ref[-1], T_s0_ref)).cpu()
+            target = [t.cpu() for t in future_targets(tok, sample, builder, seq_name, ref, "t0")[0]]
+            memo[sample.sample_id] = (c0, target, T_s0_ref)
+        return memo[sample.sample_id]
+
+    def entry(where):
+        def fn(sample, builder, seq_name, ref):
+            c0, target, T_s0_ref = maps(sample, builder, seq_name, ref)
+            codes = [torch.where(where, t, c0) for t in target]
+            gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
+            return Forecast.from_depths(sample, ev.render_queries(tok, codes, sample, T_s0_ref, generator=gen,
+                                                                  **render))
+        return fn
+
+    entries = {f"the real changes at {labels[i]} only": entry(ring == i) for i in range(len(labels))}
+    print_beside(every_third(split, {**entries, "the ceiling (every change)": entry(torch.ones_like(ring, dtype=torch.bool))}),
+                 split)
+
+
+def score(table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
+    from pcfbench.data import Forecast
 
     render = ev.rendering_kwargs(tc.options)
     memo: dict[str, tuple] = {}
@@ -139,44 +217,16 @@ def score(table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
                                                                   **render))
         return fn
 
-    builder = protocol.SampleBuilder
-
-    class EveryThird(builder):  # the samples `pcfbench run` scores (the every-third policy)
-        def __init__(self, adapter, setting, policy="every-third", **kw):
-            super().__init__(adapter, setting, policy, **kw)
-
-    protocol.SampleBuilder = EveryThird
-    try:
-        res = score_beside(open_training_data(DATASET, split, split_option="--split {}").adapter, split, "kitti-1s",
-                           {"copilot4d-token-copy": lambda sample, *_: tc.forecast(sample.for_method()),
-                            **{f"table, bar {b:g}": entry(b) for b in bars}}, log=print, label="table")
-    finally:
-        protocol.SampleBuilder = builder
-    cols = ("chamfer_nf", "l1_mean", "l1_median")
-    ref = res["means"]["copilot4d-token-copy"]
-    print(f"{DATASET} {split} kitti-1s, {res['samples']} samples; chamfer_nf / l1_mean / l1_median, then / token-copy")
-    per_sample = {}
-    for name, rows in res["rows"].items():
-        for r in rows:
-            for c in cols:
-                if r.get(c) is not None and np.isfinite(r[c]):
-                    per_sample.setdefault((name, c, r["sample_id"]), []).append(r[c])
-    for name, m in res["means"].items():
-        line = " / ".join(f"{m[c]:.3f}" for c in cols) + "   " + " / ".join(f"{m[c] / ref[c]:.3f}" for c in cols)
-        if name != "copilot4d-token-copy":  # paired over samples: better on how many, and a bootstrap interval
-            for c in cols:
-                d = np.array([np.mean(v) - np.mean(per_sample[("copilot4d-token-copy", c, sid)])
-                              for (n, cc, sid), v in per_sample.items() if n == name and cc == c])
-                boot = np.random.default_rng(0).choice(d, (2000, len(d))).mean(1)
-                lo, hi = np.percentile(boot, [2.5, 97.5])
-                line += f"; {c}: better on {int((d < 0).sum())}/{len(d)}, diff 95 % [{lo:+.4f}, {hi:+.4f}]"
-        print(f"{name}: {line}")
+    print_beside(every_third(split, {f"table, bar {b:g}": entry(b) for b in bars}), split)
 
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=("tokens", "score"))
+    p.add_argument("what", choices=("tokens", "score", "rings"))
     p.add_argument("--split", default="test")
     args = p.parse_args()
-    table = fit()
-    tokens(table) if args.what == "tokens" else score(table, args.split)
+    if args.what == "rings":
+        rings(args.split)
+    else:
+        table = fit()
+        tokens(table) if args.what == "tokens" else score(table, args.split)
