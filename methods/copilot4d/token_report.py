@@ -52,8 +52,9 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
     all poses given) with ``method`` (a loaded ``Copilot4D``: its world model, sampler options,
     variant), evenly spaced windows of each stride up to ``max_windows`` per stride. Returns
     ``{"rows": [{stride, step, windows, **counts}], "rings": [{stride, ring, windows, **counts}]}``:
-    per future step, and per ring of distance from the t=0 sensor (``evaluate.token_rings`` of the
-    method's tokenizer grid, ``ring`` its index into ``evaluate.ring_labels()``) over every future step."""
+    per future step, and over every future step per ring of distance from the grid's centre (the t=0
+    sensor in frame t0, each frame's own sensor in frame own; ``evaluate.token_rings`` of the method's
+    tokenizer grid, ``ring`` its index into ``evaluate.ring_labels()``)."""
     import torch
 
     from pcfbench.methods.copilot4d.diffusion import forecast_tokens
@@ -94,9 +95,8 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
 
 def write_token_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tuple[Path, Path]:
     """The report as CSV (counts and shares per stride and future step) and Markdown."""
-    from pcfbench.reporting.escape import md_text
-
     from pcfbench.methods.copilot4d.evaluate import ring_labels
+    from pcfbench.reporting.escape import md_text
 
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path, md = out_dir / f"{stem}.csv", out_dir / f"{stem}.md"
@@ -130,7 +130,8 @@ def write_token_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tu
         sh = shares(tot)
         lines.append(f"| {s} | all | | " + " | ".join(f"**{100 * sh[n]:.1f} %**" for n in names) + " |")
     if ring_rows:
-        lines += ["", "Every future step, by the token's distance from the t=0 sensor:", "",
+        lines += ["", "Every future step, by the token's distance from the grid's centre (the t=0 sensor in frame t0; "
+                  "in frame own, each frame's own sensor):", "",
                   "| stride | distance | windows | changed share | accuracy | changed accuracy | unchanged accuracy "
                   "| moved share | moved precision |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
         lines += [f"| {r['stride']} | {labels[r['ring']]} | {r['windows']} | "

@@ -293,7 +293,7 @@ class WorldModel(nn.Module):
         out = self.action[level](poses)[:, -T:, None, None, :]
         if self.cfg.view_freqs:
             cfg = self.cfg
-            feats = view_features(poses[:, -T:].reshape(*poses.shape[:1], T, 4, 4), cfg.token_grid >> level,
+            feats = view_features(poses[:, -T:].reshape(poses.shape[0], T, 4, 4), cfg.token_grid >> level,
                                   cfg.bev_extent, cfg.view_freqs).to(poses.dtype)
             out = out + self.view[level](feats)
         return out
