@@ -33,76 +33,70 @@ import numpy as np
 import torch
 
 from pcfbench.methods.copilot4d import evaluate as ev
-from pcfbench.methods.copilot4d.forecaster import build_windows, sample_seed, transform, window_cache_dir
-from pcfbench.methods.copilot4d.plugin import _loaded
-from pcfbench.methods.copilot4d.token_copy import TokenCopy
-from pcfbench.training import open_training_data
+from pcfbench.methods.copilot4d.forecaster import sample_seed, transform
 
 DATASET, TOKENIZER = "synthetic-town-realistic", "copilot4d-token-copy:config=tiny-window"
 BARS = (0.0, 0.4, 0.5, 0.6)
 MIN_COUNT = 5
 
-tc, ck = _loaded(TOKENIZER, TokenCopy, "tokenizer", DATASET, "train", None)
-tok = tc.model
-E, G = tok.cfg.x_range[1], tok.cfg.bev_tokens
-centres = -E + (np.arange(G) + 0.5) * (2 * E / G)
-X, Y = np.meshgrid(centres, centres, indexing="ij")  # token [i, j] at (x_i, y_j) of the t=0 sensor frame
-R0 = np.hypot(X, Y)
-RING0 = np.digitize(R0, [5, 10, 15, 20, 30, 40, 60])
+
+class Grid:
+    """The tokenizer's BEV token grid: ``tokens`` x ``tokens`` over [-extent, extent]^2 of the t=0
+    sensor frame, token [i, j] centred at (x_i, y_j)."""
+
+    def __init__(self, extent: float, tokens: int) -> None:
+        centres = -extent + (np.arange(tokens) + 0.5) * (2 * extent / tokens)
+        self.X, self.Y = np.meshgrid(centres, centres, indexing="ij")
+        self.r0 = np.hypot(self.X, self.Y)
+        self.ring0 = np.digitize(self.r0, [5, 10, 15, 20, 30, 40, 60])
+
+    def keys(self, c0: np.ndarray, T_s0_sensor: np.ndarray) -> np.ndarray:
+        """(H, W) keys of a t=0 map ``c0`` for a future sensor at ``T_s0_sensor`` (its pose in the t=0 frame)."""
+        t, yaw = T_s0_sensor[:2, 3], np.arctan2(T_s0_sensor[1, 0], T_s0_sensor[0, 0])
+        dx, dy = self.X - t[0], self.Y - t[1]
+        lx, ly = np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy
+        dist = np.digitize(np.hypot(lx, ly), [2.5, 5, 7.5, 10, 15, 20, 30, 40, 60])
+        bearing = ((np.arctan2(ly, lx) + np.pi) / (2 * np.pi) * 8).astype(np.int64) % 8
+        return c0.astype(np.int64) * 1000 + dist * 100 + bearing * 10 + self.ring0
 
 
-def keys(c0: np.ndarray, T_s0_sensor: np.ndarray) -> np.ndarray:
-    """(H, W) keys of a t=0 map ``c0`` for a future sensor at ``T_s0_sensor`` (its pose in the t=0 frame)."""
-    t, yaw = T_s0_sensor[:2, 3], np.arctan2(T_s0_sensor[1, 0], T_s0_sensor[0, 0])
-    dx, dy = X - t[0], Y - t[1]
-    lx, ly = np.cos(yaw) * dx + np.sin(yaw) * dy, -np.sin(yaw) * dx + np.cos(yaw) * dy
-    dist = np.digitize(np.hypot(lx, ly), [2.5, 5, 7.5, 10, 15, 20, 30, 40, 60])
-    bearing = ((np.arctan2(ly, lx) + np.pi) / (2 * np.pi) * 8).astype(np.int64) % 8
-    return c0.astype(np.int64) * 1000 + dist * 100 + bearing * 10 + RING0
-
-
-def windows(split: str) -> dict:
-    source = open_training_data(DATASET, split, split_option="--split {}")
-    return build_windows(tok, source.adapter, split, 5, 5, (2, 6), 1, window_cache_dir(ck.sha256, source.train_on.key),
-                         log=print)
-
-
-def fit() -> dict[int, tuple[int, float, int]]:
-    """key -> (most frequent future code, its share of the key, the key's count), on the train windows."""
-    w = windows("train")
+def fit(grid: Grid, w: dict, n_past: int = 5) -> dict[int, tuple[int, float, int]]:
+    """key -> (most frequent future code, its share of the key, the key's count), over the future
+    frames of the windows ``w`` (``build_windows`` output; the t=0 map is frame ``n_past`` - 1)."""
     counts: dict[int, collections.Counter] = collections.defaultdict(collections.Counter)
     for a in range(len(w["tokens"])):
-        for j in range(5, 10):
-            k, target = keys(w["tokens"][a, 4], w["poses"][a, j]).ravel(), w["tokens"][a, j].ravel().astype(np.int64)
-            u, n = np.unique(k * 1024 + target, return_counts=True)
+        for j in range(n_past, w["tokens"].shape[1]):
+            k = grid.keys(w["tokens"][a, n_past - 1], w["poses"][a, j]).ravel()
+            u, n = np.unique(k * 1024 + w["tokens"][a, j].ravel().astype(np.int64), return_counts=True)
             for x, m in zip(u.tolist(), n.tolist()):
                 counts[x // 1024][x % 1024] += m
     table = {}
     for k, c in counts.items():
         (code, n) = c.most_common(1)[0]
         table[k] = (code, n / sum(c.values()), sum(c.values()))
-    print(f"{len(table)} keys from {len(w['tokens'])} training windows")
     return table
 
 
-def forecast(table, c0: np.ndarray, T_s0_sensor: np.ndarray, bar: float) -> np.ndarray:
+def forecast(grid: Grid, table, c0: np.ndarray, T_s0_sensor: np.ndarray, bar: float) -> np.ndarray:
     out = c0.astype(np.int64).copy()
-    for (i, j), k in np.ndenumerate(keys(c0, T_s0_sensor)):
+    for (i, j), k in np.ndenumerate(grid.keys(c0, T_s0_sensor)):
         hit = table.get(int(k))
         if hit is not None and hit[1] > bar and hit[2] >= MIN_COUNT:
             out[i, j] = hit[0]
     return out
 
 
-def tokens(table) -> None:
-    w = windows("test")
-    for bar in BARS:
+def token_stats(grid: Grid, table, w: dict, bars=BARS, n_past: int = 5) -> list[str]:
+    """Per bar, stride and (whole map, within 20 m): the table's forecast tokens of the windows ``w``
+    against their real future tokens."""
+    lines = []
+    for bar in bars:
         st = collections.Counter()
         for a in range(len(w["tokens"])):
-            s, c0 = int(w["stride"][a]), w["tokens"][a, 4].astype(np.int64)
-            for j in range(5, 10):
-                pred, truth = forecast(table, c0, w["poses"][a, j], bar), w["tokens"][a, j].astype(np.int64)
-                for where, sel in (("all", np.ones_like(R0, bool)), ("0-20 m", R0 < 20)):
+            s, c0 = int(w["stride"][a]), w["tokens"][a, n_past - 1].astype(np.int64)
+            for j in range(n_past, w["tokens"].shape[1]):
+                pred, truth = forecast(grid, table, c0, w["poses"][a, j], bar), w["tokens"][a, j].astype(np.int64)
+                for where, sel in (("all", np.ones_like(grid.r0, bool)), ("0-20 m", grid.r0 < 20)):
                     moved, changed = (pred != c0) & sel, (truth != c0) & sel
                     st[s, where, "tokens"] += int(sel.sum())
                     st[s, where, "changed"] += int(changed.sum())
@@ -110,18 +104,47 @@ def tokens(table) -> None:
                     st[s, where, "hit"] += int((moved & (pred == truth)).sum())
                     st[s, where, "right"] += int(((pred == truth) & sel).sum())
                     st[s, where, "copy"] += int(((c0 == truth) & sel).sum())
-        for s in (2, 6):
+        for s in sorted({k[0] for k in st}):
             for where in ("all", "0-20 m"):
                 g = lambda k: st[s, where, k]  # noqa: E731
-                print(f"bar {bar:g}, stride {s}, {where}: moved {100 * g('moved') / g('tokens'):.1f} %, precision "
-                      f"{100 * g('hit') / max(g('moved'), 1):.1f} %, changes right {100 * g('hit') / g('changed'):.1f} %, "
-                      f"accuracy {100 * g('right') / g('tokens'):.1f} % (copying {100 * g('copy') / g('tokens'):.1f} %)")
+                lines.append(f"bar {bar:g}, stride {s}, {where}: moved {100 * g('moved') / g('tokens'):.1f} %, "
+                             f"precision {100 * g('hit') / max(g('moved'), 1):.1f} %, changes right "
+                             f"{100 * g('hit') / max(g('changed'), 1):.1f} %, accuracy {100 * g('right') / g('tokens'):.1f} % "
+                             f"(copying {100 * g('copy') / g('tokens'):.1f} %)")
+    return lines
 
 
-def every_third(split: str, forecasters: dict) -> dict:
+class Measurement:
+    """The trained `tiny-window` tokenizer, its grid and the windows it tokenizes (loaded when made)."""
+
+    def __init__(self) -> None:
+        from pcfbench.methods.copilot4d.plugin import _loaded
+        from pcfbench.methods.copilot4d.token_copy import TokenCopy
+
+        self.tc, self.ck = _loaded(TOKENIZER, TokenCopy, "tokenizer", DATASET, "train", None)
+        self.tok = self.tc.model
+        self.grid = Grid(self.tok.cfg.x_range[1], self.tok.cfg.bev_tokens)
+
+    def windows(self, split: str) -> dict:
+        from pcfbench.methods.copilot4d.forecaster import build_windows, window_cache_dir
+        from pcfbench.training import open_training_data
+
+        source = open_training_data(DATASET, split, split_option="--split {}")
+        return build_windows(self.tok, source.adapter, split, 5, 5, (2, 6), 1,
+                             window_cache_dir(self.ck.sha256, source.train_on.key), log=print)
+
+    def fit(self) -> dict:
+        w = self.windows("train")
+        table = fit(self.grid, w)
+        print(f"{len(table)} keys from {len(w['tokens'])} training windows")
+        return table
+
+
+def every_third(m: Measurement, split: str, forecasters: dict) -> dict:
     """``score_beside`` on kitti-1s's samples under the every-third policy (the ones `pcfbench run` scores)."""
     import pcfbench.protocol as protocol
     from pcfbench.methods.copilot4d.ceiling import score_beside
+    from pcfbench.training import open_training_data
 
     builder = protocol.SampleBuilder
 
@@ -132,7 +155,7 @@ def every_third(split: str, forecasters: dict) -> dict:
     protocol.SampleBuilder = EveryThird
     try:
         return score_beside(open_training_data(DATASET, split, split_option="--split {}").adapter, split, "kitti-1s",
-                            {"copilot4d-token-copy": lambda sample, *_: tc.forecast(sample.for_method()), **forecasters},
+                            {"copilot4d-token-copy": lambda sample, *_: m.tc.forecast(sample.for_method()), **forecasters},
                             log=print, label="table")
     finally:
         protocol.SampleBuilder = builder
@@ -160,12 +183,12 @@ def print_beside(res: dict, split: str) -> None:
         print(f"{name}: {line}")
 
 
-def rings(split: str) -> None:
+def rings(m: Measurement, split: str) -> None:
     from pcfbench.data import Forecast
     from pcfbench.methods.copilot4d.ceiling import future_targets
 
-    render = ev.rendering_kwargs(tc.options)
-    ring = torch.from_numpy(ev.token_rings(tok.cfg, (G, G)))
+    tok, render = m.tok, ev.rendering_kwargs(m.tc.options)
+    ring = torch.from_numpy(ev.token_rings(tok.cfg, (tok.cfg.bev_tokens, tok.cfg.bev_tokens)))
     labels = ev.ring_labels()
     memo: dict[str, tuple] = {}
 
@@ -189,14 +212,14 @@ def rings(split: str) -> None:
         return fn
 
     entries = {f"the real changes at {labels[i]} only": entry(ring == i) for i in range(len(labels))}
-    print_beside(every_third(split, {**entries, "the ceiling (every change)": entry(torch.ones_like(ring, dtype=torch.bool))}),
-                 split)
+    entries["the ceiling (every change)"] = entry(torch.ones_like(ring, dtype=torch.bool))
+    print_beside(every_third(m, split, entries), split)
 
 
-def score(table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
+def score(m: Measurement, table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
     from pcfbench.data import Forecast
 
-    render = ev.rendering_kwargs(tc.options)
+    tok, render = m.tok, ev.rendering_kwargs(m.tc.options)
     memo: dict[str, tuple] = {}
 
     def maps(sample):
@@ -205,28 +228,34 @@ def score(table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
             seen = sample.for_method()
             T_s0_ref = np.linalg.inv(seen.past_T_ref_sensor[-1])
             c0 = ev.tokenize_sweep(tok, transform(seen.past_points_ref[-1], T_s0_ref)).cpu().numpy()
-            memo[sample.sample_id] = ({bar: [torch.from_numpy(forecast(table, c0, T_s0_ref @ T, bar))
+            memo[sample.sample_id] = ({bar: [torch.from_numpy(forecast(m.grid, table, c0, T_s0_ref @ T, bar))
                                              for T in seen.future_T_ref_sensor] for bar in bars}, T_s0_ref)
         return memo[sample.sample_id]
 
     def entry(bar):
         def fn(sample, *_):
-            m, T_s0_ref = maps(sample)
+            by_bar, T_s0_ref = maps(sample)
             gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
-            return Forecast.from_depths(sample, ev.render_queries(tok, m[bar], sample, T_s0_ref, generator=gen,
+            return Forecast.from_depths(sample, ev.render_queries(tok, by_bar[bar], sample, T_s0_ref, generator=gen,
                                                                   **render))
         return fn
 
-    print_beside(every_third(split, {f"table, bar {b:g}": entry(b) for b in bars}), split)
+    print_beside(every_third(m, split, {f"table, bar {b:g}": entry(b) for b in bars}), split)
 
 
-if __name__ == "__main__":
+def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("what", choices=("tokens", "score", "rings"))
     p.add_argument("--split", default="test")
     args = p.parse_args()
+    m = Measurement()
     if args.what == "rings":
-        rings(args.split)
+        rings(m, args.split)
+    elif args.what == "tokens":
+        print("\n".join(token_stats(m.grid, m.fit(), m.windows("test"))))
     else:
-        table = fit()
-        tokens(table) if args.what == "tokens" else score(table, args.split)
+        score(m, m.fit(), args.split)
+
+
+if __name__ == "__main__":
+    main()

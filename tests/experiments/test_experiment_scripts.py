@@ -39,7 +39,7 @@ def _main(module, argv: list[str], monkeypatch) -> str:
 
 
 def test_the_folder_holds_the_scripts_tested_here():
-    assert SCRIPTS == ["copilot4d_gpu.py", "copilot4d_gpu_stage.py", "copilot4d_replay.py",
+    assert SCRIPTS == ["copilot4d_gpu.py", "copilot4d_gpu_stage.py", "copilot4d_replay.py", "copilot4d_token_table.py",
                        "realism_far_views.py", "realism_yard_trees_inside.py"], (
         "a script added to docs/experiments/ needs a smoke test here (or a journal entry and no script)")
     assert sorted(p.name for p in EXPERIMENTS.glob("*.sh")) == ["copilot4d_gpu.sh"], (
@@ -75,6 +75,28 @@ def test_copilot4d_replay_renders_replayed_tokens_at_the_future_poses():
     assert T_s0_future.shape == (sample.num_future, 4, 4) and T_s0_ref.shape == (4, 4)
     with pytest.raises(PcfbenchError, match="replayed future frames"):
         module.Replay(None, {sample.sample_id: codes[:2]}).forecast_tokens(sample)
+
+
+def test_copilot4d_token_table_learns_a_code_that_always_follows():
+    """Two windows whose every future token is its t=0 code plus one: the table learns that change
+    with share 1 and forecasts it above any bar, right on every token; a key seen fewer than
+    MIN_COUNT times keeps the t=0 code."""
+    module = _load("copilot4d_token_table.py")
+    grid = module.Grid(10.0, 4)  # 4 x 4 tokens of 5 m; every token within 20 m of the sensor
+    c0 = np.arange(16, dtype=np.int16).reshape(4, 4)
+    tokens = np.stack([c0] * 5 + [c0 + 1] * 5)[None].repeat(2, 0)  # (2 windows, 10 frames, 4, 4)
+    w = {"tokens": tokens, "poses": np.broadcast_to(np.eye(4, dtype=np.float32), (2, 10, 4, 4)).copy(),
+         "stride": np.array([2, 2])}
+    table = module.fit(grid, w)
+    assert len(table) == 16 and all(v[1] == 1.0 and v[2] == 10 for v in table.values())
+    assert np.array_equal(module.forecast(grid, table, c0, np.eye(4), 0.9), c0 + 1)
+    assert np.array_equal(module.forecast(grid, table, c0 + 100, np.eye(4), 0.0), c0 + 100)  # unseen keys
+    rare = module.fit(grid, {**w, "tokens": tokens[:, :6], "poses": w["poses"][:, :6]})  # 2 sightings a key
+    assert np.array_equal(module.forecast(grid, rare, c0, np.eye(4), 0.0), c0)
+    lines = module.token_stats(grid, table, w, bars=(0.5,))
+    assert lines[0].startswith("bar 0.5, stride 2, all: moved 100.0 %, precision 100.0 %, changes right 100.0 %, "
+                               "accuracy 100.0 % (copying 0.0 %)")
+    assert lines[1].startswith("bar 0.5, stride 2, 0-20 m: moved 100.0 %")
 
 
 def test_realism_far_views_why_on_tiny_kitti(tiny_kitti, monkeypatch):
