@@ -49,10 +49,9 @@ def cli() -> None:
 
 def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     """The methods of ``--method`` (resolved now: an unknown name or option fails before any
-    work), else every registered method that is ready to run, with its default options: a
-    trained method is ready when its checkpoint for its default training data exists."""
-    from pcfbench.training import find_checkpoint, is_trained, open_training_data
-    from pcfbench.training.checkpoints import may_have_checkpoint, ready_shipped, shipped_mismatch
+    work), else every registered method that is ready to run, with each option set of its
+    ``default_run_options`` (its defaults, unless it names more): a trained method is ready when
+    its checkpoint for its default training data exists."""
     from pcfbench.method import resolve_method
 
     if requested:
@@ -60,35 +59,54 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
     out = []
     for name in plugins.methods.names():
         try:
-            method = resolve_method((name, {}), plugins)
+            cls = plugins.methods.get(name)
+            methods = [resolve_method((name, dict(opts)), plugins) for opts in getattr(cls, "default_run_options", ({},))]
         except PcfbenchError as exc:
             click.echo(f"pcfbench: warning: skipping {exc}", err=True)
             continue
-        if not getattr(method.cls, "in_default_runs", True):  # needs an input of its own (a submission file)
-            continue
-        if is_trained(method.cls):
-            data = method.cls.default_train_on
-            try:
-                if ready_shipped(method, data, plugins=plugins) is not None:  # no training data needed
-                    out.append(method)
-                    continue
-                train_on = (open_training_data(data, plugins=plugins, progress=False).train_on
-                            if may_have_checkpoint(method, data) else None)
-                if train_on is None or find_checkpoint(method, train_on) is None:
-                    why = None if train_on is None else shipped_mismatch(method, train_on)
-                    if why:
-                        click.echo(f"pcfbench: warning: {name}'s shipped checkpoint is not for this machine's "
-                                   f"{data}:train: {why} (`pcfbench train {name} --dataset {data}` trains one "
-                                   f"here); left out", err=True)
-                    else:
-                        click.echo(f"pcfbench: note: {name} is not trained on {data}:train yet "
-                                   f"(`pcfbench train {name} --dataset {data}`); left out", err=True)
-                    continue
-            except PcfbenchError as exc:
-                click.echo(f"pcfbench: warning: skipping {name}: {exc}", err=True)
-                continue
-        out.append(method)
+        for method in methods:
+            if _ready_by_default(method, plugins):
+                out.append(method)
     return out
+
+
+def _ready_by_default(method: MethodSpec, plugins) -> bool:
+    """Whether a run of the default method set scores ``method``: it needs no input of its own,
+    and a trained one has a checkpoint for its default training data (else a note says how to
+    train it)."""
+    from pcfbench.training import find_checkpoint, is_trained, open_training_data
+    from pcfbench.training.checkpoints import may_have_checkpoint, ready_shipped, shipped_mismatch
+
+    def spec_text(raw) -> str:
+        opts = ",".join(f"{k}={v}" for k, v in sorted(raw.items()))
+        return method.name + (f":{opts}" if opts else "")
+
+    name = spec_text(method.raw)
+    # the command that trains it names its training options only (the same checkpoint)
+    train = spec_text({k: v for k, v in method.raw.items() if k not in getattr(method.cls, "inference_options", ())})
+    if not getattr(method.cls, "in_default_runs", True):  # needs an input of its own (a submission file)
+        return False
+    if is_trained(method.cls):
+        data = method.cls.default_train_on
+        try:
+            if ready_shipped(method, data, plugins=plugins) is not None:  # no training data needed
+                return True
+            train_on = (open_training_data(data, plugins=plugins, progress=False).train_on
+                        if may_have_checkpoint(method, data) else None)
+            if train_on is None or find_checkpoint(method, train_on) is None:
+                why = None if train_on is None else shipped_mismatch(method, train_on)
+                if why:
+                    click.echo(f"pcfbench: warning: {name}'s shipped checkpoint is not for this machine's "
+                               f"{data}:train: {why} (`pcfbench train {train} --dataset {data}` trains one "
+                               f"here); left out", err=True)
+                else:
+                    click.echo(f"pcfbench: note: {name} is not trained on {data}:train yet "
+                               f"(`pcfbench train {train} --dataset {data}`); left out", err=True)
+                return False
+        except PcfbenchError as exc:
+            click.echo(f"pcfbench: warning: skipping {name}: {exc}", err=True)
+            return False
+    return True
 
 
 def _dataset_roots(plugins, dataset_args: tuple[str, ...], progress: bool) -> list[tuple[str, str]]:

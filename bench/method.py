@@ -41,6 +41,10 @@ class Method(ABC):
     #: For methods too slow for the default run's budget; the run prints and the leaderboard
     #: shows their sample count, and ``--subset 0`` scores every sample (docs/protocol.md).
     default_run_subset: ClassVar[int | None] = None
+    #: The option sets a run of the default method set scores this method with, each a row of
+    #: its own (``{}``: its defaults). More than one for a method whose other configuration is
+    #: another method's reference: the world models' own token-copy (docs/protocol.md).
+    default_run_options: ClassVar[tuple[dict[str, str], ...]] = ({},)
 
     def __init__(self, options: Any = None) -> None:
         """``options``: an instance of ``Options`` (default: its defaults); from a spec's

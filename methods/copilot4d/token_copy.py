@@ -41,6 +41,9 @@ class TokenCopy(TrainedMethod):
     # the default run scores 8 evenly spaced samples of each cell (its 10-minute budget on a
     # 2-core CPU; docs/protocol.md, "The default run's subset"); --subset 0 or naming the method: all
     default_run_subset = 8
+    # the default run scores the shipped tiny tokenizer's copy and, beside the world models, the
+    # copy of theirs (tiny-window): each world model stands beside copying its own tokens
+    default_run_options = ({}, {"config": "tiny-window"})
     version = "3"  # 2: the tiny grid covers the ROI ([-80, 80]^2 m); 3: tiny has 64 x 64 tokens (2.5 m)
     Options = TokenCopyOptions
     inference_options = tuple(f.name for f in fields(RenderingOptions))

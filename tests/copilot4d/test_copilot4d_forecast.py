@@ -64,8 +64,10 @@ def _tokenizer(root):
 def test_options_are_typed_and_checked():
     s = resolve_method("copilot4d:cfg_weight=1,sampling_steps=3,strides=2/6,seed=4")
     assert (s.options.cfg_weight, s.options.sampling_steps, s.options.strides, s.options.seed) == (1.0, 3, (2, 6), 4)
+    # the defaults: the shipped world models' training (issue 42: tiny-window, every window), the
+    # paper's sampling (K = 10, top-3, w = 2); the default run samples one arg-max step
     d = resolve_method("copilot4d-maskgit").options
-    assert (d.cfg_weight, d.sampling_steps, d.config) == (2.0, 10, "tiny")
+    assert (d.cfg_weight, d.sampling_steps, d.config, d.anchor_every, d.frame) == (2.0, 10, "tiny-window", 1, "t0")
     assert (d.top_k, resolve_method("copilot4d:top_k=1").options.top_k) == (3, 1)
     for bad in ("cfg_weight=-1", "sampling_steps=0", "top_k=0", "cfg_weight=x", "threshold=1", "strides=0", "bogus=1",
                 "readout=mean"):
@@ -503,7 +505,7 @@ def test_both_methods_forecast_through_the_harness(micro, kitti, tmp_path):
     from pcfbench.cli import build_cli
 
     runner, cli = CliRunner(), build_cli()
-    tiny = "strides=2,anchor_every=4,sampling_steps=2,tokenizer_steps=2,steps=2"
+    tiny = "config=tiny,strides=2,anchor_every=4,sampling_steps=2,tokenizer_steps=2,steps=2"
     r = runner.invoke(cli, ["train", f"copilot4d:{tiny}", "--dataset", f"kitti={kitti}"])
     assert r.exit_code != 0 and "pcfbench train copilot4d-token-copy:steps=2" in r.output
     r = runner.invoke(cli, ["train", "copilot4d-token-copy:steps=2", "--dataset", f"kitti={kitti}"])
@@ -543,7 +545,8 @@ def test_steps_option_sets_the_learning_rate_decay():
 
     default = Copilot4D(resolve_method("copilot4d").options)
     longer = Copilot4D(resolve_method("copilot4d:steps=1500").options)
-    assert default.training_steps() == world_config.TINY.max_steps == world_config.TINY.decay_steps == 600
+    assert default.world_cfg.name == "tiny-window"
+    assert default.training_steps() == world_config.TINY_WINDOW.max_steps == world_config.TINY_WINDOW.decay_steps == 600
     assert longer.training_steps() == 1500
     cfg = longer.world_cfg
     assert lr_at(cfg, 600) > 0.5 * cfg.lr  # the default schedule is at its floor by then
@@ -608,3 +611,39 @@ def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(mi
     for cls in (TokenCopy, Copilot4D):
         monkeypatch.setattr(cls, "shipped_checkpoints", str(tmp_path / "shipped"))
     check_ships_without_its_tokenizer("copilot4d-token-copy:config=micro,steps=2", f"copilot4d:{MICRO},steps=2", kitti)
+
+
+# --------------------------------------------------------------------------- the default run
+def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(monkeypatch, capsys):
+    """With their checkpoints ready (pretended here; the shipped ones in the package), a run of
+    the default method set scores copilot4d and copilot4d-maskgit as they ship (their default
+    training: tiny-window) sampled in one arg-max step, and token-copy twice: its default (the
+    shipped tiny tokenizer) and the world models' own tokenizer, tiny-window, each a row of its
+    own. A copy not ready is left out by its whole spec, with the command that trains it."""
+    import pcfbench.training.checkpoints as cks
+    from pcfbench.cli import _selected_methods
+    from pcfbench.plugins import get_plugins
+
+    monkeypatch.setattr(cks, "ready_shipped", lambda *a, **k: object())
+    picked = [(m.name, m.raw) for m in _selected_methods(get_plugins(), ())]
+    one_step = {"sampling_steps": "1", "top_k": "1"}
+    for spec in [("copilot4d", one_step), ("copilot4d-maskgit", one_step), ("copilot4d-token-copy", {}),
+                 ("copilot4d-token-copy", {"config": "tiny-window"})]:
+        assert picked.count(spec) == 1, spec
+    world = resolve_method("copilot4d")
+    assert world.create().tokenizer_spec().options == resolve_method("copilot4d-token-copy:config=tiny-window").options
+
+    def not_shipped(spec, *a, **k):
+        return None if (spec.name == "copilot4d-token-copy" and spec.raw) or spec.name == "copilot4d-maskgit" else object()
+
+    monkeypatch.setattr(cks, "ready_shipped", not_shipped)
+    monkeypatch.setattr(cks, "may_have_checkpoint", lambda *a, **k: False)  # nothing trained here either
+    picked = [(m.name, m.raw) for m in _selected_methods(get_plugins(), ())]
+    assert ("copilot4d-token-copy", {}) in picked and ("copilot4d-token-copy", {"config": "tiny-window"}) not in picked
+    assert ("copilot4d", one_step) in picked and not any(name == "copilot4d-maskgit" for name, _ in picked)
+    err = capsys.readouterr().err
+    assert ("copilot4d-token-copy:config=tiny-window is not trained on synthetic-town-realistic:train yet "
+            "(`pcfbench train copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic`)" in err)
+    # the command that trains it names no inference option: one checkpoint whatever the sampling
+    assert ("copilot4d-maskgit:sampling_steps=1,top_k=1 is not trained on synthetic-town-realistic:train yet "
+            "(`pcfbench train copilot4d-maskgit --dataset synthetic-town-realistic`)" in err)

@@ -28,8 +28,10 @@ GOLDEN_DEFAULT_HASHES = {
     # new with the trained-method contract (issue 13); moved on purpose when the rendering
     # options noise and readout came in and the threshold default went 0.5 -> 0.02 (issue 14)
     "copilot4d-token-copy": "399b687887eb",
-    "copilot4d": "a950d364665d",  # issue 42 added the options frame and top_k (no copilot4d checkpoint ships)
-    "copilot4d-maskgit": "a950d364665d",
+    # issue 42 added the options frame and top_k (a950d364665d), then made the shipped world models'
+    # training the defaults (config tiny-window, anchor_every 1; `config=tiny,anchor_every=2` is a950d364665d)
+    "copilot4d": "3f90563d887e",
+    "copilot4d-maskgit": "3f90563d887e",
     # issue 47: forecasts read from a file; a cell's options always name the file and its sha256
     "submission": "230160ea66bc",
     # issue 43: OccWorld, its tokenizer and world model (no checkpoint ships); moved on purpose
@@ -45,6 +47,7 @@ GOLDEN_SPEC_HASHES = {
     "raycast-voxel:voxel=0.1,constant_velocity=true": "b3812348bc21",
     "raycast-freespace:renderer=zbuffer,splat=0": "ef2379462a8a",
     "raycast-zbuffer:fill_ring=4": "def39d791caf",
+    "copilot4d:config=tiny,anchor_every=2": "a950d364665d",  # copilot4d's defaults until issue 42 shipped it
 }
 
 
