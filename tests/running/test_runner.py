@@ -121,6 +121,14 @@ def test_a_subset_is_complete_ranked_beside_the_full_cells_and_compared_on_the_s
     assert run_cell(whole, store, RunOptions(progress=False)).samples == 6
     notes = [n for n in collect(store).notes if "scored a subset" in n]
     assert len(notes) == 1 and "raycast-4docc" not in notes[0]
+    # one method with two option sets (the default run's two token-copies): the note names each
+    from pcfbench.method import resolve_method
+
+    other = resolve_method("raycast-zbuffer:fill_ring=4")
+    ring = replace(sub, options=dict(other.raw), options_hash=other.options_hash)
+    assert run_cell(ring, store, RunOptions(progress=False)).samples == 4
+    notes = [n for n in collect(store).notes if "scored a subset" in n]
+    assert len(notes) == 1 and "raycast-zbuffer (4), raycast-zbuffer (fill_ring=4) (4) scored" in notes[0], notes
 
 
 def test_the_default_run_subset_applies_to_the_default_method_set_only():
