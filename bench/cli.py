@@ -77,13 +77,9 @@ def _ready_by_default(method: MethodSpec, plugins) -> bool:
     from pcfbench.training import find_checkpoint, is_trained, open_training_data
     from pcfbench.training.checkpoints import may_have_checkpoint, ready_shipped, shipped_mismatch
 
-    def spec_text(raw) -> str:
-        opts = ",".join(f"{k}={v}" for k, v in sorted(raw.items()))
-        return method.name + (f":{opts}" if opts else "")
-
-    name = spec_text(method.raw)
+    name = method.text()
     # the command that trains it names its training options only (the same checkpoint)
-    train = spec_text({k: v for k, v in method.raw.items() if k not in getattr(method.cls, "inference_options", ())})
+    train = method.text(drop=getattr(method.cls, "inference_options", ()))
     if not getattr(method.cls, "in_default_runs", True):  # needs an input of its own (a submission file)
         return False
     if is_trained(method.cls):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Any, ClassVar, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Iterable, Mapping
 
 from pcfbench.data import Forecast, Sample
 from pcfbench.errors import PcfbenchError
@@ -107,6 +107,12 @@ class MethodSpec:
     def create(self) -> Method:
         """A new instance of the method with these options."""
         return self.cls(self.options)
+
+    def text(self, drop: Iterable[str] = ()) -> str:
+        """The spec as a command line writes it, ``name[:key=value,...]`` (keys sorted), less the
+        options named in ``drop`` (a method's ``inference_options``: the command that trains it)."""
+        opts = ",".join(f"{k}={v}" for k, v in sorted(self.raw.items()) if k not in set(drop))
+        return self.name + (f":{opts}" if opts else "")
 
 
 def resolve_method(spec: str | tuple[str, Mapping[str, Any]], plugins: Plugins | None = None) -> MethodSpec:

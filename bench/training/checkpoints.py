@@ -369,9 +369,8 @@ def retrain_command(spec: MethodSpec, dataset: str, split: str, manifest: Mappin
     """The ``pcfbench train`` command that rebuilds a checkpoint with this ``manifest``, for its
     shipped copy: the method with the options it was given, the data, and on the CPU the thread
     count it trained with (the weights' rounding depends on it, so that reproduces the bits)."""
-    opts = ",".join(f"{k}={v}" for k, v in sorted(spec.raw.items()))
     threads = manifest.get("threads") if manifest.get("device") == "cpu" else None
-    return (f"pcfbench train {spec.name}{':' + opts if opts else ''} --dataset {dataset}"
+    return (f"pcfbench train {spec.text()} --dataset {dataset}"
             f"{'' if split == DEFAULT_SPLIT else ' --split ' + split}{f' --threads {threads}' if threads else ''}"
             " --fresh --ship")
 
@@ -464,8 +463,7 @@ def estimate_training(spec: MethodSpec) -> str:
 
 
 def missing_checkpoint_message(spec: MethodSpec, train_on: TrainOn) -> str:
-    opts = ",".join(f"{k}={v}" for k, v in sorted(spec.raw.items()))
-    method = spec.name + (f":{opts}" if opts else "")
+    method = spec.text()
     data = train_on.dataset + (f"={train_on.root}" if train_on.root and train_on.dataset not in _embedded() else "")
     split = "" if train_on.split == DEFAULT_SPLIT else f" --split {train_on.split}"
     return (f"no checkpoint of {method} trained on {train_on.label} (looked in {checkpoint_dir(spec, train_on)}): "

@@ -230,3 +230,13 @@ def test_a_method_takes_only_its_own_options_class(plugins):
         freespace(voxel.Options())
     with pytest.raises(PcfbenchError, match=r"method raycast-voxel: options must be a VoxelOptions, got \{'voxel': 0.1\}"):
         voxel({"voxel": 0.1})
+
+
+def test_a_spec_writes_itself_as_a_command_line_does(plugins):
+    """MethodSpec.text: the options as given, keys sorted; less the named ones (the command that
+    trains a method names its training options only)."""
+    spec = resolve_method("copilot4d:top_k=1,steps=800,config=tiny", plugins)
+    assert spec.text() == "copilot4d:config=tiny,steps=800,top_k=1"
+    assert spec.text(drop=spec.cls.inference_options) == "copilot4d:config=tiny,steps=800"
+    assert resolve_method("copilot4d:top_k=1", plugins).text(drop=("top_k",)) == "copilot4d"
+    assert resolve_method("copy-last", plugins).text() == "copy-last"
