@@ -64,7 +64,13 @@ def _selected_methods(plugins, requested: tuple[str, ...]) -> list[MethodSpec]:
         except PcfbenchError as exc:
             click.echo(f"pcfbench: warning: skipping {exc}", err=True)
             continue
+        seen: dict[str, MethodSpec] = {}
         for method in methods:
+            if method.options_hash in seen:  # two option sets of one meaning: one cell, scored once
+                click.echo(f"pcfbench: warning: {name}'s default_run_options give {method.text()} the options of "
+                           f"{seen[method.options_hash].text()}; scored once", err=True)
+                continue
+            seen[method.options_hash] = method
             if _ready_by_default(method, plugins):
                 out.append(method)
     return out

@@ -647,3 +647,19 @@ def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(mon
     # the command that trains it names no inference option: one checkpoint whatever the sampling
     assert ("copilot4d-maskgit:sampling_steps=1,top_k=1 is not trained on synthetic-town-realistic:train yet "
             "(`pcfbench train copilot4d-maskgit --dataset synthetic-town-realistic`)" in err)
+
+
+def test_default_run_options_of_one_meaning_are_scored_once(monkeypatch, capsys):
+    """Two option sets that resolve to the same options (here token-copy's default, tiny, written
+    out) would be one cell twice: the default run keeps the first and says so."""
+    import pcfbench.training.checkpoints as cks
+    from pcfbench.cli import _selected_methods
+    from pcfbench.methods.copilot4d.token_copy import TokenCopy
+    from pcfbench.plugins import get_plugins
+
+    monkeypatch.setattr(cks, "ready_shipped", lambda *a, **k: object())
+    monkeypatch.setattr(TokenCopy, "default_run_options", ({}, {"config": "tiny"}, {"config": "tiny-window"}))
+    picked = [(m.name, m.raw) for m in _selected_methods(get_plugins(), ()) if m.name == "copilot4d-token-copy"]
+    assert picked == [("copilot4d-token-copy", {}), ("copilot4d-token-copy", {"config": "tiny-window"})]
+    assert ("copilot4d-token-copy's default_run_options give copilot4d-token-copy:config=tiny the options of "
+            "copilot4d-token-copy; scored once" in capsys.readouterr().err)
