@@ -356,7 +356,7 @@ def _subset_notes(table: pd.DataFrame) -> list[str]:
         if not len(sub):  # a subset as large as the policy's samples is all of them
             continue
         # a method scored with two option sets (the default run's two token-copies) is named by both
-        labels = sub["variant"].map(lambda v: str(v).split(" [trained on ")[0]) if "variant" in sub else sub["method"]
+        labels = sub["variant"].map(lambda v: str(v).split(" [trained on ")[0])
         names = ", ".join(f"{m} ({int(n)})" for m, n in sorted(zip(labels, sub["samples"])))
         out.append(f"{' / '.join(map(str, key[:3]))}: {names} scored a subset of the {most} samples, "
                    "evenly spaced (the default run's for its slowest methods, docs/protocol.md); each is compared "
