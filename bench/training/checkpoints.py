@@ -343,7 +343,8 @@ def list_checkpoints(spec: MethodSpec) -> list[dict[str, Any]]:
     ``options`` (those differing from ``spec``'s), ``steps``, ``complete``, ``manifest`` (its
     path); ``error`` for a manifest that does not read."""
     base = f"{spec.name}/v{spec.cls.version}"
-    mine = options_dict(training_options(spec))
+    # as a manifest holds them (JSON: a tuple option reads back as a list), so equal values compare equal
+    mine = json.loads(json.dumps(options_dict(training_options(spec)), default=str))
     folders = [("cache", checkpoint_dir_base(spec).parent)]
     shipped = shipped_root(spec.cls)
     if shipped is not None:

@@ -176,6 +176,10 @@ def test_ls_methods_lists_each_trained_method_s_checkpoints_and_their_data(env, 
     shipped = [c for c in rows["copilot4d-token-copy"]["checkpoints"] if c["where"] == "shipped"]
     assert {c["train_on"] for c in shipped} >= {"synthetic-town:train", "synthetic-town-realistic:train"}
     assert all(c["complete"] and c["root"] is None for c in shipped)
+    # a shipped checkpoint of the default options lists none as differing, a tuple option (strides)
+    # included: its manifest holds it as a JSON list
+    world = [c for c in rows["copilot4d"]["checkpoints"] if c["where"] == "shipped"]
+    assert world and all(c["options"] == {} for c in world), world
 
 
 def test_ctrl_c_while_opening_the_data_says_nothing_was_trained(env, monkeypatch):
