@@ -351,7 +351,7 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
                  revise: bool = True, generator: torch.Generator | None = None,
                  cache: bool = True, trace: list | None = None, first_position: int = 0,
                  context_kv=None, metric: torch.Tensor | None = None, copy: torch.Tensor | None = None,
-                 change_confidence: float = 0.0) -> torch.Tensor:
+                 change_confidence: float = 0.0, final_logits: list | None = None) -> torch.Tensor:
     """Algorithm 2: decode the frame after ``context`` (B, Tc, H, W) clean codes, given the
     poses ``T_ref_sensor`` (B, Tc + 1, 4, 4) of the context frames and of the new frame.
 
@@ -383,6 +383,9 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
     other than ``copy``'s only where its guided probability is more than c, and takes ``copy``'s
     code elsewhere (l_k then that code's log p): the frame changes only where the model is sure
     of the change. c = 1 returns ``copy`` whatever the model says.
+
+    ``final_logits``, if a list, receives the guided logits (B, H, W, |V|) float32 of the last
+    step: every token's distribution given the frame as decoded before it.
     """
     if steps < 1:
         raise ValueError(f"steps={steps}: Algorithm 2 needs at least one step")
@@ -411,6 +414,8 @@ def sample_frame(model: nn.Module, context: torch.Tensor, T_ref_sensor: torch.Te
         else:
             seq = torch.cat([context, x.view(B, 1, H, W)], 1)
             logits = guided_logits(model, seq, T_ref_sensor, guidance, positions)
+        if k == 0 and final_logits is not None:
+            final_logits.append(logits.reshape(B, H, W, -1))
         logits = logits.reshape(B, N, -1)
         if metric is None:
             top_val, top_idx = logits.topk(min(top_k, logits.shape[-1]), dim=-1)
@@ -442,7 +447,7 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
                       top_k: int = DEFAULT_TOP_K, revise: bool = True, generator: torch.Generator | None = None,
                       cache: bool = True, reuse_context: bool = True,
                       context=contextlib.nullcontext, metric: torch.Tensor | None = None,
-                      change_confidence: float = 0.0) -> list[torch.Tensor]:
+                      change_confidence: float = 0.0, final_logits: list | None = None) -> list[torch.Tensor]:
     """Algorithm 2 autoregressively, as the Copilot4D methods forecast: ``n_future`` frames
     (B, H, W) after ``past`` (B, P, H, W), oldest first, with poses ``T_ref_sensor``
     (B, P + n_future, 4, 4).
@@ -458,7 +463,7 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
     every frame (the reference); ``cache=False`` computes every step over the whole sequence
     (:func:`sample_frame`). ``context``: a context manager each network pass runs in (autocast).
     ``metric``: :func:`sample_frame`'s; ``change_confidence``: its, the codes to keep those of
-    the last past frame (t=0)."""
+    the last past frame (t=0); ``final_logits``: its, one entry per future frame."""
     P = past.shape[1]
     if T_ref_sensor.shape[1] != P + n_future:
         raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
@@ -485,7 +490,7 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
             nxt = sample_frame(model, seq[:, start:], pose, steps=steps, guidance=guidance, top_k=top_k,
                                revise=revise, generator=generator, first_position=first, cache=cache,
                                context_kv=kv if reuse_context else None, metric=metric, copy=past[:, -1],
-                               change_confidence=change_confidence)
+                               change_confidence=change_confidence, final_logits=final_logits)
         seq = torch.cat([seq, nxt[:, None]], 1)
         out.append(nxt)
     return out

@@ -31,11 +31,17 @@ def tokenize_sweep(model: Tokenizer, points: np.ndarray) -> torch.Tensor:
 
 @torch.no_grad()
 def decode(model: Tokenizer, codes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The decoder's NFG (1, F, Z, X, Y) and coarse logits (float32) of one (T, T) token map;
-    on the CPU the NFG's memory is channels last (what :func:`render_codes` marches)."""
+    """The decoder's NFG (1, F, Z, X, Y) and coarse logits (float32) of one (T, T) token map, or
+    of one (T, T, D) map of code embeddings (floating point: what the decoder reads after the
+    codebook look-up); on the CPU the NFG's memory is channels last (what :func:`render_codes`
+    marches)."""
     dev = next(model.parameters()).device
+    channels_last = dev.type == "cpu"
     with autocast(dev):
-        nfg, coarse = model.decode_codes(codes[None].to(dev), channels_last=dev.type == "cpu")
+        if codes.is_floating_point():
+            nfg, coarse = model.decoder(codes[None].to(dev, model.vq.codebook.dtype), channels_last=channels_last)
+        else:
+            nfg, coarse = model.decode_codes(codes[None].to(dev), channels_last=channels_last)
     return nfg.float(), coarse
 
 
@@ -123,7 +129,8 @@ def render_queries(model: Tokenizer, codes, sample, T_frame_ref, *, generator: t
                    decoded: tuple | None = None, execution: ExecutionContext | None = None, **render) -> list[np.ndarray]:
     """Depths (m) along every future sweep's query rays of ``sample``, rendered from token maps.
 
-    ``codes``: a list of one (T, T) token map per future sweep, or one map for them all; map k was
+    ``codes``: a list of one (T, T) token map (or (T, T, D) map of code embeddings, :func:`decode`)
+    per future sweep, or one map for them all; map k was
     tokenized in a frame ``g_k``, and ``T_frame_ref`` gives ``T_g_ref`` (4, 4) per future sweep
     (or one for all): the query's origin and directions are moved from the reference frame into
     ``g_k`` and rendered there (:func:`render_codes` with ``render``: threshold, noise, readout).

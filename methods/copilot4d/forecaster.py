@@ -85,6 +85,12 @@ class WorldOptions(RenderingOptions):
         0.0, help="a future token takes a code other than the t=0 map's only where its guided probability is more "
                   "than this (not the paper's; 1: the t=0 map, token-copy's forecast); 0: off", min=0, max=1,
         quiet_default=True)
+    soft_mix: float = option(
+        0.0, help="render each future map from code embeddings mixed by the model's distribution instead of its "
+                  "sampled codes (not the paper's): at every token, this weight times the expected code embedding "
+                  "under the guided distribution of Algorithm 2's last step, plus the rest times the embedding of "
+                  "the t=0 map's code (1: the distribution alone); the sampled codes still make the next frame's "
+                  "context; 0: off", min=0, max=1, quiet_default=True)
     neighbour_targets: int = option(
         0, help="train towards the true code and its k nearest codes in the codebook (half the mass shared "
                 "among the k; not the paper's): near codes render nearly alike; 0: the true code (label "
@@ -104,6 +110,12 @@ class WorldOptions(RenderingOptions):
         if self.change_confidence > 0 and self.frame != "t0":
             raise PcfbenchError(f"change_confidence={self.change_confidence:g} keeps the t=0 map's codes: it needs "
                                 f"frame=t0, not frame={self.frame}")
+        if 0 < self.soft_mix < 1 and self.frame != "t0":
+            raise PcfbenchError(f"soft_mix={self.soft_mix:g} mixes in the t=0 map's codes: it needs frame=t0, "
+                                f"not frame={self.frame} (soft_mix=1 renders the distribution alone in any frame)")
+        if self.soft_mix > 0 and self.change_confidence > 0:
+            raise PcfbenchError(f"soft_mix={self.soft_mix:g} renders the model's distribution and "
+                                f"change_confidence={self.change_confidence:g} gates its codes: one at a time")
         if isinstance(self.init_steps, tuple) and (len(self.init_steps) < 2 or 0 in self.init_steps):
             shown = "/".join(map(str, self.init_steps)) + ("/" if len(self.init_steps) == 1 else "")
             raise PcfbenchError(f"init_steps={shown}: expected one number of steps "
@@ -314,11 +326,12 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     training_time = ("about 32 min for the default (tiny-window) configuration on both threads of a 2-core CPU "
                      "(about 18 min tokenizing 432 windows, once for both variants; 600 steps at 1.4 s), plus its "
                      "tokenizer's training")
-    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "seed",
+    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "soft_mix", "seed",
                          *(f.name for f in fields(RenderingOptions)))
     # the default run samples one arg-max step, the paper's K = 10 top-3 being the options'
-    # defaults: one step forecast best on tiny-window and in half the time (docs/copilot4d.md)
-    default_run_options = ({"sampling_steps": "1", "top_k": "1"},)
+    # defaults: one step forecast best on tiny-window and in half the time; and renders 0.3 of the
+    # expected code embedding beside 0.7 of the t=0 code's, chosen on validation (docs/copilot4d.md)
+    default_run_options = ({"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3"},)
 
     def __init__(self, options: WorldOptions | None = None) -> None:
         super().__init__(options)
@@ -509,7 +522,12 @@ class Copilot4D(OnTokenizer, TrainedMethod):
 
         if self.world is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
-        codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
+        if self.options.soft_mix > 0:
+            logits: list = []
+            codes, rel_future, T_s0_ref = self.forecast_tokens(sample, final_logits=logits)
+            codes = self.soft_maps(logits)
+        else:
+            codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
         gen = torch.Generator(next(self.tokenizer.parameters()).device)
         gen.manual_seed(sample_seed(sample.sample_id, self.options.seed) ^ 1)
         frames = (T_s0_ref if self.options.frame == "t0"
@@ -534,9 +552,11 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         poses = np.concatenate([sample.past_T_ref_sensor[past], sample.future_T_ref_sensor])
         return seq, torch.from_numpy((T_s0_ref @ poses).astype(np.float32)), T_s0_ref
 
-    def forecast_tokens(self, sample: Sample):
+    def forecast_tokens(self, sample: Sample, final_logits: list | None = None):
         """The future token maps (F, H, W) of ``sample`` in its t=0 sensor frame, the future poses
-        in that frame (F, 4, 4), and the transform from the reference frame into it."""
+        in that frame (F, 4, 4), and the transform from the reference frame into it.
+        ``final_logits``, if a list, receives per future frame the guided logits (1, H, W, |V|) of
+        its last sampling step, and then the t=0 map (H, W) (``soft_mix``'s inputs)."""
         import torch
 
         from pcfbench.methods.copilot4d.diffusion import forecast_sequence
@@ -555,8 +575,26 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                                guidance=self.options.cfg_weight, top_k=self.options.top_k,
                                                revise=self.variant.revise, metric=self.code_metric(),
                                                change_confidence=self.options.change_confidence,
+                                               final_logits=final_logits,
                                                generator=gen, context=lambda: autocast(dev))]
+        if final_logits is not None:
+            final_logits.append(seq[0, -1])
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
+
+    def soft_maps(self, final_logits: list):
+        """``soft_mix`` a: per future frame the (H, W, D) code embeddings the tokenizer decodes,
+        a E_p[e] + (1 - a) e(t=0 code) at every token, p the guided distribution of the frame's
+        last sampling step and e the tokenizer's codebook (``final_logits`` as
+        :meth:`forecast_tokens` fills it: the frames' logits, then the t=0 map)."""
+        import torch
+
+        a, copy = self.options.soft_mix, final_logits[-1]
+        codebook = self.tokenizer.vq.codebook.detach().float()
+        maps = []
+        for logits in final_logits[:-1]:
+            expected = torch.softmax(logits[0].float(), dim=-1) @ codebook
+            maps.append(expected if a == 1 else a * expected + (1 - a) * codebook[copy])
+        return maps
 
     def code_metric(self):
         """With ``mbr``, the (|V|, |V|) Euclidean distances between the tokenizer's code embeddings

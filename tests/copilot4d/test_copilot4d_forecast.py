@@ -602,6 +602,70 @@ def test_top_k_reaches_the_sampler(monkeypatch):
         resolve_method("copilot4d:change_confidence=1.5")
 
 
+def test_soft_mix_renders_the_expected_embedding_mixed_with_the_t0_codes(monkeypatch):
+    """Hand-built: codes e0 = (0, 0), e1 = (4, 0), e2 = (0, 8); a frame of two tokens whose last
+    step gives p = (1/2, 1/2, 0) and (0, 0, 1), over a t=0 map of codes 2 and 0. soft_mix=1
+    renders E_p[e] = (2, 0) and (0, 8); 0.5 adds half of e2 and e0: (1, 4) and (0, 4). The
+    forecast renders those maps, its sampled codes going nowhere but the context."""
+    from pcfbench.data import RayQuery, Sample
+    from pcfbench.methods.copilot4d import diffusion, evaluate
+
+    m = Copilot4D()
+    m.tokenizer = torch.nn.Module()
+    m.tokenizer.vq = torch.nn.Module()
+    m.tokenizer.vq.codebook = torch.nn.Parameter(torch.tensor([[0.0, 0.0], [4.0, 0.0], [0.0, 8.0]]))
+    logits = torch.tensor([[0.0, 0.0, -float("inf")], [-float("inf"), -float("inf"), 0.0]]).view(1, 1, 2, 3)
+    copy = torch.tensor([[2, 0]])
+    for mix, want in ((1.0, [[[2.0, 0.0], [0.0, 8.0]]]), (0.5, [[[1.0, 4.0], [0.0, 4.0]]])):
+        m.options = resolve_method(f"copilot4d:soft_mix={mix}").options
+        (got,) = m.soft_maps([logits, copy])
+        assert torch.allclose(got, torch.tensor(want))
+    # through forecast: the last step's logits of each frame, then the t=0 map, make the rendered maps
+    def fake(model, past, T_ref_sensor, n_future, final_logits=None, **kw):
+        if final_logits is not None:
+            final_logits.extend([logits] * n_future)
+        return [torch.ones(1, 1, 2, dtype=torch.long)] * n_future
+
+    monkeypatch.setattr(diffusion, "forecast_sequence", fake)
+    monkeypatch.setattr(evaluate, "tokenize_sweep", lambda m, p: copy)
+    rendered = []
+    monkeypatch.setattr(evaluate, "render_queries",
+                        lambda tok, codes, sample, *a, **k: rendered.append(codes) or [np.ones(1)] * len(codes))
+    m.world_cfg = world_config.WorldModelConfig(name="r", codebook_size=3, token_grid=4, n_past=2, n_future=1,
+                                                dims=(8, 8, 8), heads=(1, 1, 1), windows=(4, 2, 1))
+    m.world = torch.nn.Linear(1, 1)
+    q = RayQuery(np.zeros(3), np.array([[1.0, 0, 0]], np.float32))
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    s = Sample("s/1", "toy", "s", 1, tuple(np.zeros((1, 3), np.float32) for _ in range(2)), poses[:2],
+               np.arange(2), poses[2:], np.arange(1), (q,))
+    m.forecast(s)
+    assert torch.allclose(rendered[-1][0], torch.tensor([[[1.0, 4.0], [0.0, 4.0]]]))
+    m.options = resolve_method("copilot4d").options
+    m.forecast(s)
+    assert rendered[-1][0].dtype == torch.long and (rendered[-1][0] == 1).all()
+    # an inference option, quiet at its default; mixing in the t=0 map needs frame t0; not with the gate
+    assert "soft_mix" in Copilot4D.inference_options
+    assert resolve_method("copilot4d:soft_mix=0").options_hash == resolve_method("copilot4d").options_hash
+    with pytest.raises(PcfbenchError, match="frame=t0"):
+        resolve_method("copilot4d:frame=own,soft_mix=0.5")
+    assert resolve_method("copilot4d:frame=own,soft_mix=1").options.soft_mix == 1.0
+    with pytest.raises(PcfbenchError, match="one at a time"):
+        resolve_method("copilot4d:soft_mix=0.5,change_confidence=0.5")
+
+
+def test_a_map_of_code_embeddings_decodes_as_its_codes(micro, kitti):
+    """``evaluate.decode`` of the codebook rows of a token map is the decode of the map itself."""
+    from pcfbench.methods.copilot4d import evaluate
+    from pcfbench.methods.copilot4d.train import load_tokenizer
+
+    tok = load_tokenizer(_tokenizer(kitti), torch.device("cpu")).eval()
+    codes = torch.randint(0, MICRO_TOK.codebook_size, (MICRO_TOK.bev_tokens, MICRO_TOK.bev_tokens),
+                          generator=torch.Generator().manual_seed(0))
+    hard, soft = evaluate.decode(tok, codes), evaluate.decode(tok, tok.vq.codebook.detach()[codes])
+    for a, b in zip(hard, soft):
+        assert torch.equal(a, b)
+
+
 def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(micro, kitti, tmp_path, monkeypatch):
     """As occworld's and bevworld's (tests/training/test_world_on_tokenizer.py): shipped after the
     shipped token-copy checkpoint of the same data, copilot4d leaves out its copy of the tokenizer."""
@@ -617,7 +681,7 @@ def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(mi
 def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(monkeypatch, capsys):
     """With their checkpoints ready (pretended here; the shipped ones in the package), a run of
     the default method set scores copilot4d and copilot4d-maskgit as they ship (their default
-    training: tiny-window) sampled in one arg-max step, and token-copy twice: its default (the
+    training: tiny-window) sampled in one arg-max step and rendered with soft_mix=0.3, and token-copy twice: its default (the
     shipped tiny tokenizer) and the world models' own tokenizer, tiny-window, each a row of its
     own. A copy not ready is left out by its whole spec, with the command that trains it."""
     import pcfbench.training.checkpoints as cks
@@ -626,7 +690,7 @@ def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(mon
 
     monkeypatch.setattr(cks, "ready_shipped", lambda *a, **k: object())
     picked = [(m.name, m.raw) for m in _selected_methods(get_plugins(), ())]
-    one_step = {"sampling_steps": "1", "top_k": "1"}
+    one_step = {"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3"}
     for spec in [("copilot4d", one_step), ("copilot4d-maskgit", one_step), ("copilot4d-token-copy", {}),
                  ("copilot4d-token-copy", {"config": "tiny-window"})]:
         assert picked.count(spec) == 1, spec
@@ -645,7 +709,7 @@ def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(mon
     assert ("copilot4d-token-copy:config=tiny-window is not trained on synthetic-town-realistic:train yet "
             "(`pcfbench train copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic`)" in err)
     # the command that trains it names no inference option: one checkpoint whatever the sampling
-    assert ("copilot4d-maskgit:sampling_steps=1,top_k=1 is not trained on synthetic-town-realistic:train yet "
+    assert ("copilot4d-maskgit:sampling_steps=1,soft_mix=0.3,top_k=1 is not trained on synthetic-town-realistic:train yet "
             "(`pcfbench train copilot4d-maskgit --dataset synthetic-town-realistic`)" in err)
 
 

@@ -414,6 +414,27 @@ def test_minimum_bayes_risk_chooses_the_code_of_least_expected_distance():
         assert torch.equal(top1, mbr) and len(top1.unique()) > 1
 
 
+def test_final_logits_are_the_last_steps_guided_distribution():
+    """``final_logits`` receives, once per frame, the guided logits of Algorithm 2's last step:
+    with arg max sampling and revision every token takes their arg max at that step, so they
+    give the returned codes, at one step and at three, guided or not; one entry per future frame."""
+    V = 16
+    gen = torch.Generator().manual_seed(3)
+    model = _TokenLogits(torch.randn(V + 1, V, generator=gen), torch.randn(6, 6, V, generator=gen))
+    ctx = torch.randint(0, V, (2, 2, 6, 6), generator=torch.Generator().manual_seed(4))
+    for steps in (1, 3):
+        for guidance in (0.0, 2.0):
+            got: list = []
+            x = D.sample_frame(model, ctx, _eye_poses(2, 3), steps=steps, guidance=guidance, top_k=1, cache=False,
+                               generator=torch.Generator().manual_seed(5), final_logits=got)
+            assert len(got) == 1 and got[0].shape == (2, 6, 6, V) and got[0].dtype == torch.float32
+            assert torch.equal(got[0].argmax(-1), x)
+    got = []
+    out = D.forecast_sequence(model, ctx, _eye_poses(2, 5), 3, n_frames=5, n_past=2, steps=2, guidance=2.0, top_k=1,
+                              cache=False, generator=torch.Generator().manual_seed(5), final_logits=got)
+    assert len(got) == 3 and all(torch.equal(g.argmax(-1), o) for g, o in zip(got, out))
+
+
 def test_change_confidence_changes_a_token_only_where_the_change_is_likelier_than_the_bar():
     """Hand-built: four tokens whose copy codes are 0, 1, 2, 0 and whose arg max is code 1 at
     p = 0.7, 0.5, 0.9, 0.4 (in that order). With the bar at 0.6 the first and third change (0.7
