@@ -440,6 +440,7 @@ WORLD_MODEL = {"copilot4d-cfg-weight.toml": "copilot4d", "copilot4d-sampling-ste
 # Tables 3-4 on the world model's tokenizer of issue 42 (`tiny-window`, frame t0)
 TINY_WINDOW = ("copilot4d-tiny-window-cfg-weight.toml", "copilot4d-tiny-window-vs-maskgit.toml",
                "copilot4d-tiny-window-sampling-steps.toml")
+SOFT_MIX = EXAMPLES / "copilot4d-soft-mix.toml"
 
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
@@ -450,7 +451,7 @@ BEVWORLD_DDIM = EXAMPLES / "bevworld-ddim-steps.toml"
 def test_every_example_experiment_is_checked():
     assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name,
                                                                       OCCWORLD_WORLD_TOKENS.name, BEVWORLD_DDIM.name,
-                                                                      *WORLD_MODEL, *TINY_WINDOW])
+                                                                      SOFT_MIX.name, *WORLD_MODEL, *TINY_WINDOW])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
@@ -472,6 +473,19 @@ def test_every_example_experiment_is_checked():
     assert [v.label for v in exp.variants] == [*(f"bevworld (ddim_steps={n})" for n in (5, 10, 20, 50)), "bevworld",
                                                "bevworld-latent-copy", "copy-last"]
     assert exp.settings == ("kitti-3s",) and exp.policy == "full-context"
+    exp = load_experiment(SOFT_MIX)  # the shipped world models: soft_mix=0 is the plain arg max's very cell
+    one = "sampling_steps=1, soft_mix={}, top_k=1"
+    assert [v.label for v in exp.variants] == [
+        *(f"copilot4d ({one.format(a)})" for a in ("0.0", "0.3", "0.5", "0.7", "1.0")),
+        *(f"copilot4d-maskgit ({one.format(a)})" for a in ("0.0", "0.3")), "copilot4d-token-copy (config=tiny-window)",
+        "copy-last"]
+    assert exp.variants[0].method.options_hash == resolve_method("copilot4d:sampling_steps=1,top_k=1").options_hash
+    assert exp.splits == ("val", "test") and exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
+    from pcfbench.methods.copilot4d.forecaster import Copilot4D
+
+    default_run = dict(Copilot4D.default_run_options[0])
+    assert resolve_method("copilot4d:" + ",".join(f"{k}={v}" for k, v in default_run.items())).options_hash \
+        == exp.variants[1].method.options_hash  # the default run's row is one of the table's
 
 
 def test_the_tiny_window_tables_evaluate_the_chain_of_trainings_they_name():
