@@ -39,6 +39,10 @@ def decode(model: Tokenizer, codes: torch.Tensor) -> tuple[torch.Tensor, torch.T
     channels_last = dev.type == "cpu"
     with autocast(dev):
         if codes.is_floating_point():
+            size = (model.cfg.bev_tokens, model.cfg.bev_tokens, model.cfg.code_dim)
+            if tuple(codes.shape) != size:
+                raise ValueError(f"decode: a map of code embeddings is (tokens, tokens, code_dim) = {size}; got "
+                                 f"{tuple(codes.shape)} (a token map holds integer codes)")
             nfg, coarse = model.decoder(codes[None].to(dev, model.vq.codebook.dtype), channels_last=channels_last)
         else:
             nfg, coarse = model.decode_codes(codes[None].to(dev), channels_last=channels_last)

@@ -523,9 +523,9 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         if self.world is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
         if self.options.soft_mix > 0:
-            logits: list = []
-            codes, rel_future, T_s0_ref = self.forecast_tokens(sample, final_logits=logits)
-            codes = self.soft_maps(logits)
+            inputs: dict = {}
+            codes, rel_future, T_s0_ref = self.forecast_tokens(sample, soft_inputs=inputs)
+            codes = self.soft_maps(inputs["logits"], inputs["t0"])
         else:
             codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
         gen = torch.Generator(next(self.tokenizer.parameters()).device)
@@ -552,11 +552,12 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         poses = np.concatenate([sample.past_T_ref_sensor[past], sample.future_T_ref_sensor])
         return seq, torch.from_numpy((T_s0_ref @ poses).astype(np.float32)), T_s0_ref
 
-    def forecast_tokens(self, sample: Sample, final_logits: list | None = None):
+    def forecast_tokens(self, sample: Sample, soft_inputs: dict | None = None):
         """The future token maps (F, H, W) of ``sample`` in its t=0 sensor frame, the future poses
         in that frame (F, 4, 4), and the transform from the reference frame into it.
-        ``final_logits``, if a list, receives per future frame the guided logits (1, H, W, |V|) of
-        its last sampling step, and then the t=0 map (H, W) (``soft_mix``'s inputs)."""
+        ``soft_inputs``, if a dict, receives what :meth:`soft_maps` reads: ``logits``, per future
+        frame the guided logits (1, H, W, |V|) of its last sampling step, and ``t0``, the last
+        past map (H, W)."""
         import torch
 
         from pcfbench.methods.copilot4d.diffusion import forecast_sequence
@@ -565,6 +566,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         cfg = self.world_cfg
         dev = next(self.world.parameters()).device
         seq, rel, T_s0_ref = self.world_inputs(sample)
+        final_logits = None if soft_inputs is None else soft_inputs.setdefault("logits", [])
         seq, rel = seq[None].to(dev), rel[None].to(dev)
         gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, self.options.seed))
         P = seq.shape[1]
@@ -577,23 +579,23 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                                change_confidence=self.options.change_confidence,
                                                final_logits=final_logits,
                                                generator=gen, context=lambda: autocast(dev))]
-        if final_logits is not None:
-            final_logits.append(seq[0, -1])
+        if soft_inputs is not None:
+            soft_inputs["t0"] = seq[0, -1]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
 
-    def soft_maps(self, final_logits: list):
+    def soft_maps(self, final_logits: list, t0) -> list:
         """``soft_mix`` a: per future frame the (H, W, D) code embeddings the tokenizer decodes,
-        a E_p[e] + (1 - a) e(t=0 code) at every token, p the guided distribution of the frame's
-        last sampling step and e the tokenizer's codebook (``final_logits`` as
-        :meth:`forecast_tokens` fills it: the frames' logits, then the t=0 map)."""
+        a E_p[e] + (1 - a) e(c0) at every token, p the guided distribution of the frame's last
+        sampling step (``final_logits``, (1, H, W, |V|) each), c0 the code of the t=0 map ``t0``
+        (H, W) there and e the tokenizer's codebook."""
         import torch
 
-        a, copy = self.options.soft_mix, final_logits[-1]
+        a = self.options.soft_mix
         codebook = self.tokenizer.vq.codebook.detach().float()
         maps = []
-        for logits in final_logits[:-1]:
+        for logits in final_logits:
             expected = torch.softmax(logits[0].float(), dim=-1) @ codebook
-            maps.append(expected if a == 1 else a * expected + (1 - a) * codebook[copy])
+            maps.append(expected if a == 1 else a * expected + (1 - a) * codebook[t0])
         return maps
 
     def code_metric(self):

@@ -618,9 +618,9 @@ def test_soft_mix_renders_the_expected_embedding_mixed_with_the_t0_codes(monkeyp
     copy = torch.tensor([[2, 0]])
     for mix, want in ((1.0, [[[2.0, 0.0], [0.0, 8.0]]]), (0.5, [[[1.0, 4.0], [0.0, 4.0]]])):
         m.options = resolve_method(f"copilot4d:soft_mix={mix}").options
-        (got,) = m.soft_maps([logits, copy])
+        (got,) = m.soft_maps([logits], copy)
         assert torch.allclose(got, torch.tensor(want))
-    # through forecast: the last step's logits of each frame, then the t=0 map, make the rendered maps
+    # through forecast: the last step's logits of each frame and the t=0 map make the rendered maps
     def fake(model, past, T_ref_sensor, n_future, final_logits=None, **kw):
         if final_logits is not None:
             final_logits.extend([logits] * n_future)
@@ -664,6 +664,10 @@ def test_a_map_of_code_embeddings_decodes_as_its_codes(micro, kitti):
     hard, soft = evaluate.decode(tok, codes), evaluate.decode(tok, tok.vq.codebook.detach()[codes])
     for a, b in zip(hard, soft):
         assert torch.equal(a, b)
+    # a float map that is not one of embeddings (codes as floats, a wrong width) is refused, not decoded
+    for bad in (codes.float(), tok.vq.codebook.detach()[codes][..., :-1]):
+        with pytest.raises(ValueError, match="code_dim"):
+            evaluate.decode(tok, bad)
 
 
 def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(micro, kitti, tmp_path, monkeypatch):
