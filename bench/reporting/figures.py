@@ -701,6 +701,11 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
     # one footnote (a sweep of one option with six fixed ones drew labels wider than the figure)
     apart = [o for o in others if g[o].nunique(dropna=False) > 1]
     shared = [o for o in others if o not in apart and g[o].notna().any()]
+    # a line is named by its setting, and by its dataset and split where the figure's lines come
+    # from more than one (a sweep of val and test drew two lines named alike, and two references)
+    named = [i for i, c in enumerate(groups) if c == "setting" or g[c].nunique(dropna=False) > 1]
+    ref_named = [c for c in groups[:2] if refs[c].nunique(dropna=False) > 1] + (
+        ["setting"] if refs["setting"].nunique(dropna=False) > 1 else [])
     if shared:
         notes = [*notes, "every line: " + ", ".join(
             f"{o.removeprefix('option.')}={_option_text(g[o].dropna().iloc[0])}" for o in shared)]
@@ -723,7 +728,7 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 lo = k * line.get(f"{col.metric}_lo", pd.Series(np.nan, index=line.index)).to_numpy(float)[order]
                 hi = k * line.get(f"{col.metric}_hi", pd.Series(np.nan, index=line.index)).to_numpy(float)[order]
                 yerr = np.vstack([np.where(np.isfinite(lo), y - lo, 0), np.where(np.isfinite(hi), hi - y, 0)])
-                label = " / ".join(str(v) for v in key[2:3]) + "".join(
+                label = " / ".join(str(key[i]) for i in named) + "".join(
                     f", {o.removeprefix('option.')}={_option_text(v)}" for o, v in zip(others, key[3:])
                     if o in apart and not pd.isna(v))
                 if not (np.isfinite(lo) & np.isfinite(hi)).any():  # every cell of the line has < 2 units
@@ -738,7 +743,7 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
                 if col.metric not in r or not np.isfinite(float(r[col.metric])):
                     continue
                 colour = f"C{7 + i % 3}"  # greys and olives, away from the swept lines' first colours
-                where = f", {r['setting']}" if refs["setting"].nunique() > 1 else ""
+                where = "".join(f", {r[c]}" for c in ref_named)
                 ax.axhline(k * float(r[col.metric]), color=colour, linestyle="--", linewidth=1.2,
                            label=f"{ref_names[str(r['variant'])]} (reference{where})")
                 lo, hi = float(r.get(f"{col.metric}_lo", np.nan)), float(r.get(f"{col.metric}_hi", np.nan))

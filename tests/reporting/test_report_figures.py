@@ -258,6 +258,25 @@ def test_ablation_legend_names_the_options_that_tell_its_lines_apart_and_a_footn
     _texts_do_not_collide(fig)
 
 
+def test_ablation_legend_names_the_split_when_the_lines_come_from_two():
+    """A sweep of val and test: each line and each split's reference line says its split (before,
+    the two splits' lines were both "kitti-3s, w=0" and the two references both "ref (reference)");
+    a figure of one split keeps the setting alone."""
+    rows = [{"dataset": "d", "split": split, "setting": "kitti-3s", "method": "m", "variant": f"m (k={k}, w={w})",
+             "option.k": float(k), "option.w": float(w), "l1_mean": 1.0 + k + w, "l1_mean_lo": 0.5 + k + w,
+             "l1_mean_hi": 1.5 + k + w} for split in ("val", "test") for w in (0, 2) for k in (1, 3)]
+    refs = pd.DataFrame([{"dataset": "d", "split": split, "setting": "kitti-3s", "method": "ref", "variant": "ref",
+                          "l1_mean": x} for split, x in (("val", 5.0), ("test", 6.0))])
+    fig = figures._ablation_figure(pd.DataFrame(rows), "option.k", ["option.w"], [L1], "m", {}, refs)
+    assert sorted(_legend_texts(fig)) == ["ref (reference, test)", "ref (reference, val)", "test / kitti-3s, w=0",
+                                          "test / kitti-3s, w=2", "val / kitti-3s, w=0", "val / kitti-3s, w=2"]
+    ys = {ln.get_label(): ln.get_ydata()[0] for ln in fig.axes[0].lines if "reference" in ln.get_label()}
+    assert ys == {"ref (reference, val)": 5.0, "ref (reference, test)": 6.0}
+    one = figures._ablation_figure(pd.DataFrame(rows[:4]), "option.k", ["option.w"], [L1], "m", {}, refs[:1])
+    assert sorted(_legend_texts(one)) == ["kitti-3s, w=0", "kitti-3s, w=2", "ref (reference)"]
+    _texts_do_not_collide(fig)
+
+
 def test_html_page_is_self_contained_with_figures_sortable_rows_and_provenance(made):
     _, out, paths = made
     page = paths["html"].read_text()
