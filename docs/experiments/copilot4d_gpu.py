@@ -160,7 +160,6 @@ def judge(model, cfg, windows: dict, dev, *, guidance: float, top_k: int, revise
     for s in range(0, len(toks), batch):
         x = toks[s:s + batch].to(dev)
         p = poses[s:s + batch].to(dev)
-        B = len(x)
         with autocast(dev):
             fut = D.forecast_tokens(model, x[:, :P], p, F, steps=10, guidance=guidance, top_k=top_k,
                                     revise=revise, generator=gen)
