@@ -12,6 +12,7 @@ the t=0 code and where the future sensor sees a token from say about its future 
     .venv/bin/python docs/experiments/copilot4d_token_table.py score --split test  # kitti-1s, rendered
 
     .venv/bin/python docs/experiments/copilot4d_token_table.py rings --split test  # where the ceiling's gain is
+    .venv/bin/python docs/experiments/copilot4d_token_table.py rings --split test --setting kitti-3s
 
 `tokens` scores the forecast tokens of the held-out (test) windows against the real ones, per stride,
 over every future step and within 20 m of the t=0 sensor; `score` renders the table's forecasts of
@@ -19,7 +20,10 @@ kitti-1s's every-third samples as `copilot4d` renders and scores them by the har
 `copilot4d-token-copy:config=tiny-window` in one loop (about 11 min on 2 CPU cores for test's 28);
 `rings` scores, the same way, the t=0 map with the real future's tokens (the training target, as the
 ceiling builds it) within one ring of distance from the t=0 sensor only, for each ring, and everywhere
-(the ceiling): which ring's changes each column's gain over token-copy is made of.
+(the ceiling): which ring's changes each column's gain over token-copy is made of; and the real changes
+within 20 m of each future frame's own sensor only, and farther from it only (the near field the future
+sensor sees from close up, which the t=0 sensor saw from afar). `--setting kitti-3s` scores that
+setting's samples instead of kitti-1s's.
 Needs `pcfbench train copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic`
 (the windows are tokenized here when the world model's training has not cached them).
 """
@@ -37,6 +41,7 @@ from pcfbench.methods.copilot4d.forecaster import sample_seed, transform
 
 DATASET, TOKENIZER = "synthetic-town-realistic", "copilot4d-token-copy:config=tiny-window"
 BARS = (0.0, 0.4, 0.5, 0.6)
+NEAR_FUTURE_M = 20.0
 MIN_COUNT = 5
 
 
@@ -140,8 +145,8 @@ class Measurement:
         return table
 
 
-def every_third(m: Measurement, split: str, forecasters: dict) -> dict:
-    """``score_beside`` on kitti-1s's samples under the every-third policy (the ones `pcfbench run` scores)."""
+def every_third(m: Measurement, split: str, forecasters: dict, setting: str = "kitti-1s") -> dict:
+    """``score_beside`` on ``setting``'s samples under the every-third policy (the ones `pcfbench run` scores)."""
     import pcfbench.protocol as protocol
     from pcfbench.methods.copilot4d.ceiling import score_beside
     from pcfbench.training import open_training_data
@@ -154,17 +159,17 @@ def every_third(m: Measurement, split: str, forecasters: dict) -> dict:
 
     protocol.SampleBuilder = EveryThird
     try:
-        return score_beside(open_training_data(DATASET, split, split_option="--split {}").adapter, split, "kitti-1s",
+        return score_beside(open_training_data(DATASET, split, split_option="--split {}").adapter, split, setting,
                             {"copilot4d-token-copy": lambda sample, *_: m.tc.forecast(sample.for_method()), **forecasters},
                             log=print, label="table")
     finally:
         protocol.SampleBuilder = builder
 
 
-def print_beside(res: dict, split: str) -> None:
+def print_beside(res: dict, split: str, setting: str = "kitti-1s") -> None:
     cols = ("chamfer_nf", "l1_mean", "l1_median")
     ref = res["means"]["copilot4d-token-copy"]
-    print(f"{DATASET} {split} kitti-1s, {res['samples']} samples; chamfer_nf / l1_mean / l1_median, then / token-copy")
+    print(f"{DATASET} {split} {setting}, {res['samples']} samples; chamfer_nf / l1_mean / l1_median, then / token-copy")
     per_sample = {}
     for name, rows in res["rows"].items():
         for r in rows:
@@ -183,7 +188,7 @@ def print_beside(res: dict, split: str) -> None:
         print(f"{name}: {line}")
 
 
-def rings(m: Measurement, split: str) -> None:
+def rings(m: Measurement, split: str, setting: str = "kitti-1s", near: float = NEAR_FUTURE_M) -> None:
     from pcfbench.data import Forecast
     from pcfbench.methods.copilot4d.ceiling import future_targets
 
@@ -203,17 +208,25 @@ def rings(m: Measurement, split: str) -> None:
         return memo[sample.sample_id]
 
     def entry(where):
+        """``where``: a (H, W) bool map, or ``fn(k, T_s0_sk)`` giving one for future frame k."""
         def fn(sample, builder, seq_name, ref):
             c0, target, T_s0_ref = maps(sample, builder, seq_name, ref)
-            codes = [torch.where(where, t, c0) for t in target]
+            pick = [where(k, T_s0_ref @ sample.future_T_ref_sensor[k]) if callable(where) else where
+                    for k in range(len(target))]
+            codes = [torch.where(w, t, c0) for w, t in zip(pick, target)]
             gen = torch.Generator().manual_seed(sample_seed(sample.sample_id, 0) ^ 1)
             return Forecast.from_depths(sample, ev.render_queries(tok, codes, sample, T_s0_ref, generator=gen,
                                                                   **render))
         return fn
 
+    def near_future(k, T_s0_sk):  # tokens whose centre lies within `near` m of future frame k's sensor
+        return torch.from_numpy(np.hypot(m.grid.X - T_s0_sk[0, 3], m.grid.Y - T_s0_sk[1, 3]) < near)
+
     entries = {f"the real changes at {labels[i]} only": entry(ring == i) for i in range(len(labels))}
+    entries[f"the real changes within {near:g} m of each future sensor only"] = entry(near_future)
+    entries[f"the real changes farther than {near:g} m from it only"] = entry(lambda k, T: ~near_future(k, T))
     entries["the ceiling (every change)"] = entry(torch.ones_like(ring, dtype=torch.bool))
-    print_beside(every_third(m, split, entries), split)
+    print_beside(every_third(m, split, entries, setting), split, setting)
 
 
 def score(m: Measurement, table, split: str, bars=(0.0, 0.4, 0.5)) -> None:
@@ -247,10 +260,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("what", choices=("tokens", "score", "rings"))
     p.add_argument("--split", default="test")
+    p.add_argument("--setting", default="kitti-1s", help="rings only: the setting whose samples are scored")
     args = p.parse_args()
     m = Measurement()
     if args.what == "rings":
-        rings(m, args.split)
+        rings(m, args.split, args.setting)
     elif args.what == "tokens":
         print("\n".join(token_stats(m.grid, m.fit(), m.windows("test"))))
     else:

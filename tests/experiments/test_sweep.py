@@ -441,6 +441,8 @@ WORLD_MODEL = {"copilot4d-cfg-weight.toml": "copilot4d", "copilot4d-sampling-ste
 TINY_WINDOW = ("copilot4d-tiny-window-cfg-weight.toml", "copilot4d-tiny-window-vs-maskgit.toml",
                "copilot4d-tiny-window-sampling-steps.toml")
 SOFT_MIX = EXAMPLES / "copilot4d-soft-mix.toml"
+KITTI_3S_SAMPLING = EXAMPLES / "copilot4d-kitti-3s-sampling.toml"
+EVERY_SAMPLE = EXAMPLES / "copilot4d-every-sample.toml"
 
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
@@ -451,7 +453,8 @@ BEVWORLD_DDIM = EXAMPLES / "bevworld-ddim-steps.toml"
 def test_every_example_experiment_is_checked():
     assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name,
                                                                       OCCWORLD_WORLD_TOKENS.name, BEVWORLD_DDIM.name,
-                                                                      SOFT_MIX.name, *WORLD_MODEL, *TINY_WINDOW])
+                                                                      SOFT_MIX.name, KITTI_3S_SAMPLING.name,
+                                                                      EVERY_SAMPLE.name, *WORLD_MODEL, *TINY_WINDOW])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
@@ -486,6 +489,26 @@ def test_every_example_experiment_is_checked():
     default_run = dict(Copilot4D.default_run_options[0])
     assert resolve_method("copilot4d:" + ",".join(f"{k}={v}" for k, v in default_run.items())).options_hash \
         == exp.variants[1].method.options_hash  # the default run's row is one of the table's
+    from pcfbench.training.checkpoints import checkpoint_options_hash
+
+    exp = load_experiment(KITTI_3S_SAMPLING)  # guidance x soft_mix at kitti-3s only, the one shipped checkpoint
+    assert exp.settings == ("kitti-3s",) and exp.splits == ("val", "test") and exp.policy is None
+    world = [v for v in exp.variants if v.method.name == "copilot4d"]
+    assert sorted((v.method.options.cfg_weight, v.method.options.soft_mix) for v in world) == sorted(
+        (w, a) for w in (0.0, 0.5, 1.0, 2.0) for a in (0.3, 0.5, 0.7, 1.0))
+    assert {checkpoint_options_hash(v.method) for v in world} == {checkpoint_options_hash(resolve_method("copilot4d"))}
+    assert resolve_method("copilot4d:sampling_steps=1,top_k=1,soft_mix=0.3").options_hash in {
+        v.method.options_hash for v in world}  # the default run's pair is a row: the grid's w = 2, a = 0.3
+    assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
+    exp = load_experiment(EVERY_SAMPLE)  # the default run's rows on every anchor of both splits
+    assert exp.policy == "full-context" and exp.settings == ("kitti-1s", "kitti-3s") and exp.splits == ("val", "test")
+    assert [v.label for v in exp.variants] == [f"copilot4d ({one.format(0.3)})", f"copilot4d-maskgit ({one.format(0.3)})",
+                                               "copilot4d-token-copy (config=tiny-window)", "copilot4d-token-copy",
+                                               "copy-last"]
+    for v in exp.variants[:2]:
+        spec = f"{v.method.name}:" + ",".join(f"{k}={x}" for k, x in v.method.create().default_run_options[0].items())
+        assert resolve_method(spec).options_hash == v.method.options_hash
+    assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
 
 
 def test_the_tiny_window_tables_evaluate_the_chain_of_trainings_they_name():
