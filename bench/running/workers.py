@@ -115,8 +115,41 @@ def _die_with_driver(conn: Connection) -> None:
     threading.Thread(target=watch, name="pcfbench-driver-watch", daemon=True).start()
 
 
+#: seconds between the repeats of a stop that a worker's finalizer swallowed (:func:`_exit_on_term`)
+STOP_REPEAT_S = 0.2
+
+
 def _exit_on_term(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
+    """SIGTERM: exit through Python (SystemExit). One raised while the worker runs a finalizer
+    (a ``__del__`` or weakref callback: numba's and llvmlite's run often) cannot propagate:
+    Python prints it as "Exception ignored in ..." on the stderr the worker shares with the
+    driver, and goes on with the sample. So a stopped worker's stderr goes to /dev/null first
+    (the driver says why the run stopped; nothing a stopped worker says is wanted), and the stop
+    repeats every ``STOP_REPEAT_S`` (SIGALRM) until one lands where it propagates; the worker's
+    exit ends the repeats (:func:`_stopped`)."""
+    _silence_stderr()
+    signal.signal(signal.SIGALRM, _exit_on_term)
+    signal.setitimer(signal.ITIMER_REAL, STOP_REPEAT_S)
+    raise SystemExit(128 + signal.SIGTERM)
+
+
+def _silence_stderr() -> None:
+    try:
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+    except OSError:  # pragma: no cover - no /dev/null
+        pass
+
+
+def _stopped() -> None:
+    """The stop propagated: no more repeats, so that the worker's exit (its finalizers: the
+    named semaphore) runs to the end."""
+    signal.setitimer(signal.ITIMER_REAL, 0)
 
 
 def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, task: Callable[[Any], Any]) -> None:
@@ -139,6 +172,7 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
     try:
         init(*init_args)
     except SystemExit:  # told to stop while setting up
+        _stopped()
         return
     except BaseException as exc:  # noqa: BLE001 - every setup failure goes back to the driver
         _send_error(conn, "init-error", exc)
@@ -154,6 +188,7 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
         try:
             result = task(key)
         except SystemExit:  # told to stop mid-sample: its result is not wanted
+            _stopped()
             return
         except BaseException as exc:  # noqa: BLE001 - data errors stop the run: the driver raises them
             _send_error(conn, "error", exc)

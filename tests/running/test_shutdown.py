@@ -43,10 +43,18 @@ def _tasks(tmp_path: Path) -> None:
             global LOCK
             LOCK = multiprocessing.get_context("spawn").RLock()  # a named semaphore, registered as numba's is
 
+        class InFinalizer:
+            def __del__(self):
+                time.sleep(60)  # the stop comes while the worker is here
+
         def task(key):
             if key == "bad":
                 time.sleep(0.5)  # the other worker is busy by now
                 raise ValueError("bad data")
+            if key == "finalizer":
+                obj = InFinalizer()
+                del obj
+                time.sleep(60)
             time.sleep(60)
             return key
     '''))
@@ -79,6 +87,24 @@ def test_a_busy_worker_is_stopped_through_its_own_exit(tmp_path):
     ''')
     assert out.startswith("raised bad data after"), out
     assert time.monotonic() - start < 30  # not the busy sample's 60 s
+
+
+def test_a_worker_stopped_inside_a_finalizer_says_nothing_and_still_exits_through_python(tmp_path):
+    """The stop (SystemExit) lands in a ``__del__``, where it cannot propagate: it used to be
+    printed as "Exception ignored in: <function ...__del__>" on the driver's stderr after the
+    one error (seen in CI: numba's finalizers), and the worker went on with its sample until the
+    driver killed it. Now its stderr is closed and the stop repeats until it lands: the worker
+    exits through Python well before the 5 s grace, its semaphore with it (stderr empty)."""
+    start = time.monotonic()
+    out = _drive(tmp_path, '''
+        start = time.monotonic()
+        try:
+            list(run_supervised(["finalizer", "bad"], 2, shutdown_tasks.init, (), shutdown_tasks.task, None))
+        except ValueError as exc:
+            print(f"raised {exc} after {time.monotonic() - start:.1f} s")
+    ''')
+    assert out.startswith("raised bad data after"), out
+    assert time.monotonic() - start < 30
 
 
 def test_a_timed_out_worker_is_stopped_through_its_own_exit(tmp_path):
