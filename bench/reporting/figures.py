@@ -704,8 +704,7 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
     # a line is named by its setting, and by its dataset and split where the figure's lines come
     # from more than one (a sweep of val and test drew two lines named alike, and two references)
     named = [i for i, c in enumerate(groups) if c == "setting" or g[c].nunique(dropna=False) > 1]
-    ref_named = [c for c in groups[:2] if refs[c].nunique(dropna=False) > 1] + (
-        ["setting"] if refs["setting"].nunique(dropna=False) > 1 else [])
+    ref_named = [c for c in groups if refs[c].nunique(dropna=False) > 1]
     if shared:
         notes = [*notes, "every line: " + ", ".join(
             f"{o.removeprefix('option.')}={_option_text(g[o].dropna().iloc[0])}" for o in shared)]
