@@ -138,7 +138,7 @@ def test_neighbour_targets_by_hand():
     the mass to the neighbour and label smoothing 0.1, code 0's target is 0.9 (0.5, 0.5, 0, 0) +
     0.025; the cross entropy is the target's against the log softmax; with share 0 it is
     PyTorch's label-smoothed cross entropy."""
-    from pcfbench.methods.copilot4d.diffusion import _cross_entropy, neighbour_targets
+    from pcfbench.methods.copilot4d.diffusion import _cross_entropies, neighbour_targets
 
     cb = torch.tensor([[0.0], [1.0], [3.0], [10.0]])
     q = neighbour_targets(cb, 1, 0.5, 0.1)
@@ -150,14 +150,14 @@ def test_neighbour_targets_by_hand():
     logp = logits.log_softmax(-1)
     by_hand = -(0.025 * logp[0, 0] + 0.475 * logp[0, 1] + 0.475 * logp[0, 2] + 0.025 * logp[0, 3]), \
         -(0.025 * logp[1, :2].sum() + 0.475 * logp[1, 2:].sum())
-    got = _cross_entropy(logits, target, q, reduction="none")
+    mean, got = _cross_entropies(logits, target, q)
     assert torch.allclose(got, torch.stack(by_hand))
-    assert float(_cross_entropy(logits, target, q)) == pytest.approx(float(got.mean()))
+    assert float(mean) == pytest.approx(float(got.mean()))
     for bad in (0, 4):
         with pytest.raises(ValueError, match=f"k={bad} nearest codes: expected 1 to 3 for a codebook of 4 codes"):
             neighbour_targets(cb, bad, 0.5, 0.1)
     plain = neighbour_targets(cb, 1, 0.0, 0.1)
-    assert torch.allclose(_cross_entropy(logits, target, plain, reduction="none"),
+    assert torch.allclose(_cross_entropies(logits, target, plain)[1],
                           F.cross_entropy(logits, target, label_smoothing=0.1, reduction="none"))
 
 

@@ -345,6 +345,65 @@ def test_training_loss_by_hand():
     assert abs(stats["accuracy"] - n_hit / int(sel.sum())) < 1e-6
 
 
+
+@pytest.mark.parametrize("smoothing", [0.1, 0.0])
+def test_one_log_softmax_gives_pytorchs_cross_entropy_bit_for_bit(smoothing):
+    """The loss and the per-token measurements come from one log-softmax: both equal
+    F.cross_entropy (reduction mean and none) exactly, and so does the loss's gradient."""
+    gen = torch.Generator().manual_seed(3)
+    logits = (torch.randn(997, 64, generator=gen) * 4).requires_grad_()
+    target = torch.randint(0, 64, (997,), generator=gen)
+    mean, each = D._cross_entropies(logits, target, smoothing)
+    (grad,) = torch.autograd.grad(mean, logits)
+    ref = logits.detach().clone().requires_grad_()
+    want = F.cross_entropy(ref, target, label_smoothing=smoothing)
+    (want_grad,) = torch.autograd.grad(want, ref)
+    assert torch.equal(mean.detach(), want.detach()) and torch.equal(grad, want_grad)
+    assert torch.equal(each, F.cross_entropy(ref.detach(), target, label_smoothing=smoothing, reduction="none"))
+    assert not each.requires_grad
+
+
+def test_scored_rows_are_the_boolean_indexed_rows():
+    """The scored tokens' rows: a view of the logits when they are one run of whole frames, the
+    boolean-indexed rows otherwise; the same values in the same order, and the same gradient."""
+    gen = torch.Generator().manual_seed(4)
+    logits = torch.randn(2, 4, 3, 3, 5, generator=gen)
+    whole = lambda *frames: torch.zeros(2, 4, 1, 1, dtype=torch.bool).index_fill_(1, torch.tensor(frames), True) \
+        .expand(2, 4, 3, 3).clone()  # noqa: E731
+    one = whole(2, 3)
+    one[1] = False  # the future of the first sequence only: a run of frames 2..3
+    tokens = torch.rand(2, 4, 3, 3, generator=gen) < 0.5  # MaskGIT: masked tokens only
+    gap = whole(1, 3)  # two runs (frames 1 and 3 of each sequence, and the next sequence's)
+    for mask, view in ((whole(0, 1, 2, 3), True), (whole(2, 3), False), (one, True), (tokens, False),
+                       (gap, False), (torch.zeros(2, 4, 3, 3, dtype=torch.bool), False)):
+        got = D._scored_rows(logits, mask)
+        assert torch.equal(got, logits[mask]), mask
+        assert (got._base is logits) == view, mask
+
+
+
+@pytest.mark.parametrize("variant", [D.COPILOT4D, D.MASKGIT], ids=lambda v: v.name)
+def test_a_training_steps_loss_and_gradient_are_the_indexed_cross_entropys(variant):
+    """A training step's loss and every gradient equal, bit for bit, PyTorch's cross entropy of
+    the boolean-indexed scored logits (how a step computed them until 2026-12-03, so the
+    checkpoints trained before retrain to the same bits), for each objective and a batch of all three."""
+    torch.manual_seed(5)
+    model = WorldModel(MICRO)
+    params = [p for p in model.parameters() if p.requires_grad]
+    x0 = torch.randint(0, MICRO.codebook_size, (3, 3, 8, 8), generator=torch.Generator().manual_seed(6))
+    P = _random_poses(3, 3, torch.Generator().manual_seed(7))
+    for rows, objective in (([0], [0]), ([0], [1]), ([0], [2]), ([0, 1, 2], [0, 1, 2])):
+        obj = torch.tensor(objective)
+        loss, _ = D.training_loss(model, x0[rows], P[rows], 2, variant, 0.1,
+                                  generator=torch.Generator().manual_seed(8), objective=obj)
+        grads = torch.autograd.grad(loss, params)
+        c = D.corrupt(x0[rows], 2, MICRO.codebook_size, variant, torch.Generator().manual_seed(8), obj)
+        logits = model(c.tokens, P[rows], c.temporal_mask)
+        want = F.cross_entropy(logits[c.loss_mask].float(), c.targets[c.loss_mask], label_smoothing=0.1)
+        assert torch.equal(loss.detach(), want.detach()), objective
+        assert all(torch.equal(a, b) for a, b in zip(grads, torch.autograd.grad(want, params))), objective
+
+
 def test_optimizer_follows_a3(micro_model):
     opt = D.make_optimizer(micro_model, MICRO)
     decayed = {id(p) for g in opt.param_groups if g["weight_decay"] > 0 for p in g["params"]}
