@@ -46,6 +46,8 @@ FIGURES_DIR = "figures"
 FORMATS = ("png", "svg")
 #: the gallery's PNG resolution: a 1.3 inch panel of a 250-cell raster keeps every cell
 GALLERY_DPI = 200
+#: an ablation figure's reference lines: three colours, then the next dash (dashed, dash-dot, dotted)
+REFERENCE_DASHES = ("--", "-.", ":")
 _RC = {"svg.hashsalt": "pcfbench", "font.size": 9, "axes.grid": True, "grid.alpha": 0.3}
 
 
@@ -741,9 +743,11 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
             for i, (_, r) in enumerate(refs.iterrows()):
                 if col.metric not in r or not np.isfinite(float(r[col.metric])):
                     continue
-                colour = f"C{7 + i % 3}"  # greys and olives, away from the swept lines' first colours
+                # greys and olives, away from the swept lines' first colours; past three references
+                # (a sweep of two splits and two settings has four) the dash changes, so none share a look
+                colour, dash = f"C{7 + i % 3}", REFERENCE_DASHES[i // 3 % len(REFERENCE_DASHES)]
                 where = "".join(f", {r[c]}" for c in ref_named)
-                ax.axhline(k * float(r[col.metric]), color=colour, linestyle="--", linewidth=1.2,
+                ax.axhline(k * float(r[col.metric]), color=colour, linestyle=dash, linewidth=1.2,
                            label=f"{ref_names[str(r['variant'])]} (reference{where})")
                 lo, hi = float(r.get(f"{col.metric}_lo", np.nan)), float(r.get(f"{col.metric}_hi", np.nan))
                 if np.isfinite(lo) and np.isfinite(hi):
@@ -756,7 +760,8 @@ def _ablation_figure(g: pd.DataFrame, opt: str, others: list[str], columns: list
             ax.set_visible(False)
         handles, labels = axes[0].get_legend_handles_labels()
         body.legend(handles, labels, loc="outside lower center", ncols=min(3, max(1, len(labels))), fontsize=8)
-        ref_note = "; dashed: the reference method, its band its interval" if len(refs) else ""
+        ref_note = ("; dashed" + (" (then dash-dot, dotted)" if len(refs) > 3 else "")
+                    + ": the reference method, its band its interval") if len(refs) else ""
         # wrapped to the figure: one panel is 4.2 inches, narrower than the sentence
         fig.suptitle(_wrap(f"ablation: {method} {name}\nerror bars: {interval}{ref_note}", 4.2 * ncols, 12))
     return fig

@@ -277,6 +277,32 @@ def test_ablation_legend_names_the_split_when_the_lines_come_from_two():
     _texts_do_not_collide(fig)
 
 
+
+def test_ablation_reference_lines_never_share_a_look():
+    """Two splits x two settings: four references. Each line differs from every other in colour or
+    dash (three colours cycled, so the fourth reference is dash-dotted), its band is its colour, and
+    the title says the dashes."""
+    from matplotlib.colors import to_rgb
+    from matplotlib.text import Text
+
+    rows = [{"dataset": "d", "split": split, "setting": setting, "method": "m", "variant": f"m (k={k})",
+             "option.k": float(k), "l1_mean": 1.0 + k} for split in ("val", "test")
+            for setting in ("kitti-1s", "kitti-3s") for k in (1, 3)]
+    refs = pd.DataFrame([{"dataset": "d", "split": split, "setting": setting, "method": "ref", "variant": "ref",
+                          "l1_mean": 5.0 + i, "l1_mean_lo": 4.5 + i, "l1_mean_hi": 5.5 + i}
+                         for i, (split, setting) in enumerate((s, t) for s in ("val", "test")
+                                                              for t in ("kitti-1s", "kitti-3s"))])
+    fig = figures._ablation_figure(pd.DataFrame(rows), "option.k", [], [L1], "m", {}, refs)
+    lines = [ln for ln in fig.axes[0].lines if "reference" in ln.get_label()]
+    looks = {(ln.get_color(), ln.get_linestyle()) for ln in lines}
+    assert len(lines) == 4 and len(looks) == 4
+    assert {ln.get_linestyle() for ln in lines} == {"--", "-."}
+    bands = [p.get_facecolor()[:3] for p in fig.axes[0].patches]
+    assert len(bands) == 4 and all(np.allclose(b, to_rgb(ln.get_color())) for b, ln in zip(bands, lines))
+    assert any("dashed(thendash-dot,dotted)" in "".join(t.get_text().split()) for t in fig.findobj(Text))
+    _texts_do_not_collide(fig)
+
+
 def test_html_page_is_self_contained_with_figures_sortable_rows_and_provenance(made):
     _, out, paths = made
     page = paths["html"].read_text()
