@@ -443,6 +443,7 @@ TINY_WINDOW = ("copilot4d-tiny-window-cfg-weight.toml", "copilot4d-tiny-window-v
 SOFT_MIX = EXAMPLES / "copilot4d-soft-mix.toml"
 KITTI_3S_SAMPLING = EXAMPLES / "copilot4d-kitti-3s-sampling.toml"
 EVERY_SAMPLE = EXAMPLES / "copilot4d-every-sample.toml"
+TRAINING_LENGTH = EXAMPLES / "copilot4d-training-length.toml"
 
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
@@ -454,7 +455,8 @@ def test_every_example_experiment_is_checked():
     assert sorted(p.name for p in EXAMPLES.glob("*.toml")) == sorted([RAYCAST.name, OCCWORLD_TOKENS.name,
                                                                       OCCWORLD_WORLD_TOKENS.name, BEVWORLD_DDIM.name,
                                                                       SOFT_MIX.name, KITTI_3S_SAMPLING.name,
-                                                                      EVERY_SAMPLE.name, *WORLD_MODEL, *TINY_WINDOW])
+                                                                      EVERY_SAMPLE.name, TRAINING_LENGTH.name,
+                                                                      *WORLD_MODEL, *TINY_WINDOW])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
     assert exp.settings == ("kitti-1s", "kitti-3s") and exp.datasets == (("synthetic-town", None),)
@@ -508,6 +510,19 @@ def test_every_example_experiment_is_checked():
     for v in exp.variants[:2]:
         spec = f"{v.method.name}:" + ",".join(f"{k}={x}" for k, x in v.method.create().default_run_options[0].items())
         assert resolve_method(spec).options_hash == v.method.options_hash
+    assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
+    exp = load_experiment(TRAINING_LENGTH)  # three trainings of copilot4d, each rendered as the default run renders
+    assert exp.policy == "full-context" and exp.settings == ("kitti-1s", "kitti-3s") and exp.splits == ("val", "test")
+    world = exp.variants[:3]
+    assert [v.method.name for v in exp.variants] == ["copilot4d"] * 3 + ["copilot4d-token-copy"]
+    assert world[0].method.options_hash == resolve_method("copilot4d:sampling_steps=1,top_k=1,soft_mix=0.3").options_hash
+    assert [(v.method.options.steps, v.method.options.init_steps) for v in world] == [(0, 0), (800, 0), (600, 800)]
+    assert len({checkpoint_options_hash(v.method) for v in world}) == 3  # three trainings, one sampling
+    assert {(v.method.options.sampling_steps, v.method.options.top_k, v.method.options.soft_mix) for v in world} == {
+        (1, 1, 0.3)}
+    # the warm restart goes on from the very checkpoint of the 800-step row
+    assert checkpoint_options_hash(world[2].method.create().start_spec()) \
+        == checkpoint_options_hash(world[1].method)
     assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
 
 
