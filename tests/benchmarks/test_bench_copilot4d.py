@@ -15,6 +15,7 @@ fresh clone); extra_info reports ``rays_per_s``.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 
@@ -100,7 +101,7 @@ def test_world_training_step(benchmark, path):
     gen = torch.Generator().manual_seed(0)
     x0 = torch.randint(0, cfg.codebook_size, (1, cfg.n_frames, cfg.token_grid, cfg.token_grid), generator=gen)
     poses = torch.eye(4).expand(1, cfg.n_frames, 4, 4).clone()
-    turn = iter(range(10 ** 9))
+    turn = itertools.count()
 
     def step():
         obj = torch.tensor([next(turn) % 3])
