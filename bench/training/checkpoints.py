@@ -463,9 +463,15 @@ def estimate_training(spec: MethodSpec) -> str:
     return stated
 
 
+def dataset_argument(train_on: TrainOn) -> str:
+    """The ``--dataset`` argument that opens ``train_on``'s data again: ``NAME``, or ``NAME=ROOT``
+    (with its root options) for a dataset that is not embedded."""
+    return train_on.dataset + (f"={train_on.root}" if train_on.root and train_on.dataset not in _embedded() else "")
+
+
 def missing_checkpoint_message(spec: MethodSpec, train_on: TrainOn) -> str:
     method = spec.text()
-    data = train_on.dataset + (f"={train_on.root}" if train_on.root and train_on.dataset not in _embedded() else "")
+    data = dataset_argument(train_on)
     split = "" if train_on.split == DEFAULT_SPLIT else f" --split {train_on.split}"
     return (f"no checkpoint of {method} trained on {train_on.label} (looked in {checkpoint_dir(spec, train_on)}): "
             f"train it with `pcfbench train {method} --dataset {data}{split}`, which takes {estimate_training(spec)}")

@@ -115,6 +115,12 @@ class TrainingRun:
         return {"step": ck.steps, "weights": ck.load_weights(), "state": ck.load_state()}
 
     # budget and progress -------------------------------------------------------------------------
+    def count_time(self, wall_s: float, cpu_s: float) -> None:
+        """Count time spent on this checkpoint outside this run (trainings whose weights it puts
+        together) in the ``wall_s`` and ``cpu_s`` its manifest records."""
+        self._base_wall += float(wall_s)
+        self._base_cpu += float(cpu_s)
+
     def elapsed_s(self) -> float:
         return time.monotonic() - self._t0
 
