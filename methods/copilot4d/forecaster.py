@@ -100,6 +100,14 @@ class WorldOptions(RenderingOptions):
                   "one future frame rendered from the model's masked tokens (this training only, not those it "
                   "goes on from; measured harmful at 1: docs/copilot4d.md); 0: cross entropy alone", min=0,
         quiet_default=True)
+    stride_models: tuple[int, ...] = option(
+        (), help="strides forecast by a network of their own, as the paper trains one model per horizon: each the "
+                 "complete training of these options with strides=S alone (and steps=stride_steps), used for the "
+                 "samples whose frame spacing is nearest that stride's training windows'; the other strides keep "
+                 "the network trained on all of strides; (): one network for every stride", min=1,
+        quiet_default=True)
+    stride_steps: int = option(0, help="with stride_models: the training steps of each stride's own network "
+                                       "(0: steps)", min=0, quiet_default=True)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -116,6 +124,17 @@ class WorldOptions(RenderingOptions):
         if self.soft_mix > 0 and self.change_confidence > 0:
             raise PcfbenchError(f"soft_mix={self.soft_mix:g} renders the model's distribution and "
                                 f"change_confidence={self.change_confidence:g} gates its codes: one at a time")
+        if self.stride_models:
+            shown = "/".join(map(str, self.stride_models))
+            if len(set(self.stride_models)) != len(self.stride_models) or not set(self.stride_models) <= set(self.strides):
+                raise PcfbenchError(f"stride_models={shown}: expected distinct strides among strides="
+                                    f"{'/'.join(map(str, self.strides))}")
+            if self.init_steps or self.render_weight or self.neighbour_targets:
+                raise PcfbenchError(f"stride_models={shown} puts together trainings of the plain recipe: not with "
+                                    "init_steps, render_weight or neighbour_targets")
+        elif self.stride_steps:
+            raise PcfbenchError(f"stride_steps={self.stride_steps} is the steps of the stride_models' networks: "
+                                "name stride_models too")
         if isinstance(self.init_steps, tuple) and (len(self.init_steps) < 2 or 0 in self.init_steps):
             shown = "/".join(map(str, self.init_steps)) + ("/" if len(self.init_steps) == 1 else "")
             raise PcfbenchError(f"init_steps={shown}: expected one number of steps "
@@ -352,9 +371,12 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         self.variant = get_variant(self.variant_name)
         self.render = rendering_kwargs(self.options)
         self.world = None
+        self.networks: list = []  # stride_models: (frame spacing s, network) pairs
         self.tokenizer = None
 
     def training_steps(self) -> int:
+        if self.options.stride_models:  # the parts' trainings, put together
+            return sum(spec.create().training_steps() for spec in self.part_specs().values())
         return self.world_cfg.max_steps
 
     # -- the tokenizer this world model is trained on -------------------------------------------
@@ -368,6 +390,8 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         from pcfbench.methods.copilot4d.world import WorldModel, count_parameters
         from pcfbench.training import write_curve
 
+        if self.options.stride_models:
+            return self.assemble(train_source, progress)
         device = default_device()  # CPU threads: the harness applied `pcfbench train --threads` (every CPU)
         resumed = progress.resume()
         tok_ck = self.tokenizer_checkpoint(train_source)  # before any work: missing is one error
@@ -439,21 +463,93 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         """The spec whose complete checkpoint a training with ``init_steps`` goes on from: these
         options with ``steps=init_steps`` and no ``init_steps``, or for a chain ``a/b/c`` with
         ``steps=c`` and ``init_steps=a/b`` (None without ``init_steps``)."""
-        from dataclasses import asdict, replace
-
-        from pcfbench.method import MethodSpec
-        from pcfbench.options import options_hash
-
         chain = self.options.init_chain
         if not chain:
             return None
         before = chain[:-1]
         defaults = type(self.options)()  # the render stage and the neighbour targets are this training's only
-        opts = replace(self.options, steps=chain[-1], init_steps=(before if len(before) > 1 else sum(before)),
-                       render_weight=defaults.render_weight, neighbour_targets=defaults.neighbour_targets)
+        return self.spec_with(steps=chain[-1], init_steps=(before if len(before) > 1 else sum(before)),
+                              render_weight=defaults.render_weight, neighbour_targets=defaults.neighbour_targets)
+
+    def spec_with(self, **changes):
+        """The :class:`~pcfbench.method.MethodSpec` of this method with these options changed."""
+        from dataclasses import asdict, replace
+
+        from pcfbench.method import MethodSpec
+        from pcfbench.options import options_hash
+
+        defaults = type(self.options)()
+        opts = replace(self.options, **changes)
         raw = {k: "/".join(map(str, v)) if isinstance(v, tuple) else str(v)
                for k, v in asdict(opts).items() if v != getattr(defaults, k)}
         return MethodSpec(self.name, raw, opts, options_hash(opts), type(self))
+
+    # -- one network per stride (stride_models) -----------------------------------------------
+    def part_specs(self) -> dict[tuple[int, ...], object]:
+        """With ``stride_models``: the trainings put together, by the strides each forecasts:
+        ``(s,)`` the training of these options on stride s alone (``steps=stride_steps`` when
+        given), the other strides the training of these options on every stride (if any is
+        left)."""
+        plain = {"stride_models": (), "stride_steps": 0}
+        own = tuple(s for s in self.options.stride_models)
+        parts = {}
+        rest = tuple(s for s in self.options.strides if s not in own)
+        if rest:
+            parts[rest] = self.spec_with(**plain)
+        for s in own:
+            parts[(s,)] = self.spec_with(**plain, strides=(s,), steps=self.options.stride_steps or self.options.steps)
+        return parts
+
+    def assemble(self, train_source: TrainSource, progress: TrainingRun) -> None:
+        """A ``stride_models`` checkpoint: the world networks of :meth:`part_specs`' complete
+        checkpoints on the same data and tokenizer (each trained first where it is not, as
+        ``pcfbench train`` trains it: its own checkpoint, resumable), the rest's under ``world.``,
+        stride s's under ``world_s<s>.``, with the tokenizer's tensors; the manifest records each
+        part's checkpoint, weights sha256, steps and the frame spacing (s) of its strides'
+        training windows, by which a sample picks it."""
+        from pcfbench.methods.copilot4d.train import load_tokenizer
+        from pcfbench.training import checkpoint_dir, find_checkpoint, train
+        from pcfbench.training.checkpoints import dataset_argument
+
+        tok_ck = self.tokenizer_checkpoint(train_source)
+        on = train_source.train_on
+        parts = {}
+        for strides, spec in self.part_specs().items():
+            ck = find_checkpoint(spec, on)
+            here = ck is not None and ck.dir == checkpoint_dir(spec, on)  # else shipped: trained on its own tokenizer
+            usable = ck is not None and ck.manifest.get("complete") and \
+                ck.manifest.get("config", {}).get("tokenizer_sha256") == tok_ck.sha256
+            if not usable and not (here and ck.manifest.get("complete")):
+                progress.log(f"{self.name}: training the network of strides {'/'.join(map(str, strides))} first: "
+                             f"{spec.text()}")
+                ck = train(spec, dataset_argument(on), split=on.split, progress=progress.show, threads=progress.threads,
+                           log=progress.log)
+            check_same_tokenizer(ck, tok_ck, f"pcfbench train {spec.text()} --dataset {dataset_argument(on)} --fresh")
+            parts[strides] = ck
+        period = sweep_period_s(train_source.adapter, train_source.split)
+        tok_state = load_tokenizer(tok_ck, "cpu").state_dict()
+        weights = {f"tokenizer.{k}": v for k, v in tok_state.items()}
+        networks = []
+        for strides, ck in parts.items():
+            prefix = part_prefix(strides, self.options.stride_models)
+            weights |= {prefix + k[len("world."):]: v for k, v in ck.load_weights().items() if k.startswith("world.")}
+            conf = ck.manifest["config"]
+            networks.append({"strides": list(strides), "prefix": prefix, "trained_strides": conf["strides"],
+                             "frame_interval_s": [round(s * period, 6) for s in strides], "world": conf["world"],
+                             "checkpoint": str(ck.manifest_path), "weights_sha256": ck.sha256, "steps": ck.steps,
+                             "wall_s": ck.manifest.get("wall_s"), "windows": conf.get("windows")})
+            progress.count_time(ck.manifest.get("wall_s", 0.0), ck.manifest.get("cpu_s", 0.0))
+            progress.log(f"{self.name}: strides {'/'.join(map(str, strides))} from {ck.dir} ({ck.steps} steps, "
+                         f"sha256 {ck.sha256[:12]})")
+        first = parts[next(iter(parts))].manifest["config"]
+        steps = sum(ck.steps for ck in parts.values())
+        progress.start(steps, steps)
+        progress.save(steps, weights, None, complete=True, config={
+            "world": self.world_cfg.to_dict(), "variant": self.variant.name, "tokenizer": self.tok_cfg.to_dict(),
+            "tokenizer_sha256": tok_ck.sha256, "tokenizer_digest": tensor_digest(tok_state),
+            "tokenizer_checkpoint": str(tok_ck.manifest_path), "tokenizer_steps": tok_ck.steps,
+            "strides": list(self.options.strides), "frame": first["frame"], "sweep_period_s": period,
+            "networks": networks})
 
     def start_checkpoint(self, train_source: TrainSource, out_dir: Path, tok_ck: Checkpoint) -> Checkpoint | None:
         """The verified, complete checkpoint of :meth:`start_spec` on the same training data and
@@ -473,10 +569,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             raise PcfbenchError(f"{self.name} with init_steps={'/'.join(map(str, chain))} goes on from a complete "
                                 f"training of {sum(chain)} steps: "
                                 + missing_checkpoint_message(spec, train_source.train_on))
-        if ck.manifest["config"].get("tokenizer_sha256") != tok_ck.sha256:
-            raise PcfbenchError(f"checkpoint {ck.manifest_path} was trained on tokenizer weights "
-                                f"{str(ck.manifest['config'].get('tokenizer_sha256'))[:12]}, and {tok_ck.manifest_path} "
-                                f"is now {tok_ck.sha256[:12]}: retrain it first")
+        check_same_tokenizer(ck, tok_ck)
         manifest = Path(out_dir) / MANIFEST
         had = json.loads(manifest.read_text())["config"].get("init_from", {}) if manifest.is_file() else {}
         if had and had.get("weights_sha256") != ck.sha256:
@@ -510,9 +603,42 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                   "world model configuration than this pcfbench defines; retrain it with --fresh")
         weights = checkpoint.load_weights()
         tokenizer = self.checkpoint_tokenizer(checkpoint, weights)
-        world = load_network(WorldModel(world_cfg), checkpoint, weights, "world.", "world model")
         device = default_device()
-        self.tokenizer, self.world = tokenizer.to(device).eval(), world.to(device).eval()
+        self.tokenizer = tokenizer.to(device).eval()
+        self.networks = []
+        for part in conf.get("networks", ()):  # stride_models: one network per part
+            part_cfg = WorldModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in part["world"].items()})
+            expected = self.part_world_cfg(tuple(part["strides"]))
+            if part_cfg != expected:
+                raise CheckpointError(f"checkpoint {mf}: the network of strides {part['strides']} was trained with "
+                                      "another world model configuration than these options give; retrain it")
+            net = load_network(WorldModel(part_cfg), checkpoint, weights, part["prefix"], "world model").to(device)
+            self.networks += [(interval, net.eval()) for interval in part["frame_interval_s"]]
+        if conf.get("networks") is not None:
+            self.world = self.networks[0][1]
+            return
+        world = load_network(WorldModel(world_cfg), checkpoint, weights, "world.", "world model")
+        self.world = world.to(device).eval()
+
+    def part_world_cfg(self, strides: tuple[int, ...]):
+        """The world model configuration of the ``stride_models`` part forecasting ``strides``."""
+        steps = self.options.stride_steps if strides[0] in self.options.stride_models else 0
+        if not steps:
+            return self.world_cfg
+        return self.world_cfg.with_overrides(max_steps=steps, decay_steps=steps)
+
+    def network_for(self, sample: Sample):
+        """The world network that forecasts ``sample``: with ``stride_models``, the one whose
+        training windows' frame spacing is nearest (in ratio) the sample's (the median of its
+        frames' spacing from the last past sweep on); else the one network."""
+        if not self.networks:
+            return self.world
+        ts = np.concatenate([sample.past_timestamps_ns[-1:], sample.future_timestamps_ns]).astype(np.float64)
+        spacing = float(np.median(np.diff(ts))) / 1e9
+        if not spacing > 0:
+            raise PcfbenchError(f"sample {sample.sample_id}: future timestamps do not increase from the last past "
+                                f"sweep's: no frame spacing to choose a stride's network by")
+        return min(self.networks, key=lambda pair: abs(np.log(spacing / pair[0])))[1]
 
     # -- forecasting --------------------------------------------------------------------------
     def forecast(self, sample: Sample) -> Forecast:
@@ -564,7 +690,8 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         from pcfbench.training import autocast
 
         cfg = self.world_cfg
-        dev = next(self.world.parameters()).device
+        world = self.network_for(sample)
+        dev = next(world.parameters()).device
         seq, rel, T_s0_ref = self.world_inputs(sample)
         final_logits = None if soft_inputs is None else soft_inputs.setdefault("logits", [])
         seq, rel = seq[None].to(dev), rel[None].to(dev)
@@ -572,7 +699,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         P = seq.shape[1]
         # the context: every frame so far, at the positions of training (t=0 at n_past-1), sliding
         # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
-        out = [x[0] for x in forecast_sequence(self.world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
+        out = [x[0] for x in forecast_sequence(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
                                                n_past=cfg.n_past, steps=self.options.sampling_steps,
                                                guidance=self.options.cfg_weight, top_k=self.options.top_k,
                                                revise=self.variant.revise, metric=self.code_metric(),
@@ -615,6 +742,32 @@ class Copilot4DMaskGIT(Copilot4D):
 
     name = "copilot4d-maskgit"
     variant_name = "maskgit"
+
+
+def check_same_tokenizer(ck: Checkpoint, tok_ck: Checkpoint, retrain: str = "") -> None:
+    """One error unless world checkpoint ``ck`` was trained on the tokenizer checkpoint ``tok_ck``
+    (``retrain``: the command that retrains it, for the message)."""
+    had = ck.manifest.get("config", {}).get("tokenizer_sha256")
+    if had != tok_ck.sha256:
+        raise PcfbenchError(f"checkpoint {ck.manifest_path} was trained on tokenizer weights {str(had)[:12]}, and "
+                            f"{tok_ck.manifest_path} is now {tok_ck.sha256[:12]}: retrain it first"
+                            + (f" (`{retrain}`)" if retrain else ""))
+
+
+def part_prefix(strides: tuple[int, ...], stride_models: tuple[int, ...]) -> str:
+    """Where a ``stride_models`` checkpoint keeps the network of ``strides``: ``world_s<s>.``
+    for a stride of its own, ``world.`` for the network of the other strides."""
+    return f"world_s{strides[0]}." if strides[0] in stride_models else "world."
+
+
+def sweep_period_s(adapter, split: str) -> float:
+    """The median time (s) between consecutive sweeps of ``split``'s sequences: a training
+    window of stride s spaces its frames s of these apart."""
+    gaps = [np.diff(np.asarray(adapter.sequence(n).timestamps_ns, np.float64)) for n in adapter.sequence_names(split)]
+    gaps = np.concatenate([g for g in gaps if len(g)]) if gaps else np.zeros(0)
+    if not len(gaps):
+        raise PcfbenchError(f"dataset {adapter.name!r} split {split!r}: no sequence of two sweeps or more to time")
+    return float(np.median(gaps)) / 1e9
 
 
 def world_config_for(world_cfg, tok_cfg):

@@ -445,6 +445,67 @@ def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, mon
         _train(spec, kitti)
 
 
+def _timed_sample(spacing_s: float, points: int = 400, seed: int = 0):
+    """A sample of 2 past sweeps and 1 future one, ``spacing_s`` apart, 0.5 m forward a frame."""
+    from pcfbench.data import RayQuery, Sample
+
+    rng = np.random.default_rng(seed)
+    poses = np.repeat(np.eye(4)[None], 3, 0)
+    poses[:, 0, 3] = [-0.5, 0.0, 0.5]
+    past = tuple((rng.uniform(-20, 20, (points, 3)) * [1, 1, 0.1]).astype(np.float32) for _ in range(2))
+    ts = (np.arange(3) * spacing_s * 1e9).astype(np.int64)
+    q = RayQuery(poses[2, :3, 3].copy(), np.array([[1.0, 0, 0]], np.float32))
+    return Sample(f"s/{spacing_s}", "toy", "s", 1, past, poses[:2], ts[:2], poses[2:], ts[2:], (q,))
+
+
+def test_stride_models_put_one_network_per_stride_together(micro, kitti):
+    """stride_models=S (the paper's one model per horizon): the training of the same options on
+    stride S alone (steps=stride_steps) forecasts the samples whose frame spacing is nearest S
+    sweeps', the training on every stride the others. Its one command trains each part first
+    (their own checkpoints), then puts their very weights together; a sample forecasts exactly
+    as the part of its spacing does alone. Old options keep their identity; bad ones are refused."""
+    micro = MICRO.replace("strides=1,", "")
+    base, own = f"copilot4d:{micro},strides=1/2,steps=1", f"copilot4d:{micro},strides=2,steps=2"
+    assert resolve_method(f"{base},stride_models=").options_hash == resolve_method(base).options_hash
+    _tokenizer(kitti)
+    ck = _train(f"{base},stride_models=2,stride_steps=2", kitti)
+    parts = {spec: _train(spec, kitti) for spec in (base, own)}  # trained by the command above: found complete
+    assert all(p.manifest["complete"] for p in parts.values())
+    nets = ck.manifest["config"]["networks"]
+    assert [(n["strides"], n["prefix"], n["steps"], n["weights_sha256"]) for n in nets] == [
+        ([1], "world.", 1, parts[base].sha256), ([2], "world_s2.", 2, parts[own].sha256)]
+    period = ck.manifest["config"]["sweep_period_s"]
+    assert period == pytest.approx(0.1) and [n["frame_interval_s"] for n in nets] == [[period], [2 * period]]
+    w = ck.load_weights()
+    for spec, prefix in ((base, "world."), (own, "world_s2.")):
+        part = {k[len("world."):]: v for k, v in parts[spec].load_weights().items() if k.startswith("world.")}
+        assert {k[len(prefix):] for k in w if k.startswith(prefix)} == set(part)
+        for k, v in part.items():
+            assert torch.equal(w[prefix + k], v), (prefix, k)
+    both = resolve_method(f"{base},stride_models=2,stride_steps=2").create()
+    both.load(ck)
+    alone = {}
+    for spec in (base, own):
+        alone[spec] = resolve_method(spec).create()
+        alone[spec].load(parts[spec])
+    for spacing, spec in ((0.1, base), (0.13, base), (0.2, own), (0.6, own)):
+        sample = _timed_sample(spacing)
+        got, want = both.forecast_tokens(sample)[0], alone[spec].forecast_tokens(sample)[0]
+        assert all(torch.equal(a, b) for a, b in zip(got, want)), (spacing, spec)
+    assert not all(torch.equal(a, b) for a, b in zip(alone[base].forecast_tokens(_timed_sample(0.2))[0],
+                                                     alone[own].forecast_tokens(_timed_sample(0.2))[0]))
+    # a part trained here on another tokenizer: one error with the command that retrains it
+    manifest = dict(parts[own].manifest, config=dict(parts[own].manifest["config"], tokenizer_sha256="0" * 64))
+    parts[own].manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(PcfbenchError, match=r"tokenizer weights 000000000000.*`pcfbench train copilot4d:.*strides=2.* "
+                                            r"--fresh`"):
+        _train(f"{base},stride_models=2,stride_steps=2", kitti, fresh=True)
+    for bad, why in (("stride_models=3", "among strides=1/2"), ("stride_models=2/2", "distinct"),
+                     ("stride_steps=2", "name stride_models too"), ("stride_models=2,init_steps=1", "init_steps")):
+        with pytest.raises(PcfbenchError, match=why):
+            resolve_method(f"{base},{bad}")
+
+
 def test_world_report_scores_the_objective_on_trained_and_held_out_windows(micro, kitti, tmp_path):
     """`pcfbench world-report --objective-draws` on a trained micro model: the report holds the
     training curve's tail and both sets of windows; windows made with other window options than
