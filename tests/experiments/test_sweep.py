@@ -444,7 +444,11 @@ SOFT_MIX = EXAMPLES / "copilot4d-soft-mix.toml"
 KITTI_3S_SAMPLING = EXAMPLES / "copilot4d-kitti-3s-sampling.toml"
 EVERY_SAMPLE = EXAMPLES / "copilot4d-every-sample.toml"
 TRAINING_LENGTH = EXAMPLES / "copilot4d-training-length.toml"
+PER_HORIZON = EXAMPLES / "copilot4d-per-horizon.toml"
 
+
+#: the options by which the default run's copilot4d forecasts kitti-3s with a network of its own (stop 81)
+ONE_NETWORK_PER_HORIZON = ("stride_models", "stride_steps")
 
 OCCWORLD_TOKENS = EXAMPLES / "occworld-tokens.toml"
 OCCWORLD_WORLD_TOKENS = EXAMPLES / "occworld-world-tokens.toml"
@@ -456,6 +460,7 @@ def test_every_example_experiment_is_checked():
                                                                       OCCWORLD_WORLD_TOKENS.name, BEVWORLD_DDIM.name,
                                                                       SOFT_MIX.name, KITTI_3S_SAMPLING.name,
                                                                       EVERY_SAMPLE.name, TRAINING_LENGTH.name,
+                                                                      PER_HORIZON.name,
                                                                       *WORLD_MODEL, *TINY_WINDOW])
     exp = load_experiment(RAYCAST)
     assert [v.label for v in exp.variants] == ["copy-last", "raycast-voxel (voxel=0.2)", "raycast-voxel (voxel=0.4)"]
@@ -488,9 +493,9 @@ def test_every_example_experiment_is_checked():
     assert exp.splits == ("val", "test") and exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
     from pcfbench.methods.copilot4d.forecaster import Copilot4D
 
-    default_run = dict(Copilot4D.default_run_options[0])
+    default_run = {k: v for k, v in Copilot4D.default_run_options[0].items() if k not in ONE_NETWORK_PER_HORIZON}
     assert resolve_method("copilot4d:" + ",".join(f"{k}={v}" for k, v in default_run.items())).options_hash \
-        == exp.variants[1].method.options_hash  # the default run's row is one of the table's
+        == exp.variants[1].method.options_hash  # the default run's sampling and rendering is one of the rows
     from pcfbench.training.checkpoints import checkpoint_options_hash
 
     exp = load_experiment(KITTI_3S_SAMPLING)  # guidance x soft_mix at kitti-3s only, the one shipped checkpoint
@@ -507,8 +512,9 @@ def test_every_example_experiment_is_checked():
     assert [v.label for v in exp.variants] == [f"copilot4d ({one.format(0.3)})", f"copilot4d-maskgit ({one.format(0.3)})",
                                                "copilot4d-token-copy (config=tiny-window)", "copilot4d-token-copy",
                                                "copy-last"]
-    for v in exp.variants[:2]:
-        spec = f"{v.method.name}:" + ",".join(f"{k}={x}" for k, x in v.method.create().default_run_options[0].items())
+    for v in exp.variants[:2]:  # as the default run scored them then (copilot4d: one network since stop 81)
+        spec = f"{v.method.name}:" + ",".join(f"{k}={x}" for k, x in v.method.create().default_run_options[0].items()
+                                              if k not in ONE_NETWORK_PER_HORIZON)
         assert resolve_method(spec).options_hash == v.method.options_hash
     assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
     exp = load_experiment(TRAINING_LENGTH)  # three trainings of copilot4d, each rendered as the default run renders
@@ -523,6 +529,17 @@ def test_every_example_experiment_is_checked():
     # the warm restart goes on from the very checkpoint of the 800-step row
     assert checkpoint_options_hash(world[2].method.create().start_spec()) \
         == checkpoint_options_hash(world[1].method)
+    assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
+    exp = load_experiment(PER_HORIZON)  # one network per horizon: kitti-3s alone, the default run's copilot4d a row
+    assert exp.policy == "full-context" and exp.settings == ("kitti-3s",) and exp.splits == ("val", "test")
+    one, own, both = exp.variants[:3]
+    assert [v.method.name for v in exp.variants] == ["copilot4d"] * 3 + ["copilot4d-token-copy"]
+    assert one.method.options_hash == resolve_method("copilot4d:sampling_steps=1,top_k=1,soft_mix=0.3").options_hash
+    assert (own.method.options.strides, own.method.options.stride_models) == ((6,), ())
+    default_run = ",".join(f"{k}={v}" for k, v in Copilot4D.default_run_options[0].items())
+    assert both.method.options_hash == resolve_method(f"copilot4d:{default_run}").options_hash
+    assert [checkpoint_options_hash(s) for s in both.method.create().part_specs().values()] == [
+        checkpoint_options_hash(one.method), checkpoint_options_hash(resolve_method("copilot4d:strides=6,steps=500"))]
     assert exp.tables[0].reference.label == "copilot4d-token-copy (config=tiny-window)"
 
 
