@@ -494,7 +494,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         given), the other strides the training of these options on every stride (if any is
         left)."""
         plain = {"stride_models": (), "stride_steps": 0}
-        own = tuple(s for s in self.options.stride_models)
+        own = self.options.stride_models
         parts = {}
         rest = tuple(s for s in self.options.strides if s not in own)
         if rest:
@@ -522,12 +522,13 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             here = ck is not None and ck.dir == checkpoint_dir(spec, on)  # else shipped: trained on its own tokenizer
             usable = ck is not None and ck.manifest.get("complete") and \
                 ck.manifest.get("config", {}).get("tokenizer_sha256") == tok_ck.sha256
+            trains = spec.text(drop=self.inference_options)  # its training options: the command that trains it
             if not usable and not (here and ck.manifest.get("complete")):
                 progress.log(f"{self.name}: training the network of strides {'/'.join(map(str, strides))} first: "
-                             f"{spec.text()}")
+                             f"{trains}")
                 ck = train(spec, dataset_argument(on), split=on.split, progress=progress.show, threads=progress.threads,
                            log=progress.log)
-            check_same_tokenizer(ck, tok_ck, f"pcfbench train {spec.text()} --dataset {dataset_argument(on)} --fresh")
+            check_same_tokenizer(ck, tok_ck, f"pcfbench train {trains} --dataset {dataset_argument(on)} --fresh")
             parts[strides] = ck
         period = sweep_period_s(train_source.adapter, train_source.split)
         tok_state = load_tokenizer(tok_ck, "cpu").state_dict()

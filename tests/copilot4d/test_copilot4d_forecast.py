@@ -497,8 +497,8 @@ def test_stride_models_put_one_network_per_stride_together(micro, kitti):
     # a part trained here on another tokenizer: one error with the command that retrains it
     manifest = dict(parts[own].manifest, config=dict(parts[own].manifest["config"], tokenizer_sha256="0" * 64))
     parts[own].manifest_path.write_text(json.dumps(manifest))
-    with pytest.raises(PcfbenchError, match=r"tokenizer weights 000000000000.*`pcfbench train copilot4d:.*strides=2.* "
-                                            r"--fresh`"):
+    with pytest.raises(PcfbenchError, match=r"tokenizer weights 000000000000.*`pcfbench train copilot4d:anchor_every=4,"
+                                            r"config=micro,steps=2,strides=2,tokenizer_steps=2 --dataset kitti=.* --fresh`"):
         _train(f"{base},stride_models=2,stride_steps=2", kitti, fresh=True)
     for bad, why in (("stride_models=3", "among strides=1/2"), ("stride_models=2/2", "distinct"),
                      ("stride_steps=2", "name stride_models too"), ("stride_models=2,init_steps=1", "init_steps")):
