@@ -213,10 +213,11 @@ def may_have_checkpoint(spec: MethodSpec, dataset: str, split: str = DEFAULT_SPL
 
 # -- shipped checkpoints ------------------------------------------------------------------------
 #: The most all shipped checkpoints of one import package (one distribution) may weigh together (bytes).
-# 32 MiB (16 until the BEVWorld world model shipped, 24 until Copilot4D's two world models and
-# their tiny-window tokenizer did: each issue that ships a world model asks for its tiny
-# checkpoint, and the tiny world models are 1-4 M parameters, 2-7 MB in float16)
-SHIPPED_LIMIT_BYTES = 32 * 1024 * 1024
+# 40 MiB (16 until the BEVWorld world model shipped, 24 until Copilot4D's two world models and
+# their tiny-window tokenizer did, 32 until copilot4d's one network per horizon did: each issue
+# that ships a world model asks for its tiny checkpoint, and the tiny world models are 1-4 M
+# parameters, 2-7 MB in float16)
+SHIPPED_LIMIT_BYTES = 40 * 1024 * 1024
 
 
 def shipped_root(cls: type) -> Path | None:
