@@ -494,6 +494,8 @@ def test_stride_models_put_one_network_per_stride_together(micro, kitti):
         assert all(torch.equal(a, b) for a, b in zip(got, want)), (spacing, spec)
     assert not all(torch.equal(a, b) for a, b in zip(alone[base].forecast_tokens(_timed_sample(0.2))[0],
                                                      alone[own].forecast_tokens(_timed_sample(0.2))[0]))
+    with pytest.raises(PcfbenchError, match=r"sample s/0.0: future timestamps do not increase"):
+        both.forecast_tokens(_timed_sample(0.0))  # no spacing to choose by: one error naming the sample
     # a part trained here on another tokenizer: one error with the command that retrains it
     manifest = dict(parts[own].manifest, config=dict(parts[own].manifest["config"], tokenizer_sha256="0" * 64))
     parts[own].manifest_path.write_text(json.dumps(manifest))
