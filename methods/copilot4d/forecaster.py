@@ -375,6 +375,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         self.render = rendering_kwargs(self.options)
         self.world = None
         self.networks: list = []  # stride_models: (frame spacing s, network) pairs
+        self.stride_networks: dict = {}  # stride_models: the network of each training stride
         self.tokenizer = None
 
     def training_steps(self) -> int:
@@ -519,11 +520,11 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         parts = {}
         for strides, spec in self.part_specs().items():
             ck = find_checkpoint(spec, on)
-            here = ck is not None and ck.dir == checkpoint_dir(spec, on)  # else shipped: trained on its own tokenizer
-            usable = ck is not None and ck.manifest.get("complete") and \
-                ck.manifest.get("config", {}).get("tokenizer_sha256") == tok_ck.sha256
             trains = spec.text(drop=self.inference_options)  # its training options: the command that trains it
-            if not usable and not (here and ck.manifest.get("complete")):
+            # a complete one trained here is used (or refused below); a shipped one only on this tokenizer
+            if not (ck is not None and ck.manifest.get("complete") and (
+                    ck.dir == checkpoint_dir(spec, on)
+                    or ck.manifest.get("config", {}).get("tokenizer_sha256") == tok_ck.sha256)):
                 progress.log(f"{self.name}: training the network of strides {'/'.join(map(str, strides))} first: "
                              f"{trains}")
                 ck = train(spec, dataset_argument(on), split=on.split, progress=progress.show, threads=progress.threads,
@@ -545,14 +546,13 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             progress.count_time(ck.manifest.get("wall_s", 0.0), ck.manifest.get("cpu_s", 0.0))
             progress.log(f"{self.name}: strides {'/'.join(map(str, strides))} from {ck.dir} ({ck.steps} steps, "
                          f"sha256 {ck.sha256[:12]})")
-        first = parts[next(iter(parts))].manifest["config"]
         steps = sum(ck.steps for ck in parts.values())
         progress.start(steps, steps)
         progress.save(steps, weights, None, complete=True, config={
             "world": self.world_cfg.to_dict(), "variant": self.variant.name, "tokenizer": self.tok_cfg.to_dict(),
             "tokenizer_sha256": tok_ck.sha256, "tokenizer_digest": tensor_digest(tok_state),
             "tokenizer_checkpoint": str(tok_ck.manifest_path), "tokenizer_steps": tok_ck.steps,
-            "strides": list(self.options.strides), "frame": first["frame"], "sweep_period_s": period,
+            "strides": list(self.options.strides), "frame": self.options.frame, "sweep_period_s": period,
             "networks": networks})
 
     def start_checkpoint(self, train_source: TrainSource, out_dir: Path, tok_ck: Checkpoint) -> Checkpoint | None:
@@ -609,7 +609,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         tokenizer = self.checkpoint_tokenizer(checkpoint, weights)
         device = default_device()
         self.tokenizer = tokenizer.to(device).eval()
-        self.networks = []
+        self.networks, self.stride_networks = [], {}
         for part in conf.get("networks", ()):  # stride_models: one network per part
             part_cfg = WorldModelConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in part["world"].items()})
             expected = self.part_world_cfg(tuple(part["strides"]))
@@ -618,6 +618,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                       "another world model configuration than these options give; retrain it")
             net = load_network(WorldModel(part_cfg), checkpoint, weights, part["prefix"], "world model").to(device)
             self.networks += [(interval, net.eval()) for interval in part["frame_interval_s"]]
+            self.stride_networks |= dict.fromkeys(part["strides"], net)
         if conf.get("networks") is not None:
             self.world = self.networks[0][1]
             return
@@ -630,6 +631,17 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         if not steps:
             return self.world_cfg
         return self.world_cfg.with_overrides(max_steps=steps, decay_steps=steps)
+
+    def network_for_stride(self, stride: int):
+        """The world network that forecasts windows of ``stride`` source sweeps: with
+        ``stride_models``, the one put together for it (one error for a stride it has none for);
+        else the one network."""
+        if not self.stride_networks:
+            return self.world
+        if stride not in self.stride_networks:
+            raise PcfbenchError(f"{self.name} with stride_models has networks for strides "
+                                f"{'/'.join(map(str, sorted(self.stride_networks)))}, not {stride}")
+        return self.stride_networks[stride]
 
     def network_for(self, sample: Sample):
         """The world network that forecasts ``sample``: with ``stride_models``, the one whose

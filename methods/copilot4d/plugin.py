@@ -216,6 +216,9 @@ def _world_report_command(cli):  # noqa: ANN001
         m, ck = _loaded(method, Copilot4D, "copilot4d or copilot4d-maskgit[:options]", train_on, train_split,
                         checkpoint)
         cfg, opts = m.world_cfg, m.options
+        if objective_draws and m.stride_networks:  # the objective scores one network on windows of every stride
+            raise PcfbenchError(f"--objective-draws scores one network, and {method} holds one per stride: name each "
+                                "part (the training of its options without stride_models, or with strides=S)")
 
         def windows_of(source, split):
             return build_windows(m.tokenizer, source.adapter, split, cfg.n_past, cfg.n_future, tuple(opts.strides),

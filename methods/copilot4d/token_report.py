@@ -69,6 +69,7 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
     rows, ring_rows = [], []
     for s in sorted(set(int(v) for v in windows["stride"])):
         idx = np.flatnonzero(windows["stride"] == s)
+        world = method.network_for_stride(s)  # with stride_models, the network that forecasts this stride
         if max_windows and len(idx) > max_windows:
             idx = idx[np.unique(np.linspace(0, len(idx) - 1, max_windows).round().astype(int))]
         acc = [dict.fromkeys(COUNTS, 0) for _ in range(F)]
@@ -78,7 +79,7 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
             poses = torch.from_numpy(windows["poses"][a].astype(np.float32))
             gen = torch.Generator(dev).manual_seed(int(opts.seed) * 1_000_003 + int(a))
             with autocast(dev):
-                pred = forecast_tokens(method.world, toks[None, :P].to(dev), poses[None].to(dev), F,
+                pred = forecast_tokens(world, toks[None, :P].to(dev), poses[None].to(dev), F,
                                        steps=opts.sampling_steps, guidance=opts.cfg_weight, top_k=opts.top_k,
                                        revise=method.variant.revise, generator=gen, metric=metric,
                                        change_confidence=opts.change_confidence)[0].cpu().numpy()

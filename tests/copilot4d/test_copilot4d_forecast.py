@@ -496,6 +496,19 @@ def test_stride_models_put_one_network_per_stride_together(micro, kitti):
                                                      alone[own].forecast_tokens(_timed_sample(0.2))[0]))
     with pytest.raises(PcfbenchError, match=r"sample s/0.0: future timestamps do not increase"):
         both.forecast_tokens(_timed_sample(0.0))  # no spacing to choose by: one error naming the sample
+    # by stride (the world report's windows): each stride's own network; a stride it has none for is refused
+    for stride, spec in ((1, base), (2, own)):
+        got, want = both.network_for_stride(stride).state_dict(), alone[spec].world.state_dict()
+        assert all(torch.equal(got[k], want[k]) for k in want), stride
+    with pytest.raises(PcfbenchError, match="networks for strides 1/2, not 3"):
+        both.network_for_stride(3)
+    # the training objective scores one network: refused for the two, naming the parts
+    from pcfbench.cli import build_cli
+
+    r = CliRunner().invoke(build_cli(), ["world-report", "--method", f"{base},stride_models=2,stride_steps=2",
+                                         "--train-on", f"kitti={kitti}", "--dataset", f"kitti={kitti}",
+                                         "--objective-draws", "1"])
+    assert r.exit_code != 0 and "--objective-draws scores one network" in r.output, r.output
     # a part trained here on another tokenizer: one error with the command that retrains it
     manifest = dict(parts[own].manifest, config=dict(parts[own].manifest["config"], tokenizer_sha256="0" * 64))
     parts[own].manifest_path.write_text(json.dumps(manifest))

@@ -40,8 +40,11 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
                "stride": np.array([2, 2, 6, 6])}
     seen = []
 
+    networks = {2: torch.nn.Linear(1, 1), 6: torch.nn.Linear(1, 1)}  # a network per stride (stride_models)
+
     def fake_forecast(model, past, poses, n_future, **kw):
         a = next(i for i in range(A) if np.array_equal(tokens[i, :P], past[0].numpy()))
+        assert model is networks[int(windows["stride"][a])]  # the network of the window's stride forecasts it
         seen.append((a, poses.shape[1], n_future))
         # the method's sampling options
         assert (kw["steps"], kw["guidance"], kw["top_k"], kw["change_confidence"]) == (2, 0.0, 1, 0.3)
@@ -53,6 +56,7 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
     # sensor, the edge ones at 30 m (20-40 m), the corners at 42.4 m (40-60 m), none beyond 60 m
     method = types.SimpleNamespace(
         world_cfg=types.SimpleNamespace(n_past=P, n_future=F), world=torch.nn.Linear(1, 1),
+        network_for_stride=networks.__getitem__,
         tok_cfg=types.SimpleNamespace(x_range=(-45.0, 45.0), y_range=(-45.0, 45.0)),
         options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1, change_confidence=0.3),
         variant=types.SimpleNamespace(revise=True),
