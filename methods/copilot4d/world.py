@@ -391,3 +391,44 @@ class PastKV:
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+class WorldEnsemble(nn.Module):
+    """World networks forecasting as one (not the paper's): the logits of a pass are the mean of
+    the members' log-softmaxes (float32), a normalised product of their distributions. Each
+    member keeps its own cache (:class:`EnsembleKV`); guidance, being linear in the logits,
+    guides the mean as it would each member. The members must read the same codes and frames."""
+
+    def __init__(self, members: list) -> None:
+        super().__init__()
+        if len(members) < 2:
+            raise ValueError(f"an ensemble needs two networks or more, got {len(members)}")
+        first = members[0].cfg
+        for m in members[1:]:
+            if (m.cfg.codebook_size, m.cfg.token_grid, m.cfg.n_frames) != (first.codebook_size, first.token_grid,
+                                                                           first.n_frames):
+                raise ValueError("ensemble members differ in codebook size, token grid or frames: "
+                                 f"{first.name} and {m.cfg.name}")
+        self.members = nn.ModuleList(members)
+        self.cfg, self.mask_token = first, members[0].mask_token
+
+    def forward(self, tokens: torch.Tensor, T_ref_sensor: torch.Tensor, temporal_mask: torch.Tensor,
+                frame_index: torch.Tensor | None = None, past_kv: "EnsembleKV | None" = None,
+                return_kv: bool = False):
+        caches = [None] * len(self.members) if past_kv is None else past_kv.members
+        outs = [m(tokens, T_ref_sensor, temporal_mask, frame_index, past_kv=kv, return_kv=return_kv)
+                for m, kv in zip(self.members, caches)]
+        logits = [o[0] if return_kv else o for o in outs]
+        mean = torch.stack([x.float().log_softmax(-1) for x in logits]).mean(0)
+        return (mean, EnsembleKV([o[1] for o in outs])) if return_kv else mean
+
+
+class EnsembleKV:
+    """The members' :class:`PastKV` of a :class:`WorldEnsemble` pass, one each."""
+
+    def __init__(self, members: list) -> None:
+        self.members = members
+        self.frames, self.batch, self.room = members[0].frames, members[0].batch, members[0].room
+
+    def with_room(self, T: int) -> "EnsembleKV":
+        return EnsembleKV([m.with_room(T) for m in self.members])

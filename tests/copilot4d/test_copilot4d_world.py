@@ -16,6 +16,7 @@ from pcfbench.errors import PcfbenchError, UnknownNameError
 from pcfbench.methods.copilot4d import config as tok_config
 from pcfbench.methods.copilot4d import diffusion as D
 from pcfbench.methods.copilot4d.world import (
+    WorldEnsemble,
     WorldModel,
     causal_mask,
     count_parameters,
@@ -711,6 +712,50 @@ def test_reusing_the_context_forecasts_the_same_tokens_with_less_work(revise):
     assert runs["recompute"][1] == [2, *steps, 3, *steps, 4, *steps, 4, *steps]
     assert runs["reuse"][1] == [2, *steps, 1, *steps, 1, *steps, 4, *steps]
     assert len(set(runs["reuse"][0].flatten().tolist())) > 4  # a real forecast, not a constant
+
+
+@pytest.mark.parametrize("revise", [True, False])
+def test_an_ensemble_forecasts_by_the_mean_of_its_members_log_probabilities(revise):
+    """WorldEnsemble: a pass's logits are the mean of the members' log-softmaxes, with each
+    member's own cache giving what whole passes give; guided, it is the mean of the members'
+    guided log-probabilities (guidance is linear). A network with itself forecasts exactly as
+    the network alone; two networks forecast differently from either; with reused context,
+    recomputed context and no cache alike."""
+    torch.manual_seed(3)
+    cfg = MICRO.with_overrides(n_future=3)
+    a, b = WorldModel(cfg).eval(), WorldModel(cfg).eval()
+    with torch.no_grad():
+        for m in (a, b):
+            m.time_embed.normal_(0.0, 1.0)
+    gen = torch.Generator().manual_seed(37)
+    x = torch.randint(0, 17, (2, 3, 8, 8), generator=gen)
+    P = _random_poses(2, 3, gen)
+    both = WorldEnsemble([a, b])
+    with torch.no_grad():
+        mean = (a(x, P, causal_mask(3)).log_softmax(-1) + b(x, P, causal_mask(3)).log_softmax(-1)) / 2
+        assert torch.allclose(both(x, P, causal_mask(3)), mean, atol=1e-6, rtol=0)
+        _, kv = both(x[:, :2], P[:, :2], causal_mask(2), return_kv=True)
+        assert (kv.frames, kv.batch) == (2, 2) and len(kv.members) == 2
+        for w in (0.0, 2.0):
+            want = (D.guided_logits(a, x, P, w).log_softmax(-1) + D.guided_logits(b, x, P, w).log_softmax(-1)) / 2
+            for cache in (kv, kv.with_room(1 if w == 0 else 2)):
+                got = D.guided_logits(both, x[:, 2:], P[:, 2:], w, past_kv=cache)
+                assert torch.allclose(got.log_softmax(-1), want.log_softmax(-1), atol=1e-5, rtol=0)
+    past, poses = x[:, :2].clamp(max=15), _random_poses(2, 6, gen)
+
+    def forecast(model, **kw):
+        return torch.stack(D.forecast_sequence(model, past, poses, 4, n_frames=cfg.n_frames, n_past=cfg.n_past,
+                                               steps=3, top_k=1, revise=revise,
+                                               generator=torch.Generator().manual_seed(4), **kw), 1)
+
+    assert torch.equal(forecast(WorldEnsemble([a, a])), forecast(a))
+    runs = [forecast(both, **kw) for kw in ({}, {"reuse_context": False}, {"cache": False})]
+    assert all(torch.equal(runs[0], r) for r in runs[1:])
+    assert not torch.equal(runs[0], forecast(a)) and not torch.equal(runs[0], forecast(b))
+    with pytest.raises(ValueError, match="two networks or more"):
+        WorldEnsemble([a])
+    with pytest.raises(ValueError, match="differ in codebook size"):
+        WorldEnsemble([a, WorldModel(cfg.with_overrides(codebook_size=32))])
 
 
 def test_forecast_tokens_decodes_every_future_frame(micro_model):
