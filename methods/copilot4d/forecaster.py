@@ -108,6 +108,16 @@ class WorldOptions(RenderingOptions):
         quiet_default=True)
     stride_steps: int = option(0, help="with stride_models: the training steps of each stride's own network "
                                        "(0: steps)", min=0, quiet_default=True)
+    stride_cfg_weight: float | None = option(
+        None, help="with stride_models: the guidance weight w of the samples a stride's own network forecasts "
+                   "(inference only; default: cfg_weight)", min=0, quiet_default=True)
+    stride_soft_mix: float | None = option(
+        None, help="with stride_models: soft_mix of the samples a stride's own network forecasts (inference only; "
+                   "default: soft_mix)", min=0, max=1, quiet_default=True)
+    stride_ensemble: bool = option(
+        False, help="with stride_models: forecast a stride that has a network of its own with that network and the "
+                    "network of every stride (trained on its windows too) together, by the mean of their "
+                    "log-probabilities (not the paper's; inference only)", quiet_default=True)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -118,12 +128,13 @@ class WorldOptions(RenderingOptions):
         if self.change_confidence > 0 and self.frame != "t0":
             raise PcfbenchError(f"change_confidence={self.change_confidence:g} keeps the t=0 map's codes: it needs "
                                 f"frame=t0, not frame={self.frame}")
-        if 0 < self.soft_mix < 1 and self.frame != "t0":
-            raise PcfbenchError(f"soft_mix={self.soft_mix:g} mixes in the t=0 map's codes: it needs frame=t0, "
-                                f"not frame={self.frame} (soft_mix=1 renders the distribution alone in any frame)")
-        if self.soft_mix > 0 and self.change_confidence > 0:
-            raise PcfbenchError(f"soft_mix={self.soft_mix:g} renders the model's distribution and "
-                                f"change_confidence={self.change_confidence:g} gates its codes: one at a time")
+        for name, mix in (("soft_mix", self.soft_mix), ("stride_soft_mix", self.stride_soft_mix or 0.0)):
+            if 0 < mix < 1 and self.frame != "t0":
+                raise PcfbenchError(f"{name}={mix:g} mixes in the t=0 map's codes: it needs frame=t0, not "
+                                    f"frame={self.frame} ({name}=1 renders the distribution alone in any frame)")
+            if mix > 0 and self.change_confidence > 0:
+                raise PcfbenchError(f"{name}={mix:g} renders the model's distribution and "
+                                    f"change_confidence={self.change_confidence:g} gates its codes: one at a time")
         if self.stride_models:
             shown = "/".join(map(str, self.stride_models))
             if len(set(self.stride_models)) != len(self.stride_models) or not set(self.stride_models) <= set(self.strides):
@@ -132,9 +143,18 @@ class WorldOptions(RenderingOptions):
             if self.init_steps or self.render_weight or self.neighbour_targets:
                 raise PcfbenchError(f"stride_models={shown} puts together trainings of the plain recipe: not with "
                                     "init_steps, render_weight or neighbour_targets")
-        elif self.stride_steps:
-            raise PcfbenchError(f"stride_steps={self.stride_steps} is the steps of the stride_models' networks: "
-                                "name stride_models too")
+            if self.stride_ensemble and set(self.strides) <= set(self.stride_models):
+                raise PcfbenchError(f"stride_ensemble=true forecasts with the network of every stride beside a "
+                                    f"stride's own: stride_models={shown} leaves none of strides="
+                                    f"{'/'.join(map(str, self.strides))} to train it")
+        else:
+            named = [f"{k}={v}" for k, v in (("stride_steps", self.stride_steps or None),
+                                             ("stride_cfg_weight", self.stride_cfg_weight),
+                                             ("stride_soft_mix", self.stride_soft_mix),
+                                             ("stride_ensemble", "true" if self.stride_ensemble else None))
+                     if v is not None]
+            if named:
+                raise PcfbenchError(f"{named[0]} applies to the stride_models' networks: name stride_models too")
         if isinstance(self.init_steps, tuple) and (len(self.init_steps) < 2 or 0 in self.init_steps):
             shown = "/".join(map(str, self.init_steps)) + ("/" if len(self.init_steps) == 1 else "")
             raise PcfbenchError(f"init_steps={shown}: expected one number of steps "
@@ -345,7 +365,8 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     training_time = ("about 32 min for the default (tiny-window) configuration on both threads of a 2-core CPU "
                      "(about 18 min tokenizing 432 windows, once for both variants; 600 steps at 1.4 s), plus its "
                      "tokenizer's training")
-    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "soft_mix", "seed",
+    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "soft_mix",
+                         "stride_cfg_weight", "stride_soft_mix", "stride_ensemble", "seed",
                          *(f.name for f in fields(RenderingOptions)))
     # the default run samples one arg-max step, the paper's K = 10 top-3 being the options'
     # defaults: one step forecast best on tiny-window and in half the time; and renders 0.3 of the
@@ -376,6 +397,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         self.world = None
         self.networks: list = []  # stride_models: (frame spacing s, network) pairs
         self.stride_networks: dict = {}  # stride_models: the network of each training stride
+        self.own_networks: list = []  # stride_models: the networks of a stride of their own
         self.tokenizer = None
 
     def training_steps(self) -> int:
@@ -590,7 +612,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
 
     def load(self, checkpoint: Checkpoint) -> None:
         from pcfbench.methods.copilot4d.train import config_from_dict, default_device
-        from pcfbench.methods.copilot4d.world import WorldModel
+        from pcfbench.methods.copilot4d.world import WorldEnsemble, WorldModel
         from pcfbench.methods.copilot4d.world_config import WorldModelConfig
 
         mf = checkpoint.manifest_path
@@ -619,6 +641,13 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             net = load_network(WorldModel(part_cfg), checkpoint, weights, part["prefix"], "world model").to(device)
             self.networks += [(interval, net.eval()) for interval in part["frame_interval_s"]]
             self.stride_networks |= dict.fromkeys(part["strides"], net)
+        if self.options.stride_ensemble:
+            shared = self.stride_networks[next(s for s in self.options.strides if s not in self.options.stride_models)]
+            together = {id(net): net if net is shared else WorldEnsemble([net, shared])
+                        for net in self.stride_networks.values()}
+            self.networks = [(interval, together[id(net)]) for interval, net in self.networks]
+            self.stride_networks = {s: together[id(net)] for s, net in self.stride_networks.items()}
+        self.own_networks = [net for s, net in self.stride_networks.items() if s in self.options.stride_models]
         if conf.get("networks") is not None:
             self.world = self.networks[0][1]
             return
@@ -656,6 +685,16 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                 f"sweep's: no frame spacing to choose a stride's network by")
         return min(self.networks, key=lambda pair: abs(np.log(spacing / pair[0])))[1]
 
+    def sampling_for(self, world) -> tuple[float, float]:
+        """The guidance weight and ``soft_mix`` of the samples ``world`` forecasts: with
+        ``stride_models``, a stride's own network takes ``stride_cfg_weight`` and
+        ``stride_soft_mix`` where they are given; else ``cfg_weight`` and ``soft_mix``."""
+        o = self.options
+        if any(world is net for net in self.own_networks):
+            return (o.cfg_weight if o.stride_cfg_weight is None else o.stride_cfg_weight,
+                    o.soft_mix if o.stride_soft_mix is None else o.stride_soft_mix)
+        return o.cfg_weight, o.soft_mix
+
     # -- forecasting --------------------------------------------------------------------------
     def forecast(self, sample: Sample) -> Forecast:
         import torch
@@ -664,10 +703,11 @@ class Copilot4D(OnTokenizer, TrainedMethod):
 
         if self.world is None:
             raise PcfbenchError(f"{self.name}: no checkpoint loaded (the runner loads it; call load() first)")
-        if self.options.soft_mix > 0:
+        soft_mix = self.sampling_for(self.network_for(sample))[1]
+        if soft_mix > 0:
             inputs: dict = {}
             codes, rel_future, T_s0_ref = self.forecast_tokens(sample, soft_inputs=inputs)
-            codes = self.soft_maps(inputs["logits"], inputs["t0"])
+            codes = self.soft_maps(inputs["logits"], inputs["t0"], soft_mix)
         else:
             codes, rel_future, T_s0_ref = self.forecast_tokens(sample)
         gen = torch.Generator(next(self.tokenizer.parameters()).device)
@@ -717,7 +757,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
         out = [x[0] for x in forecast_sequence(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
                                                n_past=cfg.n_past, steps=self.options.sampling_steps,
-                                               guidance=self.options.cfg_weight, top_k=self.options.top_k,
+                                               guidance=self.sampling_for(world)[0], top_k=self.options.top_k,
                                                revise=self.variant.revise, metric=self.code_metric(),
                                                change_confidence=self.options.change_confidence,
                                                final_logits=final_logits,
@@ -726,14 +766,14 @@ class Copilot4D(OnTokenizer, TrainedMethod):
             soft_inputs["t0"] = seq[0, -1]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
 
-    def soft_maps(self, final_logits: list, t0) -> list:
-        """``soft_mix`` a: per future frame the (H, W, D) code embeddings the tokenizer decodes,
+    def soft_maps(self, final_logits: list, t0, a: float | None = None) -> list:
+        """``soft_mix`` a (default: the option's): per future frame the (H, W, D) code embeddings the tokenizer decodes,
         a E_p[e] + (1 - a) e(c0) at every token, p the guided distribution of the frame's last
         sampling step (``final_logits``, (1, H, W, |V|) each), c0 the code of the t=0 map ``t0``
         (H, W) there and e the tokenizer's codebook."""
         import torch
 
-        a = self.options.soft_mix
+        a = self.options.soft_mix if a is None else a
         codebook = self.tokenizer.vq.codebook.detach().float()
         maps = []
         for logits in final_logits:

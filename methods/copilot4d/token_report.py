@@ -80,7 +80,8 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
             gen = torch.Generator(dev).manual_seed(int(opts.seed) * 1_000_003 + int(a))
             with autocast(dev):
                 pred = forecast_tokens(world, toks[None, :P].to(dev), poses[None].to(dev), F,
-                                       steps=opts.sampling_steps, guidance=opts.cfg_weight, top_k=opts.top_k,
+                                       steps=opts.sampling_steps, guidance=method.sampling_for(world)[0],
+                                       top_k=opts.top_k,
                                        revise=method.variant.revise, generator=gen, metric=metric,
                                        change_confidence=opts.change_confidence)[0].cpu().numpy()
             last = windows["tokens"][a, P - 1]

@@ -16,6 +16,7 @@ from pcfbench.method import resolve_method
 from pcfbench.methods.copilot4d import config as tok_config
 from pcfbench.methods.copilot4d import world_config
 from pcfbench.methods.copilot4d.forecaster import Copilot4D, Copilot4DMaskGIT, build_windows
+from pcfbench.methods.copilot4d.world import WorldEnsemble
 from pcfbench.training.tokenized import tensor_digest
 
 # the same architectures, small enough for seconds: 8 x 8 tokens of 64 codes, 2 past + 1 future
@@ -445,8 +446,9 @@ def test_init_steps_goes_on_from_the_shorter_trainings_weights(micro, kitti, mon
         _train(spec, kitti)
 
 
-def _timed_sample(spacing_s: float, points: int = 400, seed: int = 0):
-    """A sample of 2 past sweeps and 1 future one, ``spacing_s`` apart, 0.5 m forward a frame."""
+def _timed_sample(spacing_s: float, points: int = 400, seed: int = 0, rays: int = 1):
+    """A sample of 2 past sweeps and 1 future one, ``spacing_s`` apart, 0.5 m forward a frame,
+    queried along ``rays`` level rays around the sensor (the first straight ahead)."""
     from pcfbench.data import RayQuery, Sample
 
     rng = np.random.default_rng(seed)
@@ -454,7 +456,8 @@ def _timed_sample(spacing_s: float, points: int = 400, seed: int = 0):
     poses[:, 0, 3] = [-0.5, 0.0, 0.5]
     past = tuple((rng.uniform(-20, 20, (points, 3)) * [1, 1, 0.1]).astype(np.float32) for _ in range(2))
     ts = (np.arange(3) * spacing_s * 1e9).astype(np.int64)
-    q = RayQuery(poses[2, :3, 3].copy(), np.array([[1.0, 0, 0]], np.float32))
+    yaw = np.arange(rays) * 2 * np.pi / rays
+    q = RayQuery(poses[2, :3, 3].copy(), np.stack([np.cos(yaw), np.sin(yaw), 0 * yaw], 1).astype(np.float32))
     return Sample(f"s/{spacing_s}", "toy", "s", 1, past, poses[:2], ts[:2], poses[2:], ts[2:], (q,))
 
 
@@ -496,6 +499,32 @@ def test_stride_models_put_one_network_per_stride_together(micro, kitti):
                                                      alone[own].forecast_tokens(_timed_sample(0.2))[0]))
     with pytest.raises(PcfbenchError, match=r"sample s/0.0: future timestamps do not increase"):
         both.forecast_tokens(_timed_sample(0.0))  # no spacing to choose by: one error naming the sample
+    # stride_cfg_weight / stride_soft_mix (inference only): the sampling of a stride's own network's samples
+    tuned = resolve_method(f"{base},stride_models=2,stride_steps=2,stride_cfg_weight=0.5,stride_soft_mix=0.7").create()
+    tuned.load(ck)
+    for spacing, spec, w in ((0.1, base, 2.0), (0.2, own, 0.5)):
+        assert tuned.sampling_for(tuned.network_for(_timed_sample(spacing))) == ((2.0, 0.0) if spec == base
+                                                                                 else (0.5, 0.7))
+        want = resolve_method(f"{spec},cfg_weight={w}").create()
+        want.load(parts[spec])
+        assert all(torch.equal(a, b) for a, b in zip(tuned.forecast_tokens(_timed_sample(spacing))[0],
+                                                     want.forecast_tokens(_timed_sample(spacing))[0])), spacing
+    mixed = resolve_method(f"{own},soft_mix=0.7").create()
+    mixed.load(parts[own])
+    depths = {name: m.forecast(_timed_sample(0.2, rays=360)).depths for name, m in (("tuned", tuned), ("mixed", mixed),
+                                                                          ("plain", alone[own]))}
+    assert all(np.array_equal(a, b) for a, b in zip(depths["tuned"], depths["mixed"]))
+    assert not all(np.array_equal(a, b) for a, b in zip(depths["tuned"], depths["plain"]))  # the mix tells
+    # stride_ensemble (inference only): a stride of its own forecast by its network and the shared one together
+    ens = resolve_method(f"{base},stride_models=2,stride_steps=2,stride_ensemble=true").create()
+    ens.load(ck)
+    assert all(torch.equal(a, b) for a, b in zip(ens.forecast_tokens(_timed_sample(0.1))[0],
+                                                 alone[base].forecast_tokens(_timed_sample(0.1))[0]))
+    together = ens.network_for(_timed_sample(0.2))
+    assert isinstance(together, WorldEnsemble) and together is ens.network_for_stride(2)
+    for member, spec in zip(together.members, (own, base)):
+        want = alone[spec].world.state_dict()
+        assert all(torch.equal(member.state_dict()[k], want[k]) for k in want), spec
     # by stride (the world report's windows): each stride's own network; a stride it has none for is refused
     for stride, spec in ((1, base), (2, own)):
         got, want = both.network_for_stride(stride).state_dict(), alone[spec].world.state_dict()
@@ -516,7 +545,11 @@ def test_stride_models_put_one_network_per_stride_together(micro, kitti):
                                             r"config=micro,steps=2,strides=2,tokenizer_steps=2 --dataset kitti=.* --fresh`"):
         _train(f"{base},stride_models=2,stride_steps=2", kitti, fresh=True)
     for bad, why in (("stride_models=3", "among strides=1/2"), ("stride_models=2/2", "distinct"),
-                     ("stride_steps=2", "name stride_models too"), ("stride_models=2,init_steps=1", "init_steps")):
+                     ("stride_steps=2", "name stride_models too"), ("stride_ensemble=true", "name stride_models too"),
+                     ("stride_models=1/2,stride_ensemble=true", "leaves none of strides=1/2"),
+                     ("stride_soft_mix=0.5", "stride_soft_mix=0.5 applies to the stride_models"),
+                     ("stride_models=2,stride_soft_mix=0.5,frame=own", "stride_soft_mix=0.5 mixes in"),
+                     ("stride_models=2,init_steps=1", "init_steps")):
         with pytest.raises(PcfbenchError, match=why):
             resolve_method(f"{base},{bad}")
 
