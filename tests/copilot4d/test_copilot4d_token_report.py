@@ -41,13 +41,15 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
     seen = []
 
     networks = {2: torch.nn.Linear(1, 1), 6: torch.nn.Linear(1, 1)}  # a network per stride (stride_models)
+    guidance = {2: 0.0, 6: 0.5}
 
     def fake_forecast(model, past, poses, n_future, **kw):
         a = next(i for i in range(A) if np.array_equal(tokens[i, :P], past[0].numpy()))
         assert model is networks[int(windows["stride"][a])]  # the network of the window's stride forecasts it
         seen.append((a, poses.shape[1], n_future))
-        # the method's sampling options
-        assert (kw["steps"], kw["guidance"], kw["top_k"], kw["change_confidence"]) == (2, 0.0, 1, 0.3)
+        # the method's sampling options, the guidance weight that of the stride's network (stride_cfg_weight)
+        stride = int(windows["stride"][a])
+        assert (kw["steps"], kw["guidance"], kw["top_k"], kw["change_confidence"]) == (2, guidance[stride], 1, 0.3)
         out = tokens[a, P:] if answer == "truth" else np.repeat(tokens[a, P - 1][None], F, 0)
         return torch.from_numpy(out.astype(np.int64))[None]
 
@@ -60,7 +62,8 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
         tok_cfg=types.SimpleNamespace(x_range=(-45.0, 45.0), y_range=(-45.0, 45.0)),
         options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1, change_confidence=0.3),
         variant=types.SimpleNamespace(revise=True),
-        code_metric=lambda: None)
+        code_metric=lambda: None,
+        sampling_for=lambda net: (guidance[next(s for s, n in networks.items() if n is net)], 0.0))
     res = world_token_report(method, windows, log=lambda *_: None)
     assert sorted(seen) == [(a, P + F, F) for a in range(A)]
     assert [(r["stride"], r["step"], r["windows"]) for r in res["rows"]] == [(s, f, 2) for s in (2, 6) for f in (1, 2, 3)]
