@@ -37,20 +37,60 @@ def git_commit() -> str | None:
 
 
 def environment() -> dict[str, Any]:
+    """The versions and the host a result was computed with: Python, the platform, the CPU
+    (its model: the generated datasets' bytes and the learned methods' arithmetic depend on it),
+    numpy, pandas, pyarrow, and each of torch (with the instruction set its kernels use), numba,
+    Open3D and scipy that the process has imported."""
     import pandas
     import pyarrow
 
     env = {
         "python": sys.version.split()[0],
         "platform": platform.platform(),
+        "cpu": cpu_model(),
+        "cpu_simd": cpu_simd(),
         "numpy": np.__version__,
         "pandas": pandas.__version__,
         "pyarrow": pyarrow.__version__,
         "cpus": os.cpu_count(),
     }
+    for name in ("torch", "numba", "open3d", "scipy"):
+        if name in sys.modules:
+            env[name] = getattr(sys.modules[name], "__version__", None)
     if "torch" in sys.modules:
-        env["torch"] = sys.modules["torch"].__version__
+        env["torch_cpu_capability"] = sys.modules["torch"].backends.cpu.get_cpu_capability()
     return env
+
+
+#: the vector instruction sets that choose the ray casts' and the kernels' code paths
+SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "amx_tile")
+
+
+def _cpuinfo(key: str) -> str | None:
+    """The first ``key`` line's value of ``/proc/cpuinfo``, None where there is none."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.split(":", 1)[0].strip() == key:
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo`` where there is one, else what ``platform``
+    says; "" when neither knows)."""
+    return _cpuinfo("model name") or platform.processor() or ""
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_simd() -> list[str] | None:
+    """Which of :data:`SIMD_FLAGS` the CPU has (``/proc/cpuinfo``'s flags), None where it
+    cannot be read."""
+    flags = _cpuinfo("flags")
+    return None if flags is None else [f for f in SIMD_FLAGS if f in flags.split()]
 
 
 def code_unit(module_name: str) -> str:

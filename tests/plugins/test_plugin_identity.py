@@ -1,10 +1,12 @@
 """Issue 15: built-ins are known by their distribution, not their name; a failed plugin keeps nothing."""
 
 import importlib.metadata
+import os
 import sys
 import types
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pcfbench.errors import PcfbenchError, PluginError, UnknownNameError
@@ -201,6 +203,18 @@ def test_cell_json_records_the_methods_distribution_and_code(tiny_kitti, tmp_pat
     sha, files = source_files_sha256(Path(pcfbench.methods.__file__).parent)
     assert meta["method_code"] == sha and meta["method_code_unit"] == "pcfbench.methods"
     assert meta["method_code_files"] == files and "copy_last.py" in files and "raycast/__init__.py" in files
+    # the host and the libraries the numbers depend on (the generated data's bytes on the CPU)
+    env = meta["environment"]
+    assert env["cpu"] and env["numpy"] == np.__version__ and env["cpus"] == os.cpu_count()
+    if os.path.exists("/proc/cpuinfo"):
+        flags = next(ln for ln in open("/proc/cpuinfo") if ln.startswith("flags")).split(":", 1)[1].split()
+        assert env["cpu_simd"] == [f for f in ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16",
+                                               "amx_tile") if f in flags]
+    for name in ("numba", "open3d"):  # imported by the metrics and the ray casters
+        if name in sys.modules:
+            assert env[name] == sys.modules[name].__version__, name
+    if "torch" in sys.modules:
+        assert env["torch_cpu_capability"] == sys.modules["torch"].backends.cpu.get_cpu_capability()
 
 
 def test_the_code_hash_is_of_relative_paths_and_contents_only(tmp_path):
