@@ -48,7 +48,7 @@ def environment() -> dict[str, Any]:
         "python": sys.version.split()[0],
         "platform": platform.platform(),
         "cpu": cpu_model(),
-        "cpu_simd": cpu_simd(),
+        "cpu_simd": None if cpu_simd() is None else list(cpu_simd()),
         "numpy": np.__version__,
         "pandas": pandas.__version__,
         "pyarrow": pyarrow.__version__,
@@ -86,11 +86,11 @@ def cpu_model() -> str:
 
 
 @functools.lru_cache(maxsize=1)
-def cpu_simd() -> list[str] | None:
+def cpu_simd() -> tuple[str, ...] | None:
     """Which of :data:`SIMD_FLAGS` the CPU has (``/proc/cpuinfo``'s flags), None where it
     cannot be read."""
     flags = _cpuinfo("flags")
-    return None if flags is None else [f for f in SIMD_FLAGS if f in flags.split()]
+    return None if flags is None else tuple(f for f in SIMD_FLAGS if f in flags.split())
 
 
 def code_unit(module_name: str) -> str:
