@@ -1,3 +1,3 @@
-from pcfbench.cli import main
+from pcfbench.entry import main
 
 main()

@@ -31,7 +31,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 
 class Group(click.Group):
-    """Turns PcfbenchError into one clear line and a non-zero exit."""
+    """Turns PcfbenchError into one clear line and a non-zero exit, and Ctrl-C into one line and
+    exit status 130 (128 + SIGINT)."""
 
     def invoke(self, ctx: click.Context):
         try:
@@ -39,6 +40,12 @@ class Group(click.Group):
         except PcfbenchError as exc:
             click.echo(f"pcfbench: error: {exc}", err=True)
             sys.exit(2)
+        except KeyboardInterrupt:  # one a command does not answer itself (click would say "Aborted!", exit 1)
+            from pcfbench.interrupts import handled
+
+            handled()
+            click.echo("\npcfbench: interrupted", err=True)
+            sys.exit(130)
 
 
 @click.group(cls=Group)
@@ -412,9 +419,12 @@ def interrupted_note(store_path, finished, total: int):
     rows of every finished sample before the interrupt reached here."""
     import shlex
 
+    from pcfbench.interrupts import handled
+
     try:
         yield
     except KeyboardInterrupt:
+        handled()
         again = "pcfbench " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         done = f"{finished()} of {total} cell(s) complete, and " if finished is not None else ""
         click.echo(f"\npcfbench: interrupted: the finished work is kept in the store {store_path} "
@@ -459,6 +469,7 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
     """Train (or resume) a trained method; its checkpoint goes to the cache, keyed by method,
     version, options and training data."""
     from pcfbench.method import resolve_method
+    from pcfbench.interrupts import handled
     from pcfbench.training import TrainingInterrupted, open_training_data, retrain_command
     from pcfbench.training import ship as ship_checkpoint, train as train_method
 
@@ -469,10 +480,12 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
         ck = train_method(spec, dataset, split=split, max_minutes=max_minutes, fresh=fresh, progress=not quiet,
                           plugins=plugins, threads=threads, log=click.echo)
     except TrainingInterrupted as stop:
+        handled()
         click.echo(_training_interrupted(stop, _resume_command(method_spec, dataset, split, max_minutes, threads,
                                                                quiet, ship)), err=True)
         sys.exit(130)
     except KeyboardInterrupt:  # while opening (or making) the training data: no step was trained
+        handled()
         click.echo("\npcfbench: interrupted before training began: nothing was trained or saved", err=True)
         sys.exit(130)
     state = "complete" if ck.manifest.get("complete") else "not finished: rerun the same command to continue"
@@ -888,4 +901,7 @@ def build_cli() -> click.Group:
 
 
 def main() -> None:
+    from pcfbench.interrupts import redeliver_swallowed_interrupts
+
+    redeliver_swallowed_interrupts()  # a Ctrl-C that lands in a finalizer still stops the command
     build_cli()(prog_name="pcfbench")
