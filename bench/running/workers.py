@@ -88,7 +88,31 @@ def _context() -> multiprocessing.context.BaseContext:
     # runner makes each worker a cheap fork of a process that has imported it once.
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(["pcfbench.running.runner"])
+    _start_helpers_ignoring_sigint()
     return ctx
+
+
+def _start_helpers_ignoring_sigint() -> None:
+    """Start multiprocessing's resource tracker and the forkserver (each once per driver) with
+    SIGINT ignored, a disposition a started program keeps, and the forkserver hands on to every
+    worker it forks. Ctrl-C at a terminal goes to the whole foreground process group, and it is
+    the driver's to answer (it stops the workers through their own exit and says what it kept,
+    ``pcfbench.cli.interrupted_note``): a helper still starting Python or importing the runner,
+    or a worker setting up, would otherwise die of it with a KeyboardInterrupt traceback (or a
+    fatal error) over the driver's message, and a dead forkserver fails the run.
+    The driver ignores SIGINT only while it forks and execs them (milliseconds; a Ctrl-C in that
+    window is lost, a second one is answered). Off the main thread (where a handler cannot be set)
+    they start as multiprocessing starts them."""
+    from multiprocessing import forkserver, resource_tracker
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        resource_tracker.ensure_running()
+        forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def _die_with_driver(conn: Connection) -> None:
@@ -161,6 +185,9 @@ def _worker_main(conn: Connection, init: Callable[..., None], init_args: tuple, 
     registered with the resource tracker the driver shares, and one a killed worker leaves
     behind is what the tracker warns about ("leaked semaphore") at the driver's exit."""
     signal.signal(signal.SIGTERM, _exit_on_term)
+    # Ctrl-C is the driver's to answer (it stops this worker with SIGTERM): ignored from the fork on
+    # (_start_helpers_ignoring_sigint); again here for a forkserver that another module started.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # A process this worker starts is spawned, never forked (a fork of a process running numba,
     # OpenMP or torch threads can deadlock). numba reads it: it makes its init lock a named
     # semaphore only under a fork start method, so a worker killed after all (a hang past the
