@@ -13,11 +13,14 @@ unraisable exception goes to the hook that was there before.
 The hook raises nothing itself (an exception in the hook is printed as one, and lost): the
 interrupt comes from the alarm's handler, which waits while the hook runs. Whoever catches an
 interrupt to say what it stopped calls :func:`handled` first, so that a redelivery still pending
-(the same Ctrl-C, lost once and delivered once) does not interrupt the saying.
+(the same Ctrl-C, lost once and delivered once) does not interrupt the saying. One lost while
+the process exits (an exit callback, the interpreter's teardown) is dropped: there is nothing
+left to interrupt.
 """
 
 from __future__ import annotations
 
+import atexit
 import signal
 import sys
 from typing import Any
@@ -43,6 +46,8 @@ def _redeliver(previous):
         if not (isinstance(unraisable.exc_value, KeyboardInterrupt) and callable(signal.getsignal(signal.SIGINT))):
             previous(unraisable)
             return
+        if sys.is_finalizing():  # the process is exiting: nothing left to interrupt, and no alarm may outlive
+            return  # the interpreter's signal handlers (SIGALRM would end the process)
         _in_hook = True
         try:
             if signal.getsignal(signal.SIGALRM) is not _alarm:
@@ -66,3 +71,6 @@ def redeliver_swallowed_interrupts() -> None:
     """Install the hook in this (the main) thread's process (once: a second call keeps the first)."""
     if not getattr(sys.unraisablehook, "redelivers_interrupts", False):
         sys.unraisablehook = _redeliver(sys.unraisablehook)
+        # registered first, so called last at exit: an interrupt one of the other exit callbacks
+        # swallowed is not delivered after the interpreter has put SIGALRM's default back
+        atexit.register(handled)

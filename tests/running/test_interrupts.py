@@ -159,3 +159,24 @@ def test_ctrl_c_reaching_the_forkserver_and_workers_is_the_drivers_to_answer(tmp
                          cwd=tmp_path)
     assert out.stdout.splitlines() == ["[10, 20, 30]", "[True, True]", "True"], out
     assert out.stderr == ""
+
+
+def test_a_ctrl_c_lost_while_the_process_exits_is_dropped():
+    """Lost in an exit callback: nothing is left to interrupt, so it is dropped, and no alarm
+    outlives the interpreter's handlers (SIGALRM's default action would end the process, status -14,
+    while the interpreter tears the modules down)."""
+    code = textwrap.dedent("""
+        import atexit, time
+        from pcfbench.interrupts import redeliver_swallowed_interrupts
+        redeliver_swallowed_interrupts()
+        def exit_callback():
+            raise KeyboardInterrupt  # Ctrl-C while an exit callback runs
+        atexit.register(exit_callback)
+        class TornDown:
+            def __del__(self):
+                time.sleep(0.05)  # the alarm the exit callback's interrupt armed would go off in here
+        kept = TornDown()
+        print("done")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert (out.returncode, out.stdout, out.stderr) == (0, "done\n", "")
