@@ -525,6 +525,40 @@ def forecast_sequence(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.
 
 
 @torch.no_grad()
+def forecast_one_pass(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
+                      n_frames: int, n_past: int, guidance: float = DEFAULT_GUIDANCE,
+                      context=contextlib.nullcontext, final_logits: list | None = None) -> list[torch.Tensor]:
+    """Every future frame at once (not the paper's sampler, which decodes them one at a time):
+    ``past`` (B, P, H, W) followed by ``n_future`` frames of mask tokens, with poses
+    ``T_ref_sensor`` (B, P + n_future, 4, 4), in one causal network pass at the temporal positions
+    of training (t=0 at ``n_past`` - 1), each future token its guided arg max. This is the input
+    Algorithm 1's future-prediction objective trains on, at a full mask. Guidance (equation 2)
+    takes the unconditional logits from a second pass in which every frame sees only itself, as
+    the third objective trains the model. ``final_logits``, if a list, receives the guided logits
+    (B, H, W, |V|) float32 of each future frame. Returns ``n_future`` (B, H, W) code maps."""
+    B, P = past.shape[:2]
+    T = P + n_future
+    first = max(0, n_past - P)
+    if first + T > n_frames:
+        raise ValueError(f"{P} past and {n_future} future frames from position {first} outgrow the {n_frames} frames "
+                         "the network was trained on: one pass cannot slide")
+    if T_ref_sensor.shape[1] != T:
+        raise ValueError(f"T_ref_sensor holds {T_ref_sensor.shape[1]} poses; expected {P} past + {n_future} future")
+    dev = past.device
+    masked = torch.full((B, n_future, *past.shape[2:]), model.mask_token, dtype=past.dtype, device=dev)
+    x = torch.cat([past, masked], 1)
+    positions = torch.arange(first, first + T, device=dev)
+    with context():
+        logits = model(x, T_ref_sensor, causal_mask(T, dev), positions)[:, P:].float()
+        if guidance:
+            uncond = model(x, T_ref_sensor, identity_mask(T, dev), positions)[:, P:].float()
+            logits = (logits - uncond).mul_(guidance).add_(logits)
+    if final_logits is not None:
+        final_logits.extend(logits[:, f] for f in range(n_future))
+    return [logits[:, f].argmax(-1) for f in range(n_future)]
+
+
+@torch.no_grad()
 def forecast_tokens(model: nn.Module, past: torch.Tensor, T_ref_sensor: torch.Tensor, n_future: int, *,
                     steps: int = DEFAULT_STEPS, guidance: float = DEFAULT_GUIDANCE, top_k: int = DEFAULT_TOP_K,
                     revise: bool = True, generator: torch.Generator | None = None, cache: bool = True,

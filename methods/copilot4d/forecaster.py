@@ -114,6 +114,11 @@ class WorldOptions(RenderingOptions):
     stride_soft_mix: float | None = option(
         None, help="with stride_models: soft_mix of the samples a stride's own network forecasts (inference only; "
                    "default: soft_mix)", min=0, max=1, quiet_default=True)
+    one_pass: bool = option(
+        False, help="decode every future frame at once, each token the guided arg max of one network pass over the "
+                    "past and all-mask future frames (the future-prediction objective's input at a full mask; not "
+                    "the paper's sampler, which decodes one frame at a time, each joining the next one's context); "
+                    "needs sampling_steps=1 and top_k=1 (inference only)", quiet_default=True)
     stride_ensemble: bool = option(
         False, help="with stride_models: forecast a stride that has a network of its own with that network and the "
                     "network of every stride (trained on its windows too) together, by the mean of their "
@@ -135,6 +140,10 @@ class WorldOptions(RenderingOptions):
             if mix > 0 and self.change_confidence > 0:
                 raise PcfbenchError(f"{name}={mix:g} renders the model's distribution and "
                                     f"change_confidence={self.change_confidence:g} gates its codes: one at a time")
+        if self.one_pass and (self.sampling_steps != 1 or self.top_k != 1 or self.mbr or self.change_confidence):
+            raise PcfbenchError("one_pass=true takes each future token's guided arg max in one pass: it needs "
+                                "sampling_steps=1 and top_k=1, and not mbr or change_confidence (they choose among "
+                                "Algorithm 2's samples)")
         if self.stride_models:
             shown = "/".join(map(str, self.stride_models))
             if len(set(self.stride_models)) != len(self.stride_models) or not set(self.stride_models) <= set(self.strides):
@@ -365,7 +374,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     training_time = ("about 32 min for the default (tiny-window) configuration on both threads of a 2-core CPU "
                      "(about 18 min tokenizing 432 windows, once for both variants; 600 steps at 1.4 s), plus its "
                      "tokenizer's training")
-    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "soft_mix",
+    inference_options = ("cfg_weight", "sampling_steps", "top_k", "mbr", "change_confidence", "soft_mix", "one_pass",
                          "stride_cfg_weight", "stride_soft_mix", "stride_ensemble", "seed",
                          *(f.name for f in fields(RenderingOptions)))
     # the default run samples one arg-max step, the paper's K = 10 top-3 being the options'
@@ -742,7 +751,7 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         past map (H, W)."""
         import torch
 
-        from pcfbench.methods.copilot4d.diffusion import forecast_sequence
+        from pcfbench.methods.copilot4d.diffusion import forecast_one_pass, forecast_sequence
         from pcfbench.training import autocast
 
         cfg = self.world_cfg
@@ -753,15 +762,23 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         seq, rel = seq[None].to(dev), rel[None].to(dev)
         gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, self.options.seed))
         P = seq.shape[1]
-        # the context: every frame so far, at the positions of training (t=0 at n_past-1), sliding
-        # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
-        out = [x[0] for x in forecast_sequence(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
-                                               n_past=cfg.n_past, steps=self.options.sampling_steps,
-                                               guidance=self.sampling_for(world)[0], top_k=self.options.top_k,
-                                               revise=self.variant.revise, metric=self.code_metric(),
-                                               change_confidence=self.options.change_confidence,
-                                               final_logits=final_logits,
-                                               generator=gen, context=lambda: autocast(dev))]
+        if self.options.one_pass:  # every future frame in one pass (the future-prediction objective's input)
+            if sample.num_future > cfg.n_future:
+                raise PcfbenchError(f"sample {sample.sample_id}: one_pass=true forecasts its {sample.num_future} future "
+                                    f"frames in one pass; the network was trained on {cfg.n_future}")
+            out = [x[0] for x in forecast_one_pass(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
+                                                   n_past=cfg.n_past, guidance=self.sampling_for(world)[0],
+                                                   context=lambda: autocast(dev), final_logits=final_logits)]
+        else:
+            # the context: every frame so far, at the positions of training (t=0 at n_past-1), sliding
+            # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
+            out = [x[0] for x in forecast_sequence(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
+                                                   n_past=cfg.n_past, steps=self.options.sampling_steps,
+                                                   guidance=self.sampling_for(world)[0], top_k=self.options.top_k,
+                                                   revise=self.variant.revise, metric=self.code_metric(),
+                                                   change_confidence=self.options.change_confidence,
+                                                   final_logits=final_logits,
+                                                   generator=gen, context=lambda: autocast(dev))]
         if soft_inputs is not None:
             soft_inputs["t0"] = seq[0, -1]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref

@@ -525,6 +525,18 @@ def test_stride_models_put_one_network_per_stride_together(micro, kitti):
     for member, spec in zip(together.members, (own, base)):
         want = alone[spec].world.state_dict()
         assert all(torch.equal(member.state_dict()[k], want[k]) for k in want), spec
+    # one_pass (inference only): the forecast tokens are forecast_one_pass's, by the network the spacing picks
+    from pcfbench.methods.copilot4d.diffusion import forecast_one_pass
+
+    one = resolve_method(base.replace("sampling_steps=2", "sampling_steps=1")
+                         + ",stride_models=2,stride_steps=2,one_pass=true,top_k=1").create()
+    one.load(ck)
+    for spacing, spec in ((0.1, base), (0.2, own)):
+        sample = _timed_sample(spacing)
+        seq, rel, _ = one.world_inputs(sample)
+        want = forecast_one_pass(alone[spec].world, seq[None], rel[None], 1, n_frames=MICRO_WORLD.n_frames,
+                                 n_past=MICRO_WORLD.n_past, guidance=2.0)
+        assert all(torch.equal(a, b[0]) for a, b in zip(one.forecast_tokens(sample)[0], want)), spacing
     # by stride (the world report's windows): each stride's own network; a stride it has none for is refused
     for stride, spec in ((1, base), (2, own)):
         got, want = both.network_for_stride(stride).state_dict(), alone[spec].world.state_dict()

@@ -768,6 +768,51 @@ def test_forecast_tokens_decodes_every_future_frame(micro_model):
     assert int(a.min()) >= 0 and int(a.max()) < 16
 
 
+@pytest.mark.parametrize("guidance", [0.0, 2.0])
+def test_one_pass_decodes_each_future_frame_from_the_past_and_masks_alone(guidance):
+    """``forecast_one_pass``: frame f's logits are the network's causal pass over the past and f + 1
+    all-mask frames (a causal frame does not see later ones: the slow reference passes only those),
+    guided by frame f alone (its own pass of one frame at its position: the unconditional model);
+    the first future frame is Algorithm 2's at one step exactly so; the codes are the arg max."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(MICRO, n_future=3)
+    model = WorldModel(cfg).eval()
+    with torch.no_grad():
+        model.time_embed.normal_(0.0, 1.0)
+    gen = torch.Generator().manual_seed(8)
+    past = torch.randint(0, 16, (2, 2, 8, 8), generator=gen)
+    poses = _random_poses(2, 5, gen).float()
+    got: list = []
+    codes = D.forecast_one_pass(model, past, poses, 3, n_frames=cfg.n_frames, n_past=2, guidance=guidance,
+                                final_logits=got)
+    assert len(codes) == len(got) == 3
+    x = torch.cat([past, torch.full((2, 3, 8, 8), model.mask_token)], 1)
+    with torch.no_grad():
+        for f in range(3):
+            T = 3 + f
+            cond = model(x[:, :T], poses[:, :T], causal_mask(T), torch.arange(T))[:, -1].float()
+            alone = model(x[:, T - 1:T], poses[:, T - 1:T], torch.ones(1, 1, dtype=torch.bool),
+                          torch.tensor([T - 1]))[:, 0].float()
+            want = cond + guidance * (cond - alone)
+            assert torch.allclose(got[f], want, atol=1e-4), f
+            assert torch.equal(codes[f], got[f].argmax(-1))
+        first: list = []
+        D.forecast_sequence(model, past, poses[:, :3], 1, n_frames=cfg.n_frames, n_past=2, steps=1, guidance=guidance,
+                            top_k=1, generator=torch.Generator().manual_seed(1), final_logits=first)
+    assert torch.allclose(first[0], got[0], atol=1e-4)
+    with pytest.raises(ValueError, match="outgrow the 5 frames"):
+        D.forecast_one_pass(model, past, _random_poses(2, 6, gen).float(), 4, n_frames=cfg.n_frames, n_past=2)
+
+
+def test_one_pass_is_refused_with_a_sampler_that_chooses_among_samples():
+    from pcfbench.method import resolve_method
+
+    for bad in ("one_pass=true", "one_pass=true,sampling_steps=1", "one_pass=true,sampling_steps=1,top_k=1,mbr=true"):
+        with pytest.raises(PcfbenchError, match="one_pass=true takes each future token's guided arg max"):
+            resolve_method(f"copilot4d:{bad}").create()
+    resolve_method("copilot4d:one_pass=true,sampling_steps=1,top_k=1").create()
+
+
 # --------------------------------------------------------------------------- overfit
 def test_overfit_a_tiny_sequence():
     """Algorithm 1 on one random 3-frame sequence: forecasting its last frame from the clean
