@@ -41,11 +41,9 @@ class Group(click.Group):
             click.echo(f"pcfbench: error: {exc}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:  # one a command does not answer itself (click would say "Aborted!", exit 1)
-            from pcfbench.interrupts import handled
+            from pcfbench.interrupts import exit_interrupted
 
-            handled()
-            click.echo("\npcfbench: interrupted", err=True)
-            sys.exit(130)
+            exit_interrupted()
 
 
 @click.group(cls=Group)
@@ -419,18 +417,16 @@ def interrupted_note(store_path, finished, total: int):
     rows of every finished sample before the interrupt reached here."""
     import shlex
 
-    from pcfbench.interrupts import handled
+    from pcfbench.interrupts import exit_interrupted
 
     try:
         yield
     except KeyboardInterrupt:
-        handled()
         again = "pcfbench " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         done = f"{finished()} of {total} cell(s) complete, and " if finished is not None else ""
-        click.echo(f"\npcfbench: interrupted: the finished work is kept in the store {store_path} "
-                   f"({done}every sample finished in the interrupted cell); "
-                   f"run the same command again to resume:\n  {again}", err=True)
-        sys.exit(130)
+        exit_interrupted(f"pcfbench: interrupted: the finished work is kept in the store {store_path} "
+                         f"({done}every sample finished in the interrupted cell); "
+                         f"run the same command again to resume:\n  {again}")
 
 
 def _checkpoints(plugins, method_specs, checkpoint, train_on, train_split, progress) -> dict[tuple[str, str], dict]:
@@ -469,7 +465,7 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
     """Train (or resume) a trained method; its checkpoint goes to the cache, keyed by method,
     version, options and training data."""
     from pcfbench.method import resolve_method
-    from pcfbench.interrupts import handled
+    from pcfbench.interrupts import exit_interrupted
     from pcfbench.training import TrainingInterrupted, open_training_data, retrain_command
     from pcfbench.training import ship as ship_checkpoint, train as train_method
 
@@ -480,14 +476,10 @@ def train(method_spec, dataset, split, max_minutes, fresh, threads, quiet, ship)
         ck = train_method(spec, dataset, split=split, max_minutes=max_minutes, fresh=fresh, progress=not quiet,
                           plugins=plugins, threads=threads, log=click.echo)
     except TrainingInterrupted as stop:
-        handled()
-        click.echo(_training_interrupted(stop, _resume_command(method_spec, dataset, split, max_minutes, threads,
-                                                               quiet, ship)), err=True)
-        sys.exit(130)
+        exit_interrupted(_training_interrupted(stop, _resume_command(method_spec, dataset, split, max_minutes,
+                                                                     threads, quiet, ship)))
     except KeyboardInterrupt:  # while opening (or making) the training data: no step was trained
-        handled()
-        click.echo("\npcfbench: interrupted before training began: nothing was trained or saved", err=True)
-        sys.exit(130)
+        exit_interrupted("pcfbench: interrupted before training began: nothing was trained or saved")
     state = "complete" if ck.manifest.get("complete") else "not finished: rerun the same command to continue"
     click.echo(f"{spec.name}: {ck.steps} steps on {ck.train_on_label} in {ck.manifest['wall_s']:.0f} s ({state})")
     click.echo(f"checkpoint: {ck.manifest_path} (weights sha256 {ck.sha256[:16]})")
@@ -519,11 +511,11 @@ def _training_interrupted(stop, resume: str) -> str:
     command that resumes from it."""
     at = "" if stop.step is None else f" at step {stop.step}" + (f" of {stop.total}" if stop.total else "")
     if stop.saved_step is None:
-        return (f"\npcfbench: training interrupted{at}, before its first checkpoint: nothing is kept in {stop.dir}; "
+        return (f"pcfbench: training interrupted{at}, before its first checkpoint: nothing is kept in {stop.dir}; "
                 f"start again with:\n  {resume}")
     redo = (f" (steps {stop.saved_step + 1}..{stop.step} are trained again)"
             if stop.step is not None and stop.step > stop.saved_step else "")
-    return (f"\npcfbench: training interrupted{at}: the checkpoint of step {stop.saved_step} is kept, "
+    return (f"pcfbench: training interrupted{at}: the checkpoint of step {stop.saved_step} is kept, "
             f"{stop.manifest_path}; resume it{redo} with:\n  {resume}")
 
 

@@ -4,11 +4,9 @@ line and exit status 130, not a traceback through the imports."""
 
 from __future__ import annotations
 
-import sys
-
 
 def main() -> None:
-    from pcfbench.interrupts import handled, redeliver_swallowed_interrupts
+    from pcfbench.interrupts import exit_interrupted, redeliver_swallowed_interrupts
 
     redeliver_swallowed_interrupts()  # a Ctrl-C that lands in a finalizer still stops the command
     try:
@@ -16,6 +14,4 @@ def main() -> None:
 
         cli_main()
     except KeyboardInterrupt:
-        handled()
-        print("\npcfbench: interrupted", file=sys.stderr)
-        sys.exit(130)
+        exit_interrupted()

@@ -23,7 +23,7 @@ from __future__ import annotations
 import atexit
 import signal
 import sys
-from typing import Any
+from typing import Any, NoReturn
 
 #: seconds from a swallowed interrupt to its redelivery
 REDELIVER_S = 0.01
@@ -65,6 +65,14 @@ def handled() -> None:
     if signal.getsignal(signal.SIGALRM) is _alarm:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, _alarm_before)
+
+
+def exit_interrupted(message: str = "pcfbench: interrupted") -> NoReturn:
+    """Where a command answers Ctrl-C: no redelivery pending (:func:`handled`), ``message`` on
+    stderr after a line break (the progress bar's line), exit status 130 (128 + SIGINT)."""
+    handled()
+    print(f"\n{message}", file=sys.stderr, flush=True)
+    sys.exit(130)
 
 
 def redeliver_swallowed_interrupts() -> None:
