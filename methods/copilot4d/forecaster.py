@@ -381,9 +381,11 @@ class Copilot4D(OnTokenizer, TrainedMethod):
     # defaults: one step forecast best on tiny-window and in half the time; and renders 0.3 of the
     # expected code embedding beside 0.7 of the t=0 code's, chosen on validation; copilot4d
     # forecasts kitti-3s with a network of its own, trained 500 steps on stride-6 windows (the
-    # paper's one model per horizon), chosen on validation (docs/copilot4d.md)
+    # paper's one model per horizon), chosen on validation; and decodes every future frame in one
+    # causal pass (one_pass), as the future-prediction objective trains it: sampled frame by frame
+    # it repeats its first future frame (docs/copilot4d.md, "One pass")
     default_run_options = ({"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3", "stride_models": "6",
-                            "stride_steps": "500"},)
+                            "stride_steps": "500", "one_pass": "true"},)
 
     def __init__(self, options: WorldOptions | None = None) -> None:
         super().__init__(options)
@@ -815,7 +817,8 @@ class Copilot4DMaskGIT(Copilot4D):
 
     name = "copilot4d-maskgit"
     variant_name = "maskgit"
-    default_run_options = ({"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3"},)  # one network for both strides
+    # one network for both strides; one_pass chosen on validation as copilot4d's was
+    default_run_options = ({"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3", "one_pass": "true"},)
 
 
 def check_same_tokenizer(ck: Checkpoint, tok_ck: Checkpoint, retrain: str = "") -> None:

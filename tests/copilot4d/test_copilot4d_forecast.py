@@ -806,8 +806,8 @@ def test_the_world_model_ships_without_its_tokenizer_when_the_tokenizer_ships(mi
 def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(monkeypatch, capsys):
     """With their checkpoints ready (pretended here; the shipped ones in the package), a run of
     the default method set scores copilot4d and copilot4d-maskgit as they ship (their default
-    training: tiny-window) sampled in one arg-max step and rendered with soft_mix=0.3 (copilot4d
-    with a network of its own for kitti-3s's stride), and token-copy twice: its default (the
+    training: tiny-window) decoded in one causal pass with one arg max per token and rendered with
+    soft_mix=0.3 (copilot4d with a network of its own for kitti-3s's stride), and token-copy twice: its default (the
     shipped tiny tokenizer) and the world models' own tokenizer, tiny-window, each a row of its
     own. A copy not ready is left out by its whole spec, with the command that trains it."""
     import pcfbench.training.checkpoints as cks
@@ -816,11 +816,13 @@ def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(mon
 
     monkeypatch.setattr(cks, "ready_shipped", lambda *a, **k: object())
     picked = [(m.name, m.raw) for m in _selected_methods(get_plugins(), ())]
-    one_step = {"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3"}
+    one_step = {"sampling_steps": "1", "top_k": "1", "soft_mix": "0.3", "one_pass": "true"}
     per_horizon = {**one_step, "stride_models": "6", "stride_steps": "500"}  # copilot4d: kitti-3s's own network
     for spec in [("copilot4d", per_horizon), ("copilot4d-maskgit", one_step), ("copilot4d-token-copy", {}),
                  ("copilot4d-token-copy", {"config": "tiny-window"})]:
         assert picked.count(spec) == 1, spec
+    for m in _selected_methods(get_plugins(), ()):  # both world models decode in one pass (stop 84)
+        assert m.name not in ("copilot4d", "copilot4d-maskgit") or m.options.one_pass, m.text()
     world = resolve_method("copilot4d")
     assert world.create().tokenizer_spec().options == resolve_method("copilot4d-token-copy:config=tiny-window").options
 
@@ -836,7 +838,7 @@ def test_the_default_run_holds_both_world_models_beside_their_own_token_copy(mon
     assert ("copilot4d-token-copy:config=tiny-window is not trained on synthetic-town-realistic:train yet "
             "(`pcfbench train copilot4d-token-copy:config=tiny-window --dataset synthetic-town-realistic`)" in err)
     # the command that trains it names no inference option: one checkpoint whatever the sampling
-    assert ("copilot4d-maskgit:sampling_steps=1,soft_mix=0.3,top_k=1 is not trained on synthetic-town-realistic:train yet "
+    assert ("copilot4d-maskgit:one_pass=true,sampling_steps=1,soft_mix=0.3,top_k=1 is not trained on synthetic-town-realistic:train yet "
             "(`pcfbench train copilot4d-maskgit --dataset synthetic-town-realistic`)" in err)
 
 
