@@ -753,10 +753,6 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         past map (H, W)."""
         import torch
 
-        from pcfbench.methods.copilot4d.diffusion import forecast_one_pass, forecast_sequence
-        from pcfbench.training import autocast
-
-        cfg = self.world_cfg
         world = self.network_for(sample)
         dev = next(world.parameters()).device
         seq, rel, T_s0_ref = self.world_inputs(sample)
@@ -764,26 +760,36 @@ class Copilot4D(OnTokenizer, TrainedMethod):
         seq, rel = seq[None].to(dev), rel[None].to(dev)
         gen = torch.Generator(dev).manual_seed(sample_seed(sample.sample_id, self.options.seed))
         P = seq.shape[1]
-        if self.options.one_pass:  # every future frame in one pass (the future-prediction objective's input)
-            if sample.num_future > cfg.n_future:
-                raise PcfbenchError(f"sample {sample.sample_id}: one_pass=true forecasts its {sample.num_future} future "
-                                    f"frames in one pass; the network was trained on {cfg.n_future}")
-            out = [x[0] for x in forecast_one_pass(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
-                                                   n_past=cfg.n_past, guidance=self.sampling_for(world)[0],
-                                                   context=lambda: autocast(dev), final_logits=final_logits)]
-        else:
-            # the context: every frame so far, at the positions of training (t=0 at n_past-1), sliding
-            # once past and future outgrow the trained sequence; bf16 on CUDA (logits in float32)
-            out = [x[0] for x in forecast_sequence(world, seq, rel, sample.num_future, n_frames=cfg.n_frames,
-                                                   n_past=cfg.n_past, steps=self.options.sampling_steps,
-                                                   guidance=self.sampling_for(world)[0], top_k=self.options.top_k,
-                                                   revise=self.variant.revise, metric=self.code_metric(),
-                                                   change_confidence=self.options.change_confidence,
-                                                   final_logits=final_logits,
-                                                   generator=gen, context=lambda: autocast(dev))]
+        out = [x[0] for x in self.decode_future(world, seq, rel, sample.num_future, generator=gen,
+                                                final_logits=final_logits, name=f"sample {sample.sample_id}")]
         if soft_inputs is not None:
             soft_inputs["t0"] = seq[0, -1]
         return out, rel[0, P:].cpu().numpy(), T_s0_ref
+
+    def decode_future(self, world, past, T_ref_sensor, n_future: int, *, generator=None,
+                      final_logits: list | None = None, name: str = "the window") -> list:
+        """The ``n_future`` code maps (B, H, W) network ``world`` forecasts after ``past`` (B, P, H, W)
+        with poses ``T_ref_sensor`` (B, P + n_future, 4, 4), decoded as the options say: every
+        future frame in one pass (``one_pass``), else Algorithm 2 a frame at a time, the context
+        every frame so far at the positions of training (t=0 at n_past - 1), sliding once past and
+        future outgrow the trained sequence; bf16 on CUDA (logits in float32). ``name`` (a sample,
+        a window) goes into the one error of a forecast too long for one pass."""
+        from pcfbench.methods.copilot4d.diffusion import forecast_one_pass, forecast_sequence
+        from pcfbench.training import autocast
+
+        cfg, o = self.world_cfg, self.options
+        dev = past.device
+        guidance = self.sampling_for(world)[0]
+        if o.one_pass:  # the future-prediction objective's input: the past and every future frame masked
+            if n_future > cfg.n_future:
+                raise PcfbenchError(f"{name}: one_pass=true forecasts its {n_future} future frames in one pass; the "
+                                    f"network was trained on {cfg.n_future}")
+            return forecast_one_pass(world, past, T_ref_sensor, n_future, n_frames=cfg.n_frames, n_past=cfg.n_past,
+                                     guidance=guidance, context=lambda: autocast(dev), final_logits=final_logits)
+        return forecast_sequence(world, past, T_ref_sensor, n_future, n_frames=cfg.n_frames, n_past=cfg.n_past,
+                                 steps=o.sampling_steps, guidance=guidance, top_k=o.top_k, revise=self.variant.revise,
+                                 metric=self.code_metric(), change_confidence=o.change_confidence,
+                                 final_logits=final_logits, generator=generator, context=lambda: autocast(dev))
 
     def soft_maps(self, final_logits: list, t0, a: float | None = None) -> list:
         """``soft_mix`` a (default: the option's): per future frame the (H, W, D) code embeddings the tokenizer decodes,

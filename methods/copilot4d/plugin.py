@@ -196,7 +196,7 @@ def _world_report_command(cli):  # noqa: ANN001
                        "on this many corruptions of each held-out window and of as many of the windows the "
                        "model trained on (0: not).")
     @click.option("--forecast/--no-forecast", default=True, show_default=True,
-                  help="Sample and score the forecast tokens (Algorithm 2).")
+                  help="Forecast and score the future tokens, decoded as the method decodes (Algorithm 2, or one_pass).")
     @click.option("--reports", default=None)
     def world_report(method, train_on, train_split, checkpoint, dataset_spec, split, max_windows, objective_draws,
                      forecast, reports):

@@ -49,22 +49,19 @@ def shares(c: dict[str, int]) -> dict[str, float]:
 def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: int | None = None,
                        log=print) -> dict:
     """Forecast the future frames of each window (``build_windows`` output: its past frames and
-    all poses given) with ``method`` (a loaded ``Copilot4D``: its world model, sampler options,
-    variant), evenly spaced windows of each stride up to ``max_windows`` per stride. Returns
+    all poses given) with ``method`` (a loaded ``Copilot4D``: its world model, decoded as its
+    options say, :meth:`Copilot4D.decode_future`), evenly spaced windows of each stride up to ``max_windows`` per stride. Returns
     ``{"rows": [{stride, step, windows, **counts}], "rings": [{stride, ring, windows, **counts}]}``:
     per future step, and over every future step per ring of distance from the grid's centre (the t=0
     sensor in frame t0, each frame's own sensor in frame own; ``evaluate.token_rings`` of the method's
     tokenizer grid, ``ring`` its index into ``evaluate.ring_labels()``)."""
     import torch
 
-    from pcfbench.methods.copilot4d.diffusion import forecast_tokens
     from pcfbench.methods.copilot4d.evaluate import RING_EDGES, token_rings
-    from pcfbench.training import autocast
 
     cfg, opts = method.world_cfg, method.options
     P, F = cfg.n_past, cfg.n_future
     dev = next(method.world.parameters()).device
-    metric = method.code_metric()  # mbr: the codebook's distances, once
     rings = token_rings(method.tok_cfg, tuple(windows["tokens"].shape[-2:]))
     rows, ring_rows = [], []
     for s in sorted(set(int(v) for v in windows["stride"])):
@@ -78,12 +75,9 @@ def world_token_report(method, windows: dict[str, np.ndarray], *, max_windows: i
             toks = torch.from_numpy(windows["tokens"][a].astype(np.int64))
             poses = torch.from_numpy(windows["poses"][a].astype(np.float32))
             gen = torch.Generator(dev).manual_seed(int(opts.seed) * 1_000_003 + int(a))
-            with autocast(dev):
-                pred = forecast_tokens(world, toks[None, :P].to(dev), poses[None].to(dev), F,
-                                       steps=opts.sampling_steps, guidance=method.sampling_for(world)[0],
-                                       top_k=opts.top_k,
-                                       revise=method.variant.revise, generator=gen, metric=metric,
-                                       change_confidence=opts.change_confidence)[0].cpu().numpy()
+            # decoded as the method decodes a sample (one pass or Algorithm 2, by its options)
+            pred = torch.stack(method.decode_future(world, toks[None, :P].to(dev), poses[None].to(dev), F, generator=gen,
+                                                    name=f"window {a}"), 1)[0].cpu().numpy()
             last = windows["tokens"][a, P - 1]
             for f in range(F):
                 for into, where in [(acc[f], slice(None)), *((r, rings == i) for i, r in enumerate(by_ring))]:

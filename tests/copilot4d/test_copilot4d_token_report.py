@@ -26,12 +26,14 @@ def test_score_tokens_hand_case():
         score_tokens(pred, truth, last[:1])
 
 
-@pytest.mark.parametrize("answer", ["truth", "last"])
-def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path, answer):
+@pytest.mark.parametrize("answer,one_pass", [("truth", False), ("last", False), ("truth", True)])
+def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path, answer, one_pass):
     """An oracle forecaster (the window's real future) is right on every changed token; a copier
     (the last past frame) on none of them and on every unchanged one; the past it is handed is
-    the window's first n_past frames, and its poses all of the window's."""
+    the window's first n_past frames, and its poses all of the window's; the windows are decoded
+    as the method decodes a sample: Algorithm 2, or with ``one_pass`` every frame in one pass."""
     from pcfbench.methods.copilot4d import diffusion
+    from pcfbench.methods.copilot4d.forecaster import Copilot4D
 
     P, F, A = 2, 3, 4
     rng = np.random.default_rng(0)
@@ -43,29 +45,34 @@ def test_report_scores_each_window_against_its_own_future(monkeypatch, tmp_path,
     networks = {2: torch.nn.Linear(1, 1), 6: torch.nn.Linear(1, 1)}  # a network per stride (stride_models)
     guidance = {2: 0.0, 6: 0.5}
 
-    def fake_forecast(model, past, poses, n_future, **kw):
+    def fake_forecast(model, past, poses, n_future, *, sampler, **kw):
         a = next(i for i in range(A) if np.array_equal(tokens[i, :P], past[0].numpy()))
         assert model is networks[int(windows["stride"][a])]  # the network of the window's stride forecasts it
-        seen.append((a, poses.shape[1], n_future))
+        seen.append((a, poses.shape[1], n_future, sampler))
         # the method's sampling options, the guidance weight that of the stride's network (stride_cfg_weight)
         stride = int(windows["stride"][a])
-        assert (kw["steps"], kw["guidance"], kw["top_k"], kw["change_confidence"]) == (2, guidance[stride], 1, 0.3)
+        assert (kw["n_frames"], kw["n_past"], kw["guidance"]) == (P + F, P, guidance[stride])
+        if sampler == "algorithm 2":
+            assert (kw["steps"], kw["top_k"], kw["change_confidence"]) == (2, 1, 0.3)
         out = tokens[a, P:] if answer == "truth" else np.repeat(tokens[a, P - 1][None], F, 0)
-        return torch.from_numpy(out.astype(np.int64))[None]
+        return list(torch.from_numpy(out.astype(np.int64))[:, None])
 
-    monkeypatch.setattr(diffusion, "forecast_tokens", fake_forecast)
+    monkeypatch.setattr(diffusion, "forecast_sequence", lambda *a, **k: fake_forecast(*a, sampler="algorithm 2", **k))
+    monkeypatch.setattr(diffusion, "forecast_one_pass", lambda *a, **k: fake_forecast(*a, sampler="one pass", **k))
     # a 3 x 3 grid over [-45, 45]^2 (centres at -30, 0, 30 m): the centre token within 20 m of the
     # sensor, the edge ones at 30 m (20-40 m), the corners at 42.4 m (40-60 m), none beyond 60 m
     method = types.SimpleNamespace(
-        world_cfg=types.SimpleNamespace(n_past=P, n_future=F), world=torch.nn.Linear(1, 1),
+        world_cfg=types.SimpleNamespace(n_past=P, n_future=F, n_frames=P + F), world=torch.nn.Linear(1, 1),
         network_for_stride=networks.__getitem__,
         tok_cfg=types.SimpleNamespace(x_range=(-45.0, 45.0), y_range=(-45.0, 45.0)),
-        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1, change_confidence=0.3),
+        options=types.SimpleNamespace(seed=0, sampling_steps=2, cfg_weight=0.0, top_k=1, change_confidence=0.3,
+                                      one_pass=one_pass),
         variant=types.SimpleNamespace(revise=True),
         code_metric=lambda: None,
         sampling_for=lambda net: (guidance[next(s for s, n in networks.items() if n is net)], 0.0))
+    method.decode_future = types.MethodType(Copilot4D.decode_future, method)
     res = world_token_report(method, windows, log=lambda *_: None)
-    assert sorted(seen) == [(a, P + F, F) for a in range(A)]
+    assert sorted(seen) == [(a, P + F, F, "one pass" if one_pass else "algorithm 2") for a in range(A)]
     assert [(r["stride"], r["step"], r["windows"]) for r in res["rows"]] == [(s, f, 2) for s in (2, 6) for f in (1, 2, 3)]
     for r in res["rows"]:
         sel = np.flatnonzero(windows["stride"] == r["stride"])
