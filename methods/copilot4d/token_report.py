@@ -2,7 +2,7 @@
 
 Averages over all tokens flatter a model that only copies: most of a future token map equals
 the last past frame's map at the same place (empty space, the ground). This report samples the
-world model's forecast (Algorithm 2, the method's own sampler and options) on held-out windows
+world model's forecast (decoded as the method decodes a sample, by its options) on held-out windows
 of the frame it was trained in, and scores it against the tokenizer's tokens of the real future
 apart on the tokens that **changed** since the last past frame and on those that did not, per
 future step. Copying the last past frame scores 0 on the changed and 1 on the unchanged ones by
@@ -106,7 +106,8 @@ def write_token_report(result: dict, meta: dict, out_dir: Path, stem: str) -> tu
             w.writerow([r["stride"], r.get("step", "all"), labels[r["ring"]] if "ring" in r else "all", r["windows"],
                         *(r[k] for k in COUNTS), *(f"{v:.6g}" for v in shares(r).values())])
     lines = [f"# Copilot4D world model: its forecast tokens, changed and unchanged ({md_text(meta['method'])})", "",
-             "Algorithm 2's forecast of each held-out window's future frames from its past frames and every pose, "
+             "The method's forecast of each held-out window's future frames from its past frames and every pose "
+             "(decoded as its options say: Algorithm 2 a frame at a time, or every frame in one pass), "
              "against the tokenizer's tokens of the real future. *Changed*: the real token differs from the last "
              "past frame's at its place (copying that frame scores 0 % on them and 100 % on the others). "
              "*Moved*: the forecast token differs from the last past frame's; *precision*: the share of those "

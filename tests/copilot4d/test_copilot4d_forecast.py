@@ -585,6 +585,15 @@ def test_world_report_scores_the_objective_on_trained_and_held_out_windows(micro
     assert "| training curve, steps 1-2 | mixture |" in text
     assert "| trained on: kitti:train | future | 2 (1) |" in text and "| held out: kitti:test | future |" in text
     assert not list((tmp_path / "rep" / "copilot4d").glob("world-tokens-*"))  # --no-forecast
+    # the forecast's report says how the tokens were decoded: as the method's options decode a sample
+    for n, (opts, decoded) in enumerate((("", "Algorithm 2, a frame at a time: 10 step(s), top-3"),
+                                         (",sampling_steps=1,top_k=1,one_pass=true", "every future frame in one pass"))):
+        fc = ["world-report", "--method", spec + opts, "--train-on", f"kitti={kitti}", "--dataset", f"kitti={kitti}",
+              "--split", "test", "--windows", "1", "--reports", str(tmp_path / f"fc{n}")]
+        r = CliRunner().invoke(build_cli(), fc)
+        assert r.exit_code == 0, r.output
+        (md,) = (tmp_path / f"fc{n}" / "copilot4d").glob("world-tokens-*.md")
+        assert ("one_pass=True" in md.name) == bool(opts) and f"- decoded: {decoded}" in md.read_text(), opts
     # the windows it trained on are not held out
     same = [a if a != "test" else "train" for a in args]
     r = CliRunner().invoke(build_cli(), same)
