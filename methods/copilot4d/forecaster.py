@@ -791,6 +791,12 @@ class Copilot4D(OnTokenizer, TrainedMethod):
                                  metric=self.code_metric(), change_confidence=o.change_confidence,
                                  final_logits=final_logits, generator=generator, context=lambda: autocast(dev))
 
+    def decoding(self) -> str:
+        """How :meth:`decode_future` decodes under these options, in words (for a report)."""
+        if self.options.one_pass:
+            return "every future frame in one pass, each token its guided arg max (one_pass)"
+        return f"Algorithm 2, a frame at a time: {self.options.sampling_steps} step(s), top-{self.options.top_k}"
+
     def soft_maps(self, final_logits: list, t0, a: float | None = None) -> list:
         """``soft_mix`` a (default: the option's): per future frame the (H, W, D) code embeddings the tokenizer decodes,
         a E_p[e] + (1 - a) e(c0) at every token, p the guided distribution of the frame's last

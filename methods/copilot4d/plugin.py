@@ -238,9 +238,7 @@ def _world_report_command(cli):  # noqa: ANN001
         if forecast:
             result = world_token_report(m, windows, max_windows=max_windows or None, log=lambda *_: None)
             sampled = f"{m.variant.name}-{ck.sha256[:12]}{_inference_suffix(m)}-on-{source.adapter.name}-{split}"
-            decoded = ("every future frame in one pass, each token its guided arg max (one_pass)" if opts.one_pass
-                       else f"Algorithm 2, a frame at a time: {opts.sampling_steps} step(s), top-{opts.top_k}")
-            md, csv_path = write_token_report(result, {**meta, "decoded": decoded, "regenerate": regenerate}, out,
+            md, csv_path = write_token_report(result, {**meta, "decoded": m.decoding(), "regenerate": regenerate}, out,
                                               f"world-tokens-{sampled}")
             for r in result["rows"]:
                 sh = shares(r)
