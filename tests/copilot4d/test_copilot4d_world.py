@@ -813,6 +813,27 @@ def test_one_pass_is_refused_with_a_sampler_that_chooses_among_samples():
     resolve_method("copilot4d:one_pass=true,sampling_steps=1,top_k=1").create()
 
 
+def test_one_pass_refuses_more_future_frames_than_the_network_was_trained_on_naming_the_sample():
+    """A sample (or window) with more future frames than the network's window is one error naming
+    it; as many as the window are decoded, one code map each (B, H, W)."""
+    import types
+
+    from pcfbench.methods.copilot4d.forecaster import Copilot4D
+
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(MICRO, n_future=3)
+    model = WorldModel(cfg).eval()
+    method = types.SimpleNamespace(world_cfg=cfg, options=types.SimpleNamespace(one_pass=True),
+                                   sampling_for=lambda world: (2.0, 0.0))
+    gen = torch.Generator().manual_seed(8)
+    past = torch.randint(0, 16, (1, 2, 8, 8), generator=gen)
+    codes = Copilot4D.decode_future(method, model, past, _random_poses(1, 5, gen).float(), 3)
+    assert [tuple(c.shape) for c in codes] == [(1, 8, 8)] * 3
+    with pytest.raises(PcfbenchError, match="^sample 7: one_pass=true forecasts its 4 future frames in one pass; "
+                                            "the network was trained on 3$"):
+        Copilot4D.decode_future(method, model, past, _random_poses(1, 6, gen).float(), 4, name="sample 7")
+
+
 # --------------------------------------------------------------------------- overfit
 def test_overfit_a_tiny_sequence():
     """Algorithm 1 on one random 3-frame sequence: forecasting its last frame from the clean
